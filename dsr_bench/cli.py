@@ -1,0 +1,66 @@
+"""The `dsr-bench` command line: a typer app assembled from `dsr_bench.commands`."""
+
+from __future__ import annotations
+
+import importlib
+import sys
+
+import typer
+
+from dsr_bench.errors import UserError
+
+app = typer.Typer(
+    name="dsr-bench",
+    help="Dataset and benchmark toolkit for 3D dynamic scene representations (DSR, CoRL 2020).",
+    no_args_is_help=True,
+    add_completion=False,
+    pretty_exceptions_enable=False,
+)
+
+#: Command modules under dsr_bench.commands, each with a `register(app)` function.
+_COMMAND_MODULES: tuple[str, ...] = (
+    "data",
+)
+
+for _name in _COMMAND_MODULES:
+    importlib.import_module(f"dsr_bench.commands.{_name}").register(app)
+
+
+@app.callback()
+def _root(
+    version: bool = typer.Option(False, "--version", help="Print the toolkit version and exit.", is_eager=True),
+) -> None:
+    if version:
+        from dsr_bench import __version__
+
+        typer.echo(__version__)
+        raise typer.Exit()
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Console entry point: user errors become one line on stderr and exit code 2."""
+    try:
+        app(args=argv, standalone_mode=False)
+    except UserError as exc:
+        typer.echo(f"error: {exc}", err=True)
+        return 2
+    except typer.Exit as exc:
+        return exc.exit_code
+    except typer.Abort:
+        typer.echo("aborted", err=True)
+        return 130
+    except KeyboardInterrupt:
+        typer.echo("interrupted", err=True)
+        return 130
+    except Exception as exc:  # click usage errors carry their own exit codes
+        import click
+
+        if isinstance(exc, click.ClickException):
+            exc.show()
+            return exc.exit_code
+        raise
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

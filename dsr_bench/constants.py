@@ -1,0 +1,74 @@
+"""The benchmark's fixed constants, in one place.
+
+Every other module imports its grid, camera, unit and policy constants from here. Values follow the
+official DSR release (see DATASHEET.md, "Conventions"), lengths in metres, angles in radians.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+# --- The voxel grid --------------------------------------------------------------------------
+#: Voxel edge length (m).
+VOXEL_SIZE: float = 0.004
+#: World bounds of the volume, rows (x, y, z), columns (min, max), metres.
+GRID_BOUNDS: np.ndarray = np.array([[0.244, 0.756], [-0.256, 0.256], [0.0, 0.192]])
+#: Volume shape in the benchmark's axis order (world y, world x, z).
+GRID_SHAPE: tuple[int, int, int] = (128, 128, 48)
+#: Human-readable axis order of every volume, the action map and flow components.
+AXIS_ORDER: str = "y,x,z"
+FLOW_COMPONENTS: str = "dy,dx,dz"
+#: Workspace centre on the table (m).
+WORKSPACE_CENTER: tuple[float, float] = (0.5, 0.0)
+#: TSDF truncation distance: 5 voxels (m).
+TSDF_TRUNCATION: float = 5 * VOXEL_SIZE
+#: voxel^2 -> cm^2 (0.4 cm voxels), the official factor for motion MSE.
+VOXEL2_TO_CM2: float = 0.16
+
+# --- Actions ---------------------------------------------------------------------------------
+NUM_DIRECTIONS: int = 8
+#: Push primitive heights and length (m).
+PUSH_APPROACH_HEIGHT: float = 0.15
+PUSH_HEIGHT: float = 0.005
+PUSH_LENGTH: float = 0.15
+#: Pusher tool: a cylinder like the real rig's (m).
+PUSHER_RADIUS: float = 0.01
+PUSHER_LENGTH: float = 0.10
+#: Start-point search of the official code (m, pixels, count).
+START_BACKOFF: float = 0.04
+START_STEP: float = 0.01
+START_MAX_STEPS: int = 5
+START_FREE_RADIUS_PX: int = 5
+FREE_HEIGHT: float = 0.005
+AHEAD_DISTANCE: float = 0.04
+
+# --- Cameras ---------------------------------------------------------------------------------
+#: Horizontal field of view (rad), RealSense D415-like.
+CAMERA_HFOV: float = float(np.deg2rad(69.4))
+#: Camera placements: position, look-at target, up vector (world, m).
+CAMERAS: dict[str, dict[str, tuple[float, float, float]]] = {
+    "front": {"eye": (0.5, -0.7, 0.3), "target": (0.5, 0.0, 0.0), "up": (0.0, 0.3, 0.7)},
+    "back": {"eye": (0.5, 0.7, 0.3), "target": (0.5, 0.0, 0.0), "up": (0.0, -0.3, 0.7)},
+}
+#: Image size (height, width) of the stored 2D data.
+IMAGE_SHAPE: tuple[int, int] = (240, 320)
+#: Depth image size used to integrate the TSDF (2 mm pixels at the far edge of the grid).
+TSDF_IMAGE_SHAPE: tuple[int, int] = (480, 640)
+
+# --- Scenes ------------------------------------------------------------------------------------
+DEFAULT_STEPS: int = 10
+DEFAULT_OBJECTS_PER_SCENE: int = 4
+MAX_OBJECTS_PER_SCENE: int = 5
+MIN_VISIBLE_FRACTION: float = 0.4
+MIN_OBJECT_SEPARATION: float = 0.07
+MIN_LARGE_SEPARATION: float = 0.13
+#: Mask slots of the models (K), background last.
+NUM_MASK_SLOTS: int = 5
+
+# --- Policy ----------------------------------------------------------------------------------
+POLICY_DIRECTION_TEMPERATURE: float = 2.0
+POLICY_FAR_FROM_CENTER: float = 0.2
+
+# --- File format -----------------------------------------------------------------------------
+SCHEMA_VERSION: int = 1
+FORMAT_NAME: str = "dsr-bench-sequence"

@@ -1,0 +1,174 @@
+"""Grid, pose and camera geometry shared by the generator, the readers, the metrics and the viewer.
+
+Conventions (see DATASHEET.md):
+- World frame: table plane z = 0, metres. Quaternions are (x, y, z, w), as in pybullet and the
+  official release.
+- Volumes are indexed (iy, ix, iz); voxel (iy, ix, iz) covers
+  [bound_min + index * VOXEL_SIZE, bound_min + (index + 1) * VOXEL_SIZE) on each axis and its
+  centre is at bound_min + (index + 0.5) * VOXEL_SIZE.
+- Cameras use the OpenCV convention (x right, y down, z forward); an extrinsic is the 4x4
+  camera-to-world transform; pixel (u, v) centres sit at integer coordinates and the principal
+  point is (W / 2, H / 2), as in the official release.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from dsr_bench.constants import CAMERA_HFOV, CAMERAS, GRID_BOUNDS, GRID_SHAPE, VOXEL_SIZE
+
+# --- Poses -------------------------------------------------------------------------------------
+
+
+def quat_to_matrix(quat_xyzw: np.ndarray) -> np.ndarray:
+    """Rotation matrices (..., 3, 3) from unit quaternions (..., 4) in (x, y, z, w) order."""
+    q = np.asarray(quat_xyzw, dtype=np.float64)
+    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
+    x, y, z, w = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
+    rot = np.stack(
+        [
+            1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w),
+            2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w),
+            2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y),
+        ],
+        axis=-1,
+    )
+    return rot.reshape(q.shape[:-1] + (3, 3))
+
+
+def pose_to_matrix(pose: np.ndarray) -> np.ndarray:
+    """4x4 transforms (..., 4, 4) from poses (..., 7) = (x, y, z, qx, qy, qz, qw), metres."""
+    pose = np.asarray(pose, dtype=np.float64)
+    out = np.zeros(pose.shape[:-1] + (4, 4))
+    out[..., :3, :3] = quat_to_matrix(pose[..., 3:7])
+    out[..., :3, 3] = pose[..., :3]
+    out[..., 3, 3] = 1.0
+    return out
+
+
+def transform_points(transform: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Apply a 4x4 transform to points (..., 3)."""
+    return points @ transform[:3, :3].T + transform[:3, 3]
+
+
+def relative_motion(pose_from: np.ndarray, pose_to: np.ndarray) -> np.ndarray:
+    """The world-frame 4x4 rigid motion T with T @ pose_from = pose_to (poses as (7,))."""
+    return pose_to_matrix(pose_to) @ np.linalg.inv(pose_to_matrix(pose_from))
+
+
+# --- The voxel grid ----------------------------------------------------------------------------
+
+
+def voxel_centers(grid_shape: tuple[int, int, int] = GRID_SHAPE) -> np.ndarray:
+    """World coordinates (x, y, z) of every voxel centre, shape (*grid_shape, 3), metres."""
+    iy, ix, iz = (np.arange(n) for n in grid_shape)
+    x = GRID_BOUNDS[0, 0] + (ix + 0.5) * VOXEL_SIZE
+    y = GRID_BOUNDS[1, 0] + (iy + 0.5) * VOXEL_SIZE
+    z = GRID_BOUNDS[2, 0] + (iz + 0.5) * VOXEL_SIZE
+    yy, xx, zz = np.meshgrid(y, x, z, indexing="ij")
+    return np.stack([xx, yy, zz], axis=-1)
+
+
+def world_to_voxel(points_xyz: np.ndarray) -> np.ndarray:
+    """Continuous voxel coordinates (iy, ix, iz) of world points (..., 3) in (x, y, z) metres.
+
+    A voxel centre maps to integer coordinates; floor(coordinate + 0.5) is its index.
+    """
+    p = np.asarray(points_xyz, dtype=np.float64)
+    origin = GRID_BOUNDS[:, 0]
+    v = (p - origin) / VOXEL_SIZE - 0.5
+    return v[..., [1, 0, 2]]
+
+
+def voxel_to_world(voxel_yxz: np.ndarray) -> np.ndarray:
+    """World points (x, y, z) metres of continuous voxel coordinates (..., 3) in (iy, ix, iz)."""
+    v = np.asarray(voxel_yxz, dtype=np.float64)[..., [1, 0, 2]]
+    return GRID_BOUNDS[:, 0] + (v + 0.5) * VOXEL_SIZE
+
+
+def world_to_pixel(xy: np.ndarray) -> np.ndarray:
+    """(row, col) workspace-grid cells (int) of world points (..., 2) in (x, y) metres."""
+    xy = np.asarray(xy, dtype=np.float64)
+    col = np.floor((xy[..., 0] - GRID_BOUNDS[0, 0]) / VOXEL_SIZE).astype(np.int64)
+    row = np.floor((xy[..., 1] - GRID_BOUNDS[1, 0]) / VOXEL_SIZE).astype(np.int64)
+    return np.stack([row, col], axis=-1)
+
+
+def pixel_to_world(row_col: np.ndarray) -> np.ndarray:
+    """World (x, y) metres of the centres of workspace-grid cells (..., 2) in (row, col)."""
+    rc = np.asarray(row_col, dtype=np.float64)
+    x = GRID_BOUNDS[0, 0] + (rc[..., 1] + 0.5) * VOXEL_SIZE
+    y = GRID_BOUNDS[1, 0] + (rc[..., 0] + 0.5) * VOXEL_SIZE
+    return np.stack([x, y], axis=-1)
+
+
+def direction_vector(direction: int | np.ndarray) -> np.ndarray:
+    """Unit push direction(s) (..., 2) in world (x, y) for direction index d: angle d * pi / 4."""
+    angle = np.asarray(direction, dtype=np.float64) * (np.pi / 4)
+    return np.stack([np.cos(angle), np.sin(angle)], axis=-1)
+
+
+# --- Cameras -----------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Camera:
+    """A pinhole camera: intrinsics (3x3, pixels) and camera-to-world extrinsics (4x4, OpenCV)."""
+
+    name: str
+    height: int
+    width: int
+    intrinsics: np.ndarray
+    extrinsics: np.ndarray
+
+    def ray_directions_world(self) -> np.ndarray:
+        """World-frame ray directions (H, W, 3) with unit camera z (so t along a ray = z-depth)."""
+        v, u = np.meshgrid(np.arange(self.height), np.arange(self.width), indexing="ij")
+        pix = np.stack([u, v, np.ones_like(u)], axis=-1).astype(np.float64)
+        cam = pix @ np.linalg.inv(self.intrinsics).T
+        return cam @ self.extrinsics[:3, :3].T
+
+    def project(self, points_world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Pixel coordinates (..., 2) as (u, v) and z-depth (...,) of world points (..., 3)."""
+        world_to_cam = np.linalg.inv(self.extrinsics)
+        cam = transform_points(world_to_cam, points_world)
+        z = cam[..., 2]
+        uv = cam[..., :2] / z[..., None] * np.diag(self.intrinsics)[:2] + self.intrinsics[:2, 2]
+        return uv, z
+
+    def backproject(self, depth: np.ndarray) -> np.ndarray:
+        """World points (H, W, 3) of a z-depth image (H, W) in metres (invalid depth 0 -> NaN)."""
+        pts = self.ray_directions_world() * depth[..., None] + self.extrinsics[:3, 3]
+        pts[depth <= 0] = np.nan
+        return pts
+
+
+def look_at(eye, target, up) -> np.ndarray:
+    """Camera-to-world 4x4 (OpenCV axes) of a camera at `eye` looking at `target`."""
+    eye, target, up = (np.asarray(a, dtype=np.float64) for a in (eye, target, up))
+    forward = target - eye
+    forward /= np.linalg.norm(forward)
+    right = np.cross(forward, up)
+    right /= np.linalg.norm(right)
+    down = np.cross(forward, right)
+    out = np.eye(4)
+    out[:3, 0], out[:3, 1], out[:3, 2], out[:3, 3] = right, down, forward, eye
+    return out
+
+
+def pinhole_intrinsics(height: int, width: int, hfov: float = CAMERA_HFOV) -> np.ndarray:
+    """3x3 intrinsics with focal length (W / 2) / tan(hfov / 2) and principal point (W/2, H/2)."""
+    f = (width / 2) / np.tan(hfov / 2)
+    return np.array([[f, 0.0, width / 2], [0.0, f, height / 2], [0.0, 0.0, 1.0]])
+
+
+def make_camera(name: str, height: int, width: int) -> Camera:
+    """One of the benchmark's cameras ('front' or 'back') at a given image size."""
+    if name not in CAMERAS:
+        raise ValueError(f"unknown camera {name!r}; choose from {', '.join(CAMERAS)}")
+    spec = CAMERAS[name]
+    return Camera(
+        name, height, width, pinhole_intrinsics(height, width), look_at(spec["eye"], spec["target"], spec["up"])
+    )

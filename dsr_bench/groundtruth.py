@@ -1,0 +1,57 @@
+"""Ground truth derived from object poses: rigid 3D and 2D scene flow (numpy only).
+
+Used by the generator, the annotator's export and `dsr-bench validate` (which recomputes flow from
+the stored poses and amodal masks), so every producer and checker shares one definition.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from dsr_bench.constants import GRID_BOUNDS, VOXEL_SIZE
+from dsr_bench.geometry import relative_motion
+
+
+def voxel_centers_of(indices_yxz: np.ndarray) -> np.ndarray:
+    """World centres (M, 3) in (x, y, z) metres of integer voxel indices (M, 3) in (iy, ix, iz)."""
+    idx = indices_yxz[:, [1, 0, 2]].astype(np.float64)
+    return GRID_BOUNDS[:, 0] + (idx + 0.5) * VOXEL_SIZE
+
+
+def rigid_scene_flow_3d(mask_t: np.ndarray, poses_t: np.ndarray, poses_next: np.ndarray) -> np.ndarray:
+    """3D scene flow (3, Y, X, Z) float32 in voxels, components (dy, dx, dz).
+
+    mask_t: amodal instance ids (Y, X, Z) at t (0 empty, i + 1 = object i); poses_t, poses_next:
+    (N, 7) world poses at t and t + 1. Each object's voxel centres at t move by the object's rigid
+    motion; empty voxels get 0.
+    """
+    flow = np.zeros((3,) + mask_t.shape, dtype=np.float32)
+    for i in range(poses_t.shape[0]):
+        idx = np.argwhere(mask_t == i + 1)
+        if idx.size == 0:
+            continue
+        motion = relative_motion(poses_t[i], poses_next[i])
+        centers = voxel_centers_of(idx)
+        moved = centers @ motion[:3, :3].T + motion[:3, 3]
+        disp = (moved - centers)[:, [1, 0, 2]] / VOXEL_SIZE
+        flow[:, idx[:, 0], idx[:, 1], idx[:, 2]] = disp.T.astype(np.float32)
+    return flow
+
+
+def rigid_scene_flow_2d(points: np.ndarray, mask_2d: np.ndarray, poses_t: np.ndarray,
+                        poses_next: np.ndarray) -> np.ndarray:
+    """2D scene flow (H, W, 3) float32 in metres, components (dy, dx, dz).
+
+    points: world points (H, W, 3) seen at t (NaN where no return); mask_2d: visible instance ids
+    (H, W). Background and missing pixels get 0.
+    """
+    flow = np.zeros(points.shape, dtype=np.float32)
+    for i in range(poses_t.shape[0]):
+        sel = mask_2d == i + 1
+        if not sel.any():
+            continue
+        motion = relative_motion(poses_t[i], poses_next[i])
+        p = points[sel].astype(np.float64)
+        disp = p @ motion[:3, :3].T + motion[:3, 3] - p
+        flow[sel] = disp[:, [1, 0, 2]].astype(np.float32)
+    return flow

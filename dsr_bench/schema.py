@@ -1,0 +1,106 @@
+"""The sequence file schema: every dataset's shape, dtype, units and meaning, in one table.
+
+The writer, the reader, `dsr-bench validate` and DATASHEET.md's schema table all come from
+`SEQUENCE_SCHEMA`. Shapes use symbols: T pushes (T + 1 observations), N objects, H x W the image
+size of the stored 2D data, and the grid (128, 128, 48) in (y, x, z) order.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from dsr_bench.constants import GRID_SHAPE, IMAGE_SHAPE, NUM_DIRECTIONS
+
+GRID_SYMBOLS = ("Y", "X", "Z")
+
+
+@dataclass(frozen=True)
+class Field:
+    """One HDF5 dataset of a sequence file."""
+
+    name: str
+    shape: tuple[str, ...]
+    dtype: str
+    units: str
+    description: str
+    camera: bool = False  # lives under cameras/<name>/
+    required: bool = True
+    value_range: tuple[float, float] | None = None
+
+
+SEQUENCE_SCHEMA: tuple[Field, ...] = (
+    Field("tsdf", ("T+1", "Y", "X", "Z"), "float32", "truncation (0.02 m)",
+          "Front-view TSDF: min(1, (depth - z) / trunc), +1 where unseen or free", value_range=(-1.0, 1.0)),
+    Field("mask_3d", ("T+1", "Y", "X", "Z"), "uint8", "instance id",
+          "Amodal instance ids from each object's solid at its pose: 0 empty, 1..N objects"),
+    Field("scene_flow_3d", ("T", "3", "Y", "X", "Z"), "float32", "voxels (0.4 cm), (dy, dx, dz)",
+          "Rigid motion t -> t+1 of each object at the centres of its amodal voxels at t; 0 elsewhere"),
+    Field("action", ("T", "3"), "int64", "[direction 0..7, row, col]",
+          "Push: direction d (angle d*pi/4 in world xy), start cell (row along y, col along x)"),
+    Field("push_start", ("T", "3"), "float64", "m, world (x, y, z)", "Pusher tool centre at contact height, push start"),
+    Field("push_end", ("T", "3"), "float64", "m, world (x, y, z)", "Pusher tool centre at the end of the push"),
+    Field("object_poses", ("T+1", "N", "7"), "float64", "m and unit quaternion (x, y, z, qx, qy, qz, qw)",
+          "World pose of each object's mesh frame at each observation"),
+    Field("visible_fraction", ("T+1", "N"), "float32", "fraction",
+          "Visible pixels / amodal silhouette pixels of each object in the front camera", value_range=(0.0, 1.0)),
+    Field("heightmap", ("T+1", "Y", "X"), "float32", "m above the table",
+          "Top-down heightmap over the workspace (4 mm cells), what the push policy sees"),
+    Field("color", ("T+1", "H", "W", "3"), "uint8", "RGB", "Colour image", camera=True),
+    Field("depth", ("T+1", "H", "W"), "float32", "m, z-depth (0 = no return)", "Depth along the optical axis",
+          camera=True),
+    Field("mask", ("T+1", "H", "W"), "uint8", "instance id", "Visible instance ids: 0 table/background, 1..N",
+          camera=True),
+    Field("points", ("T+1", "H", "W", "3"), "float32", "m, world (x, y, z) (NaN = no return)",
+          "World point of each pixel", camera=True),
+    Field("scene_flow_2d", ("T", "H", "W", "3"), "float32", "m, world (dy, dx, dz)",
+          "World displacement t -> t+1 of the surface point seen at each pixel; 0 for the background",
+          camera=True),
+    Field("policy/chosen_object", ("T",), "int64", "object index 0..N-1", "Object the policy chose to push"),
+    Field("policy/object_probs", ("T", "N"), "float32", "probability", "Object choice distribution"),
+    Field("policy/direction_scores", ("T", str(NUM_DIRECTIONS)), "float32", "score",
+          "Direction scores (NaN for the uniform policy)"),
+    Field("policy/direction_probs", ("T", str(NUM_DIRECTIONS)), "float32", "probability",
+          "Direction choice distribution"),
+    Field("policy/attempts", ("T",), "int64", "count",
+          "Samples drawn until a valid push was found (start-point search and workspace checks)"),
+)
+
+FIELDS: dict[str, Field] = {f.name: f for f in SEQUENCE_SCHEMA}
+
+#: Root attributes every sequence carries.
+REQUIRED_ATTRS: tuple[str, ...] = (
+    "format", "schema_version", "sequence", "seed", "num_steps", "num_objects", "object_set", "policy",
+    "generator_args", "toolkit_version", "source", "grid_bounds", "grid_shape", "voxel_size", "axis_order",
+    "flow_components", "objects", "cameras",
+)
+
+
+def resolve_shape(field: Field, num_steps: int, num_objects: int, image_shape: tuple[int, int] = IMAGE_SHAPE) -> tuple[int, ...]:
+    """The concrete shape of a field for a sequence of T pushes and N objects."""
+    sizes = {
+        "T": num_steps, "T+1": num_steps + 1, "N": num_objects,
+        "H": image_shape[0], "W": image_shape[1],
+        "Y": GRID_SHAPE[0], "X": GRID_SHAPE[1], "Z": GRID_SHAPE[2],
+    }
+    return tuple(sizes[s] if s in sizes else int(s) for s in field.shape)
+
+
+def dataset_path(field: Field, camera: str | None = None) -> str:
+    """HDF5 path of a field (camera fields live under cameras/<camera>/)."""
+    if field.camera:
+        if camera is None:
+            raise ValueError(f"field {field.name!r} needs a camera name")
+        return f"cameras/{camera}/{field.name}"
+    return field.name
+
+
+def check_array(field: Field, array: np.ndarray, expected_shape: tuple[int, ...], where: str) -> list[str]:
+    """Problems (empty if none) with an array against its field's shape and dtype."""
+    problems = []
+    if tuple(array.shape) != tuple(expected_shape):
+        problems.append(f"{where}: shape {tuple(array.shape)}, expected {tuple(expected_shape)}")
+    if np.dtype(array.dtype) != np.dtype(field.dtype):
+        problems.append(f"{where}: dtype {array.dtype}, expected {field.dtype}")
+    return problems
