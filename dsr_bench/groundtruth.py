@@ -18,23 +18,28 @@ def voxel_centers_of(indices_yxz: np.ndarray) -> np.ndarray:
     return GRID_BOUNDS[:, 0] + (idx + 0.5) * VOXEL_SIZE
 
 
-def rigid_scene_flow_3d(mask_t: np.ndarray, poses_t: np.ndarray, poses_next: np.ndarray) -> np.ndarray:
+def rigid_scene_flow_3d(mask_t: np.ndarray, poses_t: np.ndarray, poses_next: np.ndarray,
+                        out: np.ndarray | None = None) -> np.ndarray:
     """3D scene flow (3, Y, X, Z) float32 in voxels, components (dy, dx, dz).
 
     mask_t: amodal instance ids (Y, X, Z) at t (0 empty, i + 1 = object i); poses_t, poses_next:
     (N, 7) world poses at t and t + 1. Each object's voxel centres at t move by the object's rigid
-    motion; empty voxels get 0.
+    motion; empty voxels get 0. `out`, if given, must be zeros; it is filled in place and returned.
     """
-    flow = np.zeros((3,) + mask_t.shape, dtype=np.float32)
+    flow = np.zeros((3,) + mask_t.shape, dtype=np.float32) if out is None else out
+    flat = np.flatnonzero(mask_t)
+    labels = mask_t.reshape(-1)[flat]
+    indices = np.stack(np.unravel_index(flat, mask_t.shape), axis=1)
+    flow_flat = flow.reshape(3, -1)
     for i in range(poses_t.shape[0]):
-        idx = np.argwhere(mask_t == i + 1)
-        if idx.size == 0:
+        sel = labels == i + 1
+        if not sel.any():
             continue
         motion = relative_motion(poses_t[i], poses_next[i])
-        centers = voxel_centers_of(idx)
+        centers = voxel_centers_of(indices[sel])
         moved = centers @ motion[:3, :3].T + motion[:3, 3]
         disp = (moved - centers)[:, [1, 0, 2]] / VOXEL_SIZE
-        flow[:, idx[:, 0], idx[:, 1], idx[:, 2]] = disp.T.astype(np.float32)
+        flow_flat[:, flat[sel]] = disp.T.astype(np.float32)
     return flow
 
 

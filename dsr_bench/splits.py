@@ -1,0 +1,71 @@
+"""The benchmark's fixed named splits: what `dsr-bench generate --split NAME` reproduces.
+
+A split is fully determined by its object set, size, base seed and scene parameters; sequence i is
+generated from `sequence_seed(base_seed, i)`, so any worker count or shard gives the same files'
+contents. `expected_digest` pins the split checksum (`dsr_bench.manifest.split_digest`) where it
+has been measured; `None` means not pinned yet.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from dsr_bench.constants import DEFAULT_OBJECTS_PER_SCENE, DEFAULT_STEPS
+from dsr_bench.errors import UserError
+
+
+@dataclass(frozen=True)
+class Split:
+    """A named, reproducible split of simulated sequences."""
+
+    name: str
+    objects: str
+    num_sequences: int
+    base_seed: int
+    role: str  # "train" | "test"
+    description: str
+    steps: int = DEFAULT_STEPS
+    objects_per_scene: int = DEFAULT_OBJECTS_PER_SCENE
+    policy: str = "heuristic"
+    expected_digest: str | None = None
+
+
+SPLITS: dict[str, Split] = {
+    s.name: s
+    for s in (
+        Split("cube-train", "cube", 4000, 10_000, "train", "Paper stage 1-2 training set: boxes (official scripts: 4000)"),
+        Split("cube-test", "cube", 400, 11_000, "test", "Held-out boxes"),
+        Split("shapenet-train", "shapenet", 8000, 20_000, "train", "Paper stage 3 training set: 44 ShapeNet models"),
+        Split("shapenet-test", "shapenet", 400, 21_000, "test", "Held-out ShapeNet scenes"),
+        Split("ycb-test", "ycb", 400, 30_000, "test", "The paper's novel-object sim test set: YCB objects"),
+        Split("procedural-train", "procedural", 8000, 40_000, "train",
+              "Built-in stand-in for shapenet-train (procedural mugs, bottles, cans, phones, sofas)"),
+        Split("procedural-test", "procedural", 400, 41_000, "test", "Held-out procedural scenes (seen categories)"),
+        Split("procedural-novel-test", "procedural-novel", 400, 50_000, "test",
+              "Built-in stand-in for ycb-test: novel YCB-like shapes"),
+        Split("procedural-mini", "procedural", 8, 60_000, "train", "Eight procedural sequences for a first look"),
+        Split("procedural-novel-mini", "procedural-novel", 8, 61_000, "test",
+              "Eight novel-object sequences for a first look and the quick-start evaluation"),
+    )
+}
+SPLIT_NAMES: tuple[str, ...] = tuple(SPLITS)
+
+
+def get_split(name: str) -> Split:
+    """The named split, or a UserError listing the known names."""
+    if name not in SPLITS:
+        raise UserError(f"unknown split {name!r}; choose one of: {', '.join(SPLIT_NAMES)}")
+    return SPLITS[name]
+
+
+def sequence_seed(base_seed: int, index: int) -> int:
+    """The 63-bit seed of sequence `index` of a run with base seed `base_seed` (independent streams)."""
+    state = np.random.SeedSequence(entropy=int(base_seed), spawn_key=(int(index),)).generate_state(2, np.uint32)
+    return int((int(state[0]) << 31) ^ int(state[1]))
+
+
+def sequence_name(index: int) -> str:
+    """File stem of sequence `index`: seq_0000, seq_0001, ... (at least four digits)."""
+    return f"seq_{index:04d}"

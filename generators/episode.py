@@ -1,0 +1,249 @@
+"""One simulated pushing sequence: sample a scene, push T times, observe T + 1 times.
+
+simulate (generators.physics) -> observe (generators.render) -> arrays in the sequence schema.
+Everything random is drawn from one numpy Generator seeded with the sequence seed, and the world is
+rebuilt for every scene attempt, so a sequence is a pure function of (arguments, sequence seed).
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+
+from dsr_bench import __version__
+from dsr_bench.constants import (
+    AXIS_ORDER, DEFAULT_OBJECTS_PER_SCENE, DEFAULT_STEPS, FLOW_COMPONENTS, GRID_BOUNDS, GRID_SHAPE,
+    MIN_LARGE_SEPARATION, MIN_OBJECT_SEPARATION, MIN_VISIBLE_FRACTION, PUSH_LENGTH, TSDF_IMAGE_SHAPE, VOXEL_SIZE,
+    WORKSPACE_CENTER,
+)
+from dsr_bench.geometry import direction_vector, pose_to_matrix, world_to_pixel
+from dsr_bench.groundtruth import rigid_scene_flow_2d, rigid_scene_flow_3d
+
+MAX_SCENE_ATTEMPTS = 30
+MAX_PUSH_ATTEMPTS = 8
+DROP_REGION_HALF = 0.12  # m around the workspace centre
+DROP_CLEARANCE = 0.002  # m between an object's lowest point and the table at the drop
+WORKSPACE_MARGIN = 0.0  # m an object's hull must keep inside the grid's xy bounds
+
+
+class SceneRejected(Exception):
+    """A sampled scene or push could not be used (resampled; never written)."""
+
+
+@dataclass(frozen=True)
+class EpisodeConfig:
+    """Arguments that define a sequence besides its seed (all written to the file's attributes)."""
+
+    objects: str = "procedural"
+    steps: int = DEFAULT_STEPS
+    objects_per_scene: int = DEFAULT_OBJECTS_PER_SCENE
+    policy: str = "heuristic"
+    cameras: tuple[str, ...] = ("front",)
+    object_root: str | None = None
+    extra: dict = field(default_factory=dict)
+
+    def as_attrs(self) -> dict:
+        out = asdict(self)
+        out["cameras"] = list(self.cameras)
+        return out
+
+
+@dataclass
+class Episode:
+    """A generated sequence, ready for `dsr_bench.sequence.write_sequence`."""
+
+    arrays: dict[str, np.ndarray]
+    attrs: dict
+    meshes: dict[int, tuple[np.ndarray, np.ndarray]]
+    scene_attempts: int
+    timings: dict[str, float]
+
+
+def _world_vertices(spec, pose: np.ndarray) -> np.ndarray:
+    m = pose_to_matrix(pose)
+    return np.vstack([np.asarray(p.vertices) for p in spec.parts]) @ m[:3, :3].T + m[:3, 3]
+
+
+def in_workspace(specs, poses: np.ndarray) -> bool:
+    """Whether every object lies inside the grid (xy within bounds, above the table, under the top)."""
+    for spec, pose in zip(specs, poses):
+        v = _world_vertices(spec, pose)
+        lo, hi = v.min(0), v.max(0)
+        if np.any(lo[:2] < GRID_BOUNDS[:2, 0] + WORKSPACE_MARGIN) or np.any(hi[:2] > GRID_BOUNDS[:2, 1] - WORKSPACE_MARGIN):
+            return False
+        if lo[2] < -0.01 or hi[2] > GRID_BOUNDS[2, 1]:
+            return False
+    return True
+
+
+def _random_quaternion(rng: np.random.Generator) -> np.ndarray:
+    q = rng.normal(size=4)
+    return q / np.linalg.norm(q)
+
+
+def _yaw_quaternion(yaw: float) -> np.ndarray:
+    return np.array([0.0, 0.0, np.sin(yaw / 2), np.cos(yaw / 2)])
+
+
+def _place_objects(rng: np.random.Generator, specs, random_orientation: bool) -> np.ndarray:
+    """Initial drop poses (N, 7): separated xy near the workspace centre, resting just above the table."""
+    radii = [float(np.linalg.norm(np.vstack([p.vertices for p in s.parts])[:, :2], axis=1).max()) for s in specs]
+    xy = np.zeros((len(specs), 2))
+    for i, spec in enumerate(specs):
+        for _ in range(200):
+            cand = np.array(WORKSPACE_CENTER) + rng.uniform(-DROP_REGION_HALF, DROP_REGION_HALF, 2)
+            ok = True
+            for j in range(i):
+                need = max(MIN_OBJECT_SEPARATION, radii[i] + radii[j] + 0.005)
+                if spec.is_large or specs[j].is_large:
+                    need = max(need, MIN_LARGE_SEPARATION)
+                if np.linalg.norm(cand - xy[j]) < need:
+                    ok = False
+                    break
+            if ok:
+                xy[i] = cand
+                break
+        else:
+            raise SceneRejected("could not place objects apart")
+    poses = np.zeros((len(specs), 7))
+    for i, spec in enumerate(specs):
+        quat = _random_quaternion(rng) if random_orientation else _yaw_quaternion(rng.uniform(-np.pi, np.pi))
+        poses[i, :2], poses[i, 3:] = xy[i], quat
+        lowest = _world_vertices(spec, poses[i])[:, 2].min()
+        poses[i, 2] = DROP_CLEARANCE - lowest
+    return poses
+
+
+def _camera_attrs(renderer) -> dict:
+    return {
+        name: {"height": cam.height, "width": cam.width, "intrinsics": cam.intrinsics.tolist(),
+               "extrinsics": cam.extrinsics.tolist(), "convention": "opencv, camera-to-world"}
+        for name, cam in renderer.cameras.items()
+    }
+
+
+def generate_episode(config: EpisodeConfig, object_set, seed: int, name: str) -> Episode:
+    """Simulate and observe one sequence from its seed; raise SceneRejected if no scene works."""
+    import time
+
+    import pybullet
+
+    from generators.physics import PushWorld
+    from generators.policy import make_policy
+    from generators.render import SceneRenderer
+
+    rng = np.random.default_rng(seed)
+    timings = {"physics": 0.0, "render": 0.0, "policy": 0.0}
+    last_reason = ""
+    for attempt in range(1, MAX_SCENE_ATTEMPTS + 1):
+        specs = object_set.sample(rng, config.objects_per_scene)
+        large = [i for i, s in enumerate(specs) if s.is_large]
+        renderer = SceneRenderer(specs, cameras=config.cameras)
+        world = PushWorld(specs)
+        try:
+            t0 = time.perf_counter()
+            drop = _place_objects(rng, specs, random_orientation=config.objects == "cube")
+            for i in range(len(specs)):
+                world.set_pose(i, drop[i])
+            world.settle()
+            poses = [world.poses()]
+            timings["physics"] += time.perf_counter() - t0
+            if not in_workspace(specs, poses[0]):
+                last_reason = "an object left the workspace while settling"
+                continue
+            t0 = time.perf_counter()
+            observations = [renderer.observe(poses[0])]
+            timings["render"] += time.perf_counter() - t0
+            if observations[0].visible_fraction.min() < MIN_VISIBLE_FRACTION:
+                last_reason = "an object is less than 40% visible in the front camera"
+                continue
+            policy = make_policy(config.policy, rng, len(specs), large[0] if large else None)
+            policy.reset(poses[0][:, :2])
+            decisions, pushes = [], []
+            for t in range(config.steps):
+                accepted = None
+                for _ in range(MAX_PUSH_ATTEMPTS):
+                    t0 = time.perf_counter()
+                    decision = policy.propose(observations[-1].heightmap, poses[-1][:, :2])
+                    timings["policy"] += time.perf_counter() - t0
+                    if decision is None:
+                        break
+                    t0 = time.perf_counter()
+                    state = world.save()
+                    start, end = world.push(decision.start_xy, direction_vector(decision.direction), PUSH_LENGTH)
+                    after = world.poses()
+                    timings["physics"] += time.perf_counter() - t0
+                    if in_workspace(specs, after):
+                        world.discard(state)
+                        accepted = (decision, start, end, after)
+                        break
+                    world.restore(state)
+                    world.discard(state)
+                if accepted is None:
+                    raise SceneRejected(f"no valid push at step {t}")
+                decision, start, end, after = accepted
+                policy.accept(decision, after[:, :2])
+                decisions.append(decision)
+                pushes.append((start, end))
+                poses.append(after)
+                t0 = time.perf_counter()
+                observations.append(renderer.observe(after))
+                timings["render"] += time.perf_counter() - t0
+        except SceneRejected as exc:
+            last_reason = str(exc)
+            continue
+        finally:
+            world.close()
+        arrays = _assemble(observations, np.stack(poses), decisions, pushes, renderer)
+        meshes = {i: spec.mesh() for i, spec in enumerate(specs)} if config.objects not in ("shapenet", "ycb") else {}
+        attrs = {
+            "sequence": name, "seed": int(seed), "num_steps": config.steps, "num_objects": len(specs),
+            "object_set": config.objects, "policy": config.policy, "generator_args": config.as_attrs(),
+            "toolkit_version": __version__, "pybullet_version": int(pybullet.getAPIVersion()),
+            "source": "simulation", "grid_bounds": GRID_BOUNDS.tolist(), "grid_shape": list(GRID_SHAPE),
+            "voxel_size": VOXEL_SIZE, "axis_order": AXIS_ORDER, "flow_components": FLOW_COMPONENTS,
+            "objects": [spec.identity() for spec in specs], "cameras": _camera_attrs(renderer),
+            "tsdf_image_shape": list(TSDF_IMAGE_SHAPE), "scene_attempts": attempt,
+            "mesh_frames": "object frame origin at the centre of mass; poses map object frame -> world",
+        }
+        return Episode(arrays, attrs, meshes, attempt, timings)
+    raise SceneRejected(f"{name}: no usable scene in {MAX_SCENE_ATTEMPTS} attempts (last: {last_reason})")
+
+
+def _assemble(observations, poses: np.ndarray, decisions, pushes, renderer) -> dict[str, np.ndarray]:
+    """Stack per-step observations and ground truth into the schema's arrays."""
+    steps = len(decisions)
+    arrays: dict[str, np.ndarray] = {
+        "tsdf": np.stack([o.tsdf for o in observations]),
+        "mask_3d": np.stack([o.mask_3d for o in observations]),
+        "heightmap": np.stack([o.heightmap for o in observations]),
+        "visible_fraction": np.stack([o.visible_fraction for o in observations]).astype(np.float32),
+        "object_poses": poses.astype(np.float64),
+        "scene_flow_3d": np.zeros((steps, 3) + GRID_SHAPE, dtype=np.float32),
+        "action": np.array([[d.direction, *d.start_rc] for d in decisions], dtype=np.int64).reshape(steps, 3),
+        "push_start": np.array([p[0] for p in pushes], dtype=np.float64).reshape(steps, 3),
+        "push_end": np.array([p[1] for p in pushes], dtype=np.float64).reshape(steps, 3),
+        "policy/chosen_object": np.array([d.object_index for d in decisions], dtype=np.int64),
+        "policy/object_probs": np.array([d.object_probs for d in decisions], dtype=np.float32),
+        "policy/direction_scores": np.array([d.direction_scores for d in decisions], dtype=np.float32).reshape(steps, 8),
+        "policy/direction_probs": np.array([d.direction_probs for d in decisions], dtype=np.float32).reshape(steps, 8),
+        "policy/attempts": np.array([d.attempts for d in decisions], dtype=np.int64),
+    }
+    for t in range(steps):
+        rigid_scene_flow_3d(observations[t].mask_3d, poses[t], poses[t + 1], out=arrays["scene_flow_3d"][t])
+    for name in renderer.cameras:
+        imgs = [o.images[name] for o in observations]
+        arrays[f"cameras/{name}/color"] = np.stack([i.color for i in imgs])
+        arrays[f"cameras/{name}/depth"] = np.stack([i.depth for i in imgs])
+        arrays[f"cameras/{name}/mask"] = np.stack([i.mask for i in imgs])
+        arrays[f"cameras/{name}/points"] = np.stack([i.points for i in imgs])
+        arrays[f"cameras/{name}/scene_flow_2d"] = np.stack([
+            rigid_scene_flow_2d(imgs[t].points, imgs[t].mask, poses[t], poses[t + 1]) for t in range(steps)])
+    return arrays
+
+
+def check_action_consistency(arrays: dict[str, np.ndarray]) -> bool:
+    """Whether each stored action's (row, col) is the grid cell of its world push start."""
+    cells = world_to_pixel(arrays["push_start"][:, :2])
+    return bool(np.array_equal(cells, arrays["action"][:, 1:]))

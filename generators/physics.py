@@ -1,0 +1,147 @@
+"""The pybullet world of one sequence: table, objects, the pusher tool, and our own stepping loop.
+
+pybullet runs in DIRECT mode with a fixed time step and is stepped only by this module (no real-time
+sleeps, no background thread). A world is built fresh for every sequence and torn down after it, so
+results never depend on what ran before.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from dsr_bench.constants import PUSH_HEIGHT, PUSHER_LENGTH, PUSHER_RADIUS
+
+TIME_STEP = 1.0 / 240.0
+PUSH_SPEED = 0.15  # m/s along the push
+SETTLE_LINEAR_SPEED = 5e-3  # m/s
+SETTLE_ANGULAR_SPEED = 5e-2  # rad/s
+MAX_SETTLE_STEPS = 480
+MIN_SETTLE_STEPS = 24
+FRICTION = 0.5
+_PUSHER_HOME = (0.0, -1.5, 0.5)
+
+
+class PushWorld:
+    """A pybullet world with the given objects (ObjectSpec-like: `.parts`, `.mass`) on a table."""
+
+    def __init__(self, objects):
+        import pybullet as pb
+
+        self._pb = pb
+        self.client = pb.connect(pb.DIRECT)
+        c = self.client
+        pb.resetSimulation(physicsClientId=c)
+        pb.setPhysicsEngineParameter(fixedTimeStep=TIME_STEP, numSolverIterations=50,
+                                     deterministicOverlappingPairs=1, physicsClientId=c)
+        pb.setGravity(0, 0, -9.81, physicsClientId=c)
+        plane = pb.createCollisionShape(pb.GEOM_PLANE, physicsClientId=c)
+        self.table = pb.createMultiBody(0, plane, physicsClientId=c)
+        pb.changeDynamics(self.table, -1, lateralFriction=FRICTION, physicsClientId=c)
+        self.bodies = [self._create_object(obj) for obj in objects]
+        tool = pb.createCollisionShape(pb.GEOM_CYLINDER, radius=PUSHER_RADIUS, height=PUSHER_LENGTH,
+                                       physicsClientId=c)
+        self.pusher = pb.createMultiBody(1.0, tool, basePosition=_PUSHER_HOME, physicsClientId=c)
+        pb.changeDynamics(self.pusher, -1, lateralFriction=FRICTION, physicsClientId=c)
+        self._grip = pb.createConstraint(self.pusher, -1, -1, -1, pb.JOINT_FIXED, [0, 0, 0], [0, 0, 0],
+                                         _PUSHER_HOME, physicsClientId=c)
+        pb.changeConstraint(self._grip, _PUSHER_HOME, maxForce=500.0, physicsClientId=c)
+
+    def _create_object(self, obj) -> int:
+        pb, c = self._pb, self.client
+        shapes = [pb.createCollisionShape(pb.GEOM_MESH, vertices=np.asarray(p.vertices, float).tolist(),
+                                          physicsClientId=c) for p in obj.parts]
+        if len(shapes) == 1:
+            body = pb.createMultiBody(obj.mass, shapes[0], basePosition=[0, 0, -1], physicsClientId=c)
+        else:  # a compound: every part hull as a fixed link, all frames coincide with the object frame
+            n = len(shapes) - 1
+            body = pb.createMultiBody(
+                obj.mass * 0.5, shapes[0], basePosition=[0, 0, -1],
+                linkMasses=[obj.mass * 0.5 / n] * n, linkCollisionShapeIndices=shapes[1:],
+                linkVisualShapeIndices=[-1] * n, linkPositions=[[0, 0, 0]] * n,
+                linkOrientations=[[0, 0, 0, 1]] * n, linkInertialFramePositions=[[0, 0, 0]] * n,
+                linkInertialFrameOrientations=[[0, 0, 0, 1]] * n, linkParentIndices=[0] * n,
+                linkJointTypes=[pb.JOINT_FIXED] * n, linkJointAxis=[[0, 0, 1]] * n, physicsClientId=c)
+        for link in range(-1, pb.getNumJoints(body, physicsClientId=c)):
+            pb.changeDynamics(body, link, lateralFriction=FRICTION, rollingFriction=1e-4, spinningFriction=1e-3,
+                              physicsClientId=c)
+        return body
+
+    # state -----------------------------------------------------------------------------------------
+    def close(self) -> None:
+        self._pb.disconnect(physicsClientId=self.client)
+
+    def __enter__(self) -> PushWorld:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def poses(self) -> np.ndarray:
+        """Object poses (N, 7) = (x, y, z, qx, qy, qz, qw) in the world frame."""
+        out = np.zeros((len(self.bodies), 7))
+        for i, body in enumerate(self.bodies):
+            pos, orn = self._pb.getBasePositionAndOrientation(body, physicsClientId=self.client)
+            out[i, :3], out[i, 3:] = pos, orn
+        return out
+
+    def set_pose(self, index: int, pose: np.ndarray) -> None:
+        self._pb.resetBasePositionAndOrientation(self.bodies[index], pose[:3], pose[3:], physicsClientId=self.client)
+        self._pb.resetBaseVelocity(self.bodies[index], [0, 0, 0], [0, 0, 0], physicsClientId=self.client)
+
+    def save(self) -> int:
+        return self._pb.saveState(physicsClientId=self.client)
+
+    def restore(self, state: int) -> None:
+        self._pb.restoreState(stateId=state, physicsClientId=self.client)
+
+    def discard(self, state: int) -> None:
+        self._pb.removeState(state, physicsClientId=self.client)
+
+    # stepping --------------------------------------------------------------------------------------
+    def step(self, n: int = 1) -> None:
+        for _ in range(n):
+            self._pb.stepSimulation(physicsClientId=self.client)
+
+    def settle(self, max_steps: int = MAX_SETTLE_STEPS) -> int:
+        """Step until every object is still (or `max_steps`); return the steps taken."""
+        pb, c = self._pb, self.client
+        for k in range(1, max_steps + 1):
+            pb.stepSimulation(physicsClientId=c)
+            if k < MIN_SETTLE_STEPS or k % 8:
+                continue
+            still = True
+            for body in self.bodies:
+                lin, ang = pb.getBaseVelocity(body, physicsClientId=c)
+                if np.linalg.norm(lin) > SETTLE_LINEAR_SPEED or np.linalg.norm(ang) > SETTLE_ANGULAR_SPEED:
+                    still = False
+                    break
+            if still:
+                return k
+        return max_steps
+
+    def push(self, start_xy: np.ndarray, direction_xy: np.ndarray, length: float) -> tuple[np.ndarray, np.ndarray]:
+        """Run the push primitive; return the tool tip's start and end points (3,), world metres.
+
+        The tool appears above the start (its approach from 0.15 m runs through free space, which the
+        start-point search guarantees), moves straight along `direction_xy` for `length` at
+        PUSH_SPEED with its tip at PUSH_HEIGHT, lifts out of the scene, and the objects settle.
+        """
+        pb, c = self._pb, self.client
+        centre_z = PUSH_HEIGHT + PUSHER_LENGTH / 2
+        start = np.array([start_xy[0], start_xy[1], centre_z])
+        pb.resetBasePositionAndOrientation(self.pusher, start, [0, 0, 0, 1], physicsClientId=c)
+        pb.resetBaseVelocity(self.pusher, [0, 0, 0], [0, 0, 0], physicsClientId=c)
+        pb.changeConstraint(self._grip, start.tolist(), maxForce=500.0, physicsClientId=c)
+        n = max(1, int(round(length / PUSH_SPEED / TIME_STEP)))
+        direction = np.array([direction_xy[0], direction_xy[1], 0.0])
+        for k in range(1, n + 1):
+            target = start + direction * (length * k / n)
+            pb.changeConstraint(self._grip, target.tolist(), maxForce=500.0, physicsClientId=c)
+            pb.stepSimulation(physicsClientId=c)
+        tip_end = np.array(pb.getBasePositionAndOrientation(self.pusher, physicsClientId=c)[0])
+        pb.resetBasePositionAndOrientation(self.pusher, _PUSHER_HOME, [0, 0, 0, 1], physicsClientId=c)
+        pb.resetBaseVelocity(self.pusher, [0, 0, 0], [0, 0, 0], physicsClientId=c)
+        pb.changeConstraint(self._grip, _PUSHER_HOME, maxForce=500.0, physicsClientId=c)
+        self.settle()
+        offset = np.array([0.0, 0.0, -PUSHER_LENGTH / 2])
+        return start + offset, tip_end + offset
