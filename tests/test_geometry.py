@@ -1,0 +1,77 @@
+"""Conventions of the grid, poses and cameras (see DATASHEET.md, Conventions)."""
+
+import numpy as np
+import pytest
+
+from dsr_bench.constants import GRID_BOUNDS, GRID_SHAPE, VOXEL_SIZE
+from dsr_bench.geometry import (
+    direction_vector, make_camera, pixel_to_world, pose_to_matrix, quat_to_matrix, relative_motion,
+    voxel_centers, voxel_to_world, world_to_pixel, world_to_voxel,
+)
+
+
+def test_grid_matches_official_bounds():
+    extent = GRID_BOUNDS[:, 1] - GRID_BOUNDS[:, 0]
+    # axis order (y, x, z): 128 along y, 128 along x, 48 along z, 4 mm voxels
+    assert np.allclose(extent[[1, 0, 2]] / VOXEL_SIZE, GRID_SHAPE)
+
+
+def test_voxel_centres_axis_order_and_round_trip():
+    centres = voxel_centers()
+    assert centres.shape == GRID_SHAPE + (3,)
+    # index 0 runs along world y, index 1 along world x
+    assert np.isclose(centres[1, 0, 0, 1] - centres[0, 0, 0, 1], VOXEL_SIZE)
+    assert np.isclose(centres[0, 1, 0, 0] - centres[0, 0, 0, 0], VOXEL_SIZE)
+    assert np.allclose(centres[0, 0, 0], GRID_BOUNDS[:, 0] + VOXEL_SIZE / 2)
+    idx = np.array([[3, 100, 7], [127, 0, 47]])
+    world = voxel_to_world(idx)
+    assert np.allclose(world_to_voxel(world), idx)
+    assert np.allclose(world, centres[tuple(idx.T)])
+
+
+def test_workspace_cells_row_along_y():
+    rc = world_to_pixel(np.array([[0.5, 0.0], [0.245, -0.255]]))
+    assert rc.tolist() == [[64, 64], [0, 0]]
+    assert np.allclose(world_to_pixel(pixel_to_world(np.array([[10, 120]]))), [[10, 120]])
+
+
+def test_direction_angles():
+    assert np.allclose(direction_vector(0), [1, 0])
+    assert np.allclose(direction_vector(2), [0, 1])
+    assert np.allclose(direction_vector(5), [-np.sqrt(0.5), -np.sqrt(0.5)])
+
+
+def test_quaternion_xyzw_and_relative_motion():
+    yaw = np.pi / 2
+    rot = quat_to_matrix(np.array([0, 0, np.sin(yaw / 2), np.cos(yaw / 2)]))
+    assert np.allclose(rot @ [1, 0, 0], [0, 1, 0])
+    a = np.array([0.4, 0.1, 0.03, 0, 0, 0, 1.0])
+    b = np.array([0.5, 0.1, 0.03, 0, 0, np.sin(0.2), np.cos(0.2)])
+    motion = relative_motion(a, b)
+    assert np.allclose(motion @ pose_to_matrix(a), pose_to_matrix(b))
+
+
+def test_front_camera_looks_at_workspace_centre():
+    cam = make_camera("front", 240, 320)
+    assert np.allclose(cam.extrinsics[:3, 3], [0.5, -0.7, 0.3])
+    uv, z = cam.project(np.array([0.5, 0.0, 0.0]))
+    assert np.allclose(uv, [160, 120], atol=1e-6) and z > 0
+    # up in the world is up in the image (smaller v), right is +x
+    uv_up, _ = cam.project(np.array([0.5, 0.0, 0.05]))
+    uv_right, _ = cam.project(np.array([0.55, 0.0, 0.0]))
+    assert uv_up[1] < 120 and uv_right[0] > 160
+    assert np.isclose(cam.intrinsics[0, 0], 160 / np.tan(np.deg2rad(34.7)))
+
+
+def test_backproject_inverts_project():
+    cam = make_camera("back", 24, 32)
+    depth = np.full((24, 32), 0.6)
+    pts = cam.backproject(depth)
+    uv, z = cam.project(pts.reshape(-1, 3))
+    v, u = np.meshgrid(np.arange(24), np.arange(32), indexing="ij")
+    assert np.allclose(z, 0.6) and np.allclose(uv, np.stack([u, v], -1).reshape(-1, 2))
+
+
+def test_unknown_camera():
+    with pytest.raises(ValueError, match="unknown camera 'side'"):
+        make_camera("side", 10, 10)
