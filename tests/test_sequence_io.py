@@ -1,0 +1,71 @@
+"""The sequence file: schema-checked atomic writes and validated lazy reads."""
+
+import h5py
+import numpy as np
+import pytest
+
+from dsr_bench.constants import SCHEMA_VERSION
+from dsr_bench.schema import FIELDS, resolve_shape
+from dsr_bench.sequence import SequenceFormatError, SequenceReader, write_sequence
+from dsr_bench.testing import synthetic_arrays, write_synthetic_sequence
+
+
+@pytest.fixture(scope="module")
+def synthetic(tmp_path_factory):
+    path = tmp_path_factory.mktemp("seq") / "seq_0007.h5"
+    return write_synthetic_sequence(path, num_steps=2, num_objects=2, seed=7)
+
+
+def test_round_trip_shapes_dtypes_and_values(synthetic):
+    arrays, _, meshes = synthetic_arrays(2, 2, 7)
+    with SequenceReader(synthetic) as seq:
+        assert (seq.name, seq.num_steps, seq.num_objects) == ("seq_0007", 2, 2)
+        for name, array in arrays.items():
+            stored = seq.read(name)
+            assert stored.dtype == array.dtype and stored.shape == array.shape, name
+            assert np.array_equal(stored, array, equal_nan=True), name
+        assert seq.read("tsdf", 1).shape == resolve_shape(FIELDS["tsdf"], 2, 2)[1:]
+        assert seq.dataset("scene_flow_3d").chunks == (1, 3, 128, 128, 48)  # one chunk per step
+        assert seq.dataset("mask_3d").attrs["units"] == "instance id"
+        v, f = seq.mesh(1)
+        assert np.allclose(v, meshes[1][0]) and np.array_equal(f, meshes[1][1])
+        assert seq.mesh(5) is None
+        cam = seq.camera("front")
+        assert cam.intrinsics.shape == (3, 3) and cam.extrinsics.shape == (4, 4)
+        assert seq.attrs["schema_version"] == SCHEMA_VERSION and seq.attrs["axis_order"] == "y,x,z"
+
+
+def test_refuses_bad_shapes_and_leaves_nothing(tmp_path):
+    arrays, attrs, meshes = synthetic_arrays(2, 2, 1)
+    arrays["mask_3d"] = arrays["mask_3d"][:, :64].astype(np.int64)
+    del arrays["heightmap"]
+    target = tmp_path / "seq_0001.h5"
+    with pytest.raises(SequenceFormatError) as err:
+        write_sequence(target, arrays, attrs, meshes)
+    message = str(err.value)
+    assert "mask_3d: shape" in message and "dtype int64, expected uint8" in message
+    assert "missing dataset 'heightmap'" in message
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_reader_rejects_foreign_files(tmp_path):
+    junk = tmp_path / "junk.h5"
+    junk.write_bytes(b"not hdf5 at all")
+    with pytest.raises(SequenceFormatError, match="not a readable HDF5 file"):
+        SequenceReader(junk)
+    official = tmp_path / "0_0.hdf5"
+    with h5py.File(official, "w") as f:
+        f["tsdf"] = np.zeros((2, 2, 2), np.float32)
+    with pytest.raises(SequenceFormatError, match="import-official"):
+        SequenceReader(official)
+    with pytest.raises(FileNotFoundError):
+        SequenceReader(tmp_path / "missing.h5")
+
+
+def test_reader_rejects_newer_schema(tmp_path, synthetic):
+    path = tmp_path / "future.h5"
+    path.write_bytes(synthetic.read_bytes())
+    with h5py.File(path, "r+") as f:
+        f.attrs["schema_version"] = SCHEMA_VERSION + 1
+    with pytest.raises(SequenceFormatError, match="schema version"):
+        SequenceReader(path)
