@@ -1,0 +1,72 @@
+"""Benchmark: seconds per 10-step sequence per CPU core, and where the time goes.
+
+    python bench/bench_generate.py [--objects procedural] [--sequences 5] [--steps 10]
+
+Runs the generator in one process after a warm-up sequence that pays the imports. pybullet and
+our numpy code are single-threaded; open3d's ray casting may use a second core, so process CPU
+seconds are printed next to wall seconds (CPU seconds per sequence is the per-core cost). Prints
+per-phase seconds (physics, rendering + ground truth, HDF5 writing) and bytes per step.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--objects", default="procedural")
+    parser.add_argument("--sequences", type=int, default=5)
+    parser.add_argument("--steps", type=int, default=10)
+    parser.add_argument("--cameras", default="front")
+    args = parser.parse_args()
+
+    from dsr_bench.manifest import content_digest
+    from dsr_bench.sequence import write_sequence
+    from dsr_bench.splits import sequence_seed
+    from generators.episode import EpisodeConfig, generate_episode
+    from generators.objects import get_object_set
+
+    object_set = get_object_set(args.objects)
+    config = EpisodeConfig(objects=args.objects, steps=args.steps, cameras=tuple(args.cameras.split(",")))
+    out = Path(tempfile.mkdtemp(prefix="dsr-bench-bench-"))
+    generate_episode(config, object_set, sequence_seed(999, 0), "warmup")
+    rows = []
+    cpu0 = time.process_time()
+    wall0 = time.perf_counter()
+    for i in range(args.sequences):
+        t0 = time.perf_counter()
+        ep = generate_episode(config, object_set, sequence_seed(1234, i), f"seq_{i:04d}")
+        t1 = time.perf_counter()
+        ep.attrs["content_sha256"] = content_digest(ep.arrays, ep.attrs["objects"])
+        t2 = time.perf_counter()
+        path = write_sequence(out / f"seq_{i:04d}.h5", ep.arrays, ep.attrs, ep.meshes)
+        t3 = time.perf_counter()
+        rows.append({"total": t3 - t0, "simulate+observe": t1 - t0, "digest": t2 - t1, "write": t3 - t2,
+                     "scene_attempts": ep.scene_attempts, "bytes": path.stat().st_size, **ep.timings})
+    wall = time.perf_counter() - wall0
+    cpu = time.process_time() - cpu0
+    mean = {k: float(np.mean([r[k] for r in rows])) for k in rows[0]}
+    print(f"machine: {os.cpu_count()} cores; object set {args.objects}; {args.steps} pushes; cameras {args.cameras}")
+    print(f"sequences: {args.sequences}; wall {wall:.1f} s; process CPU {cpu:.1f} s "
+          f"(CPU/wall {cpu / wall:.2f}: >1 means library threads used a second core)")
+    print(f"seconds per sequence (wall, one process): {mean['total']:.2f}")
+    print(f"CPU seconds per sequence: {cpu / args.sequences:.2f}")
+    print("where the time goes (s per sequence):")
+    other = mean["simulate+observe"] - mean["physics"] - mean["render"] - mean["policy"]
+    for key, value in [("physics (pybullet)", mean["physics"]), ("render + TSDF + amodal voxels", mean["render"]),
+                       ("push policy", mean["policy"]), ("scene flow, assembly, setup", other),
+                       ("content digest", mean["digest"]), ("HDF5 write (gzip)", mean["write"])]:
+        print(f"  {key:32s} {value:6.3f}  ({value / mean['total'] * 100:4.1f}%)")
+    print(f"scene attempts per sequence: {mean['scene_attempts']:.2f}")
+    print(f"bytes per step on disk: {mean['bytes'] / args.steps / 1e6:.3f} MB (official release: ~1 MB)")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,211 @@
+"""Generating a dataset: many sequences in parallel, sharded, resumable, deterministic.
+
+Sequence i of a run is a pure function of the run's arguments and `sequence_seed(seed, i)`, so the
+arrays do not depend on `workers` or `shard`. Every file is written under a temporary name and
+renamed when complete, so a killed run (even kill -9) leaves only complete files under final names;
+rerunning the same command skips them and finishes the rest.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from dsr_bench.constants import MAX_OBJECTS_PER_SCENE
+from dsr_bench.errors import UserError
+from dsr_bench.splits import sequence_name, sequence_seed
+from generators.episode import EpisodeConfig
+
+
+@dataclass(frozen=True)
+class RunPlan:
+    """What a `dsr-bench generate` invocation produces."""
+
+    config: EpisodeConfig
+    out: Path
+    num_sequences: int
+    seed: int
+    split: str
+    shard: tuple[int, int] = (0, 1)
+    workers: int = 1
+
+    def indices(self) -> list[int]:
+        """Sequence indices of this shard (i, n): every index with index % n == i."""
+        i, n = self.shard
+        return [k for k in range(self.num_sequences) if k % n == i]
+
+    def generator_args(self, index: int) -> dict:
+        """The arguments recorded in sequence `index`'s file (independent of workers and shard)."""
+        return {**self.config.as_attrs(), "base_seed": self.seed, "index": index, "split": self.split,
+                "num_sequences": self.num_sequences}
+
+
+@dataclass
+class SequenceResult:
+    name: str
+    seconds: float
+    bytes: int
+    scene_attempts: int
+    timings: dict[str, float]
+
+
+def parse_shard(text: str) -> tuple[int, int]:
+    """'i/n' -> (i, n) with 0 <= i < n."""
+    try:
+        i, n = (int(part) for part in text.split("/"))
+    except ValueError:
+        raise UserError(f"--shard {text!r} is not of the form i/n (e.g. 0/4)") from None
+    if n < 1 or not 0 <= i < n:
+        raise UserError(f"--shard {text!r}: need 0 <= i < n, e.g. 0/4 ... 3/4")
+    return i, n
+
+
+def check_plan(plan: RunPlan) -> None:
+    """Reject bad arguments before anything is written."""
+    cfg = plan.config
+    if plan.num_sequences < 1:
+        raise UserError(f"--num-sequences {plan.num_sequences}: must be at least 1")
+    if cfg.steps < 1:
+        raise UserError(f"--steps {cfg.steps}: must be at least 1")
+    if not 1 <= cfg.objects_per_scene <= MAX_OBJECTS_PER_SCENE:
+        raise UserError(f"--objects-per-scene {cfg.objects_per_scene}: must be 1..{MAX_OBJECTS_PER_SCENE}")
+    if cfg.policy not in ("heuristic", "random"):
+        raise UserError(f"--policy {cfg.policy!r}: choose heuristic or random")
+    bad = [c for c in cfg.cameras if c not in ("front", "back")]
+    if bad or "front" not in cfg.cameras:
+        raise UserError(f"--cameras {','.join(cfg.cameras)!r}: use front or front,back")
+    if plan.workers < 1:
+        raise UserError(f"--workers {plan.workers}: must be at least 1")
+    if plan.out.exists() and not plan.out.is_dir():
+        raise UserError(f"--out {plan.out} exists and is not a directory")
+
+
+def _existing_matches(path: Path, expected_args: dict, expected_seed: int) -> bool | str:
+    """True if a complete file with the same arguments exists; a reason string if it conflicts."""
+    import json
+
+    import h5py
+
+    try:
+        with h5py.File(path, "r") as f:
+            args = json.loads(f.attrs["generator_args"])
+            seed = int(f.attrs["seed"])
+    except Exception as exc:  # unreadable: regenerate it
+        return f"unreadable ({type(exc).__name__})"
+    args.pop("object_root", None)  # where the meshes live may differ between machines
+    expected_args = {k: v for k, v in expected_args.items() if k != "object_root"}
+    if args != expected_args or seed != expected_seed:
+        return "generated with different arguments"
+    return True
+
+
+def _clean_partials(out: Path) -> None:
+    for tmp in out.glob(".seq_*.h5.tmp-*"):
+        tmp.unlink(missing_ok=True)
+
+
+# --- worker side -------------------------------------------------------------------------------
+_WORKER: dict = {}
+
+
+def _init_worker(objects: str, object_root: str | None) -> None:
+    from generators.objects import get_object_set
+
+    os.environ.setdefault("OMP_NUM_THREADS", "1")
+    _WORKER["set"] = get_object_set(objects, object_root)
+
+
+def _generate_one(plan: RunPlan, index: int) -> SequenceResult:
+    from dsr_bench.manifest import content_digest
+    from dsr_bench.sequence import write_sequence
+    from generators.episode import generate_episode
+
+    start = time.perf_counter()
+    name = sequence_name(index)
+    episode = generate_episode(plan.config, _WORKER["set"], sequence_seed(plan.seed, index), name)
+    episode.attrs["generator_args"] = plan.generator_args(index)
+    episode.attrs["content_sha256"] = content_digest(episode.arrays, episode.attrs["objects"])
+    path = write_sequence(plan.out / f"{name}.h5", episode.arrays, episode.attrs, episode.meshes)
+    return SequenceResult(name, time.perf_counter() - start, path.stat().st_size, episode.scene_attempts,
+                          episode.timings)
+
+
+def _pool_task(args) -> SequenceResult:
+    return _generate_one(*args)
+
+
+def generate_dataset(plan: RunPlan, progress: Callable[[SequenceResult], None] | None = None,
+                     ) -> tuple[list[SequenceResult], list[str]]:
+    """Generate every missing sequence of the plan's shard; return (new results, skipped names)."""
+    from generators.objects import get_object_set
+
+    check_plan(plan)
+    get_object_set(plan.config.objects, plan.config.object_root)  # fails fast on missing meshes
+    plan.out.mkdir(parents=True, exist_ok=True)
+    _clean_partials(plan.out)
+    todo, skipped = [], []
+    for index in plan.indices():
+        path = plan.out / f"{sequence_name(index)}.h5"
+        if path.exists():
+            status = _existing_matches(path, plan.generator_args(index), sequence_seed(plan.seed, index))
+            if status is True:
+                skipped.append(path.stem)
+                continue
+            if status == "generated with different arguments":
+                raise UserError(f"{path} was generated with different arguments; use another --out "
+                                "or delete the directory")
+        todo.append(index)
+    results: list[SequenceResult] = []
+    if plan.workers == 1 or len(todo) <= 1:
+        _init_worker(plan.config.objects, plan.config.object_root)
+        for index in todo:
+            results.append(_generate_one(plan, index))
+            if progress:
+                progress(results[-1])
+        return results, skipped
+    import multiprocessing as mp
+    from concurrent.futures import ProcessPoolExecutor
+
+    ctx = mp.get_context("spawn")
+    with ProcessPoolExecutor(plan.workers, mp_context=ctx, initializer=_init_worker,
+                             initargs=(plan.config.objects, plan.config.object_root)) as pool:
+        for result in pool.map(_pool_task, [(plan, i) for i in todo]):
+            results.append(result)
+            if progress:
+                progress(result)
+    return results, skipped
+
+
+def finalize_dataset(plan: RunPlan) -> dict | None:
+    """Write splits/<split>.txt and manifest.json once every sequence of the run exists; else None."""
+    from dsr_bench.manifest import build_manifest, write_manifest
+
+    names = [sequence_name(i) for i in range(plan.num_sequences)]
+    if not all((plan.out / f"{n}.h5").exists() for n in names):
+        return None
+    split_dir = plan.out / "splits"
+    split_dir.mkdir(exist_ok=True)
+    split_file = split_dir / f"{plan.split}.txt"
+    tmp = split_file.with_name(f".{split_file.name}.tmp-{os.getpid()}")
+    tmp.write_text("".join(f"{n}\n" for n in names))
+    os.replace(tmp, split_file)
+    manifest = build_manifest(plan.out)
+    write_manifest(plan.out, manifest)
+    return manifest
+
+
+def summarize(results: list[SequenceResult]) -> dict[str, float]:
+    """Aggregate timings of generated sequences (seconds per sequence, bytes per step...)."""
+    if not results:
+        return {}
+    secs = np.array([r.seconds for r in results])
+    out = {"sequences": len(results), "mean_seconds": float(secs.mean()), "total_bytes": int(sum(r.bytes for r in results)),
+           "mean_scene_attempts": float(np.mean([r.scene_attempts for r in results]))}
+    for key in results[0].timings:
+        out[f"mean_{key}_seconds"] = float(np.mean([r.timings[key] for r in results]))
+    return out
