@@ -1,0 +1,20 @@
+#!/usr/bin/env bash
+# The main job end to end on built-in objects, on a fresh machine:
+# install -> generate a named split -> validate -> reference predictions -> evaluate -> viewer recording.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+bash scripts/setup.sh
+B=.venv/bin/dsr-bench
+SPLIT=procedural-novel-mini
+DATA=data/$SPLIT
+OUT=out/quickstart
+mkdir -p "$OUT"
+$B generate --split "$SPLIT" --out "$DATA" --workers 2
+$B validate "$DATA"
+$B info "$DATA"
+for model in oracle static; do
+  $B predict --model $model --data "$DATA" --split "$SPLIT" --out "$OUT/predictions-$model"
+  $B evaluate "$OUT/predictions-$model" --data "$DATA" --split "$SPLIT" --out "$OUT/results-$model.json"
+done
+$B view seq_0000 --data "$DATA" --predictions "$OUT/predictions-static" --save "$OUT/seq_0000.rrd"
+echo "done: data in $DATA, results in $OUT (open $OUT/seq_0000.rrd with: .venv/bin/rerun $OUT/seq_0000.rrd)"
