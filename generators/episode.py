@@ -127,9 +127,7 @@ def generate_episode(config: EpisodeConfig, object_set, seed: int, name: str) ->
     """Simulate and observe one sequence from its seed; raise SceneRejected if no scene works."""
     import time
 
-    import pybullet
-
-    from generators.physics import PushWorld
+    from generators.physics import PushWorld, import_pybullet
     from generators.policy import make_policy
     from generators.render import SceneRenderer
 
@@ -200,7 +198,7 @@ def generate_episode(config: EpisodeConfig, object_set, seed: int, name: str) ->
         attrs = {
             "sequence": name, "seed": int(seed), "num_steps": config.steps, "num_objects": len(specs),
             "object_set": config.objects, "policy": config.policy, "generator_args": config.as_attrs(),
-            "toolkit_version": __version__, "pybullet_version": int(pybullet.getAPIVersion()),
+            "toolkit_version": __version__, "pybullet_version": int(import_pybullet().getAPIVersion()),
             "source": "simulation", "grid_bounds": GRID_BOUNDS.tolist(), "grid_shape": list(GRID_SHAPE),
             "voxel_size": VOXEL_SIZE, "axis_order": AXIS_ORDER, "flow_components": FLOW_COMPONENTS,
             "objects": [spec.identity() for spec in specs], "cameras": _camera_attrs(renderer),

@@ -21,12 +21,30 @@ FRICTION = 0.5
 _PUSHER_HOME = (0.0, -1.5, 0.5)
 
 
+def import_pybullet():
+    """Import pybullet without its build-time banner on stdout (it writes to the C stream)."""
+    import os
+    import sys
+
+    if "pybullet" in sys.modules:
+        return sys.modules["pybullet"]
+    sys.stdout.flush()
+    saved = os.dup(1)
+    try:
+        with open(os.devnull, "w") as devnull:
+            os.dup2(devnull.fileno(), 1)
+            import pybullet
+    finally:
+        os.dup2(saved, 1)
+        os.close(saved)
+    return pybullet
+
+
 class PushWorld:
     """A pybullet world with the given objects (ObjectSpec-like: `.parts`, `.mass`) on a table."""
 
     def __init__(self, objects):
-        import pybullet as pb
-
+        pb = import_pybullet()
         self._pb = pb
         self.client = pb.connect(pb.DIRECT)
         c = self.client
