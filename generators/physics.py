@@ -34,6 +34,10 @@ def import_pybullet():
         with open(os.devnull, "w") as devnull:
             os.dup2(devnull.fileno(), 1)
             import pybullet
+
+            import ctypes
+
+            ctypes.CDLL(None).fflush(None)  # the banner sits in C's stdio buffer until flushed
     finally:
         os.dup2(saved, 1)
         os.close(saved)
