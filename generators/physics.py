@@ -22,24 +22,20 @@ _PUSHER_HOME = (0.0, -1.5, 0.5)
 
 
 def import_pybullet():
-    """Import pybullet without its build-time banner on stdout (it writes to the C stream)."""
+    """Import pybullet without the build-time banner its C module prints to stderr."""
     import os
     import sys
 
     if "pybullet" in sys.modules:
         return sys.modules["pybullet"]
-    sys.stdout.flush()
-    saved = os.dup(1)
+    sys.stderr.flush()
+    saved = os.dup(2)
     try:
         with open(os.devnull, "w") as devnull:
-            os.dup2(devnull.fileno(), 1)
+            os.dup2(devnull.fileno(), 2)
             import pybullet
-
-            import ctypes
-
-            ctypes.CDLL(None).fflush(None)  # the banner sits in C's stdio buffer until flushed
     finally:
-        os.dup2(saved, 1)
+        os.dup2(saved, 2)
         os.close(saved)
     return pybullet
 
