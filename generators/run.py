@@ -139,15 +139,13 @@ def _pool_task(args) -> SequenceResult:
     return _generate_one(*args)
 
 
-def generate_dataset(plan: RunPlan, progress: Callable[[SequenceResult], None] | None = None,
-                     ) -> tuple[list[SequenceResult], list[str]]:
-    """Generate every missing sequence of the plan's shard; return (new results, skipped names)."""
+def prepare_run(plan: RunPlan) -> tuple[list[int], list[str]]:
+    """Check everything (arguments, meshes, existing files) before any work; return (indices to
+    generate, names already complete). Creates the output directory and removes partial files."""
     from generators.objects import get_object_set
 
     check_plan(plan)
     get_object_set(plan.config.objects, plan.config.object_root)  # fails fast on missing meshes
-    plan.out.mkdir(parents=True, exist_ok=True)
-    _clean_partials(plan.out)
     todo, skipped = [], []
     for index in plan.indices():
         path = plan.out / f"{sequence_name(index)}.h5"
@@ -160,6 +158,14 @@ def generate_dataset(plan: RunPlan, progress: Callable[[SequenceResult], None] |
                 raise UserError(f"{path} was generated with different arguments; use another --out "
                                 "or delete the directory")
         todo.append(index)
+    plan.out.mkdir(parents=True, exist_ok=True)
+    _clean_partials(plan.out)
+    return todo, skipped
+
+
+def generate_dataset(plan: RunPlan, todo: list[int],
+                     progress: Callable[[SequenceResult], None] | None = None) -> list[SequenceResult]:
+    """Generate the sequences `todo` (indices from `prepare_run`) and return their results."""
     results: list[SequenceResult] = []
     if plan.workers == 1 or len(todo) <= 1:
         _init_worker(plan.config.objects, plan.config.object_root)
@@ -167,7 +173,7 @@ def generate_dataset(plan: RunPlan, progress: Callable[[SequenceResult], None] |
             results.append(_generate_one(plan, index))
             if progress:
                 progress(results[-1])
-        return results, skipped
+        return results
     import multiprocessing as mp
     from concurrent.futures import ProcessPoolExecutor
 
@@ -178,7 +184,7 @@ def generate_dataset(plan: RunPlan, progress: Callable[[SequenceResult], None] |
             results.append(result)
             if progress:
                 progress(result)
-    return results, skipped
+    return results
 
 
 def finalize_dataset(plan: RunPlan) -> dict | None:

@@ -34,7 +34,7 @@ def generate(
     from dsr_bench.constants import DEFAULT_OBJECTS_PER_SCENE, DEFAULT_STEPS
     from dsr_bench.splits import get_split
     from generators.episode import EpisodeConfig
-    from generators.run import RunPlan, finalize_dataset, generate_dataset, parse_shard, summarize
+    from generators.run import RunPlan, finalize_dataset, generate_dataset, parse_shard, prepare_run, summarize
 
     console = Console(stderr=True)
     if split is not None:
@@ -60,10 +60,11 @@ def generate(
     plan = RunPlan(config=config, out=out, num_sequences=num_sequences, seed=seed, split=split or "all",
                    shard=parse_shard(shard), workers=workers)
     total = len(plan.indices())
+    todo, skipped = prepare_run(plan)
     with Progress(TextColumn("[bold]generate"), BarColumn(), MofNCompleteColumn(),
                   TextColumn("{task.fields[rate]}"), TimeElapsedColumn(), TextColumn("ETA"),
                   TimeRemainingColumn(), console=console, transient=False) as bar:
-        task = bar.add_task("sequences", total=total, rate="")
+        task = bar.add_task("sequences", total=total, completed=len(skipped), rate="")
         done: list[float] = []
 
         def advance(result) -> None:
@@ -71,7 +72,7 @@ def generate(
             elapsed = bar.tasks[task].elapsed or 1e-9
             bar.update(task, advance=1, rate=f"{len(done) / elapsed * 60:.1f} seq/min")
 
-        results, skipped = generate_dataset(plan, progress=advance)
+        results = generate_dataset(plan, todo, progress=advance)
         bar.update(task, completed=total)
     manifest = finalize_dataset(plan)
     stats = summarize(results)
