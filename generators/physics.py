@@ -12,12 +12,14 @@ import numpy as np
 from dsr_bench.constants import PUSH_HEIGHT, PUSHER_LENGTH, PUSHER_RADIUS
 
 TIME_STEP = 1.0 / 240.0
-PUSH_SPEED = 0.15  # m/s along the push
+PUSH_SPEED = 0.25  # m/s along the push (quasi-static at these masses and frictions)
 SETTLE_LINEAR_SPEED = 5e-3  # m/s
 SETTLE_ANGULAR_SPEED = 5e-2  # rad/s
 MAX_SETTLE_STEPS = 480
 MIN_SETTLE_STEPS = 24
 FRICTION = 0.5
+ROLLING_FRICTION = 2e-3  # m: a can on its side rolls a few centimetres, not off the table
+SPINNING_FRICTION = 2e-3
 _PUSHER_HOME = (0.0, -1.5, 0.5)
 
 
@@ -80,7 +82,8 @@ class PushWorld:
                 linkInertialFrameOrientations=[[0, 0, 0, 1]] * n, linkParentIndices=[0] * n,
                 linkJointTypes=[pb.JOINT_FIXED] * n, linkJointAxis=[[0, 0, 1]] * n, physicsClientId=c)
         for link in range(-1, pb.getNumJoints(body, physicsClientId=c)):
-            pb.changeDynamics(body, link, lateralFriction=FRICTION, rollingFriction=1e-4, spinningFriction=1e-3,
+            pb.changeDynamics(body, link, lateralFriction=FRICTION, rollingFriction=ROLLING_FRICTION,
+                              spinningFriction=SPINNING_FRICTION,
                               physicsClientId=c)
         return body
 

@@ -14,7 +14,8 @@ at p (initial position p0, centre c = workspace centre):
 - neighbours closer than 0.15 m: -3 * max(0, cos(v, towards neighbour)), and +1.5 for the two
   directions perpendicular to it (within 22.5 deg);
 - +1.5 * cos(v, p - p0) while the object is within 0.25 m of where it started;
-- +2 * cos(v, last direction this object was pushed).
+- +2 * cos(v, last direction this object was pushed);
+- and, as in the appendix, -10 for directions with an outward component when |p - c| >= 0.2 m.
 `scoring="paper"` uses the appendix's Q(v) = 1.5 v.(p0->p) + 2 v.(p_prev->p) (unit vectors) with
 -10 for outward directions when |p - c| >= 0.2 and softmax(Q).
 
@@ -175,7 +176,10 @@ class HeuristicPolicy(PushPolicy):
                 scores = scores - 10.0 * (DIRECTIONS @ _unit(out) > 0)
             return scores, softmax(scores)
         weight = 5.0 if self.pushes[k] == 0 else 1.0
-        scores = -weight * np.maximum(0.0, DIRECTIONS @ _unit(out)) * min(1.0, np.linalg.norm(out) / POLICY_FAR_FROM_CENTER)
+        outward = DIRECTIONS @ _unit(out)
+        scores = -weight * np.maximum(0.0, outward) * min(1.0, np.linalg.norm(out) / POLICY_FAR_FROM_CENTER)
+        if np.linalg.norm(out) >= POLICY_FAR_FROM_CENTER:  # the appendix's guard, kept in both scorings
+            scores = scores - 10.0 * (outward > 0)
         for j in range(self.num_objects):
             towards = positions[j] - p
             if j == k or np.linalg.norm(towards) >= NEIGHBOUR_DISTANCE:
