@@ -18,7 +18,7 @@ app = typer.Typer(
 )
 
 #: Command modules under dsr_bench.commands, each with a `register(app)` function.
-_COMMAND_MODULES: tuple[str, ...] = ("generate",)
+_COMMAND_MODULES: tuple[str, ...] = ("generate", "data")
 
 for _name in _COMMAND_MODULES:
     importlib.import_module(f"dsr_bench.commands.{_name}").register(app)
@@ -38,7 +38,7 @@ def _root(
 def main(argv: list[str] | None = None) -> int:
     """Console entry point: user errors become one line on stderr and exit code 2."""
     try:
-        app(args=argv, standalone_mode=False)
+        rc = app(args=argv, standalone_mode=False)  # returns the code of typer.Exit when not standalone
     except UserError as exc:
         typer.echo(f"error: {exc}", err=True)
         return 2
@@ -57,7 +57,7 @@ def main(argv: list[str] | None = None) -> int:
             exc.show()
             return exc.exit_code
         raise
-    return 0
+    return rc if isinstance(rc, int) else 0
 
 
 if __name__ == "__main__":

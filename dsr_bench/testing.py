@@ -150,6 +150,24 @@ def synthetic_arrays(num_steps: int = 3, num_objects: int = 2, seed: int = 0):
 
 def write_synthetic_sequence(path: str | Path, num_steps: int = 3, num_objects: int = 2, seed: int = 0) -> Path:
     """Write a synthetic box sequence to `path` (an .h5 file) and return the path."""
+    from dsr_bench.manifest import content_digest
+
     arrays, attrs, meshes = synthetic_arrays(num_steps, num_objects, seed)
     attrs["sequence"] = Path(path).stem
+    attrs["content_sha256"] = content_digest(arrays, attrs["objects"])
     return write_sequence(path, arrays, attrs, meshes)
+
+
+def write_synthetic_dataset(data_dir: str | Path, num_sequences: int = 2, num_steps: int = 3, num_objects: int = 2,
+                            split: str = "test") -> Path:
+    """A dataset directory of synthetic sequences with splits/<split>.txt and manifest.json."""
+    from dsr_bench.manifest import build_manifest, write_manifest
+
+    data_dir = Path(data_dir)
+    names = [f"seq_{i:04d}" for i in range(num_sequences)]
+    for i, name in enumerate(names):
+        write_synthetic_sequence(data_dir / f"{name}.h5", num_steps, num_objects, seed=i)
+    (data_dir / "splits").mkdir(parents=True, exist_ok=True)
+    (data_dir / "splits" / f"{split}.txt").write_text("".join(f"{n}\n" for n in names))
+    write_manifest(data_dir, build_manifest(data_dir))
+    return data_dir
