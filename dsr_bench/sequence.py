@@ -56,17 +56,20 @@ def write_sequence(
     arrays: Mapping[str, np.ndarray],
     attrs: Mapping[str, Any],
     meshes: Mapping[int, tuple[np.ndarray, np.ndarray]] | None = None,
+    extras: Mapping[str, np.ndarray] | None = None,
 ) -> Path:
     """Validate and atomically write one sequence file.
 
     arrays: HDF5 path -> array (camera fields as 'cameras/<name>/<field>'); attrs: root attributes
     (dicts and lists of objects are stored as JSON strings); meshes: object index -> (vertices (V,3)
-    float, faces (F,3) int) in the object's mesh frame, metres, stored under meshes/<index>/.
+    float, faces (F,3) int) in the object's mesh frame, metres, stored under meshes/<index>/;
+    extras: datasets outside the schema, written as given (e.g. `official/...` of an import).
     """
     path = Path(path)
     num_steps, num_objects = int(attrs["num_steps"]), int(attrs["num_objects"])
     cameras = attrs["cameras"]
-    problems = []
+    problems = [f"extra dataset {name!r} must live under official/" for name in (extras or {})
+                if not name.startswith("official/")]
     for key in REQUIRED_ATTRS:
         if key not in attrs and key not in ("format", "schema_version"):
             problems.append(f"missing attribute {key!r}")
@@ -101,6 +104,10 @@ def write_sequence(
                     name, data=array, chunks=chunks, track_times=False, **(_COMPRESSION if chunks else {})
                 )
                 ds.attrs["units"] = field.units
+            for name in sorted(extras or {}):
+                array = np.ascontiguousarray(extras[name])
+                chunks = _chunks(array.shape)
+                f.create_dataset(name, data=array, chunks=chunks, track_times=False, **(_COMPRESSION if chunks else {}))
             for index, (vertices, faces) in sorted((meshes or {}).items()):
                 g = f.create_group(f"meshes/{index}")
                 g.create_dataset("vertices", data=np.asarray(vertices, np.float32), track_times=False, **_COMPRESSION)

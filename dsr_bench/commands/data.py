@@ -74,7 +74,19 @@ def manifest(data_dir: Path = typer.Argument(..., help="Dataset directory.")) ->
     typer.echo(f"wrote {path}: {len(built['sequences'])} sequences, splits: {', '.join(built['splits']) or 'none'}")
 
 
+def import_official_command(
+    src: Path = typer.Argument(..., help="Official release directory (<seq>_<step>.hdf5, train.txt, test.txt)."),
+    dst: Path = typer.Argument(..., help="New dataset directory in the dsr-bench format."),
+) -> None:
+    """Convert the authors' release into our format, losslessly (see docs/format.md)."""
+    from dsr_bench.official import import_official
+
+    names = import_official(src, dst)
+    typer.echo(f"imported {len(names)} sequences into {dst}; check them with `dsr-bench validate {dst}`")
+
+
 def register(app: typer.Typer) -> None:
     app.command("validate")(validate)
     app.command("info")(info)
     app.command("manifest")(manifest)
+    app.command("import-official")(import_official_command)
