@@ -7,7 +7,7 @@ rebuilt for every scene attempt, so a sequence is a pure function of (arguments,
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
 
@@ -160,13 +160,15 @@ def generate_episode(config: EpisodeConfig, object_set, seed: int, name: str) ->
             policy.reset(poses[0][:, :2])
             decisions, pushes = [], []
             for t in range(config.steps):
-                accepted = None
+                accepted, draws = None, 0
                 for _ in range(MAX_PUSH_ATTEMPTS):
                     t0 = time.perf_counter()
                     decision = policy.propose(observations[-1].heightmap, poses[-1][:, :2])
                     timings["policy"] += time.perf_counter() - t0
                     if decision is None:
                         break
+                    draws += decision.attempts
+                    decision = replace(decision, attempts=draws)  # counts pushes undone below too
                     t0 = time.perf_counter()
                     state = world.save()
                     start, end = world.push(decision.start_xy, direction_vector(decision.direction), PUSH_LENGTH)
