@@ -1,0 +1,132 @@
+"""Scoring commands: `predict`, `evaluate`, `leaderboard build|add`."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Optional
+
+import typer
+
+leaderboard_app = typer.Typer(help="Build the leaderboard tables or add a results entry.", no_args_is_help=True)
+
+
+def predict(
+    model: str = typer.Option(..., "--model", help="oracle | static | dsr | single | nowarp | gtwarp | 3dflow"),
+    data: Path = typer.Option(..., "--data", help="Dataset directory."),
+    out: Path = typer.Option(..., "--out", "-o", help="Predictions directory to write."),
+    split: Optional[str] = typer.Option(None, "--split", help="Split to predict (default: the only one)."),
+    checkpoint: Optional[Path] = typer.Option(None, "--checkpoint", help="Checkpoint of a learned model."),
+    device: str = typer.Option("cpu", "--device", help="cpu or cuda (learned models)."),
+) -> None:
+    """Run a model over a split and write the predictions contract (one .h5 per sequence + meta.json)."""
+    from rich.progress import Progress
+
+    from dsr_bench.manifest import read_split
+    from dsr_bench.predictors import load_predictor, predict_split
+
+    predictor = load_predictor(model, checkpoint, device)
+    split, names = read_split(data, split)
+    with Progress(transient=True) as bar:
+        task = bar.add_task(f"predict {model}", total=len(names))
+        predict_split(predictor, data, names, out, progress=lambda: bar.advance(task))
+    typer.echo(f"wrote {len(names)} prediction files for split {split} to {out}")
+
+
+def _print_results(results: dict) -> None:
+    from rich.console import Console
+    from rich.table import Table
+
+    m, b = results["metrics"], results["breakdowns"]
+    table = Table(title=f"{results['method']} on {results['split']} ({results['coverage']['scored']}/"
+                        f"{results['coverage']['expected']} sequences)")
+    table.add_column("metric")
+    table.add_column("value", justify="right")
+    rows = [("flow MSE, visible surface (cm²)", m["motion_visible"]), ("flow MSE, full volume (cm²)", m["motion_full"]),
+            ("mask IoU, unordered", m["iou_unordered"]), ("mask IoU, ordered", m["iou_ordered"])]
+    if "motion_2d" in m:
+        rows.append(("2D flow MSE, visible (cm²)", m["motion_2d"]))
+    rows += [(f"IoU of mostly occluded objects ({b['occluded_object_steps']})", b["iou_occluded_objects"]),
+             (f"IoU of visible objects ({b['visible_object_steps']})", b["iou_visible_objects"]),
+             ("flow MSE of moved objects (cm²)", b["motion_moved_objects"]),
+             ("flow MSE of static objects (cm²)", b["motion_static_objects"])]
+    for name, value in rows:
+        table.add_row(name, "-" if value is None or value != value else f"{value:.4f}")
+    Console().print(table)
+    steps = results["per_step"]
+    per = Table(title="per step index")
+    per.add_column("step")
+    for key in ("iou_unordered", "iou_ordered", "motion_visible", "motion_full"):
+        per.add_column(key, justify="right")
+    for t in range(len(steps["iou_unordered"])):
+        per.add_row(str(t), *[f"{steps[k][t]:.4f}" for k in ("iou_unordered", "iou_ordered", "motion_visible", "motion_full")])
+    Console().print(per)
+
+
+def evaluate(
+    pred_dir: Path = typer.Argument(..., help="Predictions directory (one .h5 per sequence, meta.json)."),
+    data: Path = typer.Option(..., "--data", help="Dataset directory with the ground truth."),
+    split: Optional[str] = typer.Option(None, "--split", help="Split to score (default: the only one)."),
+    out: Optional[Path] = typer.Option(None, "--out", "-o", help="Write the results JSON here."),
+    allow_partial: bool = typer.Option(False, "--allow-partial", help="Score the valid sequences despite problems."),
+    workers: int = typer.Option(0, "--workers", "-w", help="Worker processes (0 = all cores)."),
+) -> None:
+    """Validate a predictions directory strictly, then score it with the benchmark's metrics."""
+    import os
+
+    from rich.console import Console
+    from rich.table import Table
+
+    from dsr_bench.evaluate import evaluate as run
+
+    evaluation = run(pred_dir, data, split, allow_partial=allow_partial, workers=workers)
+    console = Console(stderr=True)
+    if evaluation.problems:
+        table = Table(title=f"{len(evaluation.problems)} problems in {pred_dir}")
+        table.add_column("where")
+        table.add_column("problem")
+        for where, message in evaluation.problems:
+            table.add_row(where, message)
+        console.print(table)
+    if evaluation.results is None:
+        console.print("[red]no score[/red]: fix the problems above, or score what is valid with --allow-partial")
+        raise typer.Exit(1)
+    _print_results(evaluation.results)
+    if out is not None:
+        tmp = out.with_name(f".{out.name}.tmp-{os.getpid()}")
+        out.parent.mkdir(parents=True, exist_ok=True)
+        tmp.write_text(json.dumps(evaluation.results, indent=1, sort_keys=True) + "\n")
+        os.replace(tmp, out)
+        console.print(f"results written to {out}")
+    if evaluation.problems:
+        console.print(f"[yellow]partial[/yellow]: scored {evaluation.results['coverage']['scored']} of "
+                      f"{evaluation.results['coverage']['expected']} sequences")
+
+
+@leaderboard_app.command("build")
+def leaderboard_build(root: Path = typer.Option(Path("leaderboard"), "--root", help="Leaderboard directory.")) -> None:
+    """Write leaderboard/README.md and leaderboard/index.html from entries/ and paper.json."""
+    from dsr_bench.leaderboard import build
+
+    md, page = build(root)
+    typer.echo(f"wrote {md} and {page}")
+
+
+@leaderboard_app.command("add")
+def leaderboard_add(
+    results: Path = typer.Argument(..., help="Results JSON from `dsr-bench evaluate --out`."),
+    root: Path = typer.Option(Path("leaderboard"), "--root", help="Leaderboard directory."),
+    label: Optional[str] = typer.Option(None, "--label", help="Note shown with the row (e.g. 'short schedule')."),
+) -> None:
+    """Validate a results file (split checksum, complete metrics) and add it, then rebuild the tables."""
+    from dsr_bench.leaderboard import add_entry, build
+
+    target = add_entry(results, root, label)
+    build(root)
+    typer.echo(f"added {target}; tables rebuilt")
+
+
+def register(app: typer.Typer) -> None:
+    app.command("predict")(predict)
+    app.command("evaluate")(evaluate)
+    app.add_typer(leaderboard_app, name="leaderboard")

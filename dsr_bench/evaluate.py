@@ -1,0 +1,218 @@
+"""`dsr-bench evaluate`: score a predictions directory against a split, strictly.
+
+Structure is checked first for every file (names, presence, shapes, dtypes, attributes); the data
+checks (unreadable chunks, NaN/inf, slot ids out of range) happen in the same streaming pass that
+scores, one sequence per worker at a time. Any problem means no score, unless `allow_partial`,
+which scores the valid sequences and states the coverage.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import hashlib
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import h5py
+import numpy as np
+
+from dsr_bench.errors import UserError
+
+RESULTS_FORMAT = "dsr-bench-results"
+HEADLINE = ("motion_visible", "motion_full", "iou_unordered", "iou_ordered")
+META_KEYS = ("name", "description", "code_url", "parameters", "hardware", "seconds_per_step")
+
+
+@dataclass
+class Evaluation:
+    """Outcome of an evaluation: problems found and, if scored, the results dictionary."""
+
+    problems: list[tuple[str, str]] = field(default_factory=list)
+    results: dict | None = None
+
+
+def _score_sequence(args) -> tuple[str, list[str], dict | None]:
+    """Check and score one sequence: (name, problems, per-step values or None)."""
+    from dsr_bench.metrics import motion_2d_error, motion_errors, sequence_scores
+    from dsr_bench.sequence import SequenceReader
+
+    name, pred_path, gt_path = args
+    problems: list[str] = []
+    try:
+        with SequenceReader(gt_path) as gt, h5py.File(pred_path, "r") as pred:
+            num_slots = int(pred.attrs["num_slots"])
+            n = gt.num_objects
+            pred_mask = pred["mask"][()]
+            if int(pred_mask.max(initial=0)) > num_slots:
+                problems.append(f"mask: slot id {int(pred_mask.max())} > num_slots {num_slots}")
+            steps = gt.num_steps
+            per_step = {k: np.full(steps, np.nan) for k in ("motion_visible", "motion_full", "motion_moved",
+                                                            "motion_static", "motion_2d")}
+            has_2d = "motion_2d" in pred and "cameras/front/scene_flow_2d" in gt
+            for t in range(steps):
+                motion = pred["motion"][t]
+                if not np.all(np.isfinite(motion)):
+                    problems.append(f"motion[{t}]: NaN or inf")
+                    continue
+                errs = motion_errors(motion, gt.read("scene_flow_3d", t), gt.read("tsdf", t), gt.read("mask_3d", t), n)
+                for k, v in errs.items():
+                    per_step[k][t] = v
+                if has_2d:
+                    m2 = pred["motion_2d"][t]
+                    if not np.all(np.isfinite(m2)):
+                        problems.append(f"motion_2d[{t}]: NaN or inf")
+                        continue
+                    per_step["motion_2d"][t] = motion_2d_error(m2, gt.read("cameras/front/scene_flow_2d", t),
+                                                               gt.read("cameras/front/mask", t))
+            if problems:
+                return name, problems, None
+            gt_mask = gt.read("mask_3d", slice(0, steps))
+            visible = gt.read("visible_fraction") if "visible_fraction" in gt else None
+            ious = sequence_scores(pred_mask, gt_mask, num_slots, n, visible)
+    except (OSError, KeyError, ValueError) as exc:
+        return name, [f"unreadable or truncated: {type(exc).__name__}: {exc}"], None
+    out = {k: v.tolist() for k, v in per_step.items()}
+    out["iou_unordered"] = ious["iou_unordered"].tolist()
+    out["iou_ordered"] = ious["iou_ordered"].tolist()
+    out["iou_occluded_objects"] = [x.tolist() for x in ious["iou_occluded_objects"]]
+    out["iou_visible_objects"] = [x.tolist() for x in ious["iou_visible_objects"]]
+    out["has_2d"] = has_2d
+    return name, [], out
+
+
+def check_structure(pred_dir: Path, data_dir: Path, names: list[str]) -> tuple[dict[str, Path], list[tuple[str, str]]]:
+    """Every structural problem of a predictions directory; the files that passed."""
+    from dsr_bench.predictions import check_prediction_header
+
+    problems: list[tuple[str, str]] = []
+    valid: dict[str, Path] = {}
+    root = pred_dir.resolve()
+    expected = set(names)
+    for path in sorted(pred_dir.glob("*.h5")):
+        if path.stem not in expected:
+            problems.append((path.name, "extra file: not a sequence of this split"))
+    for name in names:
+        path = pred_dir / f"{name}.h5"
+        if "/" in name or "\\" in name or name.startswith(".."):
+            problems.append((name, "sequence name escapes the directory"))
+            continue
+        if not path.exists():
+            problems.append((name, f"missing prediction file {path.name}"))
+            continue
+        if not path.resolve().is_relative_to(root):
+            problems.append((name, f"{path.name} resolves outside the predictions directory"))
+            continue
+        try:
+            with h5py.File(data_dir / f"{name}.h5", "r") as g:
+                steps = int(g.attrs["num_steps"])
+            with h5py.File(path, "r") as f:
+                found = check_prediction_header(f, steps)
+        except OSError as exc:
+            found = [f"unreadable HDF5 file ({exc})"]
+        if found:
+            problems += [(name, p) for p in found]
+        else:
+            valid[name] = path
+    meta = pred_dir / "meta.json"
+    if meta.exists():
+        try:
+            if not isinstance(json.loads(meta.read_text()), dict):
+                problems.append(("meta.json", "must hold a JSON object"))
+        except json.JSONDecodeError as exc:
+            problems.append(("meta.json", f"not valid JSON ({exc})"))
+    return valid, problems
+
+
+def _mean(values) -> float:
+    arr = np.asarray(values, dtype=np.float64)
+    return float(np.nanmean(arr)) if np.isfinite(arr).any() else float("nan")
+
+
+def aggregate(per_sequence: dict[str, dict]) -> dict:
+    """Official averaging (over sequences per step index, then over steps) and the breakdowns."""
+    seqs = list(per_sequence.values())
+    steps = max(len(s["iou_unordered"]) for s in seqs)
+
+    def by_step(key):
+        table = np.full((len(seqs), steps), np.nan)
+        for i, s in enumerate(seqs):
+            table[i, : len(s[key])] = s[key]
+        with np.errstate(all="ignore"):
+            return [_mean(table[:, t]) for t in range(steps)]
+
+    per_step = {k: by_step(k) for k in ("motion_visible", "motion_full", "iou_unordered", "iou_ordered",
+                                         "motion_moved", "motion_static")}
+    metrics = {k: _mean(per_step[k]) for k in HEADLINE}
+    if all(s["has_2d"] for s in seqs):
+        per_step["motion_2d"] = by_step("motion_2d")
+        metrics["motion_2d"] = _mean(per_step["motion_2d"])
+    occluded = [v for s in seqs for step in s["iou_occluded_objects"] for v in step]
+    visible = [v for s in seqs for step in s["iou_visible_objects"] for v in step]
+    breakdowns = {
+        "iou_occluded_objects": _mean(occluded) if occluded else None, "occluded_object_steps": len(occluded),
+        "iou_visible_objects": _mean(visible) if visible else None, "visible_object_steps": len(visible),
+        "motion_moved_objects": _mean(per_step["motion_moved"]),
+        "motion_static_objects": _mean(per_step["motion_static"]),
+    }
+    return {"metrics": metrics, "per_step": per_step, "breakdowns": breakdowns}
+
+
+def predictions_checksum(pred_dir: Path, names: list[str]) -> str:
+    """SHA-256 over the sorted prediction files' names and SHA-256s."""
+    from dsr_bench.manifest import file_sha256
+
+    h = hashlib.sha256()
+    for name in sorted(names):
+        h.update(f"{name}:{file_sha256(pred_dir / f'{name}.h5')}\n".encode())
+    return h.hexdigest()
+
+
+def evaluate(pred_dir: str | Path, data_dir: str | Path, split: str | None = None, allow_partial: bool = False,
+             workers: int = 0) -> Evaluation:
+    """Check and score a predictions directory against a split of a dataset."""
+    from dsr_bench import __version__
+    from dsr_bench.manifest import load_manifest, read_split, split_digest
+
+    pred_dir, data_dir = Path(pred_dir), Path(data_dir)
+    if not pred_dir.is_dir():
+        raise UserError(f"predictions directory not found: {pred_dir}")
+    manifest = load_manifest(data_dir)
+    split, names = read_split(data_dir, split)
+    valid, problems = check_structure(pred_dir, data_dir, names)
+    jobs = [(name, str(path), str(data_dir / f"{name}.h5")) for name, path in valid.items()]
+    import os
+
+    workers = workers or min(len(jobs), os.cpu_count() or 1)
+    if workers > 1 and len(jobs) > 1:
+        from concurrent.futures import ProcessPoolExecutor
+
+        with ProcessPoolExecutor(workers) as pool:
+            outcomes = list(pool.map(_score_sequence, jobs))
+    else:
+        outcomes = [_score_sequence(j) for j in jobs]
+    scored = {}
+    for name, found, values in outcomes:
+        problems += [(name, p) for p in found]
+        if values is not None:
+            scored[name] = values
+    evaluation = Evaluation(problems=problems)
+    if (problems and not allow_partial) or not scored:
+        return evaluation
+    meta = {}
+    if (pred_dir / "meta.json").exists():
+        try:
+            raw = json.loads((pred_dir / "meta.json").read_text())
+            meta = {k: raw[k] for k in META_KEYS if isinstance(raw, dict) and k in raw}
+        except json.JSONDecodeError:
+            pass
+    results = {
+        "format": RESULTS_FORMAT, "version": 1, "method": meta.get("name", pred_dir.name), "meta": meta,
+        "split": split, "split_checksum": split_digest(manifest, split),
+        "predictions_checksum": predictions_checksum(pred_dir, sorted(scored)),
+        "toolkit_version": __version__, "date": dt.datetime.now(dt.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ"),
+        "coverage": {"scored": len(scored), "expected": len(names), "partial": len(scored) < len(names)},
+        **aggregate(scored),
+    }
+    evaluation.results = results
+    return evaluation

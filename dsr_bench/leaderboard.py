@@ -1,0 +1,177 @@
+"""The leaderboard: results entries (one JSON per entry) and the tables built from them.
+
+leaderboard/entries/*.json are results files written by `dsr-bench evaluate` (plus an optional
+"label"); leaderboard/paper.json holds the paper's published numbers, always shown apart and
+marked "reported in the paper". `build` writes leaderboard/README.md (a table per split and track,
+best per column in bold) and a static, sortable leaderboard/index.html.
+"""
+
+from __future__ import annotations
+
+import html
+import json
+import os
+import re
+from pathlib import Path
+
+from dsr_bench.errors import UserError
+
+LOWER_IS_BETTER = {"motion_visible", "motion_full", "motion_2d"}
+TRACKS = {"3D": ("motion_visible", "motion_full", "iou_unordered", "iou_ordered"), "2D": ("motion_2d",)}
+COLUMN_TITLES = {"motion_visible": "flow MSE visible (cm²)", "motion_full": "flow MSE full (cm²)",
+                 "iou_unordered": "IoU unordered", "iou_ordered": "IoU ordered", "motion_2d": "2D flow MSE (cm²)",
+                 "planning_iou": "planning IoU"}
+
+
+def _write_atomic(path: Path, text: str) -> None:
+    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    tmp.write_text(text)
+    os.replace(tmp, path)
+
+
+def check_entry(results: dict) -> list[str]:
+    """Problems that keep a results file off the leaderboard (empty list: it may join)."""
+    from dsr_bench.evaluate import HEADLINE, RESULTS_FORMAT
+    from dsr_bench.splits import SPLITS
+
+    problems = []
+    if results.get("format") != RESULTS_FORMAT:
+        return [f"not a dsr-bench results file (format {results.get('format')!r}); produce it with `dsr-bench evaluate`"]
+    missing = [k for k in HEADLINE if not isinstance(results.get("metrics", {}).get(k), (int, float))]
+    if missing:
+        problems.append(f"metrics missing: {', '.join(missing)}")
+    if results.get("coverage", {}).get("partial"):
+        problems.append("partial evaluation (--allow-partial): the leaderboard needs every sequence of the split")
+    split = results.get("split")
+    if split not in SPLITS:
+        problems.append(f"split {split!r} is not one of the benchmark's named splits")
+    else:
+        expected = SPLITS[split].expected_digest
+        if expected is None:
+            problems.append(f"split {split!r} has no pinned checksum in this toolkit version; it cannot be ranked")
+        elif results.get("split_checksum") != expected:
+            problems.append(f"split checksum {str(results.get('split_checksum'))[:12]}... differs from the toolkit's "
+                            f"{expected[:12]}... for {split}: regenerate the split with `dsr-bench generate --split {split}`")
+    return problems
+
+
+def add_entry(results_path: str | Path, root: str | Path = "leaderboard", label: str | None = None) -> Path:
+    """Validate a results file and copy it into the leaderboard's entries."""
+    path = Path(results_path)
+    try:
+        results = json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError) as exc:
+        raise UserError(f"{path}: unreadable results file ({exc})") from None
+    problems = check_entry(results)
+    if problems:
+        raise UserError(f"{path} cannot join the leaderboard: " + "; ".join(problems))
+    if label:
+        results["label"] = label
+    slug = re.sub(r"[^a-z0-9]+", "-", f"{results['method']}-{results['split']}".lower()).strip("-")
+    entries = Path(root) / "entries"
+    entries.mkdir(parents=True, exist_ok=True)
+    target = entries / f"{slug}.json"
+    _write_atomic(target, json.dumps(results, indent=1, sort_keys=True) + "\n")
+    return target
+
+
+def load_rows(root: str | Path = "leaderboard") -> list[dict]:
+    """Flat rows (method, split, kind, metrics, date, checksum, label) of every entry and paper row."""
+    root = Path(root)
+    rows = []
+    for path in sorted((root / "entries").glob("*.json")):
+        r = json.loads(path.read_text())
+        rows.append({"method": r["method"], "split": r["split"], "kind": "reproduced", "label": r.get("label", ""),
+                     "date": r.get("date", "")[:10], "checksum": r.get("split_checksum", "")[:12],
+                     **{k: v for k, v in r["metrics"].items()}})
+    paper = root / "paper.json"
+    if paper.exists():
+        for r in json.loads(paper.read_text())["rows"]:
+            rows.append({"method": r["method"], "split": r["split"], "kind": "reported in the paper",
+                         "label": r.get("source", ""), "date": "2020", "checksum": "", **r["metrics"]})
+    return rows
+
+
+def _tables(rows: list[dict]):
+    import pandas as pd
+
+    frame = pd.DataFrame(rows)
+    for (split, kind), group in frame.groupby(["split", "kind"], sort=True):
+        for track, columns in TRACKS.items():
+            cols = [c for c in columns + (("planning_iou",) if track == "3D" else ()) if c in group]
+            sub = group.dropna(subset=[c for c in cols if c in group], how="all")
+            if sub.empty or not cols:
+                continue
+            yield split, kind, track, sub[["method", *cols, "label", "date", "checksum"]].reset_index(drop=True), cols
+
+
+def _best(series, column):
+    values = series.dropna()
+    if values.empty:
+        return None
+    return values.min() if column in LOWER_IS_BETTER else values.max()
+
+
+def _fmt(value, column) -> str:
+    if value is None or value != value:
+        return "-"
+    return f"{value:.3f}" if column.startswith(("iou", "planning")) else f"{value:.4g}"
+
+
+def build(root: str | Path = "leaderboard") -> tuple[Path, Path]:
+    """Write README.md and index.html of the leaderboard from its entries and paper rows."""
+    root = Path(root)
+    rows = load_rows(root)
+    md = ["# dsr-bench leaderboard", "",
+          "Built by `dsr-bench leaderboard build` from `entries/` (results of `dsr-bench evaluate`) and",
+          "`paper.json` (numbers reported in the paper, never mixed with reproduced rows). Best per column in bold.", ""]
+    body = []
+    for split, kind, track, table, cols in _tables(rows):
+        md += [f"## {split}: {track} track ({kind})", ""]
+        header = ["method", *[COLUMN_TITLES[c] for c in cols], "note", "date", "split checksum"]
+        md += ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+        best = {c: _best(table[c], c) for c in cols}
+        html_rows = []
+        for _, r in table.iterrows():
+            cells = []
+            for c in cols:
+                text = _fmt(r[c], c)
+                cells.append(f"**{text}**" if best[c] is not None and r[c] == best[c] else text)
+            md.append("| " + " | ".join([str(r["method"]), *cells, str(r["label"]), str(r["date"]), str(r["checksum"])]) + " |")
+            tds = "".join(
+                f'<td data-v="{"" if r[c] != r[c] else r[c]}"{" class=best" if best[c] is not None and r[c] == best[c] else ""}>'
+                f"{html.escape(_fmt(r[c], c))}</td>" for c in cols)
+            html_rows.append(f"<tr><td>{html.escape(str(r['method']))}</td>{tds}<td>{html.escape(str(r['label']))}</td>"
+                             f"<td>{html.escape(str(r['date']))}</td><td><code>{html.escape(str(r['checksum']))}</code></td></tr>")
+        md.append("")
+        ths = "".join(f"<th onclick=\"sortTable(this)\">{html.escape(h)}</th>" for h in header)
+        body.append(f"<h2>{html.escape(split)}: {track} track ({html.escape(kind)})</h2>\n"
+                    f"<table class=board><thead><tr>{ths}</tr></thead><tbody>{''.join(html_rows)}</tbody></table>")
+    if not rows:
+        md.append("No entries yet.")
+    page = _PAGE.replace("{body}", "\n".join(body) or "<p>No entries yet.</p>")
+    _write_atomic(root / "README.md", "\n".join(md) + "\n")
+    _write_atomic(root / "index.html", page)
+    return root / "README.md", root / "index.html"
+
+
+_PAGE = """<!doctype html>
+<html lang="en"><head><meta charset="utf-8"><title>dsr-bench leaderboard</title>
+<style>
+body{font-family:system-ui,sans-serif;margin:2em;max-width:1100px}
+table{border-collapse:collapse;margin-bottom:2em}th,td{border:1px solid #ccc;padding:4px 8px;text-align:right}
+td:first-child,th:first-child{text-align:left}th{cursor:pointer;background:#f4f4f4}.best{font-weight:bold}
+</style></head><body>
+<h1>dsr-bench leaderboard</h1>
+<p>Reproduced results (<code>dsr-bench evaluate</code>) and numbers reported in the paper, in separate tables.
+Click a column to sort. Best per column in bold.</p>
+{body}
+<script>
+function sortTable(th){
+  const table=th.closest('table'), i=[...th.parentNode.children].indexOf(th), body=table.tBodies[0];
+  const asc=th.dataset.asc!=='1'; th.dataset.asc=asc?'1':'0';
+  const key=r=>{const c=r.children[i]; const v=c.dataset.v; return v!==undefined&&v!==''?parseFloat(v):c.textContent;};
+  [...body.rows].sort((a,b)=>{const x=key(a),y=key(b); return (x>y?1:x<y?-1:0)*(asc?1:-1);}).forEach(r=>body.appendChild(r));
+}
+</script></body></html>
+"""

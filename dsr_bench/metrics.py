@@ -1,0 +1,150 @@
+"""The benchmark's metrics (numpy; scipy's exact assignment solver when installed).
+
+Definitions follow the official evaluation (docs/evaluation.md):
+- motion, visible surface: squared end-point error summed over (dy, dx, dz), averaged over voxels
+  with -0.99 < tsdf < 0 and a GT object (z = 0 slice excluded), x 0.16 (voxel^2 -> cm^2);
+- motion, full volume: squared error averaged over all voxels and the 3 components, x 0.16;
+- mask IoU: I / max(U, 1) between predicted slots and GT objects under the best one-to-one
+  matching (Hungarian), averaged over the matched pairs; unordered = a matching per step,
+  ordered = one matching per sequence maximising the IoU summed over its steps.
+Scores are averaged over sequences per step index, then over step indices.
+"""
+
+from __future__ import annotations
+
+import itertools
+from dataclasses import dataclass
+
+import numpy as np
+
+from dsr_bench.constants import VOXEL2_TO_CM2
+
+TSDF_SURFACE_LOW = -0.99
+MOVED_VOXELS = 0.5  # an object moved if its mean GT flow exceeds half a voxel (2 mm)
+OCCLUDED_BELOW = 0.5  # visible fraction under which an object counts as mostly occluded
+M2_TO_CM2 = 1e4
+
+
+def assignment(score: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Rows and columns of the one-to-one matching maximising the total score (rectangular ok)."""
+    try:
+        from scipy.optimize import linear_sum_assignment
+    except ImportError:  # e.g. a GPU box without scipy: exact enumeration, fine for a few slots
+        return brute_force_assignment(score)
+    rows, cols = linear_sum_assignment(score, maximize=True)
+    return rows, cols
+
+
+def brute_force_assignment(score: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The same matching by enumerating every injective map (reference for tests)."""
+    flip = score.shape[0] > score.shape[1]
+    s = score.T if flip else score
+    best, best_cols = -np.inf, None
+    for cols in itertools.permutations(range(s.shape[1]), s.shape[0]):
+        total = s[np.arange(s.shape[0]), cols].sum()
+        if total > best + 1e-12:
+            best, best_cols = total, cols
+    rows, cols = np.arange(s.shape[0]), np.array(best_cols, dtype=np.int64)
+    if flip:
+        rows, cols = cols, rows
+        order = np.argsort(rows)
+        rows, cols = rows[order], cols[order]
+    return rows, cols
+
+
+@dataclass(frozen=True)
+class Overlap:
+    """Intersections (S, N) between predicted slots 1..S and GT objects 1..N, and their sizes."""
+
+    inter: np.ndarray
+    pred_size: np.ndarray
+    gt_size: np.ndarray
+
+    @property
+    def union(self) -> np.ndarray:
+        return self.pred_size[:, None] + self.gt_size[None, :] - self.inter
+
+    @property
+    def iou(self) -> np.ndarray:
+        return self.inter / np.maximum(self.union, 1)
+
+
+def overlap(pred: np.ndarray, gt: np.ndarray, num_slots: int, num_objects: int) -> Overlap:
+    """Slot x object intersection counts of two label volumes with one bincount."""
+    g1 = num_objects + 1
+    joint = np.bincount(pred.reshape(-1).astype(np.int64) * g1 + gt.reshape(-1).astype(np.int64),
+                        minlength=(num_slots + 1) * g1).reshape(num_slots + 1, g1)
+    return Overlap(joint[1:, 1:].astype(np.float64), joint[1:].sum(1).astype(np.float64),
+                   joint[:, 1:].sum(0).astype(np.float64))
+
+
+def matched_iou(ov: Overlap, rows: np.ndarray, cols: np.ndarray) -> tuple[float, np.ndarray]:
+    """(Mean IoU over matched pairs and unmatched non-empty slots/objects, per-object IoU (N,)).
+
+    Empty-empty pairs are not counted (the official code counts them as 0 when a scene has fewer
+    objects than slots; with as many objects as slots the two agree)."""
+    iou = ov.iou
+    per_object = np.zeros(ov.gt_size.shape[0])
+    per_object[cols] = iou[rows, cols]
+    values = list(iou[rows, cols][ov.union[rows, cols] > 0])
+    unmatched_slots = np.setdiff1d(np.arange(iou.shape[0]), rows)
+    unmatched_objects = np.setdiff1d(np.arange(iou.shape[1]), cols)
+    values += [0.0] * int((ov.pred_size[unmatched_slots] > 0).sum() + (ov.gt_size[unmatched_objects] > 0).sum())
+    return (float(np.mean(values)) if values else 1.0), per_object
+
+
+def motion_errors(pred: np.ndarray, gt: np.ndarray, tsdf: np.ndarray, gt_mask: np.ndarray,
+                  num_objects: int) -> dict[str, float]:
+    """Motion errors of one step (cm^2); pred, gt: (3, Y, X, Z) voxels; tsdf, gt_mask: (Y, X, Z)."""
+    diff = pred.astype(np.float32) - gt
+    sq = np.einsum("cyxz,cyxz->yxz", diff, diff)
+    visible = (tsdf > TSDF_SURFACE_LOW) & (tsdf < 0) & (gt_mask > 0)
+    visible[..., 0] = False
+    out = {
+        "motion_visible": float(sq[visible].mean() * VOXEL2_TO_CM2) if visible.any() else np.nan,
+        "motion_full": float(sq.mean() / 3 * VOXEL2_TO_CM2),
+    }
+    labels = gt_mask.reshape(-1)
+    sums = np.bincount(labels, weights=sq.reshape(-1), minlength=num_objects + 1)[1:]
+    counts = np.bincount(labels, minlength=num_objects + 1)[1:]
+    gt_norm = np.sqrt(np.einsum("cyxz,cyxz->yxz", gt, gt)).reshape(-1)
+    speed = np.bincount(labels, weights=gt_norm, minlength=num_objects + 1)[1:] / np.maximum(counts, 1)
+    per_object = sums / np.maximum(counts, 1) * VOXEL2_TO_CM2
+    present = counts > 0
+    moved = present & (speed > MOVED_VOXELS)
+    static = present & ~moved
+    out["motion_moved"] = float(per_object[moved].mean()) if moved.any() else np.nan
+    out["motion_static"] = float(per_object[static].mean()) if static.any() else np.nan
+    return out
+
+
+def motion_2d_error(pred: np.ndarray, gt: np.ndarray, mask_2d: np.ndarray) -> float:
+    """Visible-surface 2D flow error (cm^2): squared error summed over components, averaged over
+    pixels that see an object; pred, gt: (H, W, 3) metres."""
+    sel = mask_2d > 0
+    if not sel.any():
+        return np.nan
+    diff = pred[sel].astype(np.float64) - gt[sel]
+    return float((diff ** 2).sum(1).mean() * M2_TO_CM2)
+
+
+def sequence_scores(pred_mask: np.ndarray, gt_mask: np.ndarray, num_slots: int, num_objects: int,
+                    visible_fraction: np.ndarray | None = None) -> dict[str, np.ndarray]:
+    """Per-step IoU scores of one sequence: unordered and ordered (T,), and per-object IoU under
+    the unordered matching split into mostly occluded and visible objects (lists per step)."""
+    steps = pred_mask.shape[0]
+    overlaps = [overlap(pred_mask[t], gt_mask[t], num_slots, num_objects) for t in range(steps)]
+    unordered = np.zeros(steps)
+    occluded, visible = [], []
+    for t, ov in enumerate(overlaps):
+        rows, cols = assignment(ov.iou)
+        unordered[t], per_object = matched_iou(ov, rows, cols)
+        if visible_fraction is not None:
+            present = ov.gt_size > 0
+            occ = present & (visible_fraction[t] < OCCLUDED_BELOW)
+            occluded.append(per_object[occ])
+            visible.append(per_object[present & ~occ])
+    rows, cols = assignment(sum(ov.iou for ov in overlaps))
+    ordered = np.array([matched_iou(ov, rows, cols)[0] for ov in overlaps])
+    return {"iou_unordered": unordered, "iou_ordered": ordered, "iou_occluded_objects": occluded,
+            "iou_visible_objects": visible}

@@ -1,0 +1,113 @@
+"""`dsr-bench predict` and `dsr-bench evaluate`: exact oracle, pinned reference scores, strict checks."""
+
+import json
+import os
+import shutil
+
+import h5py
+import numpy as np
+import pytest
+
+from dsr_bench.cli import main
+from dsr_bench.errors import UserError
+from dsr_bench.evaluate import evaluate
+from dsr_bench.manifest import load_manifest, split_digest
+from dsr_bench.predictions import write_predictions
+from dsr_bench.testing import write_synthetic_dataset
+
+#: static model on the generated fixture (tests/conftest.py): pinned, so a metric or generator
+#: change shows up here and must be explained.
+STATIC_PINNED = {"motion_visible": 40.54116169611613, "motion_full": 0.11083259371419747,
+                 "iou_unordered": 0.2586594114329392, "iou_ordered": 0.2586594114329392}
+
+
+@pytest.fixture(scope="module")
+def synthetic(tmp_path_factory):
+    return write_synthetic_dataset(tmp_path_factory.mktemp("ev") / "data", num_sequences=3, num_steps=2)
+
+
+def _predict(model, data, out):
+    assert main(["predict", "--model", model, "--data", str(data), "--out", str(out)]) == 0
+    return out
+
+
+def test_oracle_scores_exactly(generated_dataset, tmp_path):
+    pred = _predict("oracle", generated_dataset, tmp_path / "oracle")
+    assert main(["evaluate", str(pred), "--data", str(generated_dataset), "--out", str(tmp_path / "r.json")]) == 0
+    results = json.loads((tmp_path / "r.json").read_text())
+    m = results["metrics"]
+    assert m["iou_unordered"] == 1.0 and m["iou_ordered"] == 1.0
+    assert m["motion_visible"] == 0.0 and m["motion_full"] == 0.0 and m["motion_2d"] == 0.0
+    assert results["split"] == "all" and results["coverage"] == {"scored": 2, "expected": 2, "partial": False}
+    assert results["split_checksum"] == split_digest(load_manifest(generated_dataset), "all")
+    assert len(results["predictions_checksum"]) == 64 and results["meta"]["name"] == "oracle"
+    assert len(results["per_step"]["iou_ordered"]) == 3
+
+
+def test_static_scores_are_pinned(generated_dataset, tmp_path):
+    pred = _predict("static", generated_dataset, tmp_path / "static")
+    results = evaluate(pred, generated_dataset, workers=1).results
+    for key, value in STATIC_PINNED.items():
+        assert results["metrics"][key] == pytest.approx(value, rel=1e-6), key
+    assert results["breakdowns"]["motion_static_objects"] < 1e-3 < results["breakdowns"]["motion_moved_objects"]
+
+
+def test_parallel_and_serial_agree(synthetic, tmp_path):
+    pred = _predict("static", synthetic, tmp_path / "s")
+    a = evaluate(pred, synthetic, workers=1).results
+    b = evaluate(pred, synthetic, workers=2).results
+    assert a["metrics"] == b["metrics"] and a["per_step"] == b["per_step"]
+
+
+def test_every_problem_reported_and_no_score(synthetic, tmp_path, capsys):
+    pred = _predict("oracle", synthetic, tmp_path / "bad")
+    (pred / "seq_0000.h5").unlink()  # missing
+    shutil.copy(pred / "seq_0001.h5", pred / "seq_0042.h5")  # extra
+    with h5py.File(pred / "seq_0001.h5", "r+") as f:  # NaN motion and an out-of-range slot
+        f["motion"][0, 0, 0, 0, 0] = np.nan
+        f["mask"][1, 0, 0, 0] = 200
+    (pred / "meta.json").write_text("{not json")
+    outside = tmp_path / "outside.h5"
+    shutil.copy(pred / "seq_0002.h5", outside)
+    (pred / "seq_0002.h5").unlink()
+    os.symlink(outside, pred / "seq_0002.h5")  # escapes the directory
+    assert main(["evaluate", str(pred), "--data", str(synthetic)]) == 1
+    err = capsys.readouterr().err
+    for text in ("missing prediction file seq_0000.h5", "extra file", "NaN or inf", "slot id 200",
+                 "not valid JSON", "outside the predictions directory", "no score"):
+        assert text in err, text
+    assert "mask IoU" not in err
+
+
+def test_wrong_shapes_and_truncation_then_allow_partial(synthetic, tmp_path, capsys):
+    pred = _predict("oracle", synthetic, tmp_path / "p")
+    with h5py.File(pred / "seq_0000.h5", "r+") as f:
+        motion = f["motion"][()]
+        del f["motion"]
+        f["motion"] = motion.astype(np.float64)
+    raw = (pred / "seq_0001.h5").read_bytes()
+    (pred / "seq_0001.h5").write_bytes(raw[: len(raw) // 3])
+    evaluation = evaluate(pred, synthetic, workers=1)
+    text = " ".join(f"{w}: {m}" for w, m in evaluation.problems)
+    assert "motion: dtype float64" in text and "seq_0001: unreadable" in text and evaluation.results is None
+    assert main(["evaluate", str(pred), "--data", str(synthetic), "--allow-partial"]) == 0
+    captured = capsys.readouterr()
+    assert "scored 1 of 3 sequences" in captured.err and "mask IoU" in captured.out
+
+
+def test_write_predictions_refuses_bad_arrays(tmp_path):
+    mask = np.zeros((2, 128, 128, 48), np.uint8)
+    with pytest.raises(UserError, match="motion must be"):
+        write_predictions(tmp_path / "x.h5", mask, np.zeros((2, 3, 128, 128, 48), np.float64), 4)
+    mask[0, 0, 0, 0] = 7
+    with pytest.raises(UserError, match="slot 7 > num_slots 4"):
+        write_predictions(tmp_path / "x.h5", mask, np.zeros((2, 3, 128, 128, 48), np.float16), 4)
+    assert not list(tmp_path.iterdir())
+
+
+def test_predict_errors(synthetic, tmp_path, capsys):
+    assert main(["predict", "--model", "dsr", "--data", str(synthetic), "--out", str(tmp_path / "o")]) == 2
+    assert "--checkpoint" in capsys.readouterr().err
+    assert main(["predict", "--model", "magic", "--data", str(synthetic), "--out", str(tmp_path / "o")]) == 2
+    assert "choose one of" in capsys.readouterr().err
+    assert main(["evaluate", str(tmp_path / "none"), "--data", str(synthetic)]) == 2

@@ -1,0 +1,86 @@
+"""The leaderboard: strict entries, paper rows kept apart, tables and a sortable page."""
+
+import json
+import shutil
+import subprocess
+from pathlib import Path
+
+import pytest
+
+from dsr_bench.cli import main
+from dsr_bench.errors import UserError
+from dsr_bench.leaderboard import add_entry, build, check_entry
+from dsr_bench.splits import SPLITS, Split
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _results(split="procedural-novel-mini", checksum="c" * 64, **metrics):
+    base = {"motion_visible": 5.0, "motion_full": 0.08, "iou_unordered": 0.7, "iou_ordered": 0.6}
+    return {"format": "dsr-bench-results", "version": 1, "method": "MyNet", "split": split,
+            "split_checksum": checksum, "date": "2026-11-22T00:00:00Z",
+            "coverage": {"scored": 8, "expected": 8, "partial": False}, "metrics": {**base, **metrics}}
+
+
+@pytest.fixture
+def board(tmp_path, monkeypatch):
+    root = tmp_path / "leaderboard"
+    root.mkdir()
+    shutil.copy(ROOT / "leaderboard" / "paper.json", root / "paper.json")
+    spec = SPLITS["procedural-novel-mini"]
+    monkeypatch.setitem(SPLITS, spec.name, Split(**{**spec.__dict__, "expected_digest": "c" * 64}))
+    return root
+
+
+def test_entries_are_checked(board, tmp_path):
+    assert check_entry(_results()) == []
+    assert any("differs from the toolkit's" in p for p in check_entry(_results(checksum="d" * 64)))
+    assert any("not one of the benchmark's named splits" in p for p in check_entry(_results(split="mine")))
+    partial = _results()
+    partial["coverage"]["partial"] = True
+    assert any("partial" in p for p in check_entry(partial))
+    missing = _results()
+    del missing["metrics"]["iou_ordered"]
+    assert any("iou_ordered" in p for p in check_entry(missing))
+    path = tmp_path / "bad.json"
+    path.write_text(json.dumps(_results(checksum="e" * 64)))
+    with pytest.raises(UserError, match="cannot join the leaderboard"):
+        add_entry(path, board)
+    assert not (board / "entries").exists()
+
+
+def test_build_tables_keep_paper_rows_apart_and_mark_the_best(board, tmp_path):
+    good = tmp_path / "good.json"
+    good.write_text(json.dumps(_results()))
+    other = _results(motion_visible=4.0, iou_unordered=0.5, iou_ordered=0.4)
+    other["method"] = "Other"
+    (tmp_path / "other.json").write_text(json.dumps(other))
+    assert main(["leaderboard", "add", str(good), "--root", str(board), "--label", "short schedule"]) == 0
+    assert main(["leaderboard", "add", str(tmp_path / "other.json"), "--root", str(board)]) == 0
+    md = (board / "README.md").read_text()
+    assert "## procedural-novel-mini: 3D track (reproduced)" in md
+    assert "## ycb-test: 3D track (reported in the paper)" in md and "## real-test: 2D track (reported in the paper)" in md
+    mine = next(line for line in md.splitlines() if line.startswith("| MyNet"))
+    theirs = next(line for line in md.splitlines() if line.startswith("| Other"))
+    assert "**0.700**" in mine and "**4**" in theirs and "short schedule" in mine
+    dsr = next(line for line in md.splitlines() if line.startswith("| DSR-Net |") and "0.772" in line)
+    assert "**5.54**" in dsr  # best among the paper's sim rows
+    page = (board / "index.html").read_text()
+    assert "sortTable" in page and page.count("<table") == md.count("## ")
+
+
+def test_real_headless_browser_renders_the_page(board):
+    browser = shutil.which("chromium") or shutil.which("chromium-browser") or shutil.which("google-chrome")
+    if browser is None:
+        pytest.skip("no headless Chromium installed (apt-get install chromium)")
+    _, page = build(board)
+    dom = subprocess.run([browser, "--headless", "--no-sandbox", "--disable-gpu", "--dump-dom", page.as_uri()],
+                         capture_output=True, text=True, timeout=60).stdout
+    assert "DSR-Net" in dom and "<table" in dom
+
+
+def test_repository_leaderboard_builds(tmp_path):
+    root = tmp_path / "lb"
+    shutil.copytree(ROOT / "leaderboard", root)
+    md, _ = build(root)
+    assert "reported in the paper" in md.read_text()

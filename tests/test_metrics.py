@@ -1,0 +1,110 @@
+"""Metric definitions: exact matching, IoU conventions, motion errors on hand-checked arrays."""
+
+import numpy as np
+import pytest
+
+from dsr_bench.metrics import (
+    assignment, brute_force_assignment, matched_iou, motion_2d_error, motion_errors, overlap, sequence_scores,
+)
+
+GRID = (128, 128, 48)
+
+
+@pytest.mark.parametrize("shape", [(4, 4), (5, 3), (3, 6), (6, 6)])
+def test_hungarian_equals_brute_force(shape):
+    rng = np.random.default_rng(sum(shape))
+    for _ in range(40):
+        score = rng.random(shape)
+        if rng.random() < 0.3:
+            score = np.round(score, 1)  # ties
+        r1, c1 = assignment(score)
+        r2, c2 = brute_force_assignment(score)
+        assert np.isclose(score[r1, c1].sum(), score[r2, c2].sum())
+        assert len(r1) == min(shape) and len(set(c1)) == len(c1)
+
+
+def test_overlap_matches_direct_counts():
+    rng = np.random.default_rng(0)
+    pred = rng.integers(0, 5, (16, 16, 8)).astype(np.uint8)
+    gt = rng.integers(0, 4, (16, 16, 8)).astype(np.uint8)
+    ov = overlap(pred, gt, 4, 3)
+    for s in range(1, 5):
+        for g in range(1, 4):
+            inter = np.sum((pred == s) & (gt == g))
+            union = np.sum((pred == s) | (gt == g))
+            assert ov.inter[s - 1, g - 1] == inter and ov.union[s - 1, g - 1] == union
+            assert np.isclose(ov.iou[s - 1, g - 1], inter / max(union, 1))
+
+
+def _blocks(ids, shape=(8, 8, 4)):
+    vol = np.zeros(shape, np.uint8)
+    for k, i in enumerate(ids):
+        if i:
+            vol[2 * k:2 * k + 2] = i
+    return vol
+
+
+def test_slot_numbers_do_not_matter_and_empty_pairs_are_not_counted():
+    gt = _blocks([1, 2, 3])
+    pred = _blocks([4, 1, 2])  # same objects, other slot numbers, slot 3 empty
+    ov = overlap(pred, gt, 4, 3)
+    score, per_object = matched_iou(ov, *assignment(ov.iou))
+    assert score == 1.0 and np.all(per_object == 1.0)
+    half = gt.copy()
+    half[4:6] = 0  # object 3 missed entirely
+    ov = overlap(half, gt, 4, 3)
+    score, per_object = matched_iou(ov, *assignment(ov.iou))
+    assert np.isclose(score, 2 / 3) and per_object[2] == 0
+
+
+def test_extra_predicted_slot_counts_as_zero():
+    gt = _blocks([1, 2, 0, 0])
+    pred = _blocks([1, 2, 3, 0])  # a phantom object
+    ov = overlap(pred, gt, 4, 2)
+    score, _ = matched_iou(ov, *assignment(ov.iou))
+    assert np.isclose(score, 2 / 3)
+
+
+def test_ordered_iou_penalises_identity_swaps():
+    gt = np.stack([_blocks([1, 2])] * 3)
+    pred = np.stack([_blocks([1, 2]), _blocks([2, 1]), _blocks([1, 2])])
+    scores = sequence_scores(pred, gt, 4, 2)
+    assert np.allclose(scores["iou_unordered"], 1.0)
+    assert np.allclose(scores["iou_ordered"], [1.0, 0.0, 1.0])
+
+
+def test_occlusion_breakdown_splits_objects_by_visibility():
+    gt = np.stack([_blocks([1, 2])] * 2)
+    pred = np.stack([_blocks([1, 0])] * 2)
+    visible = np.array([[0.9, 0.2], [0.9, 0.8]])
+    scores = sequence_scores(pred, gt, 4, 2, visible)
+    assert [list(x) for x in scores["iou_occluded_objects"]] == [[0.0], []]
+    assert [list(x) for x in scores["iou_visible_objects"]] == [[1.0], [1.0, 0.0]]
+
+
+def test_motion_errors_follow_the_official_definitions():
+    gt_mask = np.zeros(GRID, np.uint8)
+    gt_mask[10:12, 10:12, 0:3] = 1  # 12 voxels, 4 of them at z index 0
+    gt_mask[50, 50, 5] = 2
+    tsdf = np.ones(GRID, np.float32)
+    tsdf[10:12, 10:12, 0:3] = -0.5  # visible band, but z = 0 is excluded
+    tsdf[50, 50, 5] = -0.995  # below -0.99: not visible surface
+    gt = np.zeros((3,) + GRID, np.float32)
+    gt[1][gt_mask == 1] = 2.0  # object 1 moves 2 voxels in x
+    pred = np.zeros_like(gt)
+    err = motion_errors(pred, gt, tsdf, gt_mask, 2)
+    assert np.isclose(err["motion_visible"], 4.0 * 0.16)  # squared EPE 4 voxel^2 x 0.16
+    assert np.isclose(err["motion_full"], 12 * 4.0 / (3 * np.prod(GRID)) * 0.16)
+    assert np.isclose(err["motion_moved"], 4.0 * 0.16) and err["motion_static"] == 0.0
+    perfect = motion_errors(gt, gt, tsdf, gt_mask, 2)
+    assert perfect["motion_visible"] == 0 and perfect["motion_full"] == 0
+
+
+def test_motion_2d_error_in_cm2():
+    gt = np.zeros((4, 4, 3), np.float32)
+    pred = gt.copy()
+    pred[0, 0] = [0.01, 0.0, 0.0]  # 1 cm on a visible pixel
+    mask = np.zeros((4, 4), np.uint8)
+    mask[0, :2] = 1
+    assert np.isclose(motion_2d_error(pred, gt, mask), 0.5)
+    assert np.isnan(motion_2d_error(pred, gt, np.zeros((4, 4), np.uint8)))
