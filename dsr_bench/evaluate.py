@@ -50,12 +50,13 @@ def _score_sequence(args) -> tuple[str, list[str], dict | None]:
             per_step = {k: np.full(steps, np.nan) for k in ("motion_visible", "motion_full", "motion_moved",
                                                             "motion_static", "motion_2d")}
             has_2d = "motion_2d" in pred and "cameras/front/scene_flow_2d" in gt
+            gt_mask = gt.read("mask_3d", slice(0, steps))
             for t in range(steps):
                 motion = pred["motion"][t]
                 if not np.all(np.isfinite(motion)):
                     problems.append(f"motion[{t}]: NaN or inf")
                     continue
-                errs = motion_errors(motion, gt.read("scene_flow_3d", t), gt.read("tsdf", t), gt.read("mask_3d", t), n)
+                errs = motion_errors(motion, gt.read("scene_flow_3d", t), gt.read("tsdf", t), gt_mask[t], n)
                 for k, v in errs.items():
                     per_step[k][t] = v
                 if has_2d:
@@ -67,7 +68,6 @@ def _score_sequence(args) -> tuple[str, list[str], dict | None]:
                                                                gt.read("cameras/front/mask", t))
             if problems:
                 return name, problems, None
-            gt_mask = gt.read("mask_3d", slice(0, steps))
             visible = gt.read("visible_fraction") if "visible_fraction" in gt else None
             ious = sequence_scores(pred_mask, gt_mask, num_slots, n, visible)
     except (OSError, KeyError, ValueError) as exc:
