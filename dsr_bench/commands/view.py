@@ -1,0 +1,40 @@
+"""`dsr-bench view`: a sequence (and predictions) in the rerun viewer."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Optional
+
+import typer
+
+
+def view(
+    sequence: str = typer.Argument(..., help="A sequence name within --data (seq_0042) or a path to a .h5 file."),
+    data: Optional[Path] = typer.Option(None, "--data", help="Dataset directory holding the sequence."),
+    predictions: Optional[Path] = typer.Option(None, "--predictions", help="Predictions directory to show beside the ground truth."),
+    save: Optional[Path] = typer.Option(None, "--save", help="Write a .rrd recording instead of opening a viewer."),
+    web: bool = typer.Option(False, "--web", help="Serve the web viewer instead of the native one."),
+) -> None:
+    """Open a sequence in the rerun viewer (cameras, TSDF, amodal voxels, meshes, push, flow, predictions)."""
+    from dsr_bench.errors import UserError
+    from dsr_bench.manifest import resolve_sequence
+    from dsr_bench.viewer import view as run
+
+    if save is not None and web:
+        raise UserError("choose one of --save and --web")
+    if predictions is not None and not predictions.is_dir():
+        raise UserError(f"predictions directory not found: {predictions}")
+    path = resolve_sequence(data, sequence)
+    out = run(path, predictions=predictions, save=save, web=web)
+    if out is not None:
+        typer.echo(f"wrote {out} (open it with: rerun {out})")
+    elif web:
+        typer.echo("serving the web viewer; press Ctrl-C to stop")
+        import time
+
+        while True:
+            time.sleep(3600)
+
+
+def register(app: typer.Typer) -> None:
+    app.command("view")(view)
