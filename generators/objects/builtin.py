@@ -12,12 +12,15 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 
 from generators.objects.spec import ObjectSpec, make_spec, random_color
 
 CUBE_DIVISORS = (700, 750, 800, 850, 900, 1000, 1100, 1200, 1400)
-NORMALISED_DIAGONAL = 0.15  # m: bounding-box diagonal at scale 1 (ShapeNetCore v2 normalises it to 1)
+CUBE_HALF_EXTENTS = (30.0, 30.0, 35.0)  # divided by s: metres
+NORMALISED_DIAGONAL = 0.15  # m: bounding-box diagonal at scale 1 (the official URDFs scale unit-diagonal meshes by 0.15)
 #: Official category scale ranges: (normal low, normal high), (large low, large high).
 CATEGORY_SCALES = {
     "bottle": ((0.7, 0.8), (1.1, 1.2)),
@@ -27,9 +30,19 @@ CATEGORY_SCALES = {
     "phone": ((0.7, 1.0), (1.0, 1.1)),
 }
 PROCEDURAL_CATEGORIES = tuple(CATEGORY_SCALES)
-P_FORCE_CAN = 0.3
-P_RANDOM_BOX = 0.3
-P_LARGE = 0.5  # a scene has one large object with this probability
+# The official scene mix (shapenet and ycb; cube scenes have no large object):
+P_NO_LARGE = 0.1  # otherwise one object, chosen uniformly, is the "large" one
+P_RANDOM_BOX = 0.3  # a non-large object is replaced by a random box
+P_LARGE_BOX = 0.12  # the large object is replaced by a large random box
+P_FORCE_CAN = 0.3  # the category drawn is replaced by "can"
+P_CAN_WITH_BOX = 0.1  # after a large can, a random box is a large one (once)
+#: Random box sizes in 2 mm voxels (official: numpy ranges, upper bounds excluded).
+SMALL_BOX_VOXELS = (tuple(range(25, 40)), tuple(range(30, 60)), tuple(range(15, 25)) + (30, 32))
+LARGE_BOX_VOXELS = (tuple(range(35, 55)), tuple(range(70, 85)), tuple(range(15, 30)))
+BOX_VOXEL = 0.002  # m
+# procedural-novel: real sizes, shrunk uniformly (the factor is the spec's scale) to fit these limits
+NOVEL_MAX_HEIGHT = 0.12  # m
+NOVEL_MAX_SIDE = 0.16  # m, longest horizontal side
 
 
 def _trimesh():
@@ -109,15 +122,53 @@ def _sofa(rng):
 FAMILIES = {"can": _can, "bottle": _bottle, "mug": _mug, "phone": _phone, "sofa": _sofa}
 
 
-def _small_box(rng, set_name: str) -> ObjectSpec:
-    """The official random small box: 25-40 x 30-60 x 15-32 voxels of 2 mm."""
-    size = np.array([rng.integers(25, 41), rng.integers(30, 61), rng.integers(15, 33)]) * 0.002
-    return make_spec(set_name, "box", f"box_{int(size[0] * 1000)}x{int(size[1] * 1000)}x{int(size[2] * 1000)}mm",
-                     1.0, [_box(size, [0, 0, size[2] / 2])], random_color(rng), False)
+def random_box(rng: np.random.Generator, set_name: str, large: bool, is_large: bool) -> ObjectSpec:
+    """The official random box: small 25-39 x 30-59 x (15-24, 30 or 32) voxels of 2 mm, large
+    35-54 x 70-84 x 15-29 voxels."""
+    ranges = LARGE_BOX_VOXELS if large else SMALL_BOX_VOXELS
+    voxels = [int(rng.choice(r)) for r in ranges]
+    size = np.array(voxels, dtype=np.float64) * BOX_VOXEL
+    model_id = f"box_{'large' if large else 'small'}_{voxels[0]}x{voxels[1]}x{voxels[2]}vox"
+    return make_spec(set_name, "box", model_id, 1.0, [_box(size, [0, 0, size[2] / 2])], random_color(rng), is_large)
+
+
+def choose_large(rng: np.random.Generator, count: int) -> int:
+    """Index of the scene's large object, or -1 (probability P_NO_LARGE), as the official generator."""
+    large = int(rng.integers(count))
+    return -1 if rng.random() < P_NO_LARGE else large
+
+
+def sample_category_mix(rng: np.random.Generator, count: int, set_name: str,
+                        build: Callable[[str, np.random.Generator, bool], ObjectSpec]) -> list[ObjectSpec]:
+    """The official ShapeNet scene mix: random boxes (p 0.3; the large object p 0.12), else a uniform
+    category with "can" forced at p 0.3; build(category, rng, is_large) makes the object."""
+    large = choose_large(rng, count)
+    can_with_box = False
+    out = []
+    for i in range(count):
+        if i != large and rng.random() < P_RANDOM_BOX:
+            big = can_with_box and rng.random() < P_CAN_WITH_BOX
+            can_with_box = can_with_box and not big
+            out.append(random_box(rng, set_name, big, False))
+        elif i == large and rng.random() < P_LARGE_BOX:
+            out.append(random_box(rng, set_name, True, True))
+        else:
+            category = PROCEDURAL_CATEGORIES[int(rng.integers(len(PROCEDURAL_CATEGORIES)))]
+            if rng.random() < P_FORCE_CAN:
+                category = "can"
+            can_with_box = can_with_box or (i == large and category == "can")
+            out.append(build(category, rng, i == large))
+    return out
+
+
+def category_scale(rng: np.random.Generator, category: str, is_large: bool) -> float:
+    """A scale drawn uniformly from the official normal or large range of the category."""
+    low, high = CATEGORY_SCALES[category][1 if is_large else 0]
+    return float(rng.uniform(low, high))
 
 
 class CubeSet:
-    """The paper's boxes (official half extents), random colours."""
+    """The paper's boxes (official half extents), random colours; no large object."""
 
     name = "cube"
 
@@ -125,36 +176,28 @@ class CubeSet:
         out = []
         for _ in range(count):
             s = int(rng.choice(CUBE_DIVISORS))
-            half = np.array([30.0, 30.0, 35.0]) / s
-            out.append(make_spec(self.name, "box", f"cube_s{s}", 1.0 / s, [_box(2 * half, [0, 0, half[2]])],
+            half = np.array(CUBE_HALF_EXTENTS) / s
+            out.append(make_spec(self.name, "cube", f"cube_s{s}", 1.0 / s, [_box(2 * half, [0, 0, half[2]])],
                                  random_color(rng), False))
         return out
 
 
 class ProceduralSet:
-    """Parametric mugs, bottles, cans, phones and sofas with the official scales and mix rules."""
+    """Parametric mugs, bottles, cans, phones and sofas with the official scales and scene mix."""
 
     name = "procedural"
 
+    def _build(self, category: str, rng: np.random.Generator, is_large: bool) -> ObjectSpec:
+        meshes, model_id = FAMILIES[category](rng)
+        scale = category_scale(rng, category, is_large)
+        meshes = _normalise(meshes, NORMALISED_DIAGONAL * scale)
+        return make_spec(self.name, category, model_id, scale, meshes, random_color(rng), is_large)
+
     def sample(self, rng: np.random.Generator, count: int) -> list[ObjectSpec]:
-        large = int(rng.integers(count)) if rng.random() < P_LARGE else -1
-        out = []
-        for i in range(count):
-            category = str(rng.choice(PROCEDURAL_CATEGORIES))
-            if rng.random() < P_FORCE_CAN:
-                category = "can"
-            if i != large and rng.random() < P_RANDOM_BOX:
-                out.append(_small_box(rng, self.name))
-                continue
-            meshes, model_id = FAMILIES[category](rng)
-            low, high = CATEGORY_SCALES[category][1 if i == large else 0]
-            scale = float(rng.uniform(low, high))
-            meshes = _normalise(meshes, NORMALISED_DIAGONAL * scale)
-            out.append(make_spec(self.name, category, model_id, scale, meshes, random_color(rng), i == large))
-        return out
+        return sample_category_mix(rng, count, self.name, self._build)
 
 
-# --- YCB-like novel shapes (metres) -------------------------------------------------------------
+# --- YCB-like novel shapes (metres, real sizes before fitting) ------------------------------------
 def _ycb_box(dims):
     def build(rng):
         return [_box(dims, [0, 0, dims[2] / 2])]
@@ -167,7 +210,20 @@ def _ycb_can(radius, height):
     return build
 
 
+def _rounded_can(width, depth, height, corner):
+    """A can with a rounded-rectangle section (potted meat): the hull of its corner circles."""
+    def build(rng):
+        a = np.linspace(0, 2 * np.pi, 48, endpoint=False)
+        cx, cy = width / 2 - corner, depth / 2 - corner
+        ring = np.concatenate([np.stack([sx * cx + corner * np.cos(a), sy * cy + corner * np.sin(a)], 1)
+                               for sx in (-1, 1) for sy in (-1, 1)])
+        pts = np.concatenate([np.c_[ring, np.zeros(len(ring))], np.c_[ring, np.full(len(ring), height)]])
+        return [_trimesh().Trimesh(pts).convex_hull]
+    return build
+
+
 def _ycb_cup(radius_top, height):
+    """An open-top cup: a truncated cone with a 3 mm wall and a 4 mm base."""
     def build(rng):
         wall, base_r = 0.003, radius_top * 0.8
         return [_revolve([[0, 0], [base_r, 0], [radius_top, height], [radius_top - wall, height],
@@ -184,48 +240,78 @@ def _bowl(rng):
     return [_revolve(np.vstack([[[0, 0]], outer, inner, [[0, wall]]]))]
 
 
-def _clamp(rng, arm=0.11, foot=0.07, t=0.02, h=0.03):
+def _clamp(rng, arm=0.12, foot=0.08, t=0.025, h=0.035):
+    """An L-shaped clamp lying flat: two bars meeting at a corner."""
     return [_box([arm, t, h], [arm / 2, 0, h / 2]), _box([t, foot, h], [t / 2, foot / 2 + t / 2, h / 2])]
 
 
 def _mustard(rng):
-    return [_revolve([[0, 0], [0.03, 0], [0.032, 0.13], [0.012, 0.165], [0.012, 0.18], [0, 0.18]])]
+    """A mustard bottle: a revolved profile squeezed to an oval section (95 x 58 mm), 190 mm tall."""
+    body = _revolve([[0, 0], [0.0475, 0], [0.0475, 0.14], [0.014, 0.172], [0.014, 0.19], [0, 0.19]])
+    body.apply_scale([1.0, 0.61, 1.0])
+    return [body]
+
+
+def _duplo(rng, pitch=0.016, rows=2, cols=4, height=0.0192):
+    """A filled 2 x 4 Duplo brick with its eight studs (parts overlap the top by 0.5 mm)."""
+    w, d = rows * pitch - 0.0002, cols * pitch - 0.0002
+    parts = [_box([w, d, height], [0, 0, height / 2])]
+    for i in range(rows):
+        for j in range(cols):
+            stud = _trimesh().creation.cylinder(radius=0.0048, height=0.0050, sections=24)
+            stud.apply_translation([(i - (rows - 1) / 2) * pitch, (j - (cols - 1) / 2) * pitch, height + 0.002])
+            parts.append(stud)
+    return parts
 
 
 NOVEL_NORMAL = {
-    "tomato_soup_can": _ycb_can(0.033, 0.101),
+    "tomato_soup_can": _ycb_can(0.0335, 0.101),
     "tuna_fish_can": _ycb_can(0.043, 0.033),
-    "pudding_box": _ycb_box([0.035, 0.110, 0.089]),
-    "gelatin_box": _ycb_box([0.028, 0.085, 0.073]),
-    "potted_meat_can": _ycb_box([0.050, 0.097, 0.082]),
-    "foam_brick": _ycb_box([0.050, 0.075, 0.050]),
+    "pudding_box": _ycb_box([0.110, 0.089, 0.035]),
+    "gelatin_box": _ycb_box([0.085, 0.073, 0.028]),
+    "potted_meat_can": _rounded_can(0.097, 0.050, 0.082, 0.012),
+    "foam_brick": _ycb_box([0.075, 0.050, 0.050]),
     "rubiks_cube": _ycb_box([0.057, 0.057, 0.057]),
-    "cup_small": _ycb_cup(0.030, 0.055),
-    "cup_medium": _ycb_cup(0.036, 0.064),
-    "cup_large": _ycb_cup(0.042, 0.073),
-    "bowl": _bowl,
-    "duplo_brick": _ycb_box([0.032, 0.064, 0.024]),
+    "cup_a": _ycb_cup(0.0275, 0.060),
+    "cup_d": _ycb_cup(0.034, 0.066),
+    "cup_g": _ycb_cup(0.039, 0.072),
+    "duplo_brick": _duplo,
 }
 NOVEL_LARGE = {
     "master_chef_can": _ycb_can(0.051, 0.140),
-    "sugar_box": _ycb_box([0.038, 0.089, 0.175]),
+    "sugar_box": _ycb_box([0.175, 0.089, 0.038]),  # lying on its broad side
+    "cracker_box": _ycb_box([0.210, 0.158, 0.060]),  # lying on its broad side
     "mustard_bottle": _mustard,
-    "nine_hole_peg_test": _ycb_box([0.125, 0.125, 0.05]),
+    "cup_j": _ycb_cup(0.045, 0.078),
+    "bowl": _bowl,
+    "nine_hole_peg_test": _ycb_box([0.150, 0.150, 0.050]),
     "large_clamp": _clamp,
 }
 
 
+def fit_scale(meshes) -> float:
+    """Uniform shrink factor (<= 1) that keeps an object within NOVEL_MAX_HEIGHT and NOVEL_MAX_SIDE."""
+    extent = _trimesh().util.concatenate(meshes).extents
+    return float(min(1.0, NOVEL_MAX_HEIGHT / extent[2], NOVEL_MAX_SIDE / max(extent[0], extent[1])))
+
+
 class ProceduralNovelSet:
-    """YCB-like shapes at their real sizes, one optional large object per scene."""
+    """YCB-like shapes at their real sizes (shrunk to fit where needed), one optional large object."""
 
     name = "procedural-novel"
 
     def sample(self, rng: np.random.Generator, count: int) -> list[ObjectSpec]:
-        large = int(rng.integers(count)) if rng.random() < P_LARGE else -1
+        large = choose_large(rng, count)
         out = []
         for i in range(count):
             table = NOVEL_LARGE if i == large else NOVEL_NORMAL
-            name = str(rng.choice(sorted(table)))
+            names = sorted(table)
+            name = names[int(rng.integers(len(names)))]
             meshes = table[name](rng)
-            out.append(make_spec(self.name, name, name, 1.0, meshes, random_color(rng), i == large))
+            scale = fit_scale(meshes)
+            if scale < 1.0:
+                for m in meshes:
+                    m.apply_scale(scale)
+            model_id = name if scale == 1.0 else f"{name}_x{scale:.3f}"
+            out.append(make_spec(self.name, name, model_id, scale, meshes, random_color(rng), i == large))
         return out

@@ -7,8 +7,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-DENSITY = 400.0  # kg / m^3, light household objects
-MIN_MASS = 0.05  # kg
+#: Every object of the official generator weighs 0.05 kg (pybullet changeDynamics mass=0.05).
+OFFICIAL_MASS = 0.05  # kg
 
 
 @dataclass(frozen=True)
@@ -63,9 +63,10 @@ class ObjectSpec:
 
 
 def make_spec(set_name: str, category: str, model_id: str, scale: float, meshes: list, color, is_large: bool,
-              density: float = DENSITY) -> ObjectSpec:
-    """An ObjectSpec from trimesh solids (metres): checks each is a closed solid, moves the origin to the
-    centre of mass (volume-weighted over parts; small overlaps are counted twice) and sets the mass."""
+              mass: float = OFFICIAL_MASS) -> ObjectSpec:
+    """An ObjectSpec from trimesh solids (metres): checks each is a closed solid and moves the origin to
+    the centre of mass (volume-weighted over parts, uniform density; the small overlaps of our built-in
+    parts are counted twice, which moves it well under 1 mm)."""
     volumes, centres = [], []
     for mesh in meshes:
         if not mesh.is_watertight or mesh.volume <= 0:
@@ -73,10 +74,17 @@ def make_spec(set_name: str, category: str, model_id: str, scale: float, meshes:
         volumes.append(mesh.volume)
         centres.append(mesh.center_mass)
     com = np.average(np.array(centres), axis=0, weights=np.array(volumes))
-    parts = tuple(Part(np.asarray(m.vertices, np.float64) - com, np.asarray(m.faces, np.int64)) for m in meshes)
-    mass = max(MIN_MASS, density * float(sum(volumes)))
-    return ObjectSpec(set_name, category, model_id, float(scale), parts, tuple(float(c) for c in color), mass,
-                      is_large)
+    parts = tuple(Part(_frozen(np.asarray(m.vertices, np.float64) - com), _frozen(np.asarray(m.faces, np.int64)))
+                  for m in meshes)
+    return ObjectSpec(set_name, category, model_id, float(scale), parts, tuple(float(c) for c in color),
+                      float(mass), bool(is_large))
+
+
+def _frozen(array: np.ndarray) -> np.ndarray:
+    """A read-only contiguous copy (specs are shared between workers and hashed)."""
+    out = np.array(array, order="C", copy=True)
+    out.setflags(write=False)
+    return out
 
 
 def random_color(rng: np.random.Generator) -> tuple[float, float, float]:
