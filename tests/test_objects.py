@@ -1,5 +1,6 @@
-"""Object sets: closed solids of sensible size, deterministic sampling, and the ShapeNet / YCB readers
-on tiny fixture trees in both the release and the official processed layouts."""
+"""Object sets: closed solids of sensible size with the origin at the centre of mass, deterministic
+sampling, the official scene mix, and the ShapeNet / YCB readers on tiny fixture trees in both the
+release and the official processed layouts (open meshes made solid, binvox, URDF scale, flips)."""
 
 from pathlib import Path
 
@@ -10,27 +11,59 @@ trimesh = pytest.importorskip("trimesh")
 
 from dsr_bench.errors import UserError  # noqa: E402
 from generators.objects import OBJECT_SET_NAMES, get_object_set  # noqa: E402
-from generators.objects.external import SHAPENET_SYNSETS, YCB_LARGE, YCB_NORMAL  # noqa: E402
+from generators.objects.builtin import (CATEGORY_SCALES, CUBE_DIVISORS, LARGE_BOX_VOXELS,  # noqa: E402
+                                        NOVEL_MAX_HEIGHT, NOVEL_MAX_SIDE, SMALL_BOX_VOXELS, random_box,
+                                        sample_category_mix)
+from generators.objects.catalog import SHAPENET_MODELS, YCB_LARGE, YCB_NORMAL, ycb_release_name  # noqa: E402
+from generators.objects.solid import load_solid, read_binvox  # noqa: E402
 
 BUILTIN = ("cube", "procedural", "procedural-novel")
+GRID_EXTENT = np.array([0.512, 0.512, 0.192])  # m (x, y, z)
+
+
+@pytest.fixture(autouse=True)
+def _private_cache(tmp_path, monkeypatch):
+    monkeypatch.setenv("DSR_BENCH_CACHE", str(tmp_path / "cache"))
+
+
+def _union_centroid(obj, pitch=0.0015) -> np.ndarray:
+    """Centroid of the union of the parts, from an independent point-in-solid test on a grid."""
+    o3d = pytest.importorskip("open3d")
+    vertices, _ = obj.mesh()
+    lo, hi = vertices.min(0), vertices.max(0)
+    axes = [np.arange(lo[a] + pitch / 2, hi[a], pitch) for a in range(3)]
+    points = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3).astype(np.float32)
+    inside = np.zeros(len(points), bool)
+    for part in obj.parts:
+        scene = o3d.t.geometry.RaycastingScene()
+        scene.add_triangles(o3d.core.Tensor(part.vertices.astype(np.float32)),
+                            o3d.core.Tensor(part.faces.astype(np.uint32)))
+        inside |= scene.compute_occupancy(o3d.core.Tensor(points), nsamples=3).numpy() > 0
+    return points[inside].mean(0)
+
+
+def _assert_solid_object(obj, name):
+    for part in obj.parts:
+        mesh = trimesh.Trimesh(part.vertices, part.faces, process=False)
+        assert mesh.is_watertight and mesh.volume > 0, obj.model_id
+        assert part.vertices.dtype == np.float64 and part.faces.dtype == np.int64
+    extent = obj.extent()
+    assert np.all(extent > 0.005) and np.all(extent < GRID_EXTENT), (obj.model_id, extent)
+    assert obj.mass == pytest.approx(0.05) and len(obj.mesh_sha256()) == 64
+    identity = obj.identity()
+    assert identity["set"] == name and set(identity) == {"set", "category", "model_id", "scale", "mesh_sha256",
+                                                         "is_large", "color", "mass"}
+    assert all(0 <= c <= 1 for c in obj.color)
 
 
 @pytest.mark.parametrize("name", BUILTIN)
-def test_builtin_sets_are_closed_solids_that_fit(name):
-    objects = get_object_set(name).sample(np.random.default_rng(3), 12)
-    assert len(objects) == 12
+def test_builtin_sets_are_closed_solids_centred_on_their_mass(name):
+    objects = get_object_set(name).sample(np.random.default_rng(3), 10)
+    assert len(objects) == 10
     for obj in objects:
-        volumes = []
-        for part in obj.parts:
-            mesh = trimesh.Trimesh(part.vertices, part.faces, process=False)
-            assert mesh.is_watertight and mesh.volume > 0, obj.model_id
-            volumes.append((mesh.volume, mesh.center_mass))
-        com = sum(v * c for v, c in volumes) / sum(v for v, _ in volumes)
-        assert np.linalg.norm(com) < 1e-3, obj.model_id  # object frame origin at the centre of mass
-        extent = obj.extent()
-        assert np.all(extent > 0.005) and extent.max() < 0.2 and extent[2] < 0.19, (obj.model_id, extent)
-        assert obj.mass > 0 and len(obj.mesh_sha256()) == 64
-        assert obj.identity()["set"] == name
+        _assert_solid_object(obj, name)
+        assert obj.extent().max() <= 0.19 and obj.extent()[2] <= 0.17
+        assert np.linalg.norm(_union_centroid(obj)) < 1e-3, obj.model_id  # origin at the centre of mass
 
 
 @pytest.mark.parametrize("name", BUILTIN)
@@ -38,109 +71,301 @@ def test_sampling_is_deterministic(name):
     a = get_object_set(name).sample(np.random.default_rng(11), 4)
     b = get_object_set(name).sample(np.random.default_rng(11), 4)
     assert [o.identity() for o in a] == [o.identity() for o in b]
+    for x, y in zip(a, b):
+        assert all(np.array_equal(p.vertices, q.vertices) and np.array_equal(p.faces, q.faces)
+                   for p, q in zip(x.parts, y.parts))
     c = get_object_set(name).sample(np.random.default_rng(12), 4)
     assert [o.identity() for o in a] != [o.identity() for o in c]
 
 
-def test_novel_set_is_disjoint_from_training_categories():
+def test_specs_are_read_only():
+    obj = get_object_set("cube").sample(np.random.default_rng(0), 1)[0]
+    with pytest.raises(ValueError):
+        obj.parts[0].vertices[0, 0] = 1.0
+
+
+def test_sets_are_disjoint_in_category():
     rng = np.random.default_rng(0)
-    train = {o.category for _ in range(30) for o in get_object_set("procedural").sample(rng, 4)}
-    novel = {o.category for _ in range(30) for o in get_object_set("procedural-novel").sample(rng, 4)}
-    assert train <= {"mug", "bottle", "can", "phone", "sofa", "box"} and {"mug", "sofa", "bottle"} <= train
-    assert not train & novel and len(novel) >= 8
+    cats = {name: {o.category for _ in range(25) for o in get_object_set(name).sample(rng, 4)} for name in BUILTIN}
+    assert cats["cube"] == {"cube"}
+    assert {"mug", "bottle", "can", "phone", "sofa", "box"} == cats["procedural"]
+    assert len(cats["procedural-novel"]) >= 10
+    assert not cats["cube"] & cats["procedural"] and not cats["procedural-novel"] & (cats["cube"] | cats["procedural"])
+    ycb_categories = {ycb_release_name(n) for n in YCB_NORMAL + YCB_LARGE}
+    assert not ycb_categories & (set(SHAPENET_MODELS) | cats["procedural"])
 
 
-def test_procedural_mix_rules():
+def test_cube_sizes_are_the_official_boxes():
+    for obj in get_object_set("cube").sample(np.random.default_rng(4), 20):
+        s = int(obj.model_id.removeprefix("cube_s"))
+        assert s in CUBE_DIVISORS and obj.scale == pytest.approx(1 / s) and not obj.is_large
+        np.testing.assert_allclose(obj.extent(), np.array([60.0, 60.0, 70.0]) / s, atol=1e-12)
+
+
+def test_official_scene_mix():
+    """Large object with p 0.9; a non-large object is a small box with p 0.3, the large one a large box
+    with p 0.12; otherwise a uniform category with 'can' forced at p 0.3."""
+    def build(category, rng, is_large):
+        return random_box(rng, category, False, is_large)  # cheap stand-in: the set name carries the category
+
     rng = np.random.default_rng(1)
-    scenes = [get_object_set("procedural").sample(rng, 4) for _ in range(200)]
+    scenes = [sample_category_mix(rng, 4, "test", build) for _ in range(800)]
     large = [sum(o.is_large for o in s) for s in scenes]
-    assert max(large) == 1 and 0.35 < np.mean(large) < 0.65  # one optional large object, p = 0.5
-    categories = [o.category for s in scenes for o in s]
-    # a can is forced with p = 0.3 (else one of 5 categories), then a non-large object becomes a small box
-    # with p = 0.3; one object in 8 is large on average (p = 0.5 per 4-object scene)
-    p_box = 0.3 * (1 - 0.5 / 4)
-    p_can = (0.3 + 0.7 / 5) * (1 - p_box)
-    assert abs(categories.count("can") / len(categories) - p_can) < 0.05
-    assert abs(categories.count("box") / len(categories) - p_box) < 0.05
+    assert max(large) == 1 and abs(np.mean(large) - 0.9) < 0.03
+    objs = [o for s in scenes for o in s]
+    boxes = [o for o in objs if o.set == "test"]
+    p_box = (0.9 * (3 * 0.3 + 0.12) + 0.1 * 4 * 0.3) / 4
+    p_can = (0.9 * (3 * 0.7 + 0.88) + 0.1 * 4 * 0.7) * (0.3 + 0.7 / 5) / 4
+    assert abs(len(boxes) / len(objs) - p_box) < 0.02
+    assert abs(sum(o.set == "can" for o in objs) / len(objs) - p_can) < 0.02
+    large_boxes = [o for o in boxes if o.is_large]
+    assert abs(len(large_boxes) / sum(large) - 0.12) < 0.03
+    for box in boxes:
+        vox = np.round(box.extent() / 0.002).astype(int)
+        ranges = LARGE_BOX_VOXELS if "large" in box.model_id else SMALL_BOX_VOXELS
+        assert all(v in r for v, r in zip(vox, ranges)), (box.model_id, vox)
+        assert box.is_large <= ("large" in box.model_id)  # the large slot always gets a large box
 
 
-def _open_box_mesh() -> "trimesh.Trimesh":
-    box = trimesh.creation.box([0.6, 0.4, 0.8])
+def test_procedural_scales_follow_the_official_ranges():
+    rng = np.random.default_rng(7)
+    for obj in (o for _ in range(20) for o in get_object_set("procedural").sample(rng, 4)):
+        if obj.category == "box":
+            continue
+        low, high = CATEGORY_SCALES[obj.category][1 if obj.is_large else 0]
+        assert low <= obj.scale <= high
+        assert np.linalg.norm(obj.extent()) == pytest.approx(0.15 * obj.scale, rel=1e-6)  # 0.15 m diagonal x scale
+
+
+def test_novel_shapes_keep_real_sizes_or_shrink_to_fit():
+    rng = np.random.default_rng(2)
+    seen = {}
+    for obj in (o for _ in range(40) for o in get_object_set("procedural-novel").sample(rng, 4)):
+        extent = obj.extent()
+        assert extent[2] <= NOVEL_MAX_HEIGHT + 1e-9 and extent[:2].max() <= NOVEL_MAX_SIDE + 1e-9
+        seen[obj.category] = (obj.scale, extent)
+    np.testing.assert_allclose(seen["tomato_soup_can"][1], [0.067, 0.067, 0.101], atol=1e-3)  # real size
+    assert seen["tomato_soup_can"][0] == 1.0
+    scale, extent = seen["master_chef_can"]  # 102 x 140 mm: shrunk to 120 mm tall
+    assert scale == pytest.approx(0.12 / 0.14) and extent[2] == pytest.approx(0.12)
+
+
+# --- solids from files we did not write ----------------------------------------------------------
+def _write_binvox(path: Path, occupancy: np.ndarray, translate, scale: float) -> None:
+    """A binvox file by its specification: header, then (value, count) runs in x-z-y order, y fastest."""
+    flat = occupancy.transpose(0, 2, 1).ravel().astype(np.uint8)
+    runs, start = [], 0
+    while start < len(flat):
+        end = start
+        while end < len(flat) and flat[end] == flat[start] and end - start < 255:
+            end += 1
+        runs += [flat[start], end - start]
+        start = end
+    dims = " ".join(str(d) for d in occupancy.shape)
+    header = f"#binvox 1\ndim {dims}\ntranslate {' '.join(map(str, translate))}\nscale {scale}\ndata\n"
+    path.write_bytes(header.encode() + bytes(runs))
+
+
+def _open_box(extents) -> "trimesh.Trimesh":
+    box = trimesh.creation.box(extents)
     box.update_faces(np.arange(len(box.faces)) != 0)  # a hole: not watertight
+    assert not box.is_watertight
     return box
 
 
-def test_shapenet_release_layout_and_open_mesh(tmp_path, monkeypatch):
-    monkeypatch.setenv("DSR_BENCH_CACHE", str(tmp_path / "cache"))
-    for category, (synset, _) in SHAPENET_SYNSETS.items():
-        for k in range(2):
-            d = tmp_path / "ShapeNetCore.v2" / synset / f"{category}{k:02d}" / "models"
+def test_binvox_reader_follows_the_specification(tmp_path):
+    occ = np.zeros((4, 5, 6), bool)
+    occ[1, 2, 3] = occ[0, 4, 5] = True
+    _write_binvox(tmp_path / "a.binvox", occ, (0.1, -0.2, 0.3), 2.0)
+    read, origin, pitch = read_binvox(tmp_path / "a.binvox")
+    assert np.array_equal(read, occ)
+    centre = origin + (np.array([1, 2, 3]) + 0.5) * pitch
+    np.testing.assert_allclose(centre, [0.1 + 1.5 / 4 * 2, -0.2 + 2.5 / 5 * 2, 0.3 + 3.5 / 6 * 2])  # (i+.5)/dim*scale+t
+    (tmp_path / "bad.binvox").write_bytes(b"#binvox 1\ndim 2 2 2\ntranslate 0 0 0\nscale 1\ndata\n\x01\x03")
+    with pytest.raises(UserError, match="bad.binvox"):
+        read_binvox(tmp_path / "bad.binvox")
+
+
+def test_open_mesh_becomes_a_filled_solid(tmp_path):
+    path = tmp_path / "open.obj"
+    _open_box([0.06, 0.04, 0.08]).export(path)
+    solid = load_solid(path, pitch=0.001)
+    assert solid.is_watertight and solid.volume > 0
+    assert solid.volume == pytest.approx(0.06 * 0.04 * 0.08, rel=0.1)  # filled, not a hollow shell
+    np.testing.assert_allclose(solid.center_mass, 0, atol=1e-3)
+    again = load_solid(path, pitch=0.001)  # from the disk cache, bit for bit
+    assert np.array_equal(again.vertices, solid.vertices) and np.array_equal(again.faces, solid.faces)
+    assert len(list((tmp_path / "cache" / "solids").glob("*.npz"))) == 1
+
+
+def test_unreadable_mesh_is_a_user_error(tmp_path):
+    bad = tmp_path / "broken.obj"
+    bad.write_text("this is not an obj file\n")
+    with pytest.raises(UserError, match="broken.obj"):
+        load_solid(bad)
+
+
+# --- ShapeNet ------------------------------------------------------------------------------------
+def _unit_diagonal(mesh):
+    mesh.apply_scale(1.0 / np.linalg.norm(mesh.extents))
+    return mesh
+
+
+def _shapenet_release(root: Path, skip: int = 0) -> None:
+    """All 44 official ids; odd ones an open box, even ones a closed cylinder; y up, unit diagonal."""
+    k = 0
+    for synset, ids in SHAPENET_MODELS.values():
+        for model_id in ids:
+            k += 1
+            if k <= skip:
+                continue
+            d = root / synset / model_id / "models"
             d.mkdir(parents=True)
-            mesh = _open_box_mesh() if k == 0 else trimesh.creation.cylinder(0.3, 0.8)
-            mesh.export(d / "model_normalized.obj")
-    objects = get_object_set("shapenet", tmp_path / "ShapeNetCore.v2").sample(np.random.default_rng(0), 16)
+            # tall along y (the ShapeNet up axis)
+            mesh = _open_box([0.3, 0.8, 0.4]) if k % 2 else trimesh.creation.cylinder(0.2, 0.8)
+            if not k % 2:
+                mesh.apply_transform(trimesh.transformations.rotation_matrix(-np.pi / 2, [1, 0, 0]))
+            _unit_diagonal(mesh).export(d / "model_normalized.obj")
+
+
+def test_shapenet_release_layout(tmp_path):
+    _shapenet_release(tmp_path / "ShapeNetCore.v2")
+    shapenet = get_object_set("shapenet", tmp_path / "ShapeNetCore.v2")
+    objects = [o for _ in range(6) for o in shapenet.sample(np.random.default_rng(_), 4)]
+    official = {i for _, ids in SHAPENET_MODELS.values() for i in ids}
+    assert {o.category for o in objects} - {"box"}
     for obj in objects:
-        mesh = trimesh.Trimesh(*obj.mesh(), process=False)
-        assert mesh.is_watertight and mesh.volume > 0
-        assert obj.category == "box" or obj.model_id[:-2] == obj.category
-        if obj.category != "box":
-            diagonal = np.linalg.norm(obj.extent())
-            low, high = {"bottle": (0.7, 1.2), "can": (0.7, 1.2), "mug": (0.8, 1.2), "sofa": (0.4, 1.2),
-                         "phone": (0.7, 1.1)}[obj.category]
-            assert 0.15 * low * 0.9 < diagonal < 0.15 * high * 1.1  # 0.15 m diagonal x scale (voxelised: +-10%)
+        _assert_solid_object(obj, "shapenet")
+        if obj.category == "box":
+            continue
+        assert obj.model_id in SHAPENET_MODELS[obj.category][1] and obj.model_id in official
+        low, high = CATEGORY_SCALES[obj.category][1 if obj.is_large else 0]
+        assert low <= obj.scale <= high
+        extent = obj.extent()
+        assert extent[2] == extent.max()  # y up in the file, z up here
+        assert np.linalg.norm(extent) == pytest.approx(0.15 * obj.scale, rel=0.05)  # 0.15 m x scale
     assert list((tmp_path / "cache" / "solids").glob("*.npz"))  # solids are cached
 
 
-def test_shapenet_processed_layout(tmp_path, monkeypatch):
-    monkeypatch.setenv("DSR_BENCH_CACHE", str(tmp_path / "cache"))
-    for synset, _ in SHAPENET_SYNSETS.values():
-        d = tmp_path / "object_models" / "shapenet" / synset / "abc123"
-        d.mkdir(parents=True)
-        trimesh.creation.box([0.05, 0.06, 0.07]).export(d / "model_com.obj")
-        (d / "obj.urdf").write_text("<robot/>")
+def test_shapenet_cache_does_not_change_the_objects(tmp_path):
+    _shapenet_release(tmp_path / "sn")
+    cold = get_object_set("shapenet", tmp_path / "sn").sample(np.random.default_rng(5), 4)
+    warm = get_object_set("shapenet", tmp_path / "sn").sample(np.random.default_rng(5), 4)  # new process memo
+    assert [o.identity() for o in cold] == [o.identity() for o in warm]
+
+
+def test_shapenet_processed_layout_uses_urdf_scale_and_binvox(tmp_path, monkeypatch):
+    # the mesh is an open 1 x 1 x 1 box; the binvox says the solid is the lower half only, so the
+    # solid must come from the binvox; the URDF scale 0.15 takes the model to metres
+    occ = np.zeros((10, 10, 10), bool)
+    occ[:, :, :5] = True
+    for synset, ids in SHAPENET_MODELS.values():
+        for model_id in ids:
+            d = tmp_path / "object_models" / "shapenet" / synset / model_id
+            d.mkdir(parents=True)
+            _open_box([1.0, 1.0, 1.0]).export(d / "model_com.obj")
+            _write_binvox(d / "model_com.binvox", occ, (-0.5, -0.5, -0.5), 1.0)
+            (d / "obj.urdf").write_text(
+                '<robot name="o"><link name="base"><visual><geometry>'
+                '<mesh filename="model_com.obj" scale="0.15 0.15 0.15"/></geometry></visual></link></robot>')
     monkeypatch.setenv("DSR_BENCH_SHAPENET", str(tmp_path))
     objects = get_object_set("shapenet").sample(np.random.default_rng(2), 8)
-    assert {o.model_id for o in objects if o.category != "box"} == {"abc123"}
+    shapes = [o for o in objects if o.category != "box"]
+    assert shapes
+    for obj in shapes:
+        _assert_solid_object(obj, "shapenet")
+        expected = np.array([1.0, 1.0, 0.5]) * 0.15 * obj.scale
+        np.testing.assert_allclose(obj.extent(), expected, rtol=0.05)
 
 
-def test_ycb_release_layout_flips_cups(tmp_path, monkeypatch):
-    monkeypatch.setenv("DSR_BENCH_CACHE", str(tmp_path / "cache"))
-    for name in YCB_NORMAL + YCB_LARGE:
+def test_shapenet_missing_models_are_named(tmp_path):
+    _shapenet_release(tmp_path, skip=2)
+    with pytest.raises(UserError) as err:
+        get_object_set("shapenet", tmp_path)
+    msg = str(err.value)
+    bottle = SHAPENET_MODELS["bottle"]
+    assert "2 of 44 official models missing" in msg and f"02876657/{bottle[1][0]}" in msg
+    assert "--object-root" in msg and "DSR_BENCH_SHAPENET" in msg and "model_normalized.obj" in msg
+    assert "\n" not in msg
+
+
+def test_bad_urdf_is_a_user_error(tmp_path):
+    synset, ids = SHAPENET_MODELS["bottle"]
+    d = tmp_path / "shapenet" / synset / ids[0]
+    d.mkdir(parents=True)
+    (d / "obj.urdf").write_text('<robot><link><visual><geometry><mesh filename="gone.obj"/></geometry></visual>'
+                                "</link></robot>")
+    with pytest.raises(UserError, match="gone.obj"):
+        get_object_set("shapenet", tmp_path)
+
+
+# --- YCB -----------------------------------------------------------------------------------------
+def _inverted_cup(radius=0.04, height=0.06, wall=0.004):
+    """A closed solid shaped like a cup upside down: hollow underneath (like a Duplo brick)."""
+    profile = [[0, height], [radius, height], [radius, 0], [radius - wall, 0], [radius - wall, height - wall],
+               [0, height - wall]]
+    return trimesh.creation.revolve(np.array(profile, float)[::-1], sections=32)
+
+
+def test_ycb_release_layout_flips_cups_and_fills_duplos(tmp_path):
+    for official_id in YCB_NORMAL + YCB_LARGE:
+        name = ycb_release_name(official_id)
         d = tmp_path / name / "google_16k"
         d.mkdir(parents=True)
-        cone = trimesh.creation.cone(0.04, 0.08)  # apex up; a flipped cup has its apex down
-        cone.export(d / "textured.obj")
+        if "duplo" in name:
+            mesh = _inverted_cup()
+        else:
+            mesh = trimesh.creation.cone(0.04, 0.08)  # apex up; a flipped cup has its apex down
+        mesh.export(d / "textured.obj")
     ycb = get_object_set("ycb", tmp_path)
-    objects = ycb.sample(np.random.default_rng(5), 40)
+    objects = [o for k in range(12) for o in ycb.sample(np.random.default_rng(k), 4)]
+    cats = {o.category for o in objects}
+    assert any(c.startswith("065-") for c in cats) and any("duplo" in c for c in cats)
     for obj in objects:
+        _assert_solid_object(obj, "ycb")
+        assert obj.model_id in YCB_NORMAL + YCB_LARGE and obj.category == ycb_release_name(obj.model_id)
+        assert obj.is_large <= (obj.model_id in YCB_LARGE)
         v, _ = obj.mesh()
         top_width = np.ptp(v[v[:, 2] > v[:, 2].max() - 0.005][:, 0])
+        volume = sum(trimesh.Trimesh(p.vertices, p.faces).volume for p in obj.parts)
         if obj.category.startswith("065-"):
             assert top_width > 0.05  # flipped: the wide base is up
+        elif "duplo" in obj.category:
+            assert volume == pytest.approx(np.pi * 0.04 ** 2 * 0.06, rel=0.12)  # hollow underside filled
         else:
             assert top_width < 0.02
 
 
-def test_missing_sets_name_flag_variable_and_layout(tmp_path, monkeypatch):
+def test_ycb_processed_layout_is_taken_as_is(tmp_path):
+    for official_id in YCB_NORMAL + YCB_LARGE:
+        d = tmp_path / "ycb" / official_id
+        d.mkdir(parents=True)
+        trimesh.creation.cone(0.04, 0.08).export(d / "model_com.obj")
+        (d / "obj.urdf").write_text('<robot><link><collision><geometry><mesh filename="model_com.obj" '
+                                    'scale="1 1 1"/></geometry></collision></link></robot>')
+    objects = get_object_set("ycb", tmp_path).sample(np.random.default_rng(3), 12)
+    for obj in objects:
+        v, _ = obj.mesh()
+        assert np.ptp(v[v[:, 2] > v[:, 2].max() - 0.005][:, 0]) < 0.02  # already processed: no second flip
+        np.testing.assert_allclose(obj.extent(), [0.08, 0.08, 0.08], atol=2e-3)
+
+
+def test_missing_sets_name_flag_variable_layout_and_ids(tmp_path, monkeypatch):
     monkeypatch.delenv("DSR_BENCH_YCB", raising=False)
     with pytest.raises(UserError) as err:
         get_object_set("ycb")
-    assert "--object-root" in str(err.value) and "DSR_BENCH_YCB" in str(err.value) and "google_16k" in str(err.value)
+    msg = str(err.value)
+    assert "--object-root" in msg and "DSR_BENCH_YCB" in msg and "google_16k" in msg and "\n" not in msg
     (tmp_path / "005_tomato_soup_can" / "google_16k").mkdir(parents=True)
-    with pytest.raises(UserError, match="models missing"):
+    trimesh.creation.box([0.05] * 3).export(tmp_path / "005_tomato_soup_can" / "google_16k" / "textured.obj")
+    with pytest.raises(UserError) as err:
         get_object_set("ycb", tmp_path)
+    assert "21 of 22 official models missing" in str(err.value) and "007_tuna_fish_can" in str(err.value)
     with pytest.raises(UserError, match="no ShapeNet synset"):
         get_object_set("shapenet", tmp_path)
+    monkeypatch.setenv("DSR_BENCH_SHAPENET", str(tmp_path / "nowhere"))
+    with pytest.raises(UserError, match="DSR_BENCH_SHAPENET"):
+        get_object_set("shapenet")
     with pytest.raises(UserError, match="is not an object set"):
         get_object_set("lego")
-    assert set(OBJECT_SET_NAMES) == {"cube", "shapenet", "ycb", "procedural", "procedural-novel"}
-
-
-def test_unreadable_mesh_is_a_user_error(tmp_path, monkeypatch):
-    monkeypatch.setenv("DSR_BENCH_CACHE", str(tmp_path / "cache"))
-    from generators.objects.external import load_solid
-
-    bad = tmp_path / "broken.obj"
-    bad.write_text("this is not an obj file\n")
-    with pytest.raises(UserError, match="broken.obj"):
-        load_solid(Path(bad))
+    assert OBJECT_SET_NAMES == ("cube", "shapenet", "ycb", "procedural", "procedural-novel")

@@ -3,10 +3,12 @@
 - `cube`: the paper's boxes, half extents (30, 30, 35) / s m for s in the official list.
 - `procedural`: parametric families for the five ShapeNet training categories (mug with a handle,
   bottle, can, phone-like slab, sofa) with the official category scale ranges (normal / large)
-  applied to shapes whose bounding-box diagonal is 0.15 m at scale 1 (as ShapeNetCore v2 models,
-  normalised to a unit diagonal, scaled to 0.15 m), and the official mix rules.
-- `procedural-novel`: YCB-like shapes at their real sizes (boxes, cans, cups, a bowl, a foam brick,
-  an L-shaped clamp, a mustard-like bottle, a peg board), disjoint from `procedural`, for the
+  applied to shapes whose bounding-box diagonal is 0.15 m at scale 1 (as the official URDFs scale
+  the unit-diagonal ShapeNetCore v2 models by 0.15), and the official scene mix (random boxes,
+  forced cans, one optional large object).
+- `procedural-novel`: YCB-like shapes at their real sizes, shrunk uniformly where needed to stay
+  within 0.12 m height and 0.16 m side (boxes, cans, cups, a bowl, a foam brick, a Duplo brick, an
+  L-shaped clamp, a mustard-like bottle, a peg board), disjoint from `procedural`, for the
   novel-object test split.
 """
 
@@ -96,9 +98,11 @@ def _mug(rng):
     body = _revolve([[0, 0], [r, 0], [r, h], [r - wall, h], [r - wall, 0.08], [0, 0.08]])
     reach, bar, t = rng.uniform(0.18, 0.25), 0.07, 0.08
     z0, z1 = 0.22 * h, 0.78 * h
+    # parts barely overlap (arms enter the wall by 0.01), so the volume-weighted centre of mass is exact
+    x0, x1 = r - 0.01, r + reach - bar  # arm span, from inside the wall to the grip
     parts = [body,
-             _box([reach + wall, t, bar], [r + reach / 2 - wall / 2, 0, z1 - bar / 2]),   # upper arm
-             _box([reach + wall, t, bar], [r + reach / 2 - wall / 2, 0, z0 + bar / 2]),   # lower arm
+             _box([x1 - x0, t, bar], [(x0 + x1) / 2, 0, z1 - bar / 2]),   # upper arm
+             _box([x1 - x0, t, bar], [(x0 + x1) / 2, 0, z0 + bar / 2]),   # lower arm
              _box([bar, t, z1 - z0], [r + reach - bar / 2, 0, (z0 + z1) / 2])]            # grip
     return parts, f"mug_r{r:.3f}_h{h:.3f}_reach{reach:.3f}"
 
@@ -112,8 +116,9 @@ def _sofa(rng):
     width, depth = 1.0, rng.uniform(0.45, 0.6)
     seat_h, back_h, arm_h = rng.uniform(0.15, 0.22), rng.uniform(0.4, 0.55), rng.uniform(0.25, 0.33)
     back_t, arm_w = rng.uniform(0.1, 0.15), rng.uniform(0.08, 0.12)
-    parts = [_box([width, depth, seat_h], [0, 0, seat_h / 2]),
-             _box([width, back_t, back_h], [0, depth / 2 - back_t / 2, back_h / 2]),
+    inner = width - 2 * arm_w  # seat and back sit between the arms, the seat in front of the back: no overlap
+    parts = [_box([inner, depth - back_t, seat_h], [0, -back_t / 2, seat_h / 2]),
+             _box([inner, back_t, back_h], [0, depth / 2 - back_t / 2, back_h / 2]),
              _box([arm_w, depth, arm_h], [-width / 2 + arm_w / 2, 0, arm_h / 2]),
              _box([arm_w, depth, arm_h], [width / 2 - arm_w / 2, 0, arm_h / 2])]
     return parts, f"sofa_d{depth:.3f}_b{back_h:.3f}"
