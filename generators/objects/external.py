@@ -51,7 +51,7 @@ class ModelSource:
 
 
 def _missing(set_name: str, root: Path | None, detail: str) -> UserError:
-    where = f"under {root}" if root is not None else f"no --object-root given and ${ENV[set_name]} unset"
+    where = f"in {root}" if root is not None else f"no --object-root given and ${ENV[set_name]} unset"
     return UserError(f"--objects {set_name}: {detail} ({where}); pass --object-root PATH or set {ENV[set_name]}; "
                      f"expected layout: {LAYOUTS[set_name]}")
 
@@ -59,8 +59,11 @@ def _missing(set_name: str, root: Path | None, detail: str) -> UserError:
 def _resolve_root(set_name: str, object_root: str | Path | None) -> Path:
     value = object_root if object_root is not None else (os.environ.get(ENV[set_name]) or None)
     root = Path(value).expanduser() if value is not None else None
-    if root is None or not root.is_dir():
-        raise _missing(set_name, root, "mesh directory not found")
+    if root is None:
+        raise _missing(set_name, None, "no mesh directory")
+    if not root.is_dir():
+        raise UserError(f"--objects {set_name}: mesh directory {root} not found; pass --object-root PATH or set "
+                        f"{ENV[set_name]}; expected layout: {LAYOUTS[set_name]}")
     return root
 
 
