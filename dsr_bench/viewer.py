@@ -1,87 +1,194 @@
 """The rerun viewer of sequences and predictions (`dsr-bench view`).
 
-Everything is read through `SequenceReader`; rerun is imported lazily. Timeline `step`: tick 2t
-is observation t, tick 2t + 1 is push t (its arrow, the flow t -> t+1 and the predictions made at
-t). Entity tree:
+Everything is read through `SequenceReader`; rerun is imported lazily. Timelines: `step`, where
+tick 2t is observation t and tick 2t + 1 is push t (its arrow, the flow t -> t+1 and the
+predictions made at t), and `observation` (t on both). World frame: metres, z up. Entity tree:
 
-  world/cameras/<cam>            camera pose (Transform3D) and Pinhole; image/{color,depth,mask}
+  description                    markdown summary of the sequence
+  world/cameras/<cam>            camera pose (Transform3D, camera-to-world); image: Pinhole (OpenCV
+                                 axes) with image/{color,depth,mask}
   world/tsdf                     TSDF surface band (-1 < tsdf < 0) as points
-  world/gt/mask                  amodal voxels coloured per object (AnnotationContext: stable colours)
-  world/gt/flow                  scene-flow arrows (subsampled), coloured by magnitude
-  world/objects/<i>              object mesh (embedded meshes) posed by Transform3D, with its name
-  world/push                     the push: start, direction and length; world/push/chosen box
-  world/pred/{mask,flow}         predictions; world/pred/disagree voxels where occupancy differs
-  policy/{object,direction}_probs  the policy's distributions (bar charts)
-  metrics/<name>                 per-step metrics of the predictions (scalars)
+  world/gt/mask                  amodal voxels, class id = object id (AnnotationContext: stable colours)
+  world/gt/flow                  scene-flow arrows t -> t+1 (subsampled), coloured by magnitude
+  world/objects/<id>             object mesh (when embedded) posed by Transform3D; <id>/label its name
+  world/push                     the push: start point, direction and length; world/push/chosen box
+  world/pred/mask                predicted voxels, slots relabelled to their matched object's id
+  world/pred/flow                predicted flow arrows
+  world/pred/disagree            voxels where the matched prediction and the ground truth differ
+  policy/{object,direction}_probs  the policy's distributions (bar charts); policy/heightmap its input
+  metrics/<name>                 per-step metrics of the predictions, as `dsr-bench evaluate` computes them
 """
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import numpy as np
 
 from dsr_bench.constants import VOXEL_SIZE
+from dsr_bench.errors import UserError
 from dsr_bench.geometry import voxel_to_world
 from dsr_bench.sequence import SequenceReader
 
 APP_ID = "dsr-bench"
 MAX_ARROWS = 1500
+UNMATCHED = 255  # class id of predicted voxels whose slot matches no object
 PALETTE = np.array([[230, 25, 75], [60, 180, 75], [0, 130, 200], [245, 130, 48], [145, 30, 180],
                     [70, 240, 240], [240, 50, 230], [210, 245, 60], [250, 190, 212], [0, 128, 128]], np.uint8)
+PUSH_COLOR = (255, 215, 0)
+DISAGREE_COLOR = (255, 0, 0)
+METRIC_NAMES = ("iou_unordered", "iou_ordered", "motion_visible", "motion_full", "motion_moved", "motion_static",
+                "motion_2d")
+_READ_ERRORS = (OSError, KeyError, ValueError, IndexError)
 
 
-def _obs_tick(t: int) -> int:
+def object_color(object_id: int) -> tuple[int, int, int]:
+    """RGB colour of object id 1..N (stable across steps, views and runs)."""
+    return tuple(int(c) for c in PALETTE[(object_id - 1) % len(PALETTE)])
+
+
+def obs_tick(t: int) -> int:
+    """Tick of observation t on the `step` timeline."""
     return 2 * t
 
 
-def _push_tick(t: int) -> int:
+def push_tick(t: int) -> int:
+    """Tick of push t (and the flow and predictions t -> t+1) on the `step` timeline."""
     return 2 * t + 1
 
 
-def _magnitude_colors(values: np.ndarray) -> np.ndarray:
-    """Blue (small) to red (large) colours for non-negative magnitudes."""
+def magnitude_colors(values: np.ndarray) -> np.ndarray:
+    """(N, 3) uint8 colours from blue (0) to red (the largest value) for non-negative magnitudes (N,)."""
     scale = values / max(float(values.max(initial=0.0)), 1e-9)
     return np.stack([255 * scale, 60 * np.ones_like(scale), 255 * (1 - scale)], 1).astype(np.uint8)
 
 
-def _flow_arrows(flow: np.ndarray, mask: np.ndarray, rng: np.random.Generator):
-    """Subsampled arrows (origins, vectors, colours) in metres from a flow volume (3, Y, X, Z) in voxels."""
+def flow_arrows(flow: np.ndarray, mask: np.ndarray, rng: np.random.Generator,
+                max_arrows: int = MAX_ARROWS) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Arrows (origins, vectors in metres, world (x, y, z); colours) at up to `max_arrows` random
+    voxels where `mask` (Y, X, Z) > 0, from a flow volume (3, Y, X, Z) in voxels, (dy, dx, dz)."""
     idx = np.argwhere(mask > 0)
-    if len(idx) > MAX_ARROWS:
-        idx = idx[rng.choice(len(idx), MAX_ARROWS, replace=False)]
-    vec_yxz = flow[:, idx[:, 0], idx[:, 1], idx[:, 2]].T
+    if len(idx) > max_arrows:
+        idx = idx[np.sort(rng.choice(len(idx), max_arrows, replace=False))]
+    vec_yxz = np.asarray(flow[:, idx[:, 0], idx[:, 1], idx[:, 2]], dtype=np.float64).T
     vectors = vec_yxz[:, [1, 0, 2]] * VOXEL_SIZE
-    return voxel_to_world(idx), vectors, _magnitude_colors(np.linalg.norm(vectors, axis=1))
+    return voxel_to_world(idx), vectors, magnitude_colors(np.linalg.norm(vectors, axis=1))
 
 
-def blueprint(cameras: list[str], has_predictions: bool):
-    """A layout that opens ready to read: 3D scene, camera views, policy and metric charts."""
+def match_slots(pred_mask: np.ndarray, gt_mask: np.ndarray, num_slots: int, num_objects: int) -> np.ndarray:
+    """Lookup table (num_slots + 1,) uint8 from predicted slot to the GT object id it matches under the
+    benchmark's per-step (unordered) Hungarian matching; 0 -> 0, unmatched slots -> UNMATCHED."""
+    from dsr_bench.metrics import assignment, overlap
+
+    ov = overlap(pred_mask, gt_mask, num_slots, num_objects)
+    rows, cols = assignment(ov.iou)
+    lut = np.full(num_slots + 1, UNMATCHED, np.uint8)
+    lut[0] = 0
+    keep = ov.inter[rows, cols] > 0
+    lut[rows[keep] + 1] = cols[keep] + 1
+    return lut
+
+
+def check_sequence(seq: SequenceReader) -> None:
+    """Raise UserError naming every structural problem (missing datasets, shapes, dtypes) of a sequence."""
+    from dsr_bench.schema import FIELDS, check_array, dataset_path, resolve_shape
+
+    problems = []
+    for field in FIELDS.values():
+        for cam in (list(seq.cameras) if field.camera else [None]):
+            name = dataset_path(field, cam)
+            if name not in seq:
+                if field.required:
+                    problems.append(f"missing dataset {name!r}")
+                continue
+            image = (int(seq.cameras[cam]["height"]), int(seq.cameras[cam]["width"])) if cam else None
+            shape = (resolve_shape(field, seq.num_steps, seq.num_objects, image) if cam
+                     else resolve_shape(field, seq.num_steps, seq.num_objects))
+            problems += check_array(field, seq.dataset(name), shape, name)
+    if problems:
+        raise UserError(f"{seq.path}: not a valid sequence ({'; '.join(problems)}); run `dsr-bench validate` on it")
+
+
+def load_predictions(pred_dir: Path, seq: SequenceReader) -> dict:
+    """The predictions for `seq` in `pred_dir`, checked against the contract, and their per-step
+    metrics exactly as `dsr-bench evaluate` computes them: {mask, motion, num_slots, metrics}."""
+    import h5py
+
+    from dsr_bench.evaluate import _score_sequence
+    from dsr_bench.predictions import check_prediction_header
+
+    pred_dir = Path(pred_dir)
+    if not pred_dir.is_dir():
+        raise UserError(f"predictions directory not found: {pred_dir}")
+    path = pred_dir / f"{seq.path.stem}.h5"
+    if not path.is_file():
+        raise UserError(f"no prediction file for {seq.path.stem} in {pred_dir} (expected {path.name})")
+    try:
+        with h5py.File(path, "r") as f:
+            problems = check_prediction_header(f, seq.num_steps)
+            if not problems:
+                pred = {"mask": f["mask"][()], "motion": f["motion"][()], "num_slots": int(f.attrs["num_slots"])}
+    except _READ_ERRORS as exc:
+        problems = [f"unreadable ({type(exc).__name__}: {exc})"]
+    if not problems:
+        _, problems, values = _score_sequence((seq.path.stem, str(path), str(seq.path)))
+    if problems:
+        raise UserError(f"{path}: invalid predictions ({'; '.join(problems)}); see `dsr-bench evaluate`")
+    pred["metrics"] = {k: np.asarray(values[k], dtype=np.float64) for k in METRIC_NAMES
+                       if k in values and (k != "motion_2d" or values.get("has_2d"))}
+    return pred
+
+
+def blueprint(cameras: list[str], has_predictions: bool, has_policy: bool = True):
+    """A layout that opens ready to read: the 3D scene beside the camera views and the charts."""
     import rerun.blueprint as rrb
 
-    side = [rrb.Spatial2DView(origin=f"world/cameras/{c}/image", name=f"{c} camera") for c in cameras]
-    charts = [rrb.BarChartView(origin="policy/direction_probs", name="direction probabilities"),
-              rrb.BarChartView(origin="policy/object_probs", name="object probabilities")]
+    scene = [rrb.Spatial3DView(origin="world", name="scene (ground truth)",
+                               contents=["+ /world/**", "- /world/pred/**"])]
     if has_predictions:
-        charts.insert(0, rrb.TimeSeriesView(origin="metrics", name="per-step metrics"))
+        scene.append(rrb.Spatial3DView(origin="world", name="predictions vs ground truth",
+                                       contents=["+ /world/pred/**", "+ /world/push/**", "+ /world/tsdf",
+                                                 "+ /world/objects/**"]))
+    cams = [rrb.Spatial2DView(origin=f"world/cameras/{c}/image", name=f"{c} camera") for c in cameras]
+    charts = []
+    if has_predictions:
+        charts.append(rrb.TimeSeriesView(origin="metrics", name="per-step metrics"))
+    if has_policy:
+        charts += [rrb.BarChartView(origin="policy/direction_probs", name="direction probabilities (0..7)"),
+                   rrb.BarChartView(origin="policy/object_probs", name="object probabilities")]
+    charts += [rrb.Spatial2DView(origin="policy/heightmap", name="heightmap"),
+               rrb.TextDocumentView(origin="description", name="sequence")]
     return rrb.Blueprint(
         rrb.Horizontal(
-            rrb.Spatial3DView(origin="world", name="scene"),
-            rrb.Vertical(*side, *charts),
+            rrb.Vertical(*scene) if len(scene) > 1 else scene[0],
+            rrb.Vertical(rrb.Horizontal(*cams) if cams else rrb.TextDocumentView(origin="description"),
+                         rrb.Grid(*charts), row_shares=[1, 1]),
             column_shares=[3, 2],
         ),
         rrb.TimePanel(state="expanded"),
-        collapse_panels=False,
+        collapse_panels=True,
     )
 
 
+def _description(seq: SequenceReader) -> str:
+    lines = [f"# {seq.name}", "",
+             f"object set: {seq.attrs.get('object_set', '?')}, policy: {seq.attrs.get('policy', '?')}, "
+             f"{seq.num_steps} pushes, {seq.num_objects} objects, cameras: {', '.join(seq.cameras)}", ""]
+    lines += [f"- {i + 1}: {o.get('category', '?')} ({o.get('model_id', '?')})" for i, o in enumerate(seq.objects)]
+    lines += ["", "Timeline `step`: even ticks are observations, odd ticks pushes (flow and predictions t -> t+1)."]
+    return "\n".join(lines)
+
+
 def _log_static(rec, rr, seq: SequenceReader) -> None:
+    rec.log("description", rr.TextDocument(_description(seq), media_type=rr.MediaType.MARKDOWN), static=True)
     rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
-    infos = [rr.AnnotationInfo(id=0, label="empty", color=(0, 0, 0))]
+    infos = [rr.AnnotationInfo(id=0, label="background", color=(0, 0, 0)),
+             rr.AnnotationInfo(id=UNMATCHED, label="unmatched slot", color=(128, 128, 128))]
     for i, obj in enumerate(seq.objects):
-        infos.append(rr.AnnotationInfo(id=i + 1, label=f"{i + 1}: {obj.get('category', '?')}",
-                                       color=tuple(int(c) for c in PALETTE[i % len(PALETTE)])))
-    rec.log("world", rr.AnnotationContext(infos), static=True)
+        infos.append(rr.AnnotationInfo(id=i + 1, label=f"{i + 1}: {obj.get('category', '?')}", color=object_color(i + 1)))
+    context = rr.AnnotationContext(infos)
+    rec.log("world", context, static=True)
     for name in seq.cameras:
         cam = seq.camera(name)
         rec.log(f"world/cameras/{name}", rr.Transform3D(translation=cam.extrinsics[:3, 3],
@@ -89,131 +196,124 @@ def _log_static(rec, rr, seq: SequenceReader) -> None:
         rec.log(f"world/cameras/{name}/image",
                 rr.Pinhole(image_from_camera=cam.intrinsics, resolution=[cam.width, cam.height],
                            camera_xyz=rr.ViewCoordinates.RDF, image_plane_distance=0.1), static=True)
-        rec.log(f"world/cameras/{name}/image", rr.AnnotationContext(infos), static=True)
+        rec.log(f"world/cameras/{name}/image", context, static=True)  # 2D views sit outside world's subtree
     for i, obj in enumerate(seq.objects):
         mesh = seq.mesh(i)
         if mesh is not None:
-            color = PALETTE[i % len(PALETTE)]
-            rec.log(f"world/objects/{i + 1}", rr.Mesh3D(vertex_positions=mesh[0], triangle_indices=mesh[1],
-                                                       albedo_factor=[*(color / 255.0), 0.35]), static=True)
-        rec.log(f"world/objects/{i + 1}/label", rr.Points3D([[0, 0, 0]], labels=[f"{i + 1}: {obj.get('category', '?')}"],
-                                                          radii=0.002), static=True)
+            rec.log(f"world/objects/{i + 1}",
+                    rr.Mesh3D(vertex_positions=mesh[0], triangle_indices=mesh[1],
+                              albedo_factor=[*(np.array(object_color(i + 1)) / 255.0), 0.5]), static=True)
+        rec.log(f"world/objects/{i + 1}/label",
+                rr.Points3D([[0, 0, 0]], labels=[f"{i + 1}: {obj.get('category', '?')}"], radii=0.002,
+                            colors=[object_color(i + 1)], show_labels=True), static=True)
 
 
-def _step_metrics(seq: SequenceReader, pred_mask: np.ndarray, pred_motion, num_slots: int) -> dict[str, np.ndarray]:
-    from dsr_bench.metrics import motion_errors, sequence_scores
-
-    gt_mask = seq.read("mask_3d", slice(0, seq.num_steps))
-    scores = sequence_scores(pred_mask, gt_mask, num_slots, seq.num_objects)
-    out = {"iou_unordered": scores["iou_unordered"], "iou_ordered": scores["iou_ordered"]}
-    motion = [motion_errors(pred_motion[t], seq.read("scene_flow_3d", t), seq.read("tsdf", t), gt_mask[t],
-                            seq.num_objects) for t in range(seq.num_steps)]
-    out["motion_visible"] = np.array([m["motion_visible"] for m in motion])
-    out["motion_full"] = np.array([m["motion_full"] for m in motion])
-    return out
+def _log_voxels(rec, rr, entity: str, labels: np.ndarray) -> None:
+    occupied = np.argwhere(labels > 0)
+    rec.log(entity, rr.Points3D(voxel_to_world(occupied), class_ids=labels[tuple(occupied.T)], radii=VOXEL_SIZE / 2))
 
 
-def log_sequence(rec, seq: SequenceReader, predictions: Path | None = None) -> None:
-    """Log one sequence (and optionally its predictions) to a rerun recording stream."""
+def log_sequence(rec, seq: SequenceReader, predictions: dict | None = None, seed: int = 0) -> None:
+    """Log one sequence (and optionally predictions from `load_predictions`) to a rerun RecordingStream."""
     import rerun as rr
 
-    rng = np.random.default_rng(0)
+    rng = np.random.default_rng(seed)
     _log_static(rec, rr, seq)
     poses = seq.read("object_poses")
     action, start, end = seq.read("action"), seq.read("push_start"), seq.read("push_end")
     has_policy = "policy/chosen_object" in seq
-    pred = None
-    if predictions is not None:
-        import h5py
-
-        path = Path(predictions) / f"{seq.path.stem}.h5"
-        if not path.is_file():
-            from dsr_bench.errors import UserError
-
-            raise UserError(f"no prediction file for {seq.path.stem} in {predictions} (expected {path})")
-        with h5py.File(path, "r") as f:
-            pred = {"mask": f["mask"][()], "motion": f["motion"][()], "num_slots": int(f.attrs["num_slots"])}
-        metrics = _step_metrics(seq, pred["mask"], pred["motion"], pred["num_slots"])
     for t in range(seq.num_steps + 1):
-        rec.set_time("step", sequence=_obs_tick(t))
+        rec.set_time("step", sequence=obs_tick(t))
         rec.set_time("observation", sequence=t)
+        if t > 0:  # push t-1, its flow and the predictions made at t-1 belong to the previous tick only
+            for entity in ("world/push", "world/gt/flow", "world/pred"):
+                rec.log(entity, rr.Clear(recursive=True))
         for name in seq.cameras:
             base = f"world/cameras/{name}/image"
             rec.log(f"{base}/color", rr.Image(seq.read(f"cameras/{name}/color", t)))
             rec.log(f"{base}/depth", rr.DepthImage(seq.read(f"cameras/{name}/depth", t), meter=1.0))
             rec.log(f"{base}/mask", rr.SegmentationImage(seq.read(f"cameras/{name}/mask", t)))
+        rec.log("policy/heightmap", rr.DepthImage(seq.read("heightmap", t), meter=1.0,
+                                                  colormap=rr.components.Colormap.Viridis))
         tsdf = seq.read("tsdf", t)
         band = np.argwhere((tsdf < 0) & (tsdf > -1))
         rec.log("world/tsdf", rr.Points3D(voxel_to_world(band), colors=[180, 180, 180], radii=VOXEL_SIZE / 2))
         mask = seq.read("mask_3d", t)
-        occupied = np.argwhere(mask > 0)
-        rec.log("world/gt/mask", rr.Points3D(voxel_to_world(occupied), class_ids=mask[tuple(occupied.T)],
-                                             radii=VOXEL_SIZE / 2))
+        _log_voxels(rec, rr, "world/gt/mask", mask)
         for i in range(seq.num_objects):
             rec.log(f"world/objects/{i + 1}", rr.Transform3D(translation=poses[t, i, :3],
                                                             quaternion=rr.Quaternion(xyzw=poses[t, i, 3:])))
-        if t == seq.num_steps:
-            rec.log("world/push", rr.Clear(recursive=True))
+        if t == seq.num_steps:  # the last observation has no push after it
             break
-        # push t: the action, the flow t -> t+1, and the predictions made at t
-        rec.set_time("step", sequence=_push_tick(t))
+        rec.set_time("step", sequence=push_tick(t))
         d, row, col = (int(v) for v in action[t])
-        rec.log("world/push", rr.Arrows3D(origins=[start[t]], vectors=[end[t] - start[t]], colors=[[255, 215, 0]],
-                                          radii=0.004, labels=[f"push {t}: d={d} (row {row}, col {col})"]))
+        rec.log("world/push", rr.Arrows3D(origins=[start[t]], vectors=[end[t] - start[t]], colors=[PUSH_COLOR],
+                                          radii=0.004, labels=[f"push {t}: direction {d}, cell ({row}, {col})"]))
         if has_policy:
             k = int(seq.read("policy/chosen_object", t))
             chosen = np.argwhere(mask == k + 1)
             if len(chosen):
                 lo, hi = voxel_to_world(chosen.min(0)), voxel_to_world(chosen.max(0))
-                rec.log("world/push/chosen", rr.Boxes3D(centers=[(lo + hi) / 2], half_sizes=[(hi - lo) / 2 + VOXEL_SIZE],
-                                                        colors=[[255, 215, 0]], labels=[f"chosen: {k + 1}"]))
+                rec.log("world/push/chosen", rr.Boxes3D(centers=[(lo + hi) / 2], half_sizes=[np.abs(hi - lo) / 2 + VOXEL_SIZE],
+                                                        colors=[PUSH_COLOR], labels=[f"chosen: {k + 1}"]))
+            else:
+                rec.log("world/push/chosen", rr.Clear(recursive=False))
             rec.log("policy/object_probs", rr.BarChart(seq.read("policy/object_probs", t)))
             rec.log("policy/direction_probs", rr.BarChart(seq.read("policy/direction_probs", t)))
-        origins, vectors, colors = _flow_arrows(seq.read("scene_flow_3d", t), mask, rng)
+        origins, vectors, colors = flow_arrows(seq.read("scene_flow_3d", t), mask, rng)
         rec.log("world/gt/flow", rr.Arrows3D(origins=origins, vectors=vectors, colors=colors))
-        if pred is not None:
-            pm = pred["mask"][t]
-            occ = np.argwhere(pm > 0)
-            rec.log("world/pred/mask", rr.Points3D(voxel_to_world(occ), class_ids=pm[tuple(occ.T)],
-                                                   radii=VOXEL_SIZE / 2))
-            o, v, c = _flow_arrows(pred["motion"][t].astype(np.float32), pm, rng)
+        if predictions is not None:
+            pm = predictions["mask"][t]
+            matched = match_slots(pm, mask, predictions["num_slots"], seq.num_objects)[pm]
+            _log_voxels(rec, rr, "world/pred/mask", matched)
+            o, v, c = flow_arrows(predictions["motion"][t], pm, rng)
             rec.log("world/pred/flow", rr.Arrows3D(origins=o, vectors=v, colors=c))
-            disagree = np.argwhere((pm > 0) != (mask > 0))
-            rec.log("world/pred/disagree", rr.Points3D(voxel_to_world(disagree), colors=[255, 0, 0],
-                                                       radii=VOXEL_SIZE / 2))
-            for key, values in metrics.items():
+            disagree = np.argwhere(matched != mask)
+            rec.log("world/pred/disagree", rr.Points3D(voxel_to_world(disagree), colors=[DISAGREE_COLOR],
+                                                       radii=VOXEL_SIZE * 0.6))
+            for key, values in predictions["metrics"].items():
                 if np.isfinite(values[t]):
                     rec.log(f"metrics/{key}", rr.Scalars(float(values[t])))
 
 
-def view(path: Path, predictions: Path | None = None, save: Path | None = None, web: bool = False) -> Path | None:
-    """Open a sequence in the rerun viewer, or write a recording (`save`), or serve the web viewer."""
+def view(path: str | Path, predictions: str | Path | None = None, save: str | Path | None = None,
+         web: bool = False, web_port: int | None = None) -> Path | None:
+    """Open a sequence file in the rerun viewer, or write a recording to `save` (.rrd, atomically),
+    or serve the web viewer (`web`). Returns the written path when saving."""
     import rerun as rr
 
+    path = Path(path)
+    if not path.is_file():
+        raise UserError(f"sequence file not found: {path}")
     with SequenceReader(path) as seq:
-        rec = rr.RecordingStream(APP_ID, recording_id=f"{seq.name}")
-        bp = blueprint(list(seq.cameras), predictions is not None)
-        if save is not None:
-            save = Path(save)
-            save.parent.mkdir(parents=True, exist_ok=True)
-            tmp = save.with_name(f".{save.name}.tmp")
-            rec.save(tmp, default_blueprint=bp)
-        elif web:
-            uri = rec.serve_grpc(default_blueprint=bp)
-            rr.serve_web_viewer(connect_to=uri, open_browser=False)
-        else:
-            rec.spawn(default_blueprint=bp)
-        rec.log("description", rr.TextDocument(
-            f"# {seq.name}\n\nobject set: {seq.attrs.get('object_set')}, policy: {seq.attrs.get('policy')}, "
-            f"{seq.num_steps} pushes, {seq.num_objects} objects\n\n" +
-            "\n".join(f"- {i + 1}: {o.get('category')} ({o.get('model_id')})" for i, o in enumerate(seq.objects)),
-            media_type=rr.MediaType.MARKDOWN), static=True)
-        log_sequence(rec, seq, predictions)
-        rec.flush()
-        if save is not None:
-            rec.disconnect()
-            import os
-
-            os.replace(tmp, save)
-            return save
+        check_sequence(seq)
+        pred = load_predictions(Path(predictions), seq) if predictions is not None else None
+        rec = rr.RecordingStream(APP_ID, recording_id=seq.name)
+        bp = blueprint(list(seq.cameras), pred is not None, "policy/chosen_object" in seq)
+        tmp = None
+        try:
+            if save is not None:
+                save = Path(save)
+                save.parent.mkdir(parents=True, exist_ok=True)
+                tmp = save.with_name(f".{save.name}.tmp-{os.getpid()}")
+                rec.save(tmp, default_blueprint=bp)
+            elif web:
+                uri = rec.serve_grpc(default_blueprint=bp)
+                rr.serve_web_viewer(web_port=web_port, open_browser=False, connect_to=uri)
+            else:
+                rec.spawn(default_blueprint=bp)
+            try:
+                log_sequence(rec, seq, pred)
+            except _READ_ERRORS as exc:
+                raise UserError(f"{path}: unreadable data ({type(exc).__name__}: {exc}); run `dsr-bench validate` on it") from None
+            rec.flush()
+            if tmp is not None:
+                rec.disconnect()
+                os.replace(tmp, save)
+                tmp = None
+                return save
+        finally:
+            if tmp is not None:
+                rec.disconnect()
+                tmp.unlink(missing_ok=True)
     return None

@@ -1,18 +1,27 @@
-"""`dsr-bench view --save`: the recording holds the entities, timelines and values we log,
-checked with rerun's own tools (`rerun rrd verify`, `rerun rrd print`)."""
+"""`dsr-bench view --save`: the recording holds the entities, timelines and values we log, read
+back with rerun's own tools (`rerun rrd verify`, `rerun rrd print`, the SDK's `rerun.chunk.RrdReader`)."""
 
-import re
 import shutil
 import subprocess
 import sys
-from collections import Counter
+from collections import defaultdict
 from pathlib import Path
 
+import h5py
+import numpy as np
 import pytest
 
 pytest.importorskip("rerun")
 
 from dsr_bench.cli import main  # noqa: E402
+from dsr_bench.constants import VOXEL_SIZE  # noqa: E402
+from dsr_bench.geometry import voxel_to_world, world_to_voxel  # noqa: E402
+from dsr_bench.predictions import write_predictions  # noqa: E402
+from dsr_bench.sequence import SequenceReader  # noqa: E402
+from dsr_bench.testing import write_synthetic_sequence  # noqa: E402
+from dsr_bench.viewer import MAX_ARROWS, UNMATCHED, match_slots  # noqa: E402
+
+STEPS, OBJECTS = 3, 2
 
 
 def _rerun() -> str:
@@ -23,66 +32,223 @@ def _rerun() -> str:
     return found
 
 
-def _rows_per_entity(rrd: Path) -> Counter:
-    out = subprocess.run([_rerun(), "rrd", "print", "-v", str(rrd)], capture_output=True, text=True, check=True).stdout
-    rows = Counter()
-    for n, entity, columns in re.findall(r"with (\d+) rows .*? - (/\S+) - data columns: \[([^\]]*)\]", out):
-        for column in columns.split():
-            rows[column.split("@", 1)[1] if "@" in column else column, entity] += 0
-        rows[entity] += int(n)
-        for column in columns.split():
-            rows[column] += int(n)
-    return rows
+def _array(scalar) -> np.ndarray:
+    """A logged component batch (pyarrow list scalar) as a flat numpy array."""
+    import pyarrow as pa
+
+    values = scalar.values
+    if pa.types.is_struct(values.type):  # a tensor (bar chart): its data buffer
+        return np.asarray([row["buffer"] for row in values.to_pylist()]).reshape(-1)
+    while hasattr(values, "flatten"):
+        values = values.flatten()
+    return values.to_numpy(zero_copy_only=False)
+
+
+class Recording:
+    """The rows of an .rrd per (entity, component): [(step or None if static, pyarrow value)]."""
+
+    def __init__(self, path: Path):
+        from rerun.chunk import RrdReader
+
+        reader = RrdReader(path)
+        self.rows: dict[tuple[str, str], list] = defaultdict(list)
+        self.timelines: set[str] = set()
+        for chunk in reader.stream():
+            batch = chunk.to_record_batch()
+            self.timelines |= set(chunk.timeline_names)
+            steps = batch.column("step").to_pylist() if "step" in batch.schema.names else [None] * batch.num_rows
+            for name in batch.schema.names:
+                if ":" in name:
+                    col = batch.column(name)
+                    self.rows[chunk.entity_path, name] += [(steps[i], col[i]) for i in range(batch.num_rows)]
+        for rows in self.rows.values():
+            rows.sort(key=lambda r: -1 if r[0] is None else r[0])
+        self.blueprint_entities = {c.entity_path for b in reader.blueprints() for c in reader.stream(store=b)}
+
+    def steps(self, entity: str, component: str) -> list:
+        return [s for s, _ in self.rows[entity, component]]
+
+    def values(self, entity: str, component: str, width: int | None = None) -> list[np.ndarray]:
+        out = [_array(v) for _, v in self.rows[entity, component]]
+        return [v.reshape(-1, width) if width else v for v in out]
+
+
+def _predictions(seq_path: Path, pred_dir: Path) -> dict:
+    """Predictions with permuted slot ids, one extra wrong voxel block per step and flow = GT + 1 voxel in dy."""
+    with SequenceReader(seq_path) as seq:
+        gt = seq.read("mask_3d")[:STEPS]
+        flow = seq.read("scene_flow_3d")
+    perm = np.array([0, 3, 1], np.uint8)  # object 1 -> slot 3, object 2 -> slot 1, slot 2 stays empty
+    mask = perm[gt]
+    mask[:, :4, :4, :4] = 2  # an unmatched slot in a corner no object occupies
+    motion = flow.copy()
+    motion[:, 0] += 1.0
+    write_predictions(pred_dir / f"{seq_path.stem}.h5", mask, motion, num_slots=3)
+    return {"gt": gt, "mask": mask}
 
 
 @pytest.fixture(scope="module")
-def recording(generated_dataset, tmp_path_factory):
-    out = tmp_path_factory.mktemp("rrd")
-    assert main(["predict", "--model", "static", "--data", str(generated_dataset), "--out", str(out / "pred")]) == 0
-    rrd = out / "seq_0001.rrd"
-    assert main(["view", "seq_0001", "--data", str(generated_dataset), "--predictions", str(out / "pred"),
+def synthetic(tmp_path_factory):
+    root = tmp_path_factory.mktemp("viewer")
+    seq = write_synthetic_sequence(root / "data" / "seq_0007.h5", STEPS, OBJECTS, seed=5)
+    pred = _predictions(seq, root / "pred")
+    rrd = root / "out" / "seq_0007.rrd"
+    assert main(["view", "seq_0007", "--data", str(root / "data"), "--predictions", str(root / "pred"),
                  "--save", str(rrd)]) == 0
-    return rrd
+    return {"seq": seq, "rrd": rrd, "rec": Recording(rrd), "pred": pred, "pred_dir": root / "pred"}
 
 
-def test_recording_verifies(recording):
-    result = subprocess.run([_rerun(), "rrd", "verify", str(recording)], capture_output=True, text=True)
+def test_recording_verifies_with_rerun_tools(synthetic):
+    result = subprocess.run([_rerun(), "rrd", "verify", str(synthetic["rrd"])], capture_output=True, text=True)
     assert result.returncode == 0, result.stderr
+    printed = subprocess.run([_rerun(), "rrd", "print", str(synthetic["rrd"])], capture_output=True, text=True,
+                             check=True).stdout
+    assert "/world/gt/mask" in printed and "/world/pred/disagree" in printed
+    assert list(synthetic["rrd"].parent.iterdir()) == [synthetic["rrd"]]  # no temporary file left behind
 
 
-def test_entities_and_rows_per_step(recording):
-    rows = _rows_per_entity(recording)
-    steps = 3  # the fixture's pushes: T + 1 observations
-    for entity, expected in [("/world/gt/mask", steps + 1), ("/world/tsdf", steps + 1),
-                             ("/world/cameras/front/image/color", steps + 1),
-                             ("/world/cameras/front/image/depth", steps + 1), ("/world/gt/flow", steps),
-                             ("/world/pred/mask", steps), ("/world/pred/disagree", steps),
-                             ("/metrics/iou_unordered", steps), ("/metrics/motion_full", steps),
-                             ("/policy/direction_probs", steps)]:
-        assert rows[entity] == expected, (entity, rows[entity])
-    assert rows["/world/push@Arrows3D:vectors"] == steps
-    assert rows["/world/objects/1@Mesh3D:vertex_positions"] == 1  # static mesh, posed per step
-    assert rows["/world/objects/1@Transform3D:quaternion"] == steps + 1
-    assert rows["/world/cameras/front/image@Pinhole:image_from_camera"] == 1
-    assert rows["/world@AnnotationContext:context"] == 1
-    assert any(k.startswith("/viewport") for k in rows)  # a blueprint is stored with the recording
+def test_timelines_and_blueprint(synthetic):
+    rec = synthetic["rec"]
+    assert {"step", "observation"} <= rec.timelines
+    assert "/viewport" in rec.blueprint_entities  # the layout travels with the recording
 
 
-def test_timeline_and_values(recording):
-    out = subprocess.run([_rerun(), "rrd", "print", "-vvv", str(recording)], capture_output=True, text=True).stdout
-    assert "index_name: step" in out and "index_name: observation" in out
-    block = out[out.index("/metrics/iou_unordered"):][:6000]
-    values = [float(v) for v in re.findall(r"\[(0\.\d+|1(?:\.0)?)\]", block)]
-    assert values and all(0 <= v <= 1 for v in values)
+def test_amodal_voxels_per_observation(synthetic):
+    rec = synthetic["rec"]
+    assert rec.steps("/world/gt/mask", "Points3D:positions") == [0, 2, 4, 6]
+    positions = rec.values("/world/gt/mask", "Points3D:positions", 3)
+    class_ids = rec.values("/world/gt/mask", "Points3D:class_ids")
+    with SequenceReader(synthetic["seq"]) as seq:
+        for t in range(STEPS + 1):
+            mask = seq.read("mask_3d", t)
+            idx = np.argwhere(mask > 0)
+            np.testing.assert_allclose(positions[t], voxel_to_world(idx), atol=1e-6)
+            np.testing.assert_array_equal(class_ids[t], mask[tuple(idx.T)])
+            tsdf = seq.read("tsdf", t)
+            assert len(rec.values("/world/tsdf", "Points3D:positions", 3)[t]) == int(((tsdf < 0) & (tsdf > -1)).sum())
 
 
-def test_errors(generated_dataset, tmp_path, capsys):
-    assert main(["view", "seq_0099", "--data", str(generated_dataset), "--save", str(tmp_path / "x.rrd")]) == 2
-    assert "no sequence 'seq_0099'" in capsys.readouterr().err
+def test_push_poses_and_cameras(synthetic):
+    rec = synthetic["rec"]
+    with SequenceReader(synthetic["seq"]) as seq:
+        start, end, poses = seq.read("push_start"), seq.read("push_end"), seq.read("object_poses")
+        cam = seq.camera("front")
+        chosen = seq.read("policy/chosen_object")
+        probs = seq.read("policy/direction_probs")
+    assert rec.steps("/world/push", "Arrows3D:origins") == [1, 3, 5]
+    np.testing.assert_allclose(np.concatenate(rec.values("/world/push", "Arrows3D:origins", 3)), start, atol=1e-6)
+    np.testing.assert_allclose(np.concatenate(rec.values("/world/push", "Arrows3D:vectors", 3)), end - start, atol=1e-6)
+    assert rec.steps("/world/push", "Clear:is_recursive") == [2, 4, 6]  # a push shows on its own tick only
+    labels = [str(v[0]) for _, v in rec.rows["/world/push/chosen", "Boxes3D:labels"]]
+    assert labels == [f"chosen: {k + 1}" for k in chosen]
+    np.testing.assert_allclose(np.stack(rec.values("/policy/direction_probs", "BarChart:values")), probs, atol=1e-6)
+    for i in range(OBJECTS):
+        entity = f"/world/objects/{i + 1}"
+        assert rec.steps(entity, "Transform3D:translation") == [0, 2, 4, 6]
+        np.testing.assert_allclose(np.concatenate(rec.values(entity, "Transform3D:translation", 3)), poses[:, i, :3], atol=1e-6)
+        np.testing.assert_allclose(np.concatenate(rec.values(entity, "Transform3D:quaternion", 4)), poses[:, i, 3:], atol=1e-6)
+        assert rec.steps(entity, "Mesh3D:vertex_positions") == [None]  # the mesh is static, posed per step
+    (translation,) = rec.values("/world/cameras/front", "Transform3D:translation", 3)
+    np.testing.assert_allclose(translation[0], cam.extrinsics[:3, 3], atol=1e-6)
+    (pinhole,) = rec.values("/world/cameras/front/image", "Pinhole:image_from_camera")
+    np.testing.assert_allclose(pinhole.reshape(3, 3).T, cam.intrinsics, rtol=1e-6)  # stored column-major
+    assert rec.steps("/world/cameras/front/image/color", "Image:buffer") == [0, 2, 4, 6]
+    assert rec.steps("/world/cameras/front/image/mask", "SegmentationImage:buffer") == [0, 2, 4, 6]
+
+
+def test_flow_arrows_are_the_ground_truth_flow(synthetic):
+    rec = synthetic["rec"]
+    assert rec.steps("/world/gt/flow", "Arrows3D:origins") == [1, 3, 5]
+    origins = rec.values("/world/gt/flow", "Arrows3D:origins", 3)
+    vectors = rec.values("/world/gt/flow", "Arrows3D:vectors", 3)
+    with SequenceReader(synthetic["seq"]) as seq:
+        for t in range(STEPS):
+            mask, flow = seq.read("mask_3d", t), seq.read("scene_flow_3d", t)
+            assert 0 < len(origins[t]) == min(MAX_ARROWS, int((mask > 0).sum()))
+            idx = np.rint(world_to_voxel(origins[t].astype(np.float64))).astype(int)
+            assert np.all(mask[tuple(idx.T)] > 0)
+            expected = flow[:, idx[:, 0], idx[:, 1], idx[:, 2]].T[:, [1, 0, 2]] * VOXEL_SIZE  # (dy,dx,dz) -> (x,y,z) m
+            np.testing.assert_allclose(vectors[t], expected, atol=1e-6)
+
+
+def test_predictions_matched_disagreement_and_metrics(synthetic):
+    from dsr_bench.evaluate import _score_sequence
+
+    rec, gt, mask = synthetic["rec"], synthetic["pred"]["gt"], synthetic["pred"]["mask"]
+    assert rec.steps("/world/pred/mask", "Points3D:class_ids") == [1, 3, 5]
+    for t, ids in enumerate(rec.values("/world/pred/mask", "Points3D:class_ids")):
+        # slots relabelled to the objects they match: object voxels carry the GT ids, the corner is unmatched
+        assert sorted(set(ids.tolist())) == sorted(set(np.unique(gt[t]).tolist()) - {0}) + [UNMATCHED]
+        assert len(ids) == int((mask[t] > 0).sum())
+    inverse = np.array([0, 2, UNMATCHED, 1], np.uint8)  # slot -> object of the permutation in _predictions
+    for t, points in enumerate(rec.values("/world/pred/disagree", "Points3D:positions", 3)):
+        expected = voxel_to_world(np.argwhere(inverse[mask[t]] != gt[t]))
+        assert len(expected) == 4 * 4 * 4  # exactly the unmatched corner block
+        np.testing.assert_allclose(points, expected, atol=1e-6)
+    pred_vectors = rec.values("/world/pred/flow", "Arrows3D:vectors", 3)
+    assert np.all(pred_vectors[0][:, 1] > 0)  # +1 voxel in dy is +4 mm along world y
+    _, problems, expected = _score_sequence(("seq_0007", str(synthetic["pred_dir"] / "seq_0007.h5"), str(synthetic["seq"])))
+    assert not problems
+    for key in ("iou_unordered", "iou_ordered", "motion_full", "motion_visible"):
+        assert rec.steps(f"/metrics/{key}", "Scalars:scalars") == [1, 3, 5]
+        np.testing.assert_allclose(np.concatenate(rec.values(f"/metrics/{key}", "Scalars:scalars")), expected[key], rtol=1e-9)
+    assert all(v < 1 for v in expected["iou_unordered"])  # the corner block costs IoU
+
+
+def test_match_slots_inverts_a_permutation():
+    gt = np.zeros((8, 8, 4), np.uint8)
+    gt[:2], gt[4:6], gt[7] = 1, 2, 3
+    perm = np.array([0, 4, 2, 1, 0], np.uint8)  # objects 1, 2, 3 -> slots 4, 2, 1; slot 3 empty
+    pred = perm[gt]
+    pred[2, 0, 0] = 3  # a stray slot: no object left to match it
+    lut = match_slots(pred, gt, num_slots=4, num_objects=3)
+    assert lut.tolist() == [0, 3, 2, UNMATCHED, 1]
+    assert np.array_equal(lut[perm[gt]], gt)
+
+
+def test_real_generated_sequence_end_to_end(generated_dataset, tmp_path):
+    assert main(["predict", "--model", "static", "--data", str(generated_dataset), "--out", str(tmp_path / "pred")]) == 0
+    rrd = tmp_path / "seq_0001.rrd"
+    assert main(["view", "seq_0001", "--data", str(generated_dataset), "--predictions", str(tmp_path / "pred"),
+                 "--save", str(rrd)]) == 0
+    assert subprocess.run([_rerun(), "rrd", "verify", str(rrd)], capture_output=True).returncode == 0
+    rec = Recording(rrd)
+    with SequenceReader(generated_dataset / "seq_0001.h5") as seq:
+        steps, objects = seq.num_steps, seq.num_objects
+    assert rec.steps("/world/gt/mask", "Points3D:positions") == list(range(0, 2 * steps + 1, 2))
+    assert rec.steps("/metrics/motion_full", "Scalars:scalars") == list(range(1, 2 * steps, 2))
+    assert all(rec.steps(f"/world/objects/{i + 1}", "Mesh3D:vertex_positions") == [None] for i in range(objects))
+
+
+def _fails(capsys, argv: list[str], message: str) -> None:
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: ") and message in err, err
+
+
+def test_errors(synthetic, tmp_path, capsys):
+    data = synthetic["seq"].parent
+    out = tmp_path / "out"
+    _fails(capsys, ["view", "seq_0099", "--data", str(data), "--save", str(out / "a.rrd")], "no sequence 'seq_0099'")
     broken = tmp_path / "broken.h5"
     broken.write_bytes(b"\x89HDF\r\n garbage")
-    assert main(["view", str(broken), "--save", str(tmp_path / "y.rrd")]) == 2
-    assert "not a readable HDF5 file" in capsys.readouterr().err
-    assert not (tmp_path / "y.rrd").exists()
-    assert main(["view", "seq_0000", "--data", str(generated_dataset), "--predictions", str(tmp_path / "none"),
-                 "--save", str(tmp_path / "z.rrd")]) == 2
+    _fails(capsys, ["view", str(broken), "--save", str(out / "b.rrd")], "not a readable HDF5 file")
+    partial = shutil.copy(synthetic["seq"], tmp_path / "partial.h5")
+    with h5py.File(partial, "a") as f:
+        del f["scene_flow_3d"]
+    _fails(capsys, ["view", str(partial), "--save", str(out / "c.rrd")], "missing dataset 'scene_flow_3d'")
+    _fails(capsys, ["view", "seq_0007", "--data", str(data), "--predictions", str(tmp_path / "none"),
+                    "--save", str(out / "d.rrd")], "predictions directory not found")
+    (tmp_path / "empty").mkdir()
+    _fails(capsys, ["view", "seq_0007", "--data", str(data), "--predictions", str(tmp_path / "empty"),
+                    "--save", str(out / "e.rrd")], "no prediction file for seq_0007")
+    bad = tmp_path / "bad"
+    bad.mkdir()
+    with h5py.File(bad / "seq_0007.h5", "w") as f:
+        f.attrs["num_slots"] = 3
+        f["mask"] = np.zeros((STEPS, 4, 4, 4), np.uint8)
+    _fails(capsys, ["view", "seq_0007", "--data", str(data), "--predictions", str(bad), "--save", str(out / "f.rrd")],
+           "invalid predictions")
+    _fails(capsys, ["view", "seq_0007", "--data", str(data), "--save", str(out / "g.rrd"), "--web"], "--save and --web")
+    _fails(capsys, ["view", "seq_0007", "--data", str(data), "--save", str(out / "g.txt")], "must end in .rrd")
+    assert not out.exists() or not any(out.iterdir())  # nothing half-written
