@@ -198,6 +198,15 @@ def test_open_mesh_becomes_a_filled_solid(tmp_path):
     assert len(list((tmp_path / "cache" / "solids").glob("*.npz"))) == 1
 
 
+def test_zero_thickness_sheet_keeps_one_voxel_layer(tmp_path):
+    sheet = trimesh.Trimesh([[0, 0, 0], [0.06, 0, 0], [0.06, 0.04, 0.01], [0, 0.04, 0.01]], [[0, 1, 2], [0, 2, 3]])
+    sheet.export(tmp_path / "sheet.obj")
+    solid = load_solid(tmp_path / "sheet.obj", pitch=0.002)
+    assert solid.is_watertight and solid.volume > 0
+    assert solid.extents[0] == pytest.approx(0.06, abs=0.004) and solid.extents[1] == pytest.approx(0.04, abs=0.004)
+    assert solid.volume < 0.06 * 0.041 * 0.005  # a thin slab, about a voxel thick
+
+
 def test_unreadable_mesh_is_a_user_error(tmp_path):
     bad = tmp_path / "broken.obj"
     bad.write_text("this is not an obj file\n")

@@ -15,7 +15,7 @@ import numpy as np
 from dsr_bench.errors import UserError
 
 #: Bump when the solid-making method changes, so that cached solids are rebuilt.
-SOLID_METHOD_VERSION = 2
+SOLID_METHOD_VERSION = 3
 #: Rays per point for the inside test of open meshes (majority vote of ray-crossing parities).
 OCCUPANCY_RAYS = 9
 MAX_GRID = 160  # voxels along the longest side of a voxelisation
@@ -84,8 +84,9 @@ def mesh_from_occupancy(occupancy: np.ndarray, origin: np.ndarray, pitch: np.nda
 
 
 def voxelise_open_mesh(mesh, pitch: float, fill_columns: bool = False) -> tuple[np.ndarray, np.ndarray, float]:
-    """Occupancy (X, Y, Z), grid origin and pitch (raised to fit MAX_GRID voxels) of a possibly open mesh: the voxels its surface crosses,
-    plus the voxels a majority of ray-parity tests put inside, with enclosed cavities filled.
+    """Occupancy (X, Y, Z), grid origin and pitch (raised to fit MAX_GRID voxels) of a possibly open
+    mesh: voxels whose centre lies within half a pitch of the surface, plus those a majority of
+    ray-parity tests put inside, with enclosed cavities filled.
     fill_columns: also fill every column below its highest occupied voxel (hollow bases, e.g. Duplo)."""
     import open3d as o3d
     from scipy import ndimage
@@ -100,12 +101,11 @@ def voxelise_open_mesh(mesh, pitch: float, fill_columns: bool = False) -> tuple[
     scene = o3d.t.geometry.RaycastingScene()
     scene.add_triangles(o3d.core.Tensor(np.asarray(mesh.vertices, np.float32)),
                         o3d.core.Tensor(np.asarray(mesh.faces, np.uint32)))
-    inside = scene.compute_occupancy(o3d.core.Tensor(centres), nsamples=OCCUPANCY_RAYS).numpy() > 0
-    # surface voxels: points on the surface, sampled finer than the pitch, keep thin walls
-    surface_points = _sample_surface(mesh, pitch / 2)
-    idx = np.floor((surface_points - origin) / pitch).astype(np.int64)
-    idx = idx[np.all((idx >= 0) & (idx < shape), axis=1)]
-    inside[idx[:, 0], idx[:, 1], idx[:, 2]] = True
+    query = o3d.core.Tensor(centres)
+    inside = scene.compute_occupancy(query, nsamples=OCCUPANCY_RAYS).numpy() > 0
+    # voxels the surface passes within half a pitch of: at least one layer under any surface, so thin
+    # walls survive and holes narrower than a voxel are sealed before the cavity fill
+    inside |= scene.compute_distance(query).numpy() <= 0.5 * pitch
     inside = ndimage.binary_fill_holes(inside)
     if fill_columns:
         top = inside.shape[2] - 1 - np.argmax(inside[:, :, ::-1], axis=2)
@@ -114,23 +114,6 @@ def voxelise_open_mesh(mesh, pitch: float, fill_columns: bool = False) -> tuple[
         inside = any_z[:, :, None] & (z[None, None, :] <= top[:, :, None])
         inside[:, :, 0] = False  # keep the margin free
     return inside, origin, pitch
-
-
-def _sample_surface(mesh, spacing: float) -> np.ndarray:
-    """Deterministic points on every triangle, no farther than ~spacing apart (barycentric grid)."""
-    v = np.asarray(mesh.vertices, np.float64)[np.asarray(mesh.faces)]
-    longest = np.max(np.linalg.norm(v - np.roll(v, 1, axis=1), axis=2), axis=1)
-    out = [v.reshape(-1, 3)]
-    steps = np.ceil(longest / spacing).astype(np.int64)
-    for n in np.unique(steps[steps > 1]):
-        tri = v[steps == n]
-        a, b = np.meshgrid(np.arange(n + 1), np.arange(n + 1), indexing="ij")
-        keep = a + b <= n
-        w = np.stack([a[keep], b[keep]], 1) / n  # (P, 2) barycentric weights of corners 1 and 2
-        pts = tri[:, None, 0] + w[None, :, 0, None] * (tri[:, None, 1] - tri[:, None, 0]) \
-            + w[None, :, 1, None] * (tri[:, None, 2] - tri[:, None, 0])
-        out.append(pts.reshape(-1, 3))
-    return np.concatenate(out)
 
 
 def load_mesh(path: Path):
