@@ -277,9 +277,10 @@ def log_sequence(rec, seq: SequenceReader, predictions: dict | None = None, seed
 
 
 def view(path: str | Path, predictions: str | Path | None = None, save: str | Path | None = None,
-         web: bool = False, web_port: int | None = None) -> Path | None:
+         web: bool = False, web_port: int | None = None) -> Path | str | None:
     """Open a sequence file in the rerun viewer, or write a recording to `save` (.rrd, atomically),
-    or serve the web viewer (`web`). Returns the written path when saving."""
+    or serve the web viewer (`web`; the caller keeps the process alive). Returns the written path
+    when saving, the viewer's URL when serving."""
     import rerun as rr
 
     path = Path(path)
@@ -298,8 +299,11 @@ def view(path: str | Path, predictions: str | Path | None = None, save: str | Pa
                 tmp = save.with_name(f".{save.name}.tmp-{os.getpid()}")
                 rec.save(tmp, default_blueprint=bp)
             elif web:
+                from urllib.parse import quote
+
                 uri = rec.serve_grpc(default_blueprint=bp)
                 rr.serve_web_viewer(web_port=web_port, open_browser=False, connect_to=uri)
+                url = f"http://localhost:{web_port or 9090}/?url={quote(uri, safe='')}"
             else:
                 rec.spawn(default_blueprint=bp)
             try:
@@ -312,6 +316,8 @@ def view(path: str | Path, predictions: str | Path | None = None, save: str | Pa
                 os.replace(tmp, save)
                 tmp = None
                 return save
+            if web:
+                return url
         finally:
             if tmp is not None:
                 rec.disconnect()

@@ -252,3 +252,10 @@ def test_errors(synthetic, tmp_path, capsys):
     _fails(capsys, ["view", "seq_0007", "--data", str(data), "--save", str(out / "g.rrd"), "--web"], "--save and --web")
     _fails(capsys, ["view", "seq_0007", "--data", str(data), "--save", str(out / "g.txt")], "must end in .rrd")
     assert not out.exists() or not any(out.iterdir())  # nothing half-written
+
+
+def test_native_viewer_needs_a_display(synthetic, monkeypatch, capsys):
+    monkeypatch.setattr(sys, "platform", "linux")
+    monkeypatch.delenv("DISPLAY", raising=False)
+    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+    _fails(capsys, ["view", str(synthetic["seq"])], "--save out.rrd, or serve it with --web")

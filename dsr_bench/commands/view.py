@@ -26,17 +26,27 @@ def view(
     if save is not None and save.suffix != ".rrd":
         raise UserError(f"--save {save}: the recording file must end in .rrd")
     path = resolve_sequence(data, sequence)
+    if save is None and not web and _headless():
+        raise UserError("no display to open the viewer on: write a recording with --save out.rrd, or serve it with --web")
     from dsr_bench.viewer import view as run
 
     out = run(path, predictions=predictions, save=save, web=web, web_port=web_port)
-    if out is not None:
+    if save is not None:
         typer.echo(f"wrote {out} (open it with: rerun {out})")
     elif web:
-        typer.echo(f"serving the web viewer at http://localhost:{web_port or 9090}; press Ctrl-C to stop")
+        typer.echo(f"serving the web viewer at {out} ; press Ctrl-C to stop")
         import time
 
         while True:
             time.sleep(3600)
+
+
+def _headless() -> bool:
+    """True on a Linux machine without an X11 or Wayland display (where the native viewer cannot open)."""
+    import os
+    import sys
+
+    return sys.platform.startswith("linux") and not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
 
 
 def register(app: typer.Typer) -> None:
