@@ -81,6 +81,9 @@ def _predictions(seq_path: Path, pred_dir: Path) -> dict:
     perm = np.array([0, 3, 1], np.uint8)  # object 1 -> slot 3, object 2 -> slot 1, slot 2 stays empty
     mask = perm[gt]
     mask[:, :4, :4, :4] = 2  # an unmatched slot in a corner no object occupies
+    for t in range(STEPS):  # 5 voxels of object 1 given object 2's slot: occupied on both sides, yet wrong
+        idx = np.argwhere(gt[t] == 1)[:5]
+        mask[t][tuple(idx.T)] = 1
     motion = flow.copy()
     motion[:, 0] += 1.0
     write_predictions(pred_dir / f"{seq_path.stem}.h5", mask, motion, num_slots=3)
@@ -111,6 +114,20 @@ def test_timelines_and_blueprint(synthetic):
     rec = synthetic["rec"]
     assert {"step", "observation"} <= rec.timelines
     assert "/viewport" in rec.blueprint_entities  # the layout travels with the recording
+    # one static colour table for all steps: object ids keep their colours
+    assert rec.steps("/world", "AnnotationContext:context") == [None]
+
+
+def test_sequence_without_policy_data(synthetic, tmp_path):
+    path = shutil.copy(synthetic["seq"], tmp_path / "seq_0003.h5")
+    with h5py.File(path, "a") as f:  # like an official import: no policy group
+        del f["policy"]
+    rrd = tmp_path / "out.rrd"
+    assert main(["view", str(path), "--save", str(rrd)]) == 0
+    rec = Recording(rrd)
+    assert not any(entity.startswith("/policy/") and "probs" in entity for entity, _ in rec.rows)
+    assert ("/world/push/chosen", "Boxes3D:centers") not in rec.rows
+    assert rec.steps("/world/push", "Arrows3D:vectors") == [1, 3, 5]
 
 
 def test_amodal_voxels_per_observation(synthetic):
@@ -183,7 +200,7 @@ def test_predictions_matched_disagreement_and_metrics(synthetic):
     inverse = np.array([0, 2, UNMATCHED, 1], np.uint8)  # slot -> object of the permutation in _predictions
     for t, points in enumerate(rec.values("/world/pred/disagree", "Points3D:positions", 3)):
         expected = voxel_to_world(np.argwhere(inverse[mask[t]] != gt[t]))
-        assert len(expected) == 4 * 4 * 4  # exactly the unmatched corner block
+        assert len(expected) == 4 * 4 * 4 + 5  # the unmatched corner block and the mislabelled voxels
         np.testing.assert_allclose(points, expected, atol=1e-6)
     pred_vectors = rec.values("/world/pred/flow", "Arrows3D:vectors", 3)
     assert np.all(pred_vectors[0][:, 1] > 0)  # +1 voxel in dy is +4 mm along world y
