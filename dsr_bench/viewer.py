@@ -186,7 +186,8 @@ def _log_static(rec, rr, seq: SequenceReader) -> None:
     infos = [rr.AnnotationInfo(id=0, label="background", color=(0, 0, 0)),
              rr.AnnotationInfo(id=UNMATCHED, label="unmatched slot", color=(128, 128, 128))]
     for i, obj in enumerate(seq.objects):
-        infos.append(rr.AnnotationInfo(id=i + 1, label=f"{i + 1}: {obj.get('category', '?')}", color=object_color(i + 1)))
+        infos.append(rr.AnnotationInfo(id=i + 1, label=f"{i + 1}: {obj.get('category', '?')}",
+                                       color=object_color(i + 1)))
     context = rr.AnnotationContext(infos)
     rec.log("world", context, static=True)
     for name in seq.cameras:
@@ -254,7 +255,8 @@ def log_sequence(rec, seq: SequenceReader, predictions: dict | None = None, seed
             chosen = np.argwhere(mask == k + 1)
             if len(chosen):
                 lo, hi = voxel_to_world(chosen.min(0)), voxel_to_world(chosen.max(0))
-                rec.log("world/push/chosen", rr.Boxes3D(centers=[(lo + hi) / 2], half_sizes=[np.abs(hi - lo) / 2 + VOXEL_SIZE],
+                rec.log("world/push/chosen", rr.Boxes3D(centers=[(lo + hi) / 2],
+                                                        half_sizes=[np.abs(hi - lo) / 2 + VOXEL_SIZE],
                                                         colors=[PUSH_COLOR], labels=[f"chosen: {k + 1}"]))
             else:
                 rec.log("world/push/chosen", rr.Clear(recursive=False))
@@ -309,7 +311,8 @@ def view(path: str | Path, predictions: str | Path | None = None, save: str | Pa
             try:
                 log_sequence(rec, seq, pred)
             except _READ_ERRORS as exc:
-                raise UserError(f"{path}: unreadable data ({type(exc).__name__}: {exc}); run `dsr-bench validate` on it") from None
+                raise UserError(f"{path}: unreadable data ({type(exc).__name__}: {exc}); "
+                                "run `dsr-bench validate` on it") from None
             rec.flush()
             if tmp is not None:
                 rec.disconnect()

@@ -162,8 +162,10 @@ def test_push_poses_and_cameras(synthetic):
     for i in range(OBJECTS):
         entity = f"/world/objects/{i + 1}"
         assert rec.steps(entity, "Transform3D:translation") == [0, 2, 4, 6]
-        np.testing.assert_allclose(np.concatenate(rec.values(entity, "Transform3D:translation", 3)), poses[:, i, :3], atol=1e-6)
-        np.testing.assert_allclose(np.concatenate(rec.values(entity, "Transform3D:quaternion", 4)), poses[:, i, 3:], atol=1e-6)
+        translations = np.concatenate(rec.values(entity, "Transform3D:translation", 3))
+        np.testing.assert_allclose(translations, poses[:, i, :3], atol=1e-6)
+        quaternions = np.concatenate(rec.values(entity, "Transform3D:quaternion", 4))
+        np.testing.assert_allclose(quaternions, poses[:, i, 3:], atol=1e-6)  # (qx, qy, qz, qw) as stored
         assert rec.steps(entity, "Mesh3D:vertex_positions") == [None]  # the mesh is static, posed per step
     (translation,) = rec.values("/world/cameras/front", "Transform3D:translation", 3)
     np.testing.assert_allclose(translation[0], cam.extrinsics[:3, 3], atol=1e-6)
@@ -204,11 +206,13 @@ def test_predictions_matched_disagreement_and_metrics(synthetic):
         np.testing.assert_allclose(points, expected, atol=1e-6)
     pred_vectors = rec.values("/world/pred/flow", "Arrows3D:vectors", 3)
     assert np.all(pred_vectors[0][:, 1] > 0)  # +1 voxel in dy is +4 mm along world y
-    _, problems, expected = _score_sequence(("seq_0007", str(synthetic["pred_dir"] / "seq_0007.h5"), str(synthetic["seq"])))
+    pred_file = synthetic["pred_dir"] / "seq_0007.h5"
+    _, problems, expected = _score_sequence(("seq_0007", str(pred_file), str(synthetic["seq"])))
     assert not problems
     for key in ("iou_unordered", "iou_ordered", "motion_full", "motion_visible"):
         assert rec.steps(f"/metrics/{key}", "Scalars:scalars") == [1, 3, 5]
-        np.testing.assert_allclose(np.concatenate(rec.values(f"/metrics/{key}", "Scalars:scalars")), expected[key], rtol=1e-9)
+        logged = np.concatenate(rec.values(f"/metrics/{key}", "Scalars:scalars"))
+        np.testing.assert_allclose(logged, expected[key], rtol=1e-9)
     assert all(v < 1 for v in expected["iou_unordered"])  # the corner block costs IoU
 
 
@@ -224,9 +228,10 @@ def test_match_slots_inverts_a_permutation():
 
 
 def test_real_generated_sequence_end_to_end(generated_dataset, tmp_path):
-    assert main(["predict", "--model", "static", "--data", str(generated_dataset), "--out", str(tmp_path / "pred")]) == 0
+    pred = tmp_path / "pred"
+    assert main(["predict", "--model", "static", "--data", str(generated_dataset), "--out", str(pred)]) == 0
     rrd = tmp_path / "seq_0001.rrd"
-    assert main(["view", "seq_0001", "--data", str(generated_dataset), "--predictions", str(tmp_path / "pred"),
+    assert main(["view", "seq_0001", "--data", str(generated_dataset), "--predictions", str(pred),
                  "--save", str(rrd)]) == 0
     assert subprocess.run([_rerun(), "rrd", "verify", str(rrd)], capture_output=True).returncode == 0
     rec = Recording(rrd)

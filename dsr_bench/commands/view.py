@@ -27,7 +27,8 @@ def view(
         raise UserError(f"--save {save}: the recording file must end in .rrd")
     path = resolve_sequence(data, sequence)
     if save is None and not web and _headless():
-        raise UserError("no display to open the viewer on: write a recording with --save out.rrd, or serve it with --web")
+        raise UserError("no display to open the viewer on: write a recording with --save out.rrd, "
+                        "or serve it with --web")
     from dsr_bench.viewer import view as run
 
     out = run(path, predictions=predictions, save=save, web=web, web_port=web_port)
