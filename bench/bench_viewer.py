@@ -11,6 +11,7 @@ user waits for between the command and a complete recording. Target: a 10-step s
 from __future__ import annotations
 
 import argparse
+import shutil
 import tempfile
 import time
 from pathlib import Path
@@ -45,9 +46,11 @@ def main() -> None:
         start = time.perf_counter()
         view(path, predictions=args.predictions, save=out)
         times.append(time.perf_counter() - start)
+    size = out.stat().st_size / 1e6
+    shutil.rmtree(work)
     print(f"{path}: {steps} pushes, {objects} objects, predictions: {'yes' if args.predictions else 'no'}")
     print(f"load time: best {min(times):.2f} s, mean {sum(times) / len(times):.2f} s over {args.repeats} runs; "
-          f"recording {out.stat().st_size / 1e6:.1f} MB")
+          f"recording {size:.1f} MB")
 
 
 if __name__ == "__main__":
