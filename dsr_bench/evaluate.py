@@ -32,8 +32,9 @@ class Evaluation:
     results: dict | None = None
 
 
-def _score_sequence(args) -> tuple[str, list[str], dict | None]:
-    """Check and score one sequence: (name, problems, per-step values or None)."""
+def score_sequence(args: tuple[str, str, str]) -> tuple[str, list[str], dict | None]:
+    """Check and score one sequence, args = (name, prediction file, ground-truth file): returns
+    (name, problems, per-step values or None). Used by `evaluate` and by the viewer's plots."""
     from dsr_bench.metrics import motion_2d_error, motion_errors, sequence_scores
     from dsr_bench.sequence import SequenceReader
 
@@ -188,9 +189,9 @@ def evaluate(pred_dir: str | Path, data_dir: str | Path, split: str | None = Non
         from concurrent.futures import ProcessPoolExecutor
 
         with ProcessPoolExecutor(workers) as pool:
-            outcomes = list(pool.map(_score_sequence, jobs))
+            outcomes = list(pool.map(score_sequence, jobs))
     else:
-        outcomes = [_score_sequence(j) for j in jobs]
+        outcomes = [score_sequence(j) for j in jobs]
     scored = {}
     for name, found, values in outcomes:
         problems += [(name, p) for p in found]

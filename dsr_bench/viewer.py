@@ -115,7 +115,7 @@ def load_predictions(pred_dir: Path, seq: SequenceReader) -> dict:
     metrics exactly as `dsr-bench evaluate` computes them: {mask, motion, num_slots, metrics}."""
     import h5py
 
-    from dsr_bench.evaluate import _score_sequence
+    from dsr_bench.evaluate import score_sequence
     from dsr_bench.predictions import check_prediction_header
 
     pred_dir = Path(pred_dir)
@@ -132,7 +132,7 @@ def load_predictions(pred_dir: Path, seq: SequenceReader) -> dict:
     except _READ_ERRORS as exc:
         problems = [f"unreadable ({type(exc).__name__}: {exc})"]
     if not problems:
-        _, problems, values = _score_sequence((seq.path.stem, str(path), str(seq.path)))
+        _, problems, values = score_sequence((seq.path.stem, str(path), str(seq.path)))
     if problems:
         raise UserError(f"{path}: invalid predictions ({'; '.join(problems)}); see `dsr-bench evaluate`")
     pred["metrics"] = {k: np.asarray(values[k], dtype=np.float64) for k in METRIC_NAMES

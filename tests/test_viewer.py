@@ -191,7 +191,7 @@ def test_flow_arrows_are_the_ground_truth_flow(synthetic):
 
 
 def test_predictions_matched_disagreement_and_metrics(synthetic):
-    from dsr_bench.evaluate import _score_sequence
+    from dsr_bench.evaluate import score_sequence
 
     rec, gt, mask = synthetic["rec"], synthetic["pred"]["gt"], synthetic["pred"]["mask"]
     assert rec.steps("/world/pred/mask", "Points3D:class_ids") == [1, 3, 5]
@@ -207,7 +207,7 @@ def test_predictions_matched_disagreement_and_metrics(synthetic):
     pred_vectors = rec.values("/world/pred/flow", "Arrows3D:vectors", 3)
     assert np.all(pred_vectors[0][:, 1] > 0)  # +1 voxel in dy is +4 mm along world y
     pred_file = synthetic["pred_dir"] / "seq_0007.h5"
-    _, problems, expected = _score_sequence(("seq_0007", str(pred_file), str(synthetic["seq"])))
+    _, problems, expected = score_sequence(("seq_0007", str(pred_file), str(synthetic["seq"])))
     assert not problems
     for key in ("iou_unordered", "iou_ordered", "motion_full", "motion_visible"):
         assert rec.steps(f"/metrics/{key}", "Scalars:scalars") == [1, 3, 5]
