@@ -23,33 +23,53 @@ MANIFEST_NAME = "manifest.json"
 DATASET_FORMAT = "dsr-bench-dataset"
 
 
+def _canonical_objects(objects: list[dict]) -> bytes:
+    return json.dumps(objects, sort_keys=True).encode()
+
+
 def content_digest(arrays: Mapping[str, np.ndarray], objects: list[dict]) -> str:
     """SHA-256 over the sorted dataset names, dtypes, shapes and little-endian C-order bytes, and the
-    canonical JSON of the object list."""
+    canonical JSON (sorted keys) of the object list. Independent of HDF5 chunking and compression."""
     h = hashlib.sha256()
     for name in sorted(arrays):
         a = np.asarray(arrays[name])
         a = np.ascontiguousarray(a.astype(a.dtype.newbyteorder("<"), copy=False))
         h.update(f"{name}|{a.dtype.str}|{a.shape}|".encode())
         h.update(a.tobytes())
-    h.update(json.dumps(objects, sort_keys=True).encode())
+    h.update(_canonical_objects(objects))
     return h.hexdigest()
 
 
 def sequence_content_digest(path: str | Path) -> str:
-    """Recompute a sequence file's content digest from its arrays (everything but `meshes/`)."""
+    """Recompute a sequence file's content digest from its arrays (every dataset but `meshes/`).
+
+    Streams each dataset one step (first-axis slice) at a time, so memory stays at one step of the
+    largest array; gives the same value as `content_digest` on the in-memory arrays.
+    """
+    import h5py
+
     from dsr_bench.sequence import SequenceReader
 
-    arrays: dict[str, np.ndarray] = {}
     with SequenceReader(path) as seq:
-        def visit(name, obj):
-            import h5py
+        names: list[str] = []
 
+        def visit(name: str, obj) -> None:
             if isinstance(obj, h5py.Dataset) and not name.startswith("meshes/"):
-                arrays[name] = obj[()]
+                names.append(name)
 
         seq._file.visititems(visit)
-        return content_digest(arrays, seq.objects)
+        h = hashlib.sha256()
+        for name in sorted(names):
+            ds = seq._file[name]
+            dtype = np.dtype(ds.dtype).newbyteorder("<")
+            h.update(f"{name}|{dtype.str}|{tuple(ds.shape)}|".encode())
+            if ds.ndim == 0 or ds.shape[0] == 0:
+                h.update(np.ascontiguousarray(np.asarray(ds[()], dtype=dtype)).tobytes())
+                continue
+            for i in range(ds.shape[0]):
+                h.update(np.ascontiguousarray(np.asarray(ds[i], dtype=dtype)).tobytes())
+        h.update(_canonical_objects(seq.objects))
+        return h.hexdigest()
 
 
 def file_sha256(path: str | Path, chunk: int = 1 << 22) -> str:
@@ -69,39 +89,67 @@ def _split_names(data_dir: Path) -> dict[str, list[str]]:
 
 
 def split_digest(manifest: Mapping, split: str) -> str:
-    """The split checksum: SHA-256 over the split's sorted (name, content digest) pairs."""
+    """The split checksum: SHA-256 over `name:content_sha256\\n` of the split's sequences, sorted by name."""
     splits = manifest.get("splits", {})
     if split not in splits:
         raise UserError(f"split {split!r} is not in the manifest; available: {', '.join(sorted(splits)) or 'none'}")
     digests = {s["name"]: s["content_sha256"] for s in manifest["sequences"]}
+    missing = [n for n in splits[split]["names"] if n not in digests]
+    if missing:
+        raise UserError(f"manifest split {split!r} names {missing[0]}, which the manifest does not list; "
+                        "rebuild it with `dsr-bench manifest DIR`")
     h = hashlib.sha256()
     for name in sorted(splits[split]["names"]):
         h.update(f"{name}:{digests[name]}\n".encode())
     return h.hexdigest()
 
 
-def build_manifest(data_dir: str | Path) -> dict:
-    """A manifest of the sequence files and split files present in `data_dir`."""
+def _json_attr(value, default):
+    if isinstance(value, bytes):
+        value = value.decode()
+    if isinstance(value, str):
+        try:
+            return json.loads(value)
+        except json.JSONDecodeError:
+            return value
+    return default if value is None else value
+
+
+def _sequence_entry(path: Path) -> dict:
     import h5py
 
+    try:
+        with h5py.File(path, "r") as f:
+            attrs = dict(f.attrs)
+    except OSError as exc:
+        raise UserError(f"{path}: unreadable sequence file ({exc}); delete it and regenerate or re-import it") from None
+    for key in ("content_sha256", "num_steps", "num_objects"):
+        if key not in attrs:
+            raise UserError(f"{path}: no {key!r} attribute (not a complete dsr-bench sequence); regenerate it or "
+                            "run `dsr-bench import-official`")
+    args = _json_attr(attrs.get("generator_args"), {})
+    return {
+        "name": path.stem, "file": path.name, "sha256": file_sha256(path),
+        "content_sha256": str(attrs["content_sha256"]), "num_steps": int(attrs["num_steps"]),
+        "num_objects": int(attrs["num_objects"]), "object_set": str(attrs.get("object_set", "")),
+        "objects": _json_attr(attrs.get("objects"), []), "source": str(attrs.get("source", "")),
+        "policy": str(attrs.get("policy", "")), "toolkit_version": str(attrs.get("toolkit_version", "")),
+        "generator_args": args if isinstance(args, dict) else {},
+    }
+
+
+def build_manifest(data_dir: str | Path) -> dict:
+    """A manifest of the `seq_*.h5` files and `splits/*.txt` present in `data_dir`.
+
+    Reads each file's root attributes (not its arrays) and hashes its bytes. Raises UserError for an
+    unreadable file or a split naming a sequence with no file.
+    """
     from dsr_bench import __version__
 
     data_dir = Path(data_dir)
-    sequences = []
-    for path in sorted(data_dir.glob("seq_*.h5")):
-        try:
-            with h5py.File(path, "r") as f:
-                attrs = dict(f.attrs)
-        except OSError as exc:
-            raise UserError(f"{path}: unreadable sequence file ({exc}); delete it and rerun the generator") from None
-        if "content_sha256" not in attrs:
-            raise UserError(f"{path}: no content digest attribute; regenerate it or run `dsr-bench import-official`")
-        sequences.append({
-            "name": path.stem, "file": path.name, "sha256": file_sha256(path),
-            "content_sha256": str(attrs["content_sha256"]), "num_steps": int(attrs["num_steps"]),
-            "num_objects": int(attrs["num_objects"]), "object_set": str(attrs.get("object_set", "")),
-            "objects": json.loads(attrs["objects"]) if isinstance(attrs.get("objects"), str) else [],
-        })
+    if not data_dir.is_dir():
+        raise UserError(f"dataset directory not found: {data_dir}")
+    sequences = [_sequence_entry(path) for path in sorted(data_dir.glob("seq_*.h5"))]
     known = {s["name"] for s in sequences}
     splits = {}
     for split, names in _split_names(data_dir).items():
@@ -109,6 +157,9 @@ def build_manifest(data_dir: str | Path) -> dict:
         if missing:
             raise UserError(f"splits/{split}.txt names {len(missing)} sequences with no file (e.g. {missing[0]}); "
                             "finish generating them or fix the split file")
+        repeated = sorted({n for n in names if names.count(n) > 1})
+        if repeated:
+            raise UserError(f"splits/{split}.txt lists {repeated[0]} more than once; remove the duplicate line")
         splits[split] = {"file": f"splits/{split}.txt", "sequences": len(names), "names": names}
     manifest = {"format": DATASET_FORMAT, "schema_version": SCHEMA_VERSION, "toolkit_version": __version__,
                 "sequences": sequences, "splits": splits}
@@ -118,16 +169,41 @@ def build_manifest(data_dir: str | Path) -> dict:
 
 
 def write_manifest(data_dir: str | Path, manifest: Mapping) -> Path:
-    """Write manifest.json atomically."""
+    """Write DATA_DIR/manifest.json atomically (temporary name in the same directory, then rename)."""
     path = Path(data_dir) / MANIFEST_NAME
     tmp = path.with_name(f".{MANIFEST_NAME}.tmp-{os.getpid()}")
-    tmp.write_text(json.dumps(manifest, indent=1, sort_keys=True) + "\n")
-    os.replace(tmp, path)
+    try:
+        tmp.write_text(json.dumps(manifest, indent=1, sort_keys=True) + "\n")
+        os.replace(tmp, path)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
     return path
 
 
+_SEQUENCE_KEYS = {"name": str, "file": str, "sha256": str, "content_sha256": str, "num_steps": int,
+                  "num_objects": int}
+_SPLIT_KEYS = {"file": str, "sequences": int, "names": list, "content_sha256": str}
+
+
+def _manifest_structure_problem(manifest) -> str | None:
+    if not isinstance(manifest, dict) or manifest.get("format") != DATASET_FORMAT:
+        return "not a dsr-bench manifest"
+    if not isinstance(manifest.get("sequences"), list) or not isinstance(manifest.get("splits", {}), dict):
+        return "'sequences' must be a list and 'splits' an object"
+    for i, entry in enumerate(manifest["sequences"]):
+        for key, kind in _SEQUENCE_KEYS.items():
+            if not isinstance(entry, dict) or not isinstance(entry.get(key), kind):
+                return f"sequences[{i}] lacks {key!r} ({kind.__name__})"
+    for name, entry in manifest.get("splits", {}).items():
+        for key, kind in _SPLIT_KEYS.items():
+            if not isinstance(entry, dict) or not isinstance(entry.get(key), kind):
+                return f"splits[{name!r}] lacks {key!r} ({kind.__name__})"
+    return None
+
+
 def load_manifest(data_dir: str | Path) -> dict:
-    """Read and check a dataset's manifest."""
+    """Read DATA_DIR/manifest.json and check its format, version and structure (UserError if not)."""
     data_dir = Path(data_dir)
     path = data_dir / MANIFEST_NAME
     if not data_dir.is_dir():
@@ -136,18 +212,22 @@ def load_manifest(data_dir: str | Path) -> dict:
         raise UserError(f"{data_dir} has no {MANIFEST_NAME}; build it with `dsr-bench manifest {data_dir}`")
     try:
         manifest = json.loads(path.read_text())
-    except (OSError, json.JSONDecodeError) as exc:
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise UserError(f"{path}: unreadable manifest ({exc}); rebuild it with `dsr-bench manifest {data_dir}`") from None
-    if not isinstance(manifest, dict) or manifest.get("format") != DATASET_FORMAT or "sequences" not in manifest:
-        raise UserError(f"{path}: not a dsr-bench manifest; rebuild it with `dsr-bench manifest {data_dir}`")
+    problem = _manifest_structure_problem(manifest)
+    if problem:
+        raise UserError(f"{path}: {problem}; rebuild it with `dsr-bench manifest {data_dir}`")
     if manifest.get("schema_version") != SCHEMA_VERSION:
-        raise UserError(f"{path}: schema version {manifest.get('schema_version')}, this toolkit reads {SCHEMA_VERSION}")
+        raise UserError(f"{path}: schema version {manifest.get('schema_version')}, this toolkit reads {SCHEMA_VERSION}; "
+                        "use the dsr-bench version that wrote it or regenerate the dataset")
     return manifest
 
 
 def read_split(data_dir: str | Path, split: str | None) -> tuple[str, list[str]]:
-    """(split name, sequence names) of a dataset; `None` picks the only split, if there is one."""
+    """(split name, sequence names) from DATA_DIR/splits/<split>.txt; `None` picks the only split."""
     data_dir = Path(data_dir)
+    if not data_dir.is_dir():
+        raise UserError(f"dataset directory not found: {data_dir}")
     splits = _split_names(data_dir)
     if split is None:
         if len(splits) != 1:
@@ -167,5 +247,5 @@ def resolve_sequence(data_dir: str | Path | None, name: str) -> Path:
         path = Path(data_dir) / f"{candidate.stem}.h5"
         if path.is_file():
             return path
-        raise UserError(f"no sequence {name!r} in {data_dir} (expected {path})")
+        raise UserError(f"no sequence {name!r} in {data_dir} (expected {path}); list them with `dsr-bench info {data_dir}`")
     raise UserError(f"sequence {name!r} not found: give a path to a .h5 file or --data DIR with a sequence name")
