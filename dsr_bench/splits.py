@@ -2,13 +2,17 @@
 
 A split is fully determined by its object set, size, base seed and scene parameters; sequence i is
 generated from `sequence_seed(base_seed, i)`, so any worker count or shard gives the same files'
-contents. `expected_digest` pins the split checksum (`dsr_bench.manifest.split_digest`) where it
-has been measured; `None` means not pinned yet.
+contents. `dsr_bench/data/split_digests.json` pins, for the splits generated with this toolkit
+version, the split checksum (`dsr_bench.manifest.split_digest`) and every sequence's content digest
+(`scripts/pin_split.py DATA_DIR` writes it); `expected_digest` is None for splits not pinned yet.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+
+import json
+from pathlib import Path
 
 import numpy as np
 
@@ -51,6 +55,24 @@ SPLITS: dict[str, Split] = {
     )
 }
 SPLIT_NAMES: tuple[str, ...] = tuple(SPLITS)
+PINNED_FILE = Path(__file__).resolve().parent / "data" / "split_digests.json"
+
+
+def pinned_digests() -> dict[str, dict]:
+    """{split: {"checksum": str, "sequences": {name: content digest}}} of the pinned splits."""
+    if not PINNED_FILE.is_file():
+        return {}
+    return json.loads(PINNED_FILE.read_text())
+
+
+def _apply_pins() -> None:
+    for name, pin in pinned_digests().items():
+        if name in SPLITS:
+            spec = SPLITS[name]
+            SPLITS[name] = Split(**{**spec.__dict__, "expected_digest": pin["checksum"]})
+
+
+_apply_pins()
 
 
 def get_split(name: str) -> Split:
