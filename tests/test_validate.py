@@ -1,6 +1,8 @@
 """`dsr-bench validate`, `info` and `manifest` on synthetic datasets, intact and damaged."""
 
+import json
 import shutil
+from pathlib import Path
 
 import h5py
 import numpy as np
@@ -8,8 +10,9 @@ import pytest
 
 from dsr_bench.cli import main
 from dsr_bench.manifest import build_manifest, load_manifest, read_split, resolve_sequence, split_digest
+from dsr_bench.schema import SEQUENCE_SCHEMA
 from dsr_bench.testing import write_synthetic_dataset
-from dsr_bench.validate import validate_dataset
+from dsr_bench.validate import mask_warp_iou, schema_markdown_table, validate_dataset, validate_sequence
 
 
 @pytest.fixture(scope="module")
@@ -24,10 +27,14 @@ def dataset(pristine, tmp_path):
     return copy
 
 
+def _messages(problems, where):
+    return [p.message for p in problems if p.where == where]
+
+
 def test_intact_dataset_is_valid(pristine, capsys):
     problems, count = validate_dataset(pristine)
     assert problems == [] and count == 3
-    assert main(["validate", str(pristine)]) == 0
+    assert main(["validate", str(pristine), "--workers", "2"]) == 0
     assert "valid: 3 sequences" in capsys.readouterr().out
 
 
@@ -39,33 +46,103 @@ def test_every_problem_is_reported_at_once(dataset, capsys):
     (dataset / "seq_0002.h5").unlink()  # missing
     shutil.copy(dataset / "seq_0000.h5", dataset / "seq_0099.h5")  # extra
     problems, _ = validate_dataset(dataset)
-    found = {(p.where, p.message.split(":")[0].split(" ")[0]) for p in problems}
     text = "\n".join(f"{p.where}: {p.message}" for p in problems)
     assert "seq_0002: listed in the manifest but the file is missing" in text
     assert "seq_0099: file present but not in the manifest" in text
-    assert any(p.where == "seq_0000" and "SHA-256" in p.message for p in problems)
-    assert any(p.where == "seq_0000" and "scene_flow_3d[0]" in p.message for p in problems)
-    assert any(p.where == "seq_0001" and "instance id 9" in p.message for p in problems)
+    assert any("SHA-256" in m for m in _messages(problems, "seq_0000"))
+    assert any("scene_flow_3d[0]: 1 voxels outside every object have non-zero flow" in m
+               for m in _messages(problems, "seq_0000"))
+    assert any("scene_flow_3d[0]: differs from the rigid motion" in m for m in _messages(problems, "seq_0000"))
+    assert "mask_3d: instance id 9 > num_objects 2" in _messages(problems, "seq_0001")
     assert any("names 'seq_0002', which has no file" in p.message for p in problems)
-    assert len(found) >= 5
     assert main(["validate", str(dataset)]) == 1
     assert "problems in" in capsys.readouterr().out
+
+
+def test_value_ranges_all_reported(dataset):
+    path = dataset / "seq_0001.h5"
+    with h5py.File(path, "r+") as f:
+        f["tsdf"][0, 0, 0, 0] = 1.5
+        f["object_poses"][1, 0, 3:] = [0.5, 0.5, 0.5, 0.1]
+        f["action"][0, 0] = 9
+        f["action"][1, 2] = 128
+        f["visible_fraction"][0, 0] = 1.2
+        f["push_end"][0, 0] = np.nan
+    found = validate_sequence(path, check_gt=False)
+    assert "tsdf: values in [-1, 1.5], expected [-1, 1]" in found
+    assert any(m.startswith("object_poses: quaternion norms") for m in found)
+    assert any(m.startswith("action: direction outside 0..7 (values ") and m.endswith("..9)") for m in found)
+    assert "action: row/col outside 0..127" in found
+    assert any(m.startswith("visible_fraction: values in [") and m.endswith(", 1.2], expected [0, 1]") for m in found)
+    assert "push_end: 1 values are NaN or inf" in found
+
+
+def test_ground_truth_checks(dataset):
+    with h5py.File(dataset / "seq_0000.h5", "r+") as f:  # object 1 vanishes from the final amodal mask
+        mask = f["mask_3d"][2]
+        mask[mask == 1] = 0
+        f["mask_3d"][2] = mask
+    with h5py.File(dataset / "seq_0001.h5", "r+") as f:  # TSDF sign flipped: surfaces in free space
+        f["tsdf"][1] = -f["tsdf"][1]
+    problems, _ = validate_dataset(dataset)
+    assert any(m.startswith("mask_3d[2]: object 1 overlaps its voxels at 1 moved by the flow with IoU 0.00")
+               for m in _messages(problems, "seq_0000"))
+    assert any(m.startswith("tsdf[1]: only") for m in _messages(problems, "seq_0001"))
+    assert not any(m.startswith("tsdf[0]") for m in _messages(problems, "seq_0001"))
+    # --no-gt skips them; the manifest's digests still catch the change
+    fast, _ = validate_dataset(dataset, check_gt=False)
+    assert not any("IoU" in p.message or "behind" in p.message for p in fast)
+    assert "content digest differs from the manifest's" in _messages(fast, "seq_0000")
+
+
+def test_mask_warp_iou_tolerates_voxel_rounding_only():
+    mask = np.zeros((20, 20, 10), np.uint8)
+    mask[5:10, 5:10, 0:4] = 1
+    flow = np.zeros((3,) + mask.shape, np.float32)
+    flow[1][mask == 1] = 3.4  # moves 3.4 voxels along x
+    moved = np.roll(mask, 3, axis=1)
+    assert mask_warp_iou(mask, flow, moved, 1) == 1.0
+    assert mask_warp_iou(mask, flow, np.roll(mask, 4, axis=1), 1) == 1.0  # off by one voxel: tolerated
+    assert mask_warp_iou(mask, flow, np.roll(mask, 6, axis=1), 1) == pytest.approx(0.6)  # 3 of 5 columns match
+    assert mask_warp_iou(mask, flow, moved, 2) is None
+    assert mask_warp_iou(mask, flow, np.zeros_like(mask), 1) == 0.0
 
 
 def test_truncated_file_is_a_problem_not_a_crash(dataset):
     path = dataset / "seq_0001.h5"
     path.write_bytes(path.read_bytes()[: path.stat().st_size // 2])
-    problems, _ = validate_dataset(dataset, check_gt=False)
-    assert any(p.where == "seq_0001" and ("unreadable" in p.message) for p in problems)
+    problems, _ = validate_dataset(dataset, check_gt=True)
+    assert any("truncated" in m for m in _messages(problems, "seq_0001"))
+    assert _messages(problems, "seq_0000") == []
 
 
-def test_wrong_dtype_and_digest(dataset):
+def test_schema_attribute_and_format_problems(dataset):
     with h5py.File(dataset / "seq_0001.h5", "r+") as f:
         tsdf = f["tsdf"][()]
         del f["tsdf"]
         f["tsdf"] = tsdf.astype(np.float64)
+        del f["heightmap"]
+        del f.attrs["policy"]
+        f["mask_3d"][0, 0, 0, 0] = 7  # ranges of the fields that are fine are still checked
+    with h5py.File(dataset / "seq_0002.h5", "r+") as f:
+        f.attrs["format"] = "something-else"
     problems, _ = validate_dataset(dataset, check_gt=False)
-    assert any("tsdf: dtype float64, expected float32" in p.message for p in problems)
+    found = _messages(problems, "seq_0001")
+    assert "tsdf: dtype float64, expected float32" in found
+    assert "missing dataset 'heightmap'" in found and "missing attribute 'policy'" in found
+    assert "mask_3d: instance id 7 > num_objects 2" in found
+    assert any("not a dsr-bench sequence" in m for m in _messages(problems, "seq_0002"))
+
+
+def test_manifest_split_problems(dataset):
+    manifest = json.loads((dataset / "manifest.json").read_text())
+    manifest["splits"]["test"]["content_sha256"] = "0" * 64
+    (dataset / "manifest.json").write_text(json.dumps(manifest))
+    (dataset / "splits" / "extra.txt").write_text("seq_0000\n")
+    problems, _ = validate_dataset(dataset, check_gt=False)
+    assert "split checksum of 'test' in the manifest does not match its sequences' content digests" in _messages(
+        problems, "splits/test.txt")
+    assert any("not in the manifest" in m for m in _messages(problems, "splits/extra.txt"))
 
 
 def test_missing_manifest_and_rebuild(dataset, capsys):
@@ -83,6 +160,8 @@ def test_info_and_split_helpers(pristine, capsys):
     assert main(["info", str(pristine)]) == 0
     out = capsys.readouterr().out
     assert "3 / 6" in out and "split test" in out
+    assert split_digest(load_manifest(pristine), "test") in out  # the full checksum, to copy
+    assert "synthetic: 3" in out  # sources
     assert read_split(pristine, None) == ("test", ["seq_0000", "seq_0001", "seq_0002"])
     assert resolve_sequence(pristine, "seq_0001") == pristine / "seq_0001.h5"
     assert main(["info", str(pristine / "nope")]) == 2
@@ -93,3 +172,10 @@ def test_split_checksum_depends_on_content(pristine, dataset):
     with h5py.File(dataset / "seq_0000.h5", "r+") as f:
         f.attrs["content_sha256"] = "0" * 64
     assert split_digest(build_manifest(dataset), "test") != split_digest(load_manifest(pristine), "test")
+
+
+def test_docs_carry_the_generated_schema_table():
+    table = schema_markdown_table()
+    assert table.count("\n") == 2 + len(SEQUENCE_SCHEMA)
+    assert "| `cameras/<cam>/depth` | (T+1, H, W) | float32 |" in table
+    assert table in (Path(__file__).resolve().parents[1] / "docs" / "format.md").read_text()

@@ -34,8 +34,39 @@ def validate(
     raise typer.Exit(1)
 
 
+def _common_args(seqs: list[dict]) -> tuple[dict, list[str]]:
+    """Generator arguments shared by every sequence, and the names of those that vary."""
+    args = [s.get("generator_args") or {} for s in seqs]
+    keys = sorted({k for a in args for k in a})
+    common = {k: args[0].get(k) for k in keys if all(k in a and a[k] == args[0].get(k) for a in args)}
+    return common, [k for k in keys if k not in common]
+
+
+def _with_file_attrs(data_dir: Path, entry: dict) -> dict:
+    """A manifest entry, completed from its file's root attributes where an older manifest lacks a key."""
+    keys = ("source", "policy", "toolkit_version", "generator_args")
+    if all(k in entry for k in keys) or not (data_dir / entry["file"]).is_file():
+        return entry
+    import json
+
+    import h5py
+
+    try:
+        with h5py.File(data_dir / entry["file"], "r") as f:
+            attrs = {k: f.attrs[k] for k in keys if k in f.attrs}
+    except OSError:
+        return entry
+    if isinstance(attrs.get("generator_args"), str):
+        attrs["generator_args"] = json.loads(attrs["generator_args"])
+    merged = dict(entry)
+    for key, value in attrs.items():
+        merged.setdefault(key, value if key == "generator_args" else str(value))
+    return merged
+
+
 def info(data_dir: Path = typer.Argument(..., help="Dataset directory.")) -> None:
     """Summarise a dataset: sequences, steps, objects, splits and their checksums, size on disk."""
+    import json
     from collections import Counter
 
     from rich.console import Console
@@ -44,22 +75,39 @@ def info(data_dir: Path = typer.Argument(..., help="Dataset directory.")) -> Non
     from dsr_bench.manifest import load_manifest
 
     manifest = load_manifest(data_dir)
-    seqs = manifest["sequences"]
+    seqs = [_with_file_attrs(Path(data_dir), s) for s in manifest["sequences"]]
     console = Console()
     table = Table(title=f"dsr-bench dataset: {data_dir}", show_header=False)
+    table.add_column(style="bold")
+    table.add_column(overflow="fold")
     steps = sum(s["num_steps"] for s in seqs)
-    size = sum((Path(data_dir) / s["file"]).stat().st_size for s in seqs if (Path(data_dir) / s["file"]).exists())
-    table.add_row("sequences / pushes", f"{len(seqs)} / {steps}")
-    table.add_row("objects per scene", ", ".join(f"{k}: {v}" for k, v in sorted(Counter(s["num_objects"] for s in seqs).items())))
-    sets = Counter(s.get("object_set", "") for s in seqs)
-    table.add_row("object sets", ", ".join(f"{k}: {v}" for k, v in sorted(sets.items())))
-    cats = Counter(o.get("category", "?") for s in seqs for o in s.get("objects", []))
-    table.add_row("object categories", ", ".join(f"{k}: {v}" for k, v in cats.most_common(12)))
-    table.add_row("size on disk", f"{size / 1e6:.1f} MB ({size / max(steps, 1) / 1e6:.2f} MB per push)")
+    paths = [Path(data_dir) / s["file"] for s in seqs]
+    size = sum(p.stat().st_size for p in paths if p.is_file())
+    missing = sum(not p.is_file() for p in paths)
+
+    def counts(values) -> str:
+        return ", ".join(f"{k}: {v}" for k, v in sorted(Counter(values).items(), key=lambda kv: str(kv[0]))) or "-"
+
+    table.add_row("sequences / pushes", f"{len(seqs)} / {steps}" + (f" ({missing} files missing)" if missing else ""))
+    table.add_row("pushes per sequence", counts(s["num_steps"] for s in seqs))
+    table.add_row("objects per scene", counts(s["num_objects"] for s in seqs))
+    table.add_row("object sets", counts(s.get("object_set", "") for s in seqs))
+    cats = Counter(f"{o.get('set', '?')}/{o.get('category', '?')}" for s in seqs for o in s.get("objects", []))
+    table.add_row("objects per set/category", ", ".join(f"{k}: {v}" for k, v in sorted(cats.items())) or "-")
+    table.add_row("sources", counts(s.get("source", "?") for s in seqs))
+    table.add_row("policies", counts(s.get("policy", "?") for s in seqs))
+    table.add_row("size on disk", f"{size / 1e6:.1f} MB, {size / max(steps, 1) / 1e6:.3f} MB "
+                                  f"({size / max(steps, 1):,.0f} bytes) per push")
     for name, split in sorted(manifest.get("splits", {}).items()):
-        table.add_row(f"split {name}", f"{split['sequences']} sequences, checksum {split['content_sha256'][:16]}...")
-    table.add_row("toolkit / schema", f"{manifest.get('toolkit_version')} / {manifest.get('schema_version')}")
+        table.add_row(f"split {name}", f"{split['sequences']} sequences (checksum below)")
+    common, varying = _common_args(seqs)
+    table.add_row("generator args", json.dumps(common, sort_keys=True) + (f"; varying: {', '.join(varying)}" if varying else ""))
+    table.add_row("toolkit versions", counts(s.get("toolkit_version", "?") for s in seqs)
+                  + f" (manifest written by {manifest.get('toolkit_version')})")
+    table.add_row("schema version", str(manifest.get("schema_version")))
     console.print(table)
+    for name, split in sorted(manifest.get("splits", {}).items()):  # unwrapped, to copy
+        typer.echo(f"split {name}: {split['sequences']} sequences, checksum {split['content_sha256']}")
 
 
 def manifest(data_dir: Path = typer.Argument(..., help="Dataset directory.")) -> None:
