@@ -68,6 +68,15 @@ NUM_MASK_SLOTS: int = 5
 # --- Policy ----------------------------------------------------------------------------------
 POLICY_DIRECTION_TEMPERATURE: float = 2.0
 POLICY_FAR_FROM_CENTER: float = 0.2
+#: Added by the policy helper: the official heuristic's remaining numbers (m, counts, score weights).
+POLICY_LARGE_OBJECT_BONUS: float = 0.5
+POLICY_COUNTER_MAX: int = 2
+POLICY_COUNTER_RESET: int = -2
+POLICY_EARLY_RESET_PROB: float = 0.5
+POLICY_NEIGHBOUR_DISTANCE: float = 0.15
+POLICY_NEAR_START_DISTANCE: float = 0.25
+POLICY_OUTWARD_PENALTY: float = 10.0
+POLICY_MAX_SAMPLES: int = 64
 
 # --- File format -----------------------------------------------------------------------------
 SCHEMA_VERSION: int = 1
