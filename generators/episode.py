@@ -171,10 +171,11 @@ def generate_episode(config: EpisodeConfig, object_set, seed: int, name: str) ->
                     decision = replace(decision, attempts=draws)  # counts pushes undone below too
                     t0 = time.perf_counter()
                     state = world.save()
-                    start, end = world.push(decision.start_xy, direction_vector(decision.direction), PUSH_LENGTH)
+                    pushed = world.push(decision.start_xy, direction_vector(decision.direction), PUSH_LENGTH)
                     after = world.poses()
                     timings["physics"] += time.perf_counter() - t0
-                    if in_workspace(specs, after):
+                    if pushed is not None and in_workspace(specs, after):
+                        start, end = pushed
                         world.discard(state)
                         accepted = (decision, start, end, after)
                         break

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from dsr_bench.constants import PUSH_HEIGHT, PUSHER_LENGTH, PUSHER_RADIUS
+from dsr_bench.constants import GRID_BOUNDS, PUSH_HEIGHT, PUSHER_LENGTH, PUSHER_RADIUS
 
 TIME_STEP = 1.0 / 240.0
 PUSH_SPEED = 0.25  # m/s along the push (quasi-static at these masses and frictions)
@@ -123,12 +123,26 @@ class PushWorld:
         for _ in range(n):
             self._pb.stepSimulation(physicsClientId=self.client)
 
+    def any_escaped(self) -> bool:
+        """Whether some object's centre has left the grid's xy bounds (its hull then has too)."""
+        pb, c = self._pb, self.client
+        for body in self.bodies:
+            x, y, _ = pb.getBasePositionAndOrientation(body, physicsClientId=c)[0]
+            if not (GRID_BOUNDS[0, 0] < x < GRID_BOUNDS[0, 1] and GRID_BOUNDS[1, 0] < y < GRID_BOUNDS[1, 1]):
+                return True
+        return False
+
     def settle(self, max_steps: int = MAX_SETTLE_STEPS) -> int:
-        """Step until every object is still (or `max_steps`); return the steps taken."""
+        """Step until every object is still (or `max_steps`); return the steps taken, or -1 as soon
+        as an object has left the grid (the caller rejects such a state anyway)."""
         pb, c = self._pb, self.client
         for k in range(1, max_steps + 1):
             pb.stepSimulation(physicsClientId=c)
-            if k < MIN_SETTLE_STEPS or k % 8:
+            if k % 8:
+                continue
+            if self.any_escaped():
+                return -1
+            if k < MIN_SETTLE_STEPS:
                 continue
             still = True
             for body in self.bodies:
@@ -140,8 +154,10 @@ class PushWorld:
                 return k
         return max_steps
 
-    def push(self, start_xy: np.ndarray, direction_xy: np.ndarray, length: float) -> tuple[np.ndarray, np.ndarray]:
-        """Run the push primitive; return the tool tip's start and end points (3,), world metres.
+    def push(self, start_xy: np.ndarray, direction_xy: np.ndarray, length: float
+             ) -> tuple[np.ndarray, np.ndarray] | None:
+        """Run the push primitive; return the tool tip's start and end points (3,), world metres, or
+        None as soon as an object has left the grid (the push is then undone by the caller).
 
         The tool appears above the start (its approach from 0.15 m runs through free space, which the
         start-point search guarantees), moves straight along `direction_xy` for `length` at
@@ -159,10 +175,13 @@ class PushWorld:
             target = start + direction * (length * k / n)
             pb.changeConstraint(self._grip, target.tolist(), maxForce=500.0, physicsClientId=c)
             pb.stepSimulation(physicsClientId=c)
+            if k % 16 == 0 and self.any_escaped():
+                return None
         tip_end = np.array(pb.getBasePositionAndOrientation(self.pusher, physicsClientId=c)[0])
         pb.resetBasePositionAndOrientation(self.pusher, _PUSHER_HOME, [0, 0, 0, 1], physicsClientId=c)
         pb.resetBaseVelocity(self.pusher, [0, 0, 0], [0, 0, 0], physicsClientId=c)
         pb.changeConstraint(self._grip, _PUSHER_HOME, maxForce=500.0, physicsClientId=c)
-        self.settle()
+        if self.settle() < 0:
+            return None
         offset = np.array([0.0, 0.0, -PUSHER_LENGTH / 2])
         return start + offset, tip_end + offset
