@@ -70,9 +70,12 @@ class Overlap:
 
 
 def overlap(pred: np.ndarray, gt: np.ndarray, num_slots: int, num_objects: int) -> Overlap:
-    """Slot x object intersection counts of two label volumes with one bincount."""
+    """Slot x object intersection counts of two label volumes with one bincount over the voxels
+    occupied in either (empty-empty voxels count towards nothing)."""
     g1 = num_objects + 1
-    joint = np.bincount(pred.reshape(-1).astype(np.int64) * g1 + gt.reshape(-1).astype(np.int64),
+    p, g = pred.reshape(-1), gt.reshape(-1)
+    occupied = np.flatnonzero(p | g) if p.dtype == g.dtype == np.uint8 else np.flatnonzero((p > 0) | (g > 0))
+    joint = np.bincount(p[occupied].astype(np.int64) * g1 + g[occupied].astype(np.int64),
                         minlength=(num_slots + 1) * g1).reshape(num_slots + 1, g1)
     return Overlap(joint[1:, 1:].astype(np.float64), joint[1:].sum(1).astype(np.float64),
                    joint[:, 1:].sum(0).astype(np.float64))
