@@ -1,27 +1,26 @@
-"""Push policies: the heuristic softmax policy of the paper's appendix (official details) and a
-uniform random policy. A policy sees only what the real robot could: the top-down heightmap and the
-objects' xy positions.
+"""Push policies of the generator: the paper's heuristic softmax policy (official details by default)
+and a uniform random policy. A policy sees only what the real robot could: the top-down heightmap
+(128x128, rows along world y, metres above the table) and the objects' world xy positions.
 
-Object choice: each object has a counter (start 0); choice probabilities are softmax(counters, +0.5
-for the optional large object); after a push the chosen counter += 1, and a counter above 2, or above
-1 with probability 0.5 (official code), becomes -2. Locally this pushes an object about twice in a
-row; globally it balances the objects.
+Object choice (heuristic): one counter per object, starting at 0; probabilities softmax(counters),
++0.5 for the optional large object. After an executed push the chosen counter += 1; a counter above
+2 becomes -2, and one that reaches 2 becomes -2 with probability 0.5 (official code).
 
-Direction choice (official scoring, softmax(score / 2)), for unit direction v and the chosen object
-at p (initial position p0, centre c = workspace centre):
-- out of centre: -w * max(0, v . (p - c) / |p - c|) * min(1, |p - c| / 0.2), w = 5 on the object's
-  first push and 1 afterwards;
-- neighbours closer than 0.15 m: -3 * max(0, cos(v, towards neighbour)), and +1.5 for the two
-  directions perpendicular to it (within 22.5 deg);
-- +1.5 * cos(v, p - p0) while the object is within 0.25 m of where it started;
-- +2 * cos(v, last direction this object was pushed);
-- and, as in the appendix, -10 for directions with an outward component when |p - c| >= 0.2 m.
-`scoring="paper"` uses the appendix's Q(v) = 1.5 v.(p0->p) + 2 v.(p_prev->p) (unit vectors) with
--10 for outward directions when |p - c| >= 0.2 and softmax(Q).
+Direction choice, official scoring (default), probabilities softmax(score / 2), for unit direction v,
+the chosen object at p, its initial position p0 and the workspace centre c:
+- out of centre: -w * max(0, cos(v, p - c)) * min(1, |p - c| / 0.2), w = 5 on the object's first
+  push, 1 afterwards; and the appendix's -10 for every direction with an outward component once
+  |p - c| >= 0.2 m;
+- each neighbour closer than 0.15 m: -3 * max(0, cos(v, towards it)), +1.5 for the directions
+  within 22.5 deg of perpendicular to it;
+- +1.5 * cos(v, p - p0) while |p - p0| < 0.25 m;
+- +2 * cos(v, the direction this object was last pushed).
+`scoring="paper"`: Q(v) = 1.5 cos(v, p - p0) + 2 cos(v, p - p_prev) with the same -10 outward
+penalty and softmax(Q) (no temperature); p_prev is the object's position before its latest push.
 
-Start point (official): p - 0.04 m along v, stepped back 0.01 m up to 5 times, until a 5-cell-radius
-disc of the heightmap is free (<= 5 mm) and something taller than 5 mm lies within 0.04 m ahead;
-otherwise object and direction are sampled again.
+Start point (official): p - 0.04 m along v, stepped back by 0.01 m up to 5 times, until the disc of
+radius 5 cells around it is free (heightmap <= 5 mm) and something taller than 5 mm lies within
+0.04 m ahead of it along v; otherwise object and direction are drawn again.
 """
 
 from __future__ import annotations
@@ -31,26 +30,39 @@ from dataclasses import dataclass
 import numpy as np
 
 from dsr_bench.constants import (
-    AHEAD_DISTANCE, FREE_HEIGHT, GRID_SHAPE, NUM_DIRECTIONS, POLICY_DIRECTION_TEMPERATURE, POLICY_FAR_FROM_CENTER,
+    AHEAD_DISTANCE, FREE_HEIGHT, GRID_SHAPE, NUM_DIRECTIONS, POLICY_COUNTER_MAX, POLICY_COUNTER_RESET,
+    POLICY_DIRECTION_TEMPERATURE, POLICY_EARLY_RESET_PROB, POLICY_FAR_FROM_CENTER, POLICY_LARGE_OBJECT_BONUS,
+    POLICY_MAX_SAMPLES, POLICY_NEAR_START_DISTANCE, POLICY_NEIGHBOUR_DISTANCE, POLICY_OUTWARD_PENALTY,
     START_BACKOFF, START_FREE_RADIUS_PX, START_MAX_STEPS, START_STEP, VOXEL_SIZE, WORKSPACE_CENTER,
 )
 from dsr_bench.geometry import direction_vector, pixel_to_world, world_to_pixel
 
-MAX_SAMPLES = 64
-NEIGHBOUR_DISTANCE = 0.15
-NEAR_START_DISTANCE = 0.25
-LARGE_OBJECT_BONUS = 0.5
-PERPENDICULAR_COS = np.sin(np.pi / 8)  # the two directions within 22.5 deg of perpendicular
-DIRECTIONS = direction_vector(np.arange(NUM_DIRECTIONS))  # (8, 2)
-_DISC = np.argwhere(np.hypot(*np.mgrid[-START_FREE_RADIUS_PX:START_FREE_RADIUS_PX + 1,
-                                       -START_FREE_RADIUS_PX:START_FREE_RADIUS_PX + 1]) <= START_FREE_RADIUS_PX
-                    ) - START_FREE_RADIUS_PX
-_AHEAD_STEPS = np.arange(1, int(round(AHEAD_DISTANCE / (VOXEL_SIZE / 2))) + 1) * (VOXEL_SIZE / 2)
+POLICIES = ("heuristic", "random")
+SCORINGS = ("official", "paper")
+#: Unit push directions (8, 2) in world xy, angle d * pi / 4.
+DIRECTIONS = direction_vector(np.arange(NUM_DIRECTIONS))
+# Official direction-score weights.
+OUTWARD_WEIGHT_FIRST, OUTWARD_WEIGHT_LATER = 5.0, 1.0
+NEIGHBOUR_WEIGHT, PERPENDICULAR_BONUS = 3.0, 1.5
+AWAY_FROM_START_WEIGHT, CONTINUE_WEIGHT = 1.5, 2.0
+#: |cos| below this: within 22.5 deg of perpendicular.
+PERPENDICULAR_COS = float(np.sin(np.pi / 8))
+
+_HW = np.array(GRID_SHAPE[:2])
+_R = START_FREE_RADIUS_PX
+_DISC = np.argwhere(np.hypot(*np.mgrid[-_R:_R + 1, -_R:_R + 1]) <= _R) - _R  # (D, 2) cell offsets
+#: Distances (m) sampled along the ray ahead of a start point: every half cell up to AHEAD_DISTANCE.
+_AHEAD = np.arange(1, int(round(AHEAD_DISTANCE / (VOXEL_SIZE / 2))) + 1) * (VOXEL_SIZE / 2)
+_BACKOFFS = START_BACKOFF + START_STEP * np.arange(START_MAX_STEPS + 1)
 
 
 @dataclass(frozen=True)
 class PushDecision:
-    """A push chosen by a policy, with the distributions it was drawn from."""
+    """A push chosen by a policy, with the distributions it was drawn from.
+
+    direction: 0..7, angle d * pi / 4 in world xy; start_rc: (row, col) workspace cell, row along
+    world y; start_xy: (2,) world metres, that cell's centre; attempts: draws until this one was valid.
+    """
 
     object_index: int
     direction: int
@@ -63,143 +75,177 @@ class PushDecision:
 
 
 def softmax(x: np.ndarray) -> np.ndarray:
-    z = np.exp(x - np.max(x))
+    """Numerically stable softmax of a 1-D array."""
+    z = np.exp(np.asarray(x, dtype=np.float64) - np.max(x))
     return z / z.sum()
 
 
 def _unit(v: np.ndarray) -> np.ndarray:
+    """v / |v| for a (2,) vector; zeros when |v| is (nearly) zero."""
     n = np.linalg.norm(v)
     return v / n if n > 1e-9 else np.zeros_like(v)
 
 
-def find_start(heightmap: np.ndarray, object_xy: np.ndarray, direction: int) -> tuple[tuple[int, int], np.ndarray] | None:
-    """The official start-point search: ((row, col), cell-centre xy) or None.
+def _any_taller(heightmap: np.ndarray, cells: np.ndarray) -> np.ndarray:
+    """Whether any in-grid cell of cells (..., M, 2) (row, col) is taller than FREE_HEIGHT: (...,)."""
+    inside = np.all((cells >= 0) & (cells < _HW), axis=-1)
+    clipped = np.clip(cells, 0, _HW - 1)
+    return np.any((heightmap[clipped[..., 0], clipped[..., 1]] > FREE_HEIGHT) & inside, axis=-1)
 
-    heightmap: (Y, X) metres above the table, rows along world y; object_xy: (2,) world metres.
+
+def find_start(heightmap: np.ndarray, object_xy: np.ndarray,
+               direction: int) -> tuple[tuple[int, int], np.ndarray] | None:
+    """The official start-point search for pushing the object at object_xy along a direction.
+
+    heightmap: (128, 128) metres above the table, rows along world y; object_xy: (2,) world metres.
+    Returns ((row, col), (2,) cell-centre xy in metres) of the first of the 6 candidates (0.04 m
+    behind the object, then 0.01 m further back each) that lies in the grid, has a free disc of
+    radius 5 cells and something taller than 5 mm within 0.04 m ahead; None if none does.
     """
     v = DIRECTIONS[direction]
-    for k in range(START_MAX_STEPS + 1):
-        start = object_xy - v * (START_BACKOFF + k * START_STEP)
-        rc = world_to_pixel(start)
-        if np.any(rc < 0) or np.any(rc >= GRID_SHAPE[:2]):
-            continue
-        disc = _DISC + rc
-        disc = disc[np.all((disc >= 0) & (disc < GRID_SHAPE[:2]), axis=1)]
-        if np.any(heightmap[disc[:, 0], disc[:, 1]] > FREE_HEIGHT):
-            continue
-        centre = pixel_to_world(rc)
-        ahead = world_to_pixel(centre + _AHEAD_STEPS[:, None] * v)
-        ahead = ahead[np.all((ahead >= 0) & (ahead < GRID_SHAPE[:2]), axis=1)]
-        if ahead.size and np.any(heightmap[ahead[:, 0], ahead[:, 1]] > FREE_HEIGHT):
-            return (int(rc[0]), int(rc[1])), centre
-    return None
+    rc = world_to_pixel(np.asarray(object_xy, dtype=np.float64) - _BACKOFFS[:, None] * v)  # (S, 2)
+    inside = np.all((rc >= 0) & (rc < _HW), axis=-1)
+    disc_blocked = _any_taller(heightmap, rc[:, None, :] + _DISC)  # (S,)
+    centres = pixel_to_world(rc)  # (S, 2)
+    ahead = world_to_pixel(centres[:, None, :] + _AHEAD[:, None] * v)  # (S, A, 2)
+    valid = inside & ~disc_blocked & _any_taller(heightmap, ahead)
+    if not valid.any():
+        return None
+    i = int(np.argmax(valid))
+    return (int(rc[i, 0]), int(rc[i, 1])), centres[i]
 
 
 class PushPolicy:
-    """Base class: object choice, direction choice and the start-point search."""
+    """Base class: object choice, direction choice, start-point search; state changes only in accept()."""
 
     name = "base"
 
     def __init__(self, rng: np.random.Generator, num_objects: int, large_index: int | None = None):
-        self.rng, self.num_objects, self.large_index = rng, num_objects, large_index
-        self.initial = np.zeros((num_objects, 2))
-        self.previous = np.zeros((num_objects, 2))
-        self.last_direction: list[int | None] = [None] * num_objects
-        self.pushes = np.zeros(num_objects, dtype=np.int64)
+        if num_objects < 1:
+            raise ValueError(f"num_objects={num_objects}: a policy needs at least one object")
+        if large_index is not None and not 0 <= large_index < num_objects:
+            raise ValueError(f"large_index={large_index}: must be None or in 0..{num_objects - 1}")
+        self.rng, self.num_objects, self.large_index = rng, int(num_objects), large_index
+        self.initial = np.zeros((self.num_objects, 2))
+        self.previous = np.zeros((self.num_objects, 2))
+        self.before_push = np.zeros((self.num_objects, 2))
+        self.last_direction = np.full(self.num_objects, -1, dtype=np.int64)  # -1: not pushed yet
+        self.pushes = np.zeros(self.num_objects, dtype=np.int64)
+
+    def _positions(self, positions: np.ndarray, what: str) -> np.ndarray:
+        p = np.asarray(positions, dtype=np.float64)
+        if p.shape != (self.num_objects, 2) or not np.all(np.isfinite(p)):
+            raise ValueError(f"{what}: expected finite ({self.num_objects}, 2) world xy, got shape {p.shape}")
+        return p
 
     def reset(self, initial_positions: np.ndarray) -> None:
-        """Start an episode from object xy positions (N, 2) in metres."""
-        self.initial = np.array(initial_positions, dtype=np.float64)
+        """Start an episode from the objects' xy positions (N, 2) in world metres at t = 0."""
+        self.initial = self._positions(initial_positions, "initial_positions").copy()
         self.previous = self.initial.copy()
-        self.last_direction = [None] * self.num_objects
+        self.before_push = self.initial.copy()
+        self.last_direction[:] = -1
         self.pushes[:] = 0
 
     def object_probs(self) -> np.ndarray:
+        """(N,) probabilities of choosing each object."""
         raise NotImplementedError
 
     def direction_scores(self, k: int, positions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(8,) scores and (8,) probabilities of the directions for object k at positions (N, 2)."""
         raise NotImplementedError
 
     def propose(self, heightmap: np.ndarray, positions: np.ndarray) -> PushDecision | None:
-        """Sample a valid push (object, direction, start); None if none is found in MAX_SAMPLES draws."""
+        """Draw a valid push; None if none is found in POLICY_MAX_SAMPLES draws.
+
+        heightmap: (128, 128) metres above the table, rows along world y, columns along world x;
+        positions: (N, 2) current object xy (m). Draws from the rng only; the policy state is unchanged.
+        """
+        hm = np.asarray(heightmap)
+        if hm.shape != GRID_SHAPE[:2] or not np.all(np.isfinite(hm)):
+            raise ValueError(f"heightmap: expected finite {GRID_SHAPE[:2]} metres, got shape {hm.shape}")
+        positions = self._positions(positions, "positions")
         probs = self.object_probs()
-        for attempt in range(1, MAX_SAMPLES + 1):
+        for attempt in range(1, POLICY_MAX_SAMPLES + 1):
             k = int(self.rng.choice(self.num_objects, p=probs))
             scores, dprobs = self.direction_scores(k, positions)
             d = int(self.rng.choice(NUM_DIRECTIONS, p=dprobs))
-            start = find_start(heightmap, positions[k], d)
+            start = find_start(hm, positions[k], d)
             if start is not None:
                 return PushDecision(k, d, start[0], start[1], probs, scores, dprobs, attempt)
         return None
 
     def accept(self, decision: PushDecision, positions_after: np.ndarray) -> None:
-        """Record an executed push (positions_after: (N, 2) xy after it)."""
+        """The simulator executed this push; positions_after: (N, 2) xy (m) after it."""
         k = decision.object_index
+        after = self._positions(positions_after, "positions_after")
+        self.before_push[k] = self.previous[k]
         self.last_direction[k] = decision.direction
         self.pushes[k] += 1
-        self.previous = np.array(positions_after, dtype=np.float64)
+        self.previous = after.copy()
 
 
 class HeuristicPolicy(PushPolicy):
-    """The paper's heuristic softmax policy (official scoring by default)."""
+    """The paper's heuristic softmax policy; scoring "official" (default) or "paper" (appendix Q(v))."""
 
     name = "heuristic"
 
-    def __init__(self, rng, num_objects, large_index=None, scoring: str = "official"):
+    def __init__(self, rng: np.random.Generator, num_objects: int, large_index: int | None = None,
+                 scoring: str = "official"):
         super().__init__(rng, num_objects, large_index)
-        if scoring not in ("official", "paper"):
-            raise ValueError(f"scoring {scoring!r}: official or paper")
+        if scoring not in SCORINGS:
+            raise ValueError(f"scoring {scoring!r}: choose one of {', '.join(SCORINGS)}")
         self.scoring = scoring
-        self.counters = np.zeros(num_objects)
-        self._before_push = np.zeros((num_objects, 2))
+        self.counters = np.zeros(self.num_objects, dtype=np.int64)
 
-    def reset(self, initial_positions):
+    def reset(self, initial_positions: np.ndarray) -> None:
         super().reset(initial_positions)
         self.counters[:] = 0
-        self._before_push = self.initial.copy()
 
     def object_probs(self) -> np.ndarray:
-        scores = self.counters.copy()
+        scores = self.counters.astype(np.float64)
         if self.large_index is not None:
-            scores[self.large_index] += LARGE_OBJECT_BONUS
+            scores[self.large_index] += POLICY_LARGE_OBJECT_BONUS
         return softmax(scores)
 
-    def direction_scores(self, k, positions):
-        p = np.asarray(positions[k], dtype=np.float64)
-        centre = np.array(WORKSPACE_CENTER)
-        out = p - centre
+    def direction_scores(self, k: int, positions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        # The order of the float operations below is part of the bit-exact dataset reproduction
+        # (pinned split digests): change it only together with re-pinning.
+        positions = np.asarray(positions, dtype=np.float64)
+        p = positions[k]
+        out = p - np.asarray(WORKSPACE_CENTER)
+        dist_out = float(np.linalg.norm(out))
+        outward = DIRECTIONS @ _unit(out)  # (8,) cos with the outward direction (0 at the centre)
+        far = dist_out >= POLICY_FAR_FROM_CENTER
         if self.scoring == "paper":
-            from_start = _unit(p - self.initial[k])
-            from_prev = _unit(p - self._before_push[k])
-            scores = 1.5 * DIRECTIONS @ from_start + 2.0 * DIRECTIONS @ from_prev
-            if np.linalg.norm(out) >= POLICY_FAR_FROM_CENTER:
-                scores = scores - 10.0 * (DIRECTIONS @ _unit(out) > 0)
+            scores = (AWAY_FROM_START_WEIGHT * DIRECTIONS @ _unit(p - self.initial[k])
+                      + CONTINUE_WEIGHT * DIRECTIONS @ _unit(p - self.before_push[k]))
+            if far:
+                scores = scores - POLICY_OUTWARD_PENALTY * (outward > 0)
             return scores, softmax(scores)
-        weight = 5.0 if self.pushes[k] == 0 else 1.0
-        outward = DIRECTIONS @ _unit(out)
-        scores = -weight * np.maximum(0.0, outward) * min(1.0, np.linalg.norm(out) / POLICY_FAR_FROM_CENTER)
-        if np.linalg.norm(out) >= POLICY_FAR_FROM_CENTER:  # the appendix's guard, kept in both scorings
-            scores = scores - 10.0 * (outward > 0)
+        weight = OUTWARD_WEIGHT_FIRST if self.pushes[k] == 0 else OUTWARD_WEIGHT_LATER
+        scores = -weight * np.maximum(0.0, outward) * min(1.0, dist_out / POLICY_FAR_FROM_CENTER)
+        if far:
+            scores = scores - POLICY_OUTWARD_PENALTY * (outward > 0)
         for j in range(self.num_objects):
             towards = positions[j] - p
-            if j == k or np.linalg.norm(towards) >= NEIGHBOUR_DISTANCE:
+            if j == k or np.linalg.norm(towards) >= POLICY_NEIGHBOUR_DISTANCE:
                 continue
             cos = DIRECTIONS @ _unit(towards)
-            scores += -3.0 * np.maximum(0.0, cos) + 1.5 * (np.abs(cos) < PERPENDICULAR_COS)
-        if np.linalg.norm(p - self.initial[k]) < NEAR_START_DISTANCE:
-            scores += 1.5 * DIRECTIONS @ _unit(p - self.initial[k])
-        if self.last_direction[k] is not None:
-            scores += 2.0 * DIRECTIONS @ DIRECTIONS[self.last_direction[k]]
-        temperature = POLICY_DIRECTION_TEMPERATURE
-        return scores, softmax(scores / temperature)
+            scores = scores + (-NEIGHBOUR_WEIGHT * np.maximum(0.0, cos)
+                               + PERPENDICULAR_BONUS * (np.abs(cos) < PERPENDICULAR_COS))
+        if np.linalg.norm(p - self.initial[k]) < POLICY_NEAR_START_DISTANCE:
+            scores = scores + AWAY_FROM_START_WEIGHT * DIRECTIONS @ _unit(p - self.initial[k])
+        if self.last_direction[k] >= 0:
+            scores = scores + CONTINUE_WEIGHT * DIRECTIONS @ DIRECTIONS[self.last_direction[k]]
+        return scores, softmax(scores / POLICY_DIRECTION_TEMPERATURE)
 
-    def accept(self, decision, positions_after):
-        k = decision.object_index
-        self._before_push[k] = np.asarray(self.previous[k])
+    def accept(self, decision: PushDecision, positions_after: np.ndarray) -> None:
         super().accept(decision, positions_after)
+        k = decision.object_index
         self.counters[k] += 1
-        if self.counters[k] > 2 or (self.counters[k] > 1 and self.rng.random() < 0.5):
-            self.counters[k] = -2
+        if self.counters[k] > POLICY_COUNTER_MAX or (
+                self.counters[k] == POLICY_COUNTER_MAX and self.rng.random() < POLICY_EARLY_RESET_PROB):
+            self.counters[k] = POLICY_COUNTER_RESET
 
 
 class RandomPolicy(PushPolicy):
@@ -207,17 +253,18 @@ class RandomPolicy(PushPolicy):
 
     name = "random"
 
-    def object_probs(self):
+    def object_probs(self) -> np.ndarray:
         return np.full(self.num_objects, 1.0 / self.num_objects)
 
-    def direction_scores(self, k, positions):
+    def direction_scores(self, k: int, positions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         return np.full(NUM_DIRECTIONS, np.nan), np.full(NUM_DIRECTIONS, 1.0 / NUM_DIRECTIONS)
 
 
-def make_policy(name: str, rng: np.random.Generator, num_objects: int, large_index: int | None = None) -> PushPolicy:
-    """'heuristic' (the paper's, official scoring) or 'random'."""
+def make_policy(name: str, rng: np.random.Generator, num_objects: int, large_index: int | None = None,
+                scoring: str = "official") -> PushPolicy:
+    """A policy by name: "heuristic" (the paper's; scoring "official" or "paper") or "random"."""
     if name == "heuristic":
-        return HeuristicPolicy(rng, num_objects, large_index)
+        return HeuristicPolicy(rng, num_objects, large_index, scoring=scoring)
     if name == "random":
         return RandomPolicy(rng, num_objects, large_index)
-    raise ValueError(f"unknown policy {name!r}: heuristic or random")
+    raise ValueError(f"unknown policy {name!r}: choose one of {', '.join(POLICIES)}")
