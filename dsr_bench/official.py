@@ -12,6 +12,7 @@ value by value) or is kept unchanged under `official/<name>` (stacked over steps
 from __future__ import annotations
 
 import re
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -45,9 +46,37 @@ OFFICIAL_NEXT = ("color_image", "depth_image", "color_image_small", "depth_image
 _STEP_FILE = re.compile(r"^(?P<seq>.+)_(?P<step>\d+)\.hdf5$")
 
 
+def _dtype_ok(name: str, dtype: np.dtype, expected: str) -> bool:
+    """Loose dtype check: integer data must be integers, float data numbers, images bytes."""
+    kind = np.dtype(dtype).kind
+    if expected == "uint8":
+        return np.dtype(dtype) == np.uint8
+    if expected.startswith("int"):
+        return kind in "iu"
+    return kind in "fiu"
+
+
+def _check_shape(path, name: str, got: tuple[int, ...], expected: tuple) -> None:
+    if len(got) != len(expected) or any(e is not None and g != e for g, e in zip(got, expected)):
+        raise UserError(f"{path}: {name} has shape {tuple(got)}, expected "
+                        f"{tuple('N' if e is None else e for e in expected)}; is this an official DSR step file?")
+
+
+def _check_dataset(path: Path, name: str, ds) -> None:
+    base = name.rsplit("/", 1)[-1]
+    shape, dtype = OFFICIAL_STEP[base]
+    _check_shape(path, name, ds.shape, shape)
+    if not _dtype_ok(base, ds.dtype, dtype):
+        raise UserError(f"{path}: {name} has dtype {ds.dtype}, expected {dtype}; is this an official DSR step file?")
+
+
 @dataclass(frozen=True)
 class OfficialSequence:
-    """One official sequence: its id and its step files in order."""
+    """One official sequence: its id and its step files `<id>_<step>.hdf5` in step order.
+
+    Files are opened per call (nothing stays open); every dataset read is checked against the
+    published shapes and dtypes, with a one-line UserError naming the file and the dataset.
+    """
 
     seq_id: str
     files: tuple[Path, ...]
@@ -56,33 +85,46 @@ class OfficialSequence:
     def num_steps(self) -> int:
         return len(self.files)
 
+    def read(self, step: int, name: str) -> np.ndarray:
+        """One dataset of step file `step` (`next/<name>` for the final observation of the last step)."""
+        if not 0 <= step < self.num_steps:
+            raise UserError(f"sequence {self.seq_id}: step {step} outside 0..{self.num_steps - 1}")
+        path = self.files[step]
+        try:
+            with h5py.File(path, "r") as f:
+                if name not in f:
+                    raise UserError(f"{path}: missing dataset {name!r}; is this an official DSR step file?")
+                _check_dataset(path, name, f[name])
+                return f[name][()]
+        except OSError as exc:
+            raise UserError(f"{path}: unreadable HDF5 file ({exc})") from None
+
     def read_step(self, step: int) -> dict[str, np.ndarray]:
-        """The datasets of step file `step` (and `next/...` for the last step), validated."""
+        """Every dataset of step file `step` (and `next/...` for the last step), validated."""
         path = self.files[step]
         out: dict[str, np.ndarray] = {}
         try:
             with h5py.File(path, "r") as f:
-                for name, (shape, _) in OFFICIAL_STEP.items():
+                for name in OFFICIAL_STEP:
                     if name not in f:
                         raise UserError(f"{path}: missing dataset {name!r}; is this an official DSR step file?")
+                    _check_dataset(path, name, f[name])
                     out[name] = f[name][()]
-                    _check_shape(path, name, out[name].shape, shape)
                 if step == self.num_steps - 1:
                     if "next" not in f:
                         raise UserError(f"{path}: the last step has no 'next' group (final observation)")
                     for name in OFFICIAL_NEXT:
                         if name not in f["next"]:
                             raise UserError(f"{path}: missing dataset 'next/{name}'")
+                        _check_dataset(path, f"next/{name}", f["next"][name])
                         out[f"next/{name}"] = f["next"][name][()]
-                        _check_shape(path, f"next/{name}", out[f"next/{name}"].shape, OFFICIAL_STEP[name][0])
         except OSError as exc:
             raise UserError(f"{path}: unreadable HDF5 file ({exc})") from None
+        n = len(out["positions"])
+        if len(out["orientations"]) != n or ("next/positions" in out and (
+                len(out["next/positions"]) != n or len(out["next/orientations"]) != n)):
+            raise UserError(f"{path}: positions and orientations list different numbers of objects")
         return out
-
-
-def _check_shape(path, name, got, expected) -> None:
-    if len(got) != len(expected) or any(e is not None and g != e for g, e in zip(got, expected)):
-        raise UserError(f"{path}: {name} has shape {tuple(got)}, expected {tuple('N' if e is None else e for e in expected)}")
 
 
 def find_official_sequences(src: str | Path) -> dict[str, OfficialSequence]:
@@ -103,6 +145,15 @@ def find_official_sequences(src: str | Path) -> dict[str, OfficialSequence]:
         missing = [s for s in expected if s not in files]
         if missing:
             raise UserError(f"{src}: sequence {seq_id} lacks step files {missing} (have {sorted(files)})")
+        last = files[expected[-1]]
+        try:
+            with h5py.File(last, "r") as f:
+                has_next = "next" in f
+        except OSError as exc:
+            raise UserError(f"{last}: unreadable HDF5 file ({exc})") from None
+        if not has_next:
+            raise UserError(f"{last}: the last step file of sequence {seq_id} has no 'next' group (final observation); "
+                            f"step files after {expected[-1]} are missing or this one is damaged")
         out[seq_id] = OfficialSequence(seq_id, tuple(files[s] for s in expected))
     return out
 
@@ -128,7 +179,12 @@ def sequence_name(seq_id: str) -> str:
 
 
 def convert_sequence(seq: OfficialSequence) -> tuple[dict, dict, dict]:
-    """(schema arrays, official/ extras, attributes) of an official sequence, losslessly."""
+    """(schema arrays, official/ extras, attributes) of an official sequence, losslessly.
+
+    Raises UserError where the release's data cannot be held exactly where it must be: mask ids
+    outside 0..255, or 3D flow values that float32 cannot represent (the release's flow is
+    integer-valued voxels).
+    """
     from dsr_bench import __version__
     from dsr_bench.constants import AXIS_ORDER, FLOW_COMPONENTS, GRID_BOUNDS, VOXEL_SIZE
     from dsr_bench.geometry import direction_vector, make_camera, pixel_to_world
@@ -137,16 +193,23 @@ def convert_sequence(seq: OfficialSequence) -> tuple[dict, dict, dict]:
     T = seq.num_steps
     steps = [seq.read_step(t) for t in range(T)]
     last = steps[-1]
+    counts = {len(s["positions"]) for s in steps} | {len(last["next/positions"])}
+    if len(counts) != 1:
+        raise UserError(f"sequence {seq.seq_id}: the number of objects changes between steps ({sorted(counts)})")
+    dtypes = {name: str(value.dtype) for name, value in last.items()}
 
     def obs(name: str) -> np.ndarray:  # stack observation t = 0..T (the last from `next`)
         return np.stack([s[name] for s in steps] + [last[f"next/{name}"]])
 
-    stacked = {name: np.stack([s[name] for s in steps]) for name in ("action", "tsdf", "scene_flow_3d")}
+    def per_step(name: str) -> np.ndarray:  # stack push t = 0..T-1
+        return np.stack([s[name] for s in steps])
+
     extras: dict[str, np.ndarray] = {}
     arrays: dict[str, np.ndarray] = {}
     exact_fields: list[str] = []
 
     def place(schema_name: str, official_name: str, value: np.ndarray, dtype, source: np.ndarray) -> None:
+        """Store `value` as `dtype`; if that loses anything, keep the official `source` too."""
         converted = _exact(value, dtype)
         if converted is None:
             arrays[schema_name] = value.astype(dtype)
@@ -158,30 +221,49 @@ def convert_sequence(seq: OfficialSequence) -> tuple[dict, dict, dict]:
     # volumes
     cam_hr = make_camera("front", 960, 1280)
     tsdf_last = integrate_tsdf(last["next/depth_image"].astype(np.float64), cam_hr)
-    arrays["tsdf"] = np.concatenate([stacked["tsdf"].astype(np.float32), tsdf_last[None]])
+    tsdf = per_step("tsdf")
+    tsdf32 = _exact(tsdf, np.float32)
+    if tsdf32 is None:
+        extras["official/tsdf"], tsdf32 = tsdf, tsdf.astype(np.float32)
+    else:
+        exact_fields.append("tsdf")
+    arrays["tsdf"] = np.concatenate([tsdf32, tsdf_last[None]])
     masks = obs("mask_3d")
     if masks.min() < 0 or masks.max() > 255:
-        raise UserError(f"sequence {seq.seq_id}: mask_3d ids outside 0..255 cannot be stored as uint8")
+        raise UserError(f"sequence {seq.seq_id}: mask_3d ids in {int(masks.min())}..{int(masks.max())}; only "
+                        "0..255 fit our uint8 mask_3d, so it cannot be imported")
     place("mask_3d", "mask_3d", masks, np.uint8, masks)
-    flow = np.moveaxis(stacked["scene_flow_3d"], -1, 1)
-    place("scene_flow_3d", "scene_flow_3d", flow, np.float32, stacked["scene_flow_3d"])
-    arrays["action"] = stacked["action"].astype(np.int64)
+    flow = np.moveaxis(per_step("scene_flow_3d"), -1, 1)
+    flow32 = _exact(flow, np.float32)
+    if flow32 is None:
+        bad = flow[flow.astype(np.float32).astype(flow.dtype) != flow]
+        raise UserError(f"sequence {seq.seq_id}: scene_flow_3d holds values float32 cannot represent exactly "
+                        f"(e.g. {bad.flat[0]!r}); the release's flow is integer-valued voxels, so these files are "
+                        "not official DSR data")
+    arrays["scene_flow_3d"] = flow32
+    exact_fields.append("scene_flow_3d")
+    actions = per_step("action")
+    place("action", "action", actions, np.int64, actions)
     starts = np.concatenate([pixel_to_world(arrays["action"][:, 1:]), np.full((T, 1), PUSH_HEIGHT)], 1)
     arrays["push_start"] = starts
     arrays["push_end"] = starts + np.concatenate([direction_vector(arrays["action"][:, 0]) * PUSH_LENGTH,
                                                   np.zeros((T, 1))], 1)
+    for name in ("positions", "orientations"):
+        value = obs(name)
+        if _exact(value, np.float64) is None:
+            extras[f"official/{name}"] = value
     arrays["object_poses"] = np.concatenate([obs("positions"), obs("orientations")], -1).astype(np.float64)
     place("heightmap", "depth_heightmap", obs("depth_heightmap"), np.float32, obs("depth_heightmap"))
     # front camera 2D data
     place("cameras/front/color", "color_image_small", obs("color_image_small"), np.uint8, obs("color_image_small"))
     place("cameras/front/depth", "depth_image_small", obs("depth_image_small"), np.float32, obs("depth_image_small"))
     place("cameras/front/mask", "mask_2d", obs("mask_2d"), np.uint8, obs("mask_2d"))
-    pts = np.stack([s["pts_small"] for s in steps])  # the final observation has no points in the release
+    pts = per_step("pts_small")  # the final observation has no points in the release
     cam = make_camera("front", 240, 320)
     pts_last = cam.backproject(last["next/depth_image_small"].astype(np.float64))
     arrays["cameras/front/points"] = np.concatenate([np.moveaxis(pts, 1, -1), pts_last[None]]).astype(np.float32)
     extras["official/pts_small"] = pts
-    flow2d = np.stack([s["scene_flow_2d"] for s in steps])
+    flow2d = per_step("scene_flow_2d")
     place("cameras/front/scene_flow_2d", "scene_flow_2d", flow2d, np.float32, flow2d)
     # what has no home in the schema
     extras["official/color_image"] = obs("color_image")
@@ -198,84 +280,139 @@ def convert_sequence(seq: OfficialSequence) -> tuple[dict, dict, dict]:
         "flow_components": FLOW_COMPONENTS, "objects": objects,
         "cameras": {"front": {"height": 240, "width": 320, "intrinsics": cam.intrinsics.tolist(),
                               "extrinsics": cam.extrinsics.tolist(), "convention": "opencv, camera-to-world"}},
-        "official_id": seq.seq_id, "official_exact_fields": sorted(exact_fields),
+        "official_id": seq.seq_id, "official_exact_fields": sorted(set(exact_fields)),
+        "official_dtypes": dtypes,
+        "official_files": [p.name for p in seq.files],
         "official_notes": "tsdf[T] integrated from next/depth_image (960x1280) by dsr-bench; points[T] "
                           "back-projected from next/depth_image_small; push_start/end derived from the action",
     }
     return arrays, extras, attrs
 
 
+#: official name -> (our dataset, how to turn ours back into the official layout)
+_SCHEMA_HOME = {
+    "tsdf": ("tsdf", None),
+    "mask_3d": ("mask_3d", None),
+    "scene_flow_3d": ("scene_flow_3d", lambda v: np.moveaxis(v, 0, -1)),
+    "action": ("action", None),
+    "color_image_small": ("cameras/front/color", None),
+    "depth_image_small": ("cameras/front/depth", None),
+    "mask_2d": ("cameras/front/mask", None),
+    "scene_flow_2d": ("cameras/front/scene_flow_2d", None),
+    "depth_heightmap": ("heightmap", None),
+}
+
+
 def official_arrays(reader, step: int) -> dict[str, np.ndarray]:
-    """The official datasets of step `step` rebuilt from an imported file (SequenceReader)."""
+    """The official datasets of step file `step` (with `next/...` for the last), rebuilt bit for bit
+    from an imported file (a `dsr_bench.sequence.SequenceReader`), in the release's dtypes."""
+    if reader.attrs.get("source") != "official-import":
+        raise UserError(f"{reader.path}: not imported from the official release (source {reader.attrs.get('source')!r})")
     exact = set(reader.attrs.get("official_exact_fields", []))
+    dtypes = reader.attrs.get("official_dtypes", {})
     T = reader.num_steps
 
-    def get(official: str, schema: str, t: int, dtype, transform=None):
-        if official in exact:
-            value = reader.read(schema, t)
-            value = transform(value) if transform else value
-            return value.astype(dtype)
-        return reader.read(f"official/{official}", t)
+    def get(name: str, t: int) -> np.ndarray:
+        key = f"next/{name}" if t == T else name
+        dtype = np.dtype(dtypes.get(key, OFFICIAL_STEP[name][1]))
+        if name in ("positions", "orientations"):
+            if f"official/{name}" in reader:
+                return reader.read(f"official/{name}", t)
+            pose = reader.read("object_poses", t)
+            return (pose[:, :3] if name == "positions" else pose[:, 3:]).astype(dtype)
+        if name in exact and name in _SCHEMA_HOME:
+            ours, back = _SCHEMA_HOME[name]
+            value = reader.read(ours, t)
+            return (back(value) if back else value).astype(dtype)
+        return reader.read(f"official/{name}", t)
 
-    out = {
-        "action": reader.read("action", step),
-        "tsdf": reader.read("tsdf", step),
-        "mask_3d": get("mask_3d", "mask_3d", step, np.int64),
-        "scene_flow_3d": get("scene_flow_3d", "scene_flow_3d", step, np.float64, lambda v: np.moveaxis(v, 0, -1)),
-        "color_image": reader.read("official/color_image", step),
-        "depth_image": reader.read("official/depth_image", step),
-        "color_image_small": get("color_image_small", "cameras/front/color", step, np.uint8),
-        "depth_image_small": get("depth_image_small", "cameras/front/depth", step, np.float32),
-        "mask_2d": get("mask_2d", "cameras/front/mask", step, np.float64),
-        "scene_flow_2d": get("scene_flow_2d", "cameras/front/scene_flow_2d", step, np.float64),
-        "pts_small": reader.read("official/pts_small", step),
-        "color_heightmap": reader.read("official/color_heightmap", step),
-        "depth_heightmap": get("depth_heightmap", "heightmap", step, np.float64),
-        "positions": reader.read("object_poses", step)[:, :3],
-        "orientations": reader.read("object_poses", step)[:, 3:],
-    }
+    out = {name: get(name, step) for name in OFFICIAL_STEP}
     if step == T - 1:
-        for name in OFFICIAL_NEXT:
-            schema_source = {"mask_3d": ("mask_3d", "mask_3d", np.int64), "mask_2d": ("mask_2d", "cameras/front/mask", np.float64),
-                             "color_image_small": ("color_image_small", "cameras/front/color", np.uint8),
-                             "depth_image_small": ("depth_image_small", "cameras/front/depth", np.float32),
-                             "depth_heightmap": ("depth_heightmap", "heightmap", np.float64)}.get(name)
-            if name in ("positions", "orientations"):
-                pose = reader.read("object_poses", T)
-                out[f"next/{name}"] = pose[:, :3] if name == "positions" else pose[:, 3:]
-            elif schema_source:
-                out[f"next/{name}"] = get(schema_source[0], schema_source[1], T, schema_source[2])
-            else:
-                out[f"next/{name}"] = reader.read(f"official/{name}", T)
+        out.update({f"next/{name}": get(name, T) for name in OFFICIAL_NEXT})
     return out
 
 
-def import_official(src: str | Path, dst: str | Path) -> list[str]:
-    """Convert every sequence of an official directory into a dataset directory; return our names."""
-    import os
-
-    from dsr_bench.manifest import build_manifest, content_digest, write_manifest
+def _import_one(args: tuple[OfficialSequence, str]) -> str:
+    from dsr_bench.manifest import content_digest
     from dsr_bench.sequence import write_sequence
 
+    seq, dst = args
+    arrays, extras, attrs = convert_sequence(seq)
+    attrs["content_sha256"] = content_digest({**arrays, **extras}, attrs["objects"])
+    write_sequence(Path(dst) / f"{attrs['sequence']}.h5", arrays, attrs, extras=extras)
+    return attrs["sequence"]
+
+
+def _already_imported(path: Path, seq_id: str) -> bool | None:
+    """True if `path` is a complete import of official `seq_id`, False if it is another import, None
+    if it is not an import at all."""
+    try:
+        with h5py.File(path, "r") as f:
+            if f.attrs.get("source") != "official-import":
+                return None
+            return f.attrs.get("official_id") == seq_id and "content_sha256" in f.attrs
+    except OSError:
+        return False
+
+
+def import_official(src: str | Path, dst: str | Path, split: str | None = None, workers: int = 1,
+                    progress: Callable[[str], None] | None = None) -> list[str]:
+    """Convert an official-layout directory (all sequences, or those of SRC/<split>.txt) into a
+    dsr-bench dataset directory with splits/ and manifest.json; return our sequence names.
+
+    Resumable: files in DST that are complete imports of the same sequences are kept; a DST that
+    holds files of another origin is refused. `progress(name)` is called after each sequence.
+    """
+    import os
+
+    from dsr_bench.manifest import build_manifest, write_manifest
+
+    if workers < 1:
+        raise UserError(f"--workers {workers}: must be at least 1")
     sequences = find_official_sequences(src)
+    split_files = [split] if split is not None else [s for s in ("train", "test") if (Path(src) / f"{s}.txt").is_file()]
+    lists = {}
+    for name in split_files:
+        ids = read_official_split(src, name)
+        unknown = [i for i in ids if i not in sequences]
+        if unknown:
+            raise UserError(f"{src}/{name}.txt lists {len(unknown)} sequences with no step files (e.g. {unknown[0]}); "
+                            "copy them in or remove them from the list")
+        lists[name] = ids
+    chosen = lists[split] if split is not None else list(sequences)
+    names = {sequence_name(i): i for i in chosen}
+    if len(names) != len(chosen):
+        raise UserError(f"{src}: sequence ids {sorted(chosen)[:5]}... map to the same name (e.g. '7' and '007')")
     dst = Path(dst)
+    if dst.exists():
+        for path in sorted(dst.glob("seq_*.h5")):
+            status = _already_imported(path, names.get(path.stem, ""))
+            if status is None or (status is False and path.stem in names):
+                raise UserError(f"{dst} already holds {path.name}, which is not an import of this release's "
+                                f"sequence {names.get(path.stem, path.stem)}; choose an empty DST directory")
+        for stale in dst.glob(".seq_*.h5.tmp-*"):  # an interrupted run's partial file
+            stale.unlink()
+    todo = [sequences[i] for name, i in names.items() if not (dst / f"{name}.h5").is_file()]
     dst.mkdir(parents=True, exist_ok=True)
-    names = []
-    for seq in sequences.values():
-        arrays, extras, attrs = convert_sequence(seq)
-        attrs["content_sha256"] = content_digest({**arrays, **extras}, attrs["objects"])
-        write_sequence(dst / f"{attrs['sequence']}.h5", arrays, attrs, extras=extras)
-        names.append(attrs["sequence"])
+    jobs = [(seq, str(dst)) for seq in todo]
+    if workers > 1 and len(jobs) > 1:
+        import multiprocessing as mp
+        from concurrent.futures import ProcessPoolExecutor
+
+        with ProcessPoolExecutor(min(workers, len(jobs)), mp_context=mp.get_context("spawn")) as pool:
+            for name in pool.map(_import_one, jobs):
+                if progress:
+                    progress(name)
+    else:
+        for job in jobs:
+            name = _import_one(job)
+            if progress:
+                progress(name)
     (dst / "splits").mkdir(exist_ok=True)
-    for split in ("train", "test"):
-        if (Path(src) / f"{split}.txt").is_file():
-            ids = read_official_split(src, split)
-            unknown = [i for i in ids if i not in sequences]
-            if unknown:
-                raise UserError(f"{src}/{split}.txt lists sequences with no files (e.g. {unknown[0]})")
-            target = dst / "splits" / f"{split}.txt"
-            tmp = target.with_name(f".{target.name}.tmp-{os.getpid()}")
-            tmp.write_text("".join(f"{sequence_name(i)}\n" for i in ids))
-            os.replace(tmp, target)
+    for name, ids in lists.items():
+        target = dst / "splits" / f"{name}.txt"
+        tmp = target.with_name(f".{target.name}.tmp-{os.getpid()}")
+        tmp.write_text("".join(f"{sequence_name(i)}\n" for i in ids))
+        os.replace(tmp, target)
     write_manifest(dst, build_manifest(dst))
-    return names
+    return sorted(names)

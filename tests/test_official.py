@@ -1,17 +1,21 @@
 """The official release layout: a fixture built from its published schema, the validated reader, and
 `dsr-bench import-official` round trips every value."""
 
+import shutil
+
 import h5py
 import numpy as np
 import pytest
 
 from dsr_bench.cli import main
 from dsr_bench.errors import UserError
-from dsr_bench.official import OFFICIAL_NEXT, OFFICIAL_STEP, find_official_sequences, official_arrays
+from dsr_bench.manifest import load_manifest
+from dsr_bench.official import OFFICIAL_NEXT, OFFICIAL_STEP, find_official_sequences, import_official, official_arrays
 from dsr_bench.sequence import SequenceReader
+from dsr_bench.testing import write_synthetic_dataset
 from dsr_bench.validate import validate_dataset
 
-STEPS = 3
+STEPS = 2
 
 
 def _official_step(rng, t, positions, orientations):
@@ -41,7 +45,9 @@ def _official_step(rng, t, positions, orientations):
     return data
 
 
-def write_official_fixture(root, ids=("0", "1", "7"), seed=0):
+def write_official_fixture(root, ids=("0", "1", "7"), seed=0, change=None):
+    """A tiny official-layout dataset (STEPS step files per id, train.txt, test.txt); returns the
+    arrays written, truth[id][step][name]. `change(data)` may alter each step's arrays before writing."""
     rng = np.random.default_rng(seed)
     truth = {}
     for seq_id in ids:
@@ -51,17 +57,22 @@ def write_official_fixture(root, ids=("0", "1", "7"), seed=0):
         truth[seq_id] = []
         for t in range(STEPS):
             data = _official_step(rng, t, positions, orientations)
+            if change is not None:
+                change(data)
             with h5py.File(root / f"{seq_id}_{t}.hdf5", "w") as f:
                 for name, value in data.items():
                     f.create_dataset(name, data=value, compression="gzip", compression_opts=4)
                 if t == STEPS - 1:
                     nxt = _official_step(rng, t + 1, positions, orientations)
+                    if change is not None:
+                        change(nxt)
                     for name in OFFICIAL_NEXT:
                         f.create_dataset(f"next/{name}", data=nxt[name])
                         data[f"next/{name}"] = nxt[name]
             truth[seq_id].append(data)
-    (root / "train.txt").write_text("0\n7\n")
-    (root / "test.txt").write_text("1\n")
+    test = list(ids[1:2])  # ("0", "1", "7"): train 0, 7; test 1
+    (root / "train.txt").write_text("".join(f"{i}\n" for i in ids if i not in test))
+    (root / "test.txt").write_text("".join(f"{i}\n" for i in test))
     return truth
 
 
@@ -84,6 +95,18 @@ def test_import_round_trips_every_value(imported):
                 for key, value in truth[seq_id][t].items():
                     assert rebuilt[key].dtype == value.dtype, (key, rebuilt[key].dtype)
                     assert np.array_equal(rebuilt[key], value), key
+
+
+def test_both_readers_agree_bit_for_bit(imported):
+    src, dst, _ = imported
+    official = find_official_sequences(src)
+    with SequenceReader(dst / "seq_0007.h5") as seq:
+        for t in range(STEPS):
+            ours, theirs = official_arrays(seq, t), official["7"].read_step(t)
+            assert sorted(ours) == sorted(theirs)
+            for key in theirs:
+                assert ours[key].dtype == theirs[key].dtype and np.array_equal(ours[key], theirs[key]), key
+        assert np.array_equal(official["7"].read(STEPS - 1, "next/mask_3d"), seq.read("mask_3d", STEPS))
 
 
 def test_conventions_of_the_converted_fields(imported):
@@ -112,18 +135,103 @@ def test_reader_errors(tmp_path):
     with pytest.raises(UserError, match="no <seq>_<step>.hdf5"):
         find_official_sequences(tmp_path)
     write_official_fixture(tmp_path, ids=("3",))
-    (tmp_path / "3_1.hdf5").unlink()
-    with pytest.raises(UserError, match=r"lacks step files \[1\]"):
+    (tmp_path / "3_0.hdf5").rename(tmp_path / "kept.h5")
+    with pytest.raises(UserError, match=r"lacks step files \[0\]"):
         find_official_sequences(tmp_path)
-    with h5py.File(tmp_path / "3_1.hdf5", "w") as f:
-        f["action"] = np.zeros(3, np.int64)
+    (tmp_path / "kept.h5").rename(tmp_path / "3_0.hdf5")
+    (tmp_path / "3_1.hdf5").rename(tmp_path / "last.h5")  # the final step lost: 3_0 has no 'next'
+    with pytest.raises(UserError, match="3_0.hdf5: the last step file of sequence 3 has no 'next' group"):
+        find_official_sequences(tmp_path)
+    (tmp_path / "last.h5").rename(tmp_path / "3_1.hdf5")
     seq = find_official_sequences(tmp_path)["3"]
-    with pytest.raises(UserError, match="missing dataset 'tsdf'"):
+    with h5py.File(tmp_path / "3_0.hdf5", "r+") as f:
+        del f["tsdf"]
+    with pytest.raises(UserError, match="3_0.hdf5: missing dataset 'tsdf'"):
+        seq.read_step(0)
+    with h5py.File(tmp_path / "3_1.hdf5", "r+") as f:
+        del f["next/mask_3d"]
+    with pytest.raises(UserError, match="missing dataset 'next/mask_3d'"):
         seq.read_step(1)
-    with h5py.File(tmp_path / "3_2.hdf5", "r+") as f:
-        del f["next"]
-    with pytest.raises(UserError, match="no 'next' group"):
-        seq.read_step(2)
+    (tmp_path / "3_1.hdf5").write_bytes(b"garbage")
+    with pytest.raises(UserError, match="3_1.hdf5: unreadable HDF5 file"):
+        find_official_sequences(tmp_path)
+
+
+def test_other_dtypes_and_inexact_values_survive(tmp_path):
+    """float32 heightmaps, float64 TSDFs with values float32 cannot hold and int32 masks round-trip
+    through official/ or exact casts, keeping the release's dtypes."""
+    def change(data):
+        data["depth_heightmap"] = data["depth_heightmap"].astype(np.float32)
+        data["mask_3d"] = data["mask_3d"].astype(np.int32)
+        if "tsdf" in data:
+            data["tsdf"] = data["tsdf"].astype(np.float64) + 1e-12
+
+    src, dst = tmp_path / "src", tmp_path / "dst"
+    src.mkdir()
+    truth = write_official_fixture(src, ids=("5",), change=change)
+    import_official(src, dst)
+    with SequenceReader(dst / "seq_0005.h5") as seq:
+        assert "official/tsdf" in seq and "official/depth_heightmap" not in seq  # float32 holds it exactly
+        for t in range(STEPS):
+            rebuilt = official_arrays(seq, t)
+            for key, value in truth["5"][t].items():
+                assert rebuilt[key].dtype == value.dtype and np.array_equal(rebuilt[key], value), key
+
+
+@pytest.mark.parametrize("change, match", [
+    (lambda d: d.__setitem__("scene_flow_3d", d["scene_flow_3d"] + 0.1), "float32 cannot represent exactly"),
+    (lambda d: d["mask_3d"].__setitem__((0, 0, 0), 300), r"mask_3d ids in 0..300"),
+])
+def test_import_refuses_what_cannot_be_held(tmp_path, change, match):
+    def alter(data):
+        if "scene_flow_3d" in data:
+            change(data)
+    write_official_fixture(tmp_path, ids=("2",), change=alter)
+    with pytest.raises(UserError, match=match):
+        import_official(tmp_path, tmp_path / "out")
+    assert not list((tmp_path / "out").glob("*.h5")) if (tmp_path / "out").exists() else True
+
+
+def test_split_resume_parallel_and_foreign_destination(imported, tmp_path, capsys):
+    src, full, _ = imported
+    only_test = tmp_path / "only_test"
+    assert main(["import-official", str(src), str(only_test), "--split", "test"]) == 0
+    assert sorted(p.name for p in only_test.glob("*.h5")) == ["seq_0001.h5"]
+    assert sorted(load_manifest(only_test)["splits"]) == ["test"]
+    # resume an interrupted import: two files lost, a partial file left; redo them with 2 workers
+    dst = tmp_path / "resumed"
+    shutil.copytree(full, dst)
+    (dst / "seq_0000.h5").unlink()
+    (dst / "seq_0007.h5").rename(dst / ".seq_0007.h5.tmp-123")
+    before = (dst / "seq_0001.h5").stat().st_mtime_ns
+    done = []
+    assert import_official(src, dst, workers=2, progress=done.append) == ["seq_0000", "seq_0001", "seq_0007"]
+    assert sorted(done) == ["seq_0000", "seq_0007"] and (dst / "seq_0001.h5").stat().st_mtime_ns == before
+    assert not list(dst.glob(".*tmp*"))
+    assert load_manifest(dst) == {**load_manifest(full), "toolkit_version": load_manifest(dst)["toolkit_version"]}
+    with pytest.raises(UserError, match="not found; the official release lists its splits"):
+        import_official(src, dst, split="val")
+    other = tmp_path / "other"
+    write_synthetic_dataset(other, num_sequences=1, num_steps=1)
+    with pytest.raises(UserError, match="already holds seq_0000.h5, which is not an import"):
+        import_official(src, other)
+
+
+def test_wrong_shape_and_dtype_are_named(tmp_path):
+    write_official_fixture(tmp_path, ids=("3",))
+    seq = find_official_sequences(tmp_path)["3"]
+    with h5py.File(tmp_path / "3_0.hdf5", "r+") as f:
+        del f["tsdf"]
+        f["tsdf"] = np.zeros((128, 128, 40), np.float32)
+        del f["color_image_small"]
+        f["color_image_small"] = np.zeros((240, 320, 3), np.float32)
+    with pytest.raises(UserError, match=r"3_0.hdf5: tsdf has shape \(128, 128, 40\), expected \(128, 128, 48\)"):
+        seq.read_step(0)
+    with pytest.raises(UserError, match="color_image_small has dtype float32, expected uint8"):
+        seq.read(0, "color_image_small")
+    assert seq.read(1, "tsdf").shape == (128, 128, 48)
+    with pytest.raises(UserError, match="step 5 outside 0..1"):
+        seq.read(5, "tsdf")
 
 
 def test_import_cli_errors(tmp_path, capsys):

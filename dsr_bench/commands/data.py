@@ -124,12 +124,19 @@ def manifest(data_dir: Path = typer.Argument(..., help="Dataset directory.")) ->
 
 def import_official_command(
     src: Path = typer.Argument(..., help="Official release directory (<seq>_<step>.hdf5, train.txt, test.txt)."),
-    dst: Path = typer.Argument(..., help="New dataset directory in the dsr-bench format."),
+    dst: Path = typer.Argument(..., help="Dataset directory to write in the dsr-bench format (new, or a resumed import)."),
+    split: Optional[str] = typer.Option(None, "--split", help="Import only the sequences of SRC/<split>.txt (train, test)."),
+    workers: int = typer.Option(1, "--workers", "-w", help="Parallel worker processes (about 0.5 GB of memory each)."),
 ) -> None:
     """Convert the authors' release into our format, losslessly (see docs/format.md)."""
-    from dsr_bench.official import import_official
+    from rich.progress import Progress
 
-    names = import_official(src, dst)
+    from dsr_bench.official import find_official_sequences, import_official, read_official_split
+
+    total = len(read_official_split(src, split)) if split else len(find_official_sequences(src))
+    with Progress(transient=True) as bar:
+        task = bar.add_task("importing", total=total)
+        names = import_official(src, dst, split=split, workers=workers, progress=lambda _: bar.advance(task))
     typer.echo(f"imported {len(names)} sequences into {dst}; check them with `dsr-bench validate {dst}`")
 
 
