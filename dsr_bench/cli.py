@@ -24,15 +24,20 @@ for _name in _COMMAND_MODULES:
     importlib.import_module(f"dsr_bench.commands.{_name}").register(app)
 
 
-@app.callback()
-def _root(
-    version: bool = typer.Option(False, "--version", help="Print the toolkit version and exit.", is_eager=True),
-) -> None:
-    if version:
+def _print_version(value: bool) -> None:
+    if value:
         from dsr_bench import __version__
 
         typer.echo(__version__)
         raise typer.Exit()
+
+
+@app.callback()
+def _root(
+    version: bool = typer.Option(False, "--version", help="Print the toolkit version and exit.", is_eager=True,
+                                 callback=_print_version),
+) -> None:
+    """Dataset and benchmark toolkit for 3D dynamic scene representations (DSR, CoRL 2020)."""
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -50,10 +55,8 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         typer.echo("interrupted", err=True)
         return 130
-    except Exception as exc:  # click usage errors carry their own exit codes
-        import click
-
-        if isinstance(exc, click.ClickException):
+    except Exception as exc:  # click's usage errors (typer may vendor click) carry their own exit codes
+        if hasattr(exc, "show") and isinstance(getattr(exc, "exit_code", None), int):
             exc.show()
             return exc.exit_code
         raise

@@ -1,0 +1,24 @@
+"""The `dsr-bench` command line: version, help listing every command, usage errors."""
+
+import subprocess
+import sys
+
+from dsr_bench import __version__
+from dsr_bench.cli import main
+
+COMMANDS = ("generate", "validate", "info", "manifest", "import-official", "predict", "evaluate", "leaderboard",
+            "view", "train")
+
+
+def test_version_and_help(capsys):
+    assert main(["--version"]) == 0
+    assert capsys.readouterr().out.strip() == __version__
+    out = subprocess.run([sys.executable, "-m", "dsr_bench.cli", "--help"], capture_output=True, text=True)
+    assert out.returncode == 0 and all(c in out.stdout for c in COMMANDS)
+
+
+def test_usage_errors_exit_2(capsys):
+    assert main(["no-such-command"]) == 2
+    assert "No such command" in capsys.readouterr().err
+    assert main(["generate", "--objects"]) == 2
+    assert "requires an argument" in capsys.readouterr().err
