@@ -321,7 +321,30 @@ def _check_manifest(data_dir: Path, manifest: dict, files: dict[str, Path]) -> t
     for path in sorted((data_dir / "splits").glob("*.txt")):
         if path.stem not in splits:
             problems.append(Problem(f"splits/{path.name}", "split file not in the manifest (run `dsr-bench manifest DIR`)"))
-    return problems, digests
+    return problems + _check_pinned(manifest), digests
+
+
+def _check_pinned(manifest: dict) -> list[Problem]:
+    """A named benchmark split must reproduce the toolkit's pinned digests, sequence by sequence."""
+    from dsr_bench.errors import UserError
+    from dsr_bench.manifest import split_digest
+    from dsr_bench.splits import pinned_digests
+
+    problems = []
+    digests = {s["name"]: s["content_sha256"] for s in manifest["sequences"]}
+    for split, pin in pinned_digests().items():
+        if split not in manifest.get("splits", {}):
+            continue
+        try:
+            if split_digest(manifest, split) == pin["checksum"]:
+                continue
+        except UserError:
+            continue  # reported by the manifest checks
+        differing = [n for n, d in pin["sequences"].items() if digests.get(n) != d]
+        problems.append(Problem(f"splits/{split}.txt", f"differs from the toolkit's pinned {split} in "
+                                f"{len(differing)} sequences (e.g. {', '.join(differing[:3])}); regenerate it with "
+                                f"`dsr-bench generate --split {split}` on this toolkit version"))
+    return problems
 
 
 def validate_dataset(data_dir: str | Path, check_gt: bool = True, workers: int = 1) -> tuple[list[Problem], int]:

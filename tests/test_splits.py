@@ -36,3 +36,21 @@ def test_pinned_split_reproduces_bit_for_bit(tmp_path):
     assert main(["generate", "--split", "procedural-novel-mini", "--out", str(out), "--shard", "3/8"]) == 0
     with SequenceReader(out / "seq_0003.h5") as seq:
         assert seq.attrs["content_sha256"] == pins["procedural-novel-mini"]["sequences"]["seq_0003"]
+
+
+def test_validate_compares_named_splits_with_their_pins(tmp_path, monkeypatch):
+    import dsr_bench.splits as splits
+    from dsr_bench.manifest import load_manifest, split_digest
+    from dsr_bench.testing import write_synthetic_dataset
+    from dsr_bench.validate import validate_dataset
+
+    data = write_synthetic_dataset(tmp_path / "d", num_sequences=2, num_steps=1, split="procedural-novel-mini")
+    manifest = load_manifest(data)
+    good = {"checksum": split_digest(manifest, "procedural-novel-mini"),
+            "sequences": {s["name"]: s["content_sha256"] for s in manifest["sequences"]}}
+    monkeypatch.setattr(splits, "pinned_digests", lambda: {"procedural-novel-mini": good})
+    assert validate_dataset(data, check_gt=False)[0] == []
+    bad = {"checksum": "0" * 64, "sequences": {**good["sequences"], "seq_0001": "1" * 64}}
+    monkeypatch.setattr(splits, "pinned_digests", lambda: {"procedural-novel-mini": bad})
+    problems = validate_dataset(data, check_gt=False)[0]
+    assert len(problems) == 1 and "pinned procedural-novel-mini in 1 sequences (e.g. seq_0001)" in problems[0].message
