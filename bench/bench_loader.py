@@ -26,11 +26,20 @@ def main() -> None:
 
     from dsr_bench.torch_data import SequenceWindowDataset
 
-    data = args.data
+    data, tmp = args.data, None
     if data is None:
         from dsr_bench.testing import write_synthetic_dataset
 
-        data = write_synthetic_dataset(tempfile.mkdtemp(prefix="dsr-loader-"), num_sequences=4, num_steps=10)
+        tmp = tempfile.TemporaryDirectory(prefix="dsr-loader-")
+        data = write_synthetic_dataset(tmp.name, num_sequences=4, num_steps=10)
+    try:
+        run(data, args, torch, SequenceWindowDataset)
+    finally:
+        if tmp is not None:
+            tmp.cleanup()
+
+
+def run(data, args, torch, SequenceWindowDataset) -> None:
     ds = SequenceWindowDataset(data, args.split, window=args.window)
     print(f"dataset {data}: {len(ds)} windows of {args.window} pushes; batch {args.batch}")
     for workers in args.workers:

@@ -46,7 +46,7 @@ OFFICIAL_NEXT = ("color_image", "depth_image", "color_image_small", "depth_image
 _STEP_FILE = re.compile(r"^(?P<seq>.+)_(?P<step>\d+)\.hdf5$")
 
 
-def _dtype_ok(name: str, dtype: np.dtype, expected: str) -> bool:
+def _dtype_ok(dtype: np.dtype, expected: str) -> bool:
     """Loose dtype check: integer data must be integers, float data numbers, images bytes."""
     kind = np.dtype(dtype).kind
     if expected == "uint8":
@@ -62,11 +62,13 @@ def _check_shape(path, name: str, got: tuple[int, ...], expected: tuple) -> None
                         f"{tuple('N' if e is None else e for e in expected)}; is this an official DSR step file?")
 
 
-def _check_dataset(path: Path, name: str, ds) -> None:
+def check_dataset(path: Path, name: str, ds: h5py.Dataset) -> None:
+    """UserError naming the file unless an official dataset (`name` or `next/name`) has the published
+    shape and dtype."""
     base = name.rsplit("/", 1)[-1]
     shape, dtype = OFFICIAL_STEP[base]
     _check_shape(path, name, ds.shape, shape)
-    if not _dtype_ok(base, ds.dtype, dtype):
+    if not _dtype_ok(ds.dtype, dtype):
         raise UserError(f"{path}: {name} has dtype {ds.dtype}, expected {dtype}; is this an official DSR step file?")
 
 
@@ -94,7 +96,7 @@ class OfficialSequence:
             with h5py.File(path, "r") as f:
                 if name not in f:
                     raise UserError(f"{path}: missing dataset {name!r}; is this an official DSR step file?")
-                _check_dataset(path, name, f[name])
+                check_dataset(path, name, f[name])
                 return f[name][()]
         except OSError as exc:
             raise UserError(f"{path}: unreadable HDF5 file ({exc})") from None
@@ -108,7 +110,7 @@ class OfficialSequence:
                 for name in OFFICIAL_STEP:
                     if name not in f:
                         raise UserError(f"{path}: missing dataset {name!r}; is this an official DSR step file?")
-                    _check_dataset(path, name, f[name])
+                    check_dataset(path, name, f[name])
                     out[name] = f[name][()]
                 if step == self.num_steps - 1:
                     if "next" not in f:
@@ -116,7 +118,7 @@ class OfficialSequence:
                     for name in OFFICIAL_NEXT:
                         if name not in f["next"]:
                             raise UserError(f"{path}: missing dataset 'next/{name}'")
-                        _check_dataset(path, f"next/{name}", f["next"][name])
+                        check_dataset(path, f"next/{name}", f["next"][name])
                         out[f"next/{name}"] = f["next"][name][()]
         except OSError as exc:
             raise UserError(f"{path}: unreadable HDF5 file ({exc})") from None

@@ -54,82 +54,128 @@ class _LazyFiles:
         self._pid, self._files = None, {}
 
 
+def _check_options(window: int, stride: int, fields: tuple[str, ...]) -> None:
+    if window < 1 or stride < 1:
+        raise UserError(f"window {window} and stride {stride} must be at least 1")
+    unknown = sorted(set(fields) - set(DEFAULT_FIELDS))
+    if unknown or not fields:
+        raise UserError(f"unknown fields {unknown}; choose one or more of {', '.join(DEFAULT_FIELDS)}")
+
+
+#: our dataset name -> shape of one step
+_STEP_SHAPE = {"tsdf": GRID_SHAPE, "action": (3,), "mask_3d": GRID_SHAPE, "scene_flow_3d": (3,) + GRID_SHAPE}
+
+
 class SequenceWindowDataset(Dataset):
-    """Windows of `window` consecutive pushes over a split of a dsr-bench dataset directory."""
+    """Windows of `window` consecutive pushes over a split of a dsr-bench dataset directory.
+
+    Item i is a dict for pushes s .. s+L-1 of one sequence (windows start every `stride` pushes):
+    tsdf (L, Y, X, Z) float32, action (L, 8, Y, X) float32 one-hot, mask_3d (L, Y, X, Z) int64,
+    scene_flow_3d (L, 3, Y, X, Z) float32 voxels (dy, dx, dz), sequence (str), start (int); only
+    the requested `fields` are read. `split=None` takes the dataset's only split.
+    """
 
     def __init__(self, data_dir: str | Path, split: str | None = None, window: int = 1,
                  fields: tuple[str, ...] = DEFAULT_FIELDS, stride: int = 1):
-        from dsr_bench.manifest import read_split
+        from dsr_bench.manifest import MANIFEST_NAME, load_manifest, read_split
 
-        if window < 1 or stride < 1:
-            raise UserError(f"window {window} and stride {stride} must be at least 1")
-        unknown = set(fields) - set(DEFAULT_FIELDS)
-        if unknown:
-            raise UserError(f"unknown fields {sorted(unknown)}; choose from {DEFAULT_FIELDS}")
-        self.data_dir, self.window, self.fields = Path(data_dir), window, tuple(fields)
+        _check_options(window, stride, tuple(fields))
+        self.data_dir, self.window, self.stride, self.fields = Path(data_dir), window, stride, tuple(fields)
         self.split, names = read_split(data_dir, split)
+        known: dict[str, int] = {}
+        if (self.data_dir / MANIFEST_NAME).is_file():  # step counts without opening thousands of files
+            known = {s["name"]: s["num_steps"] for s in load_manifest(data_dir)["sequences"]}
         self.items: list[tuple[Path, str, int]] = []
         for name in names:
             path = self.data_dir / f"{name}.h5"
             if not path.is_file():
                 raise UserError(f"split {self.split!r} names {name}, but {path} is missing")
-            with h5py.File(path, "r") as f:
-                steps = int(f.attrs["num_steps"])
+            steps = known[name] if name in known else self._num_steps(path)
             if steps < window:
                 raise UserError(f"{path.name} has {steps} pushes, fewer than the window {window}")
             self.items += [(path, name, s) for s in range(0, steps - window + 1, stride)]
         self._files = _LazyFiles()
 
+    @staticmethod
+    def _num_steps(path: Path) -> int:
+        from dsr_bench.sequence import SequenceReader
+
+        with SequenceReader(path) as seq:  # checks the format marker and schema version
+            return seq.num_steps
+
     def __len__(self) -> int:
         return len(self.items)
+
+    def _dataset(self, f: h5py.File, path: Path, name: str, end: int) -> h5py.Dataset:
+        step_shape = _STEP_SHAPE[name]
+        ds = f.get(name)
+        if ds is None or tuple(ds.shape[1:]) != step_shape or ds.shape[0] < end:
+            got = None if ds is None else tuple(ds.shape)
+            raise UserError(f"{path}: {name} has shape {got}, expected (>= {end}, {', '.join(map(str, step_shape))}); "
+                            f"check the file with `dsr-bench validate {path.parent}`")
+        return ds
 
     def __getitem__(self, index: int) -> dict:
         path, name, s = self.items[index]
         f = self._files.get(path)
         sl = slice(s, s + self.window)
         out: dict = {"sequence": name, "start": s}
-        if "tsdf" in self.fields:
-            out["tsdf"] = torch.from_numpy(f["tsdf"][sl])
-        if "action" in self.fields:
-            out["action"] = action_map(f["action"][sl])
-        if "mask_3d" in self.fields:
-            out["mask_3d"] = torch.from_numpy(f["mask_3d"][sl].astype(np.int64))
-        if "scene_flow_3d" in self.fields:
-            out["scene_flow_3d"] = torch.from_numpy(f["scene_flow_3d"][sl])
+        for field in self.fields:
+            value = self._dataset(f, path, field, s + self.window)[sl]
+            if field == "action":
+                out[field] = action_map(value)
+            elif field == "mask_3d":
+                out[field] = torch.from_numpy(value.astype(np.int64))
+            else:
+                out[field] = torch.from_numpy(np.ascontiguousarray(value, dtype=np.float32))
         return out
 
 
 class OfficialWindowDataset(Dataset):
-    """The same windows read directly from the official release layout (`<seq>_<step>.hdf5`)."""
+    """The same windows and tensors read directly from the official release layout
+    (`<seq>_<step>.hdf5` files, `train.txt` / `test.txt`); flow is moved to (3, Y, X, Z) and cast to float32."""
 
     def __init__(self, src: str | Path, split: str = "train", window: int = 1,
                  fields: tuple[str, ...] = DEFAULT_FIELDS, stride: int = 1):
         from dsr_bench.official import find_official_sequences, read_official_split
 
+        _check_options(window, stride, tuple(fields))
         sequences = find_official_sequences(src)
-        self.window, self.fields = window, tuple(fields)
+        self.window, self.stride, self.fields = window, stride, tuple(fields)
         self.items: list[tuple[tuple[Path, ...], str, int]] = []
         for seq_id in read_official_split(src, split):
             if seq_id not in sequences:
                 raise UserError(f"{src}/{split}.txt lists {seq_id}, which has no step files")
             files = sequences[seq_id].files
+            if len(files) < window:
+                raise UserError(f"official sequence {seq_id} has {len(files)} steps, fewer than the window {window}")
             self.items += [(files, seq_id, s) for s in range(0, len(files) - window + 1, stride)]
         self._files = _LazyFiles()
 
     def __len__(self) -> int:
         return len(self.items)
 
+    def _read(self, path: Path, name: str) -> np.ndarray:
+        from dsr_bench.official import check_dataset
+
+        f = self._files.get(path)
+        if name not in f:
+            raise UserError(f"{path}: missing dataset {name!r}; is this an official DSR step file?")
+        check_dataset(path, name, f[name])
+        return f[name][()]
+
     def __getitem__(self, index: int) -> dict:
         files, seq_id, s = self.items[index]
-        steps = [self._files.get(files[t]) for t in range(s, s + self.window)]
+        paths = files[s:s + self.window]
         out: dict = {"sequence": seq_id, "start": s}
-        if "tsdf" in self.fields:
-            out["tsdf"] = torch.from_numpy(np.stack([f["tsdf"][()] for f in steps]).astype(np.float32))
-        if "action" in self.fields:
-            out["action"] = action_map(np.stack([f["action"][()] for f in steps]))
-        if "mask_3d" in self.fields:
-            out["mask_3d"] = torch.from_numpy(np.stack([f["mask_3d"][()] for f in steps]).astype(np.int64))
-        if "scene_flow_3d" in self.fields:
-            flow = np.stack([np.moveaxis(f["scene_flow_3d"][()], -1, 0) for f in steps])
-            out["scene_flow_3d"] = torch.from_numpy(flow.astype(np.float32))
+        for field in self.fields:
+            value = np.stack([self._read(p, field) for p in paths])
+            if field == "action":
+                out[field] = action_map(value)
+            elif field == "mask_3d":
+                out[field] = torch.from_numpy(value.astype(np.int64))
+            elif field == "scene_flow_3d":
+                out[field] = torch.from_numpy(np.ascontiguousarray(np.moveaxis(value, -1, 1), dtype=np.float32))
+            else:
+                out[field] = torch.from_numpy(value.astype(np.float32))
         return out
