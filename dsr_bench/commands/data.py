@@ -28,9 +28,11 @@ def validate(
     table = Table(title=f"{len(problems)} problems in {data_dir}")
     table.add_column("where")
     table.add_column("problem")
-    for p in problems:
+    for p in sorted(problems, key=lambda p: p.where):  # stable: each file's problems in check order
         table.add_row(p.where, p.message)
     console.print(table)
+    bad = len({p.where for p in problems if p.where.startswith("seq_")})
+    console.print(f"{count} sequence files checked, {bad} with problems")
     raise typer.Exit(1)
 
 
