@@ -76,6 +76,8 @@ def score_sequence(args: tuple[str, str, str]) -> tuple[str, list[str], dict | N
     out = {k: v.tolist() for k, v in per_step.items()}
     out["iou_unordered"] = ious["iou_unordered"].tolist()
     out["iou_ordered"] = ious["iou_ordered"].tolist()
+    out["iou_unordered_official"] = ious["iou_unordered_official"].tolist()
+    out["iou_ordered_official"] = ious["iou_ordered_official"].tolist()
     out["iou_occluded_objects"] = [x.tolist() for x in ious["iou_occluded_objects"]]
     out["iou_visible_objects"] = [x.tolist() for x in ious["iou_visible_objects"]]
     out["has_2d"] = has_2d
@@ -143,8 +145,9 @@ def aggregate(per_sequence: dict[str, dict]) -> dict:
             return [_mean(table[:, t]) for t in range(steps)]
 
     per_step = {k: by_step(k) for k in ("motion_visible", "motion_full", "iou_unordered", "iou_ordered",
-                                         "motion_moved", "motion_static")}
-    metrics = {k: _mean(per_step[k]) for k in HEADLINE}
+                                         "motion_moved", "motion_static", "iou_unordered_official",
+                                         "iou_ordered_official")}
+    metrics = {k: _mean(per_step[k]) for k in HEADLINE + ("iou_unordered_official", "iou_ordered_official")}
     if all(s["has_2d"] for s in seqs):
         per_step["motion_2d"] = by_step("motion_2d")
         metrics["motion_2d"] = _mean(per_step["motion_2d"])

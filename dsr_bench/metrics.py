@@ -96,6 +96,19 @@ def matched_iou(ov: Overlap, rows: np.ndarray, cols: np.ndarray) -> tuple[float,
     return (float(np.mean(values)) if values else 1.0), per_object
 
 
+def official_iou(ov: Overlap, rows: np.ndarray | None = None, cols: np.ndarray | None = None) -> float:
+    """The official code's IoU score: slots and objects padded to a square of max(S, N), best (or
+    the given) matching, mean over all of its pairs, empty-empty pairs counting 0. Equals
+    `matched_iou` when every slot and object is non-empty and S == N (the paper's 4 and 4)."""
+    iou = ov.iou
+    size = max(iou.shape)
+    square = np.zeros((size, size))
+    square[: iou.shape[0], : iou.shape[1]] = iou
+    if rows is None or cols is None:
+        rows, cols = assignment(square)
+    return float(square[rows, cols].sum() / size) if size else 1.0
+
+
 def motion_errors(pred: np.ndarray, gt: np.ndarray, tsdf: np.ndarray, gt_mask: np.ndarray,
                   num_objects: int) -> dict[str, float]:
     """Motion errors of one step (cm^2); pred, gt: (3, Y, X, Z) voxels; tsdf, gt_mask: (Y, X, Z).
@@ -152,5 +165,12 @@ def sequence_scores(pred_mask: np.ndarray, gt_mask: np.ndarray, num_slots: int, 
             visible.append(per_object[present & ~occ])
     rows, cols = assignment(sum(ov.iou for ov in overlaps))
     ordered = np.array([matched_iou(ov, rows, cols)[0] for ov in overlaps])
+    size = max(num_slots, num_objects)
+    total = np.zeros((size, size))
+    for ov in overlaps:
+        total[:num_slots, :num_objects] += ov.iou
+    rows, cols = assignment(total)
     return {"iou_unordered": unordered, "iou_ordered": ordered, "iou_occluded_objects": occluded,
-            "iou_visible_objects": visible}
+            "iou_visible_objects": visible,
+            "iou_unordered_official": np.array([official_iou(ov) for ov in overlaps]),
+            "iou_ordered_official": np.array([official_iou(ov, rows, cols) for ov in overlaps])}

@@ -108,3 +108,43 @@ def test_motion_2d_error_in_cm2():
     mask[0, :2] = 1
     assert np.isclose(motion_2d_error(pred, gt, mask), 0.5)
     assert np.isnan(motion_2d_error(pred, gt, np.zeros((4, 4), np.uint8)))
+
+
+def _official_loop(pred, gt, slots):
+    """The official evaluation's approach: every permutation, a reduction per (slot, object) pair,
+    GT objects 1..slots, mean over slots (empty-empty pairs count 0)."""
+    import itertools
+
+    best = 0.0
+    for perm in itertools.permutations(range(1, slots + 1)):
+        total = 0.0
+        for i in range(slots):
+            a, b = pred == perm[i], gt == i + 1
+            total += (a & b).sum() / max((a | b).sum(), 1)
+        best = max(best, total / slots)
+    return best
+
+
+@pytest.mark.parametrize("num_objects", [4, 3, 2])
+def test_official_iou_equals_the_official_loop(num_objects):
+    from dsr_bench.metrics import official_iou
+
+    rng = np.random.default_rng(num_objects)
+    for _ in range(10):
+        gt = rng.integers(0, num_objects + 1, (12, 12, 6)).astype(np.uint8)
+        pred = np.where(rng.random(gt.shape) < 0.6, (gt + rng.integers(0, 4)) % 5, rng.integers(0, 5, gt.shape))
+        pred = pred.astype(np.uint8)
+        ov = overlap(pred, gt, 4, num_objects)
+        assert np.isclose(official_iou(ov), _official_loop(pred, gt, 4))
+    perfect = overlap(gt, gt, 4, num_objects)
+    assert official_iou(perfect) == (1.0 if num_objects == 4 else num_objects / 4)  # empty-empty = 0
+    assert matched_iou(perfect, *assignment(perfect.iou))[0] == 1.0
+
+
+def test_ordered_official_iou_uses_one_matching():
+    gt = np.stack([_blocks([1, 2, 3, 4])] * 2)
+    pred = np.stack([_blocks([1, 2, 3, 4]), _blocks([2, 1, 3, 4])])
+    scores = sequence_scores(pred, gt, 4, 4)
+    assert np.allclose(scores["iou_unordered_official"], 1.0)
+    assert np.allclose(scores["iou_ordered_official"], [1.0, 0.5]) or np.allclose(scores["iou_ordered_official"], [0.5, 1.0])
+    assert np.allclose(scores["iou_ordered"], scores["iou_ordered_official"])
