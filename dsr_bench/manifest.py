@@ -128,11 +128,12 @@ def _sequence_entry(path: Path) -> dict:
             raise UserError(f"{path}: no {key!r} attribute (not a complete dsr-bench sequence); regenerate it or "
                             "run `dsr-bench import-official`")
     args = _json_attr(attrs.get("generator_args"), {})
+    objects = _json_attr(attrs.get("objects"), [])
     return {
         "name": path.stem, "file": path.name, "sha256": file_sha256(path),
         "content_sha256": str(attrs["content_sha256"]), "num_steps": int(attrs["num_steps"]),
         "num_objects": int(attrs["num_objects"]), "object_set": str(attrs.get("object_set", "")),
-        "objects": _json_attr(attrs.get("objects"), []), "source": str(attrs.get("source", "")),
+        "objects": objects if isinstance(objects, list) else [], "source": str(attrs.get("source", "")),
         "policy": str(attrs.get("policy", "")), "toolkit_version": str(attrs.get("toolkit_version", "")),
         "generator_args": args if isinstance(args, dict) else {},
     }
