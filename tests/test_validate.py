@@ -179,3 +179,9 @@ def test_docs_carry_the_generated_schema_table():
     assert table.count("\n") == 2 + len(SEQUENCE_SCHEMA)
     assert "| `cameras/<cam>/depth` | (T+1, H, W) | float32 |" in table
     assert table in (Path(__file__).resolve().parents[1] / "docs" / "format.md").read_text()
+
+
+def test_generated_dataset_passes_every_check(generated_dataset):
+    """The real generator's output (pybullet) is consistent by every ground-truth check."""
+    problems, count = validate_dataset(generated_dataset, check_gt=True)
+    assert problems == [] and count == 2
