@@ -214,12 +214,14 @@ def load_manifest(data_dir: str | Path) -> dict:
     try:
         manifest = json.loads(path.read_text())
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise UserError(f"{path}: unreadable manifest ({exc}); rebuild it with `dsr-bench manifest {data_dir}`") from None
+        raise UserError(f"{path}: unreadable manifest ({exc}); "
+                        f"rebuild it with `dsr-bench manifest {data_dir}`") from None
     problem = _manifest_structure_problem(manifest)
     if problem:
         raise UserError(f"{path}: {problem}; rebuild it with `dsr-bench manifest {data_dir}`")
     if manifest.get("schema_version") != SCHEMA_VERSION:
-        raise UserError(f"{path}: schema version {manifest.get('schema_version')}, this toolkit reads {SCHEMA_VERSION}; "
+        raise UserError(f"{path}: schema version {manifest.get('schema_version')}, "
+                        f"this toolkit reads {SCHEMA_VERSION}; "
                         "use the dsr-bench version that wrote it or regenerate the dataset")
     return manifest
 
@@ -235,7 +237,8 @@ def read_split(data_dir: str | Path, split: str | None) -> tuple[str, list[str]]
             raise UserError(f"{data_dir} has splits {', '.join(sorted(splits)) or 'none'}; choose one with --split")
         split = next(iter(splits))
     if split not in splits:
-        raise UserError(f"split {split!r} not found in {data_dir}/splits; available: {', '.join(sorted(splits)) or 'none'}")
+        raise UserError(f"split {split!r} not found in {data_dir}/splits; "
+                        f"available: {', '.join(sorted(splits)) or 'none'}")
     return split, splits[split]
 
 
@@ -248,5 +251,6 @@ def resolve_sequence(data_dir: str | Path | None, name: str) -> Path:
         path = Path(data_dir) / f"{candidate.stem}.h5"
         if path.is_file():
             return path
-        raise UserError(f"no sequence {name!r} in {data_dir} (expected {path}); list them with `dsr-bench info {data_dir}`")
+        raise UserError(f"no sequence {name!r} in {data_dir} (expected {path}); "
+                        f"list them with `dsr-bench info {data_dir}`")
     raise UserError(f"sequence {name!r} not found: give a path to a .h5 file or --data DIR with a sequence name")

@@ -309,7 +309,8 @@ def official_arrays(reader, step: int) -> dict[str, np.ndarray]:
     """The official datasets of step file `step` (with `next/...` for the last), rebuilt bit for bit
     from an imported file (a `dsr_bench.sequence.SequenceReader`), in the release's dtypes."""
     if reader.attrs.get("source") != "official-import":
-        raise UserError(f"{reader.path}: not imported from the official release (source {reader.attrs.get('source')!r})")
+        raise UserError(f"{reader.path}: not imported from the official release "
+                        f"(source {reader.attrs.get('source')!r})")
     exact = set(reader.attrs.get("official_exact_fields", []))
     dtypes = reader.attrs.get("official_dtypes", {})
     T = reader.num_steps

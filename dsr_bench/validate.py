@@ -112,7 +112,8 @@ def _range_checks(seq, ok: set[str]) -> dict[str, Callable[[], list[str]]]:
         checks[name] = (lambda name=name: _finite(name, seq.read(name)))
     for cam in seq.cameras:
         checks[f"cameras/{cam}/mask"] = camera_mask(f"cameras/{cam}/mask")
-        checks[f"cameras/{cam}/scene_flow_2d"] = (lambda name=f"cameras/{cam}/scene_flow_2d": _finite(name, seq.read(name)))
+        flow2d = f"cameras/{cam}/scene_flow_2d"
+        checks[flow2d] = (lambda name=flow2d: _finite(name, seq.read(name)))
     return {name: check for name, check in checks.items() if name in ok}
 
 
@@ -320,7 +321,8 @@ def _check_manifest(data_dir: Path, manifest: dict, files: dict[str, Path]) -> t
             problems.append(Problem(info["file"], str(exc)))
     for path in sorted((data_dir / "splits").glob("*.txt")):
         if path.stem not in splits:
-            problems.append(Problem(f"splits/{path.name}", "split file not in the manifest (run `dsr-bench manifest DIR`)"))
+            problems.append(Problem(f"splits/{path.name}",
+                                    "split file not in the manifest (run `dsr-bench manifest DIR`)"))
     return problems + _check_pinned(manifest), digests
 
 

@@ -116,7 +116,8 @@ def test_conventions_of_the_converted_fields(imported):
         assert seq.read("mask_3d").dtype == np.uint8
         assert np.array_equal(seq.read("mask_3d", 0), step0["mask_3d"])
         assert seq.read("scene_flow_3d").shape == (STEPS, 3, 128, 128, 48)  # components first
-        assert np.array_equal(seq.read("cameras/front/points", 0), np.moveaxis(step0["pts_small"], 0, -1).astype(np.float32))
+        points = np.moveaxis(step0["pts_small"], 0, -1).astype(np.float32)
+        assert np.array_equal(seq.read("cameras/front/points", 0), points)
         poses = seq.read("object_poses", 0)
         assert np.array_equal(poses[:, :3], step0["positions"]) and np.array_equal(poses[:, 3:], step0["orientations"])
         assert seq.read("tsdf").shape == (STEPS + 1, 128, 128, 48)  # the final TSDF is integrated on import

@@ -103,7 +103,8 @@ def info(data_dir: Path = typer.Argument(..., help="Dataset directory.")) -> Non
     for name, split in sorted(manifest.get("splits", {}).items()):
         table.add_row(f"split {name}", f"{split['sequences']} sequences (checksum below)")
     common, varying = _common_args(seqs)
-    table.add_row("generator args", json.dumps(common, sort_keys=True) + (f"; varying: {', '.join(varying)}" if varying else ""))
+    table.add_row("generator args",
+                  json.dumps(common, sort_keys=True) + (f"; varying: {', '.join(varying)}" if varying else ""))
     table.add_row("toolkit versions", counts(s.get("toolkit_version", "?") for s in seqs)
                   + f" (manifest written by {manifest.get('toolkit_version')})")
     table.add_row("schema version", str(manifest.get("schema_version")))
@@ -126,8 +127,8 @@ def manifest(data_dir: Path = typer.Argument(..., help="Dataset directory.")) ->
 
 def import_official_command(
     src: Path = typer.Argument(..., help="Official release directory (<seq>_<step>.hdf5, train.txt, test.txt)."),
-    dst: Path = typer.Argument(..., help="Dataset directory to write in the dsr-bench format (new, or a resumed import)."),
-    split: Optional[str] = typer.Option(None, "--split", help="Import only the sequences of SRC/<split>.txt (train, test)."),
+    dst: Path = typer.Argument(..., help="Dataset directory to write in our format (new, or a resumed import)."),
+    split: Optional[str] = typer.Option(None, "--split", help="Import only SRC/<split>.txt's sequences (train, test)."),
     workers: int = typer.Option(1, "--workers", "-w", help="Parallel worker processes (about 0.5 GB of memory each)."),
 ) -> None:
     """Convert the authors' release into our format, losslessly (see docs/format.md)."""
