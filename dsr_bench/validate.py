@@ -221,6 +221,33 @@ def _open(path: str | Path):
         return None, f"unreadable: {type(exc).__name__}: {exc}"
 
 
+def schema_problems(seq) -> tuple[list[str], set[str]]:
+    """Structural problems of an open sequence (missing datasets, shapes, dtypes) and the names of
+    the datasets that passed. Shared by `validate` and the viewer."""
+    from dsr_bench.schema import FIELDS, check_array, dataset_path, resolve_shape
+
+    problems: list[str] = []
+    ok: set[str] = set()
+    for field in FIELDS.values():
+        for cam in (list(seq.cameras) if field.camera else [None]):
+            name = dataset_path(field, cam)
+            if name not in seq:
+                if field.required:
+                    problems.append(f"missing dataset {name!r}")
+                continue
+            try:
+                image = (int(seq.cameras[cam]["height"]), int(seq.cameras[cam]["width"])) if cam else None
+                shape = (resolve_shape(field, seq.num_steps, seq.num_objects, image) if image
+                         else resolve_shape(field, seq.num_steps, seq.num_objects))
+                found = check_array(field, seq.dataset(name), shape, name)
+            except Exception as exc:  # noqa: BLE001 - malformed camera attributes, unreadable dataset
+                found = [f"{name}: cannot check ({type(exc).__name__}: {exc})"]
+            problems += found
+            if not found:
+                ok.add(name)
+    return problems, ok
+
+
 def validate_sequence(path: str | Path, check_gt: bool = True, expected_digest: str | None = None) -> list[str]:
     """Every problem of one sequence file (empty if none).
 
@@ -228,7 +255,7 @@ def validate_sequence(path: str | Path, check_gt: bool = True, expected_digest: 
     ground-truth consistency and the content digest; `expected_digest` (the manifest's) is compared too.
     """
     from dsr_bench.manifest import sequence_content_digest
-    from dsr_bench.schema import FIELDS, REQUIRED_ATTRS, check_array, dataset_path, resolve_shape
+    from dsr_bench.schema import REQUIRED_ATTRS
 
     seq, problem = _open(path)
     if seq is None:
@@ -236,24 +263,8 @@ def validate_sequence(path: str | Path, check_gt: bool = True, expected_digest: 
     problems: list[str] = []
     try:
         problems += [f"missing attribute {a!r}" for a in REQUIRED_ATTRS if a not in seq.attrs]
-        ok: set[str] = set()
-        for field in FIELDS.values():
-            for cam in (list(seq.cameras) if field.camera else [None]):
-                name = dataset_path(field, cam)
-                if name not in seq:
-                    if field.required:
-                        problems.append(f"missing dataset {name!r}")
-                    continue
-                try:
-                    image = (int(seq.cameras[cam]["height"]), int(seq.cameras[cam]["width"])) if cam else None
-                    shape = (resolve_shape(field, seq.num_steps, seq.num_objects, image) if image
-                             else resolve_shape(field, seq.num_steps, seq.num_objects))
-                    found = check_array(field, seq.dataset(name), shape, name)
-                except Exception as exc:  # noqa: BLE001 - malformed camera attributes, unreadable dataset
-                    found = [f"{name}: cannot check ({type(exc).__name__}: {exc})"]
-                problems += found
-                if not found:
-                    ok.add(name)
+        found, ok = schema_problems(seq)
+        problems += found
         range_problems: list[str] = []
         for name, check in _range_checks(seq, ok).items():
             _guard(range_problems, name, check)

@@ -92,20 +92,9 @@ def match_slots(pred_mask: np.ndarray, gt_mask: np.ndarray, num_slots: int, num_
 
 def check_sequence(seq: SequenceReader) -> None:
     """Raise UserError naming every structural problem (missing datasets, shapes, dtypes) of a sequence."""
-    from dsr_bench.schema import FIELDS, check_array, dataset_path, resolve_shape
+    from dsr_bench.validate import schema_problems
 
-    problems = []
-    for field in FIELDS.values():
-        for cam in (list(seq.cameras) if field.camera else [None]):
-            name = dataset_path(field, cam)
-            if name not in seq:
-                if field.required:
-                    problems.append(f"missing dataset {name!r}")
-                continue
-            image = (int(seq.cameras[cam]["height"]), int(seq.cameras[cam]["width"])) if cam else None
-            shape = (resolve_shape(field, seq.num_steps, seq.num_objects, image) if cam
-                     else resolve_shape(field, seq.num_steps, seq.num_objects))
-            problems += check_array(field, seq.dataset(name), shape, name)
+    problems, _ = schema_problems(seq)
     if problems:
         raise UserError(f"{seq.path}: not a valid sequence ({'; '.join(problems)}); run `dsr-bench validate` on it")
 
