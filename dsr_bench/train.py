@@ -1,21 +1,20 @@
-"""Training DSR-Net and the baselines: the paper's curriculum, checkpoints that resume exactly,
-DDP through torchrun, bf16 autocast, a JSONL metrics log.
+"""Training DSR-Net and the baselines: one curriculum stage per run (`dsr_bench.train_configs`),
+checkpoints that resume exactly, DDP through torchrun, bf16 autocast, a JSONL metrics log.
 
-Stages (paper appendix; official schedule): `cube-single` (single-step windows on cubes, 30 epochs,
-lr 1e-3 halved every 5 epochs), `cube-multi` (10-step windows, 20 epochs, lr 1e-4 halved every 3),
-`shapenet-multi` (10-step, 20 epochs, 1e-4 halved every 3). SingleStep and 3DFlow train single-step
-in every stage. Adam betas (0.9, 0.95), batch 12 per GPU. Within a window the state is detached
-between steps and the optimiser steps at every time step (official).
+Within a window the state starts at zero, is detached between steps, and the optimiser steps at
+every time step (official); step t's mask loss uses the best slot matching of step t-1.
+Checkpoints are plain dicts (state_dicts, configs as dicts, RNG states as tensors, data position,
+git hash) loadable with torch.load(weights_only=True).
 """
 
 from __future__ import annotations
 
 import json
+import math
 import os
 import random
 import subprocess
 import time
-from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
@@ -25,43 +24,14 @@ from dsr_bench.errors import UserError
 from dsr_bench.models.config import ModelConfig
 from dsr_bench.models.dsr_net import DSRNet
 from dsr_bench.models.loss import dsr_loss
+from dsr_bench.train_configs import STAGES, StageConfig, stage_for
 
-
-@dataclass(frozen=True)
-class StageConfig:
-    """One stage of the curriculum."""
-
-    name: str
-    window: int
-    epochs: int
-    lr: float
-    decay_every: int
-    decay: float = 0.5
-    batch_size: int = 12
-    betas: tuple[float, float] = (0.9, 0.95)
-
-
-STAGES = {
-    "cube-single": StageConfig("cube-single", 1, 30, 1e-3, 5),
-    "cube-multi": StageConfig("cube-multi", 10, 20, 1e-4, 3),
-    "shapenet-multi": StageConfig("shapenet-multi", 10, 20, 1e-4, 3),
-}
-SINGLE_STEP_MODELS = ("single", "3dflow")
-
-
-def stage_for(model: str, stage: str, **overrides) -> StageConfig:
-    """The stage's configuration for a model (single-step models always use windows of 1)."""
-    if stage not in STAGES:
-        raise UserError(f"--stage {stage!r}: choose one of {', '.join(STAGES)}")
-    base = asdict(STAGES[stage])
-    if model in SINGLE_STEP_MODELS:
-        base["window"] = 1
-    base.update({k: v for k, v in overrides.items() if v is not None})
-    base["betas"] = tuple(base["betas"])
-    return StageConfig(**base)
+__all__ = ["STAGES", "StageConfig", "load_checkpoint", "save_checkpoint", "train", "train_step", "validate",
+           "WindowSampler"]
 
 
 def git_hash() -> str:
+    """The toolkit's git commit (or "unknown" outside a checkout)."""
     try:
         return subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True, timeout=5,
                               cwd=Path(__file__).resolve().parent).stdout.strip() or "unknown"
@@ -70,58 +40,109 @@ def git_hash() -> str:
 
 
 def _rng_state() -> dict:
-    return {"torch": torch.get_rng_state(), "numpy": json.dumps(np.random.get_state()[1].tolist()),
-            "numpy_pos": int(np.random.get_state()[2]), "python": json.dumps(random.getstate()[1]),
+    np_state = np.random.get_state()
+    return {"torch": torch.get_rng_state(), "numpy": torch.from_numpy(np_state[1].astype(np.int64)),
+            "numpy_pos": int(np_state[2]), "python": json.dumps(random.getstate()[1]),
             "cuda": torch.cuda.get_rng_state_all() if torch.cuda.is_available() else []}
 
 
 def _set_rng_state(state: dict) -> None:
     torch.set_rng_state(state["torch"])
-    np.random.set_state(("MT19937", np.array(json.loads(state["numpy"]), dtype=np.uint32), state["numpy_pos"], 0, 0.0))
+    np.random.set_state(("MT19937", state["numpy"].numpy().astype(np.uint32), state["numpy_pos"], 0, 0.0))
     random.setstate((3, tuple(json.loads(state["python"])), None))
     if torch.cuda.is_available() and state["cuda"]:
         torch.cuda.set_rng_state_all(state["cuda"])
 
 
 def save_checkpoint(path: Path, model, optimizer, scheduler, model_config: ModelConfig, stage: StageConfig,
-                    epoch: int, batch_index: int, step: int) -> Path:
-    """A checkpoint of plain tensors and containers (loadable with weights_only=True), written atomically."""
+                    epoch: int, batch_index: int, step: int, extra: dict | None = None) -> Path:
+    """Write a checkpoint atomically: model/optimizer/scheduler state, configs, RNG states, data
+    position (epoch, batch_index = batches of that epoch already consumed), step, git hash."""
     net = model.module if hasattr(model, "module") else model
-    payload = {"model": net.state_dict(), "optimizer": optimizer.state_dict(), "scheduler": scheduler.state_dict(),
-               "model_config": model_config.as_dict(), "stage": {**asdict(stage), "betas": list(stage.betas)},
-               "epoch": epoch, "batch_index": batch_index, "step": step, "rng": _rng_state(), "git": git_hash(),
-               "torch_version": str(torch.__version__)}
+    net = getattr(net, "_orig_mod", net)
+    payload = {"format": "dsr-bench-checkpoint", "model": net.state_dict(), "optimizer": optimizer.state_dict(),
+               "scheduler": scheduler.state_dict(), "model_config": model_config.as_dict(),
+               "stage": stage.as_dict(), "epoch": int(epoch), "batch_index": int(batch_index), "step": int(step),
+               "rng": _rng_state(), "git": git_hash(), "torch_version": str(torch.__version__), **(extra or {})}
+    path = Path(path)
     tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    torch.save(payload, tmp)
-    os.replace(tmp, path)
+    try:
+        torch.save(payload, tmp)
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
     return path
 
 
 def load_checkpoint(path: Path, map_location="cpu") -> dict:
-    """Load a checkpoint safely (weights_only=True)."""
-    if not Path(path).is_file():
+    """Load a dsr-bench checkpoint safely (weights_only=True); UserError if it is not one."""
+    path = Path(path)
+    if not path.is_file():
         raise UserError(f"checkpoint not found: {path}")
     try:
-        return torch.load(path, map_location=map_location, weights_only=True)
+        state = torch.load(path, map_location=map_location, weights_only=True)
     except Exception as exc:
         first = str(exc).strip().splitlines()[0] if str(exc).strip() else ""
-        raise UserError(f"{path}: not a loadable dsr-bench checkpoint ({type(exc).__name__}: {first})") from None
+        raise UserError(f"{path}: not a loadable dsr-bench checkpoint ({type(exc).__name__}: {first[:200]})") from None
+    if not isinstance(state, dict) or not {"model", "model_config"} <= set(state):
+        raise UserError(f"{path}: not a dsr-bench checkpoint (no model / model_config); "
+                        "train one with `dsr-bench train`")
+    try:
+        ModelConfig.from_dict(state["model_config"])
+    except (TypeError, ValueError, KeyError) as exc:
+        raise UserError(f"{path}: unusable model_config ({exc})") from None
+    return state
 
 
-def train_step(model: DSRNet, batch: dict, optimizer, device, bf16: bool = False,
-               deterministic: bool = False) -> list[dict]:
-    """One window: for each step, forward, loss under the carried matching, backward, optimiser
-    step; the state is detached between steps. Returns the loss terms per step."""
-    tsdf, action = batch["tsdf"].to(device), batch["action"].to(device)
-    gt_mask, gt_flow = batch["mask_3d"].to(device), batch["scene_flow_3d"].to(device)
+class WindowSampler(torch.utils.data.Sampler):
+    """Shuffled window indices, identical for a (seed, epoch) on every run, split across ranks, that
+    can start mid-epoch: the data position of a resumed run (`start` = samples already consumed by
+    this rank). Drops the tail so every rank gets the same number of whole batches."""
+
+    def __init__(self, size: int, batch_size: int, seed: int = 0, rank: int = 0, world: int = 1, shuffle: bool = True):
+        self.size, self.batch_size, self.seed, self.rank, self.world, self.shuffle = size, batch_size, seed, rank, world, shuffle
+        per_rank = size // world
+        self.batches = per_rank // batch_size if per_rank >= batch_size else (1 if per_rank else 0)
+        self.per_rank = min(per_rank, self.batches * batch_size)
+        self.epoch, self.start = 0, 0
+
+    def set_epoch(self, epoch: int, start_batch: int = 0) -> None:
+        self.epoch, self.start = epoch, start_batch * self.batch_size
+
+    def __iter__(self):
+        if self.shuffle:
+            order = torch.randperm(self.size, generator=torch.Generator().manual_seed(self.seed * 100_003 + self.epoch))
+        else:
+            order = torch.arange(self.size)
+        mine = order[self.rank::self.world][: self.per_rank]
+        return iter(mine[self.start:].tolist())
+
+    def __len__(self) -> int:
+        return max(self.per_rank - self.start, 0)
+
+
+def _to(batch: dict, device) -> tuple[torch.Tensor, ...]:
+    nb = device.type == "cuda"
+    return tuple(batch[k].to(device, non_blocking=nb) for k in ("tsdf", "action", "mask_3d", "scene_flow_3d"))
+
+
+def train_step(model, batch: dict, optimizer, device, bf16: bool = False, deterministic: bool = False,
+               mask_reduction: str = "sum") -> list[dict]:
+    """One window (B, L, ...): per step, forward, loss under the previous step's matching, backward,
+    optimiser step; the state is detached between steps. Returns the loss terms of every step."""
+    device = torch.device(device)
+    tsdf, action, gt_mask, gt_flow = _to(batch, device)
     net = model.module if hasattr(model, "module") else model
+    net = getattr(net, "_orig_mod", net)
     state = net.initial_state(tsdf.shape[0], device)
     matching, logs = None, []
     for t in range(tsdf.shape[1]):
         optimizer.zero_grad(set_to_none=True)
         with torch.autocast(device.type, dtype=torch.bfloat16, enabled=bf16):
             outputs = model(tsdf[:, t], action[:, t], state)
-        loss, terms, matching = dsr_loss(outputs, gt_mask[:, t], gt_flow[:, t], matching)
+        loss, terms, matching = dsr_loss(outputs, gt_mask[:, t], gt_flow[:, t], matching, reduction=mask_reduction)
+        if not math.isfinite(terms["total"]):
+            raise FloatingPointError(f"loss is {terms['total']} at window step {t}; lower the learning rate (--lr)")
         loss.backward()
         optimizer.step()
         logs.append(terms)
@@ -130,145 +151,225 @@ def train_step(model: DSRNet, batch: dict, optimizer, device, bf16: bool = False
 
 
 @torch.no_grad()
-def validate(model: DSRNet, loader, device, official_bn: bool = False, max_batches: int | None = None) -> dict:
-    """Mean unordered IoU and losses on a loader (BatchNorm in eval mode unless official_bn)."""
+def validate(model, loader, device, official_bn: bool = False, bf16: bool = False,
+             max_batches: int | None = None) -> dict:
+    """Mean per-step unordered mask IoU (the benchmark's matching) and loss on a loader, state carried
+    across each window's steps. BatchNorm in eval mode unless `official_bn` (the official code
+    never switches it)."""
     from dsr_bench.metrics import assignment, matched_iou, overlap
 
+    device = torch.device(device)
     net = model.module if hasattr(model, "module") else model
+    net = getattr(net, "_orig_mod", net)
+    was_training = net.training
     net.train(official_bn)
     ious, losses = [], []
-    for i, batch in enumerate(loader):
-        if max_batches is not None and i >= max_batches:
-            break
-        tsdf, action = batch["tsdf"].to(device), batch["action"].to(device)
-        gt_mask, gt_flow = batch["mask_3d"].to(device), batch["scene_flow_3d"].to(device)
-        state = net.initial_state(tsdf.shape[0], device)
-        for t in range(tsdf.shape[1]):
-            out = net(tsdf[:, t], action[:, t], state)
-            losses.append(dsr_loss(out, gt_mask[:, t], gt_flow[:, t])[1]["total"])
-            labels = out["mask"].argmax(1)
-            k = out["mask"].shape[1]
-            labels = torch.where(labels == k - 1, 0, labels + 1).cpu().numpy()
-            for b in range(labels.shape[0]):
-                gt = gt_mask[b, t].cpu().numpy()
-                ov = overlap(labels[b], gt, k - 1, int(gt.max()))
-                ious.append(matched_iou(ov, *assignment(ov.iou))[0])
-            state = net.next_state(out, gt_flow[:, t], gt_mask[:, t])
-    net.train(True)
-    return {"val_iou": float(np.mean(ious)) if ious else float("nan"), "val_loss": float(np.mean(losses)) if losses else float("nan")}
+    try:
+        for i, batch in enumerate(loader):
+            if max_batches is not None and i >= max_batches:
+                break
+            tsdf, action, gt_mask, gt_flow = _to(batch, device)
+            state = net.initial_state(tsdf.shape[0], device)
+            matching = None
+            for t in range(tsdf.shape[1]):
+                with torch.autocast(device.type, dtype=torch.bfloat16, enabled=bf16):
+                    out = net(tsdf[:, t], action[:, t], state)
+                _, terms, matching = dsr_loss(out, gt_mask[:, t], gt_flow[:, t], matching, reduction="mean")
+                losses.append(terms["total"])
+                k = out["mask"].shape[1]
+                labels = out["mask"].argmax(1)
+                labels = torch.where(labels == k - 1, 0, labels + 1).cpu().numpy()
+                gts = gt_mask[:, t].cpu().numpy()
+                for pred, gt in zip(labels, gts):
+                    ov = overlap(pred, gt, k - 1, max(int(gt.max()), 1))
+                    ious.append(matched_iou(ov, *assignment(ov.iou))[0])
+                state = net.next_state(out, gt_flow[:, t], gt_mask[:, t])
+    finally:
+        net.train(was_training)
+    return {"val_iou": float(np.mean(ious)) if ious else float("nan"),
+            "val_loss": float(np.mean(losses)) if losses else float("nan")}
+
+
+def _data_grid(dataset) -> tuple[int, int, int]:
+    import h5py
+
+    path = dataset.items[0][0]
+    with h5py.File(path, "r") as f:
+        if "tsdf" not in f or len(f["tsdf"].shape) != 4:
+            raise UserError(f"{path}: no (T, Y, X, Z) tsdf; check it with `dsr-bench validate {path.parent}`")
+        return tuple(int(s) for s in f["tsdf"].shape[1:])
+
+
+def _load_weights(net: DSRNet, state: dict, source: Path) -> None:
+    try:
+        net.load_state_dict(state["model"])
+    except RuntimeError as exc:
+        raise UserError(f"{source}: weights do not fit this model ({str(exc).splitlines()[0][:160]}); "
+                        "check --model and --grid-size") from None
 
 
 def train(model_name: str, stage_name: str, data: Path, out: Path, split: str | None = None,
           val_split: str | None = None, epochs: int | None = None, batch_size: int | None = None,
-          lr: float | None = None, max_steps: int | None = None, init: Path | None = None, resume: Path | None = None,
-          device: str = "cpu", bf16: bool = False, compile_model: bool = False, channels_last: bool = False,
-          workers: int = 2, seed: int = 0, official_bn: bool = False, deterministic: bool = False,
-          log_every: int = 10) -> Path:
-    """Train a model for one stage; returns the final checkpoint's path."""
+          lr: float | None = None, window: int | None = None, max_steps: int | None = None, init: Path | None = None,
+          resume: Path | None = None, device: str = "cpu", bf16: bool = False, compile_model: bool = False,
+          channels_last: bool = False, workers: int = 2, seed: int = 0, official_bn: bool = False,
+          deterministic: bool = False, grid: tuple[int, int, int] | None = None, checkpoint_every: int = 0,
+          log_every: int = 10, progress: bool = True) -> Path:
+    """Train `model_name` for one stage on DATA's split; returns the last checkpoint (OUT/last.pt).
+
+    Single process by default; under torchrun (WORLD_SIZE > 1) one process per GPU with DDP."""
     from torch.utils.data import DataLoader
     from tqdm import tqdm
 
     from dsr_bench.torch_data import SequenceWindowDataset
 
-    distributed = int(os.environ.get("WORLD_SIZE", "1")) > 1
+    world = int(os.environ.get("WORLD_SIZE", "1"))
     rank = int(os.environ.get("RANK", "0"))
+    distributed = world > 1
     if distributed:
-        torch.distributed.init_process_group("nccl" if torch.cuda.is_available() else "gloo")
         if torch.cuda.is_available():
             local = int(os.environ.get("LOCAL_RANK", "0"))
             torch.cuda.set_device(local)
             device = f"cuda:{local}"
-    dev = torch.device(device)
+        torch.distributed.init_process_group("nccl" if torch.cuda.is_available() else "gloo")
+    try:
+        dev = torch.device(device)
+    except RuntimeError:
+        raise UserError(f"--device {device!r}: use cpu, cuda or cuda:N") from None
     if dev.type == "cuda" and not torch.cuda.is_available():
         raise UserError("--device cuda but no CUDA device is available; use --device cpu")
-    stage = stage_for(model_name, stage_name, epochs=epochs, batch_size=batch_size, lr=lr)
-    checkpoint = load_checkpoint(resume) if resume else None
-    model_config = ModelConfig.from_dict(checkpoint["model_config"]) if checkpoint else ModelConfig.for_model(model_name)
+    checkpoint = load_checkpoint(resume) if resume is not None else None
+    if checkpoint is not None:
+        saved = ModelConfig.from_dict(checkpoint["model_config"])
+        if saved.name != model_name or checkpoint.get("stage", {}).get("name") != stage_name:
+            raise UserError(f"{resume} is a {saved.name!r} run of stage {checkpoint.get('stage', {}).get('name')!r}; "
+                            f"resume it with --model {saved.name} --stage {checkpoint.get('stage', {}).get('name')}")
+        stage = StageConfig.from_dict(checkpoint["stage"])
+        if epochs is not None:
+            stage = StageConfig.from_dict({**stage.as_dict(), "epochs": epochs})
+    else:
+        stage = stage_for(model_name, stage_name, epochs=epochs, batch_size=batch_size, lr=lr, window=window)
     torch.manual_seed(seed + rank)
     np.random.seed(seed + rank)
     random.seed(seed + rank)
-    dataset = SequenceWindowDataset(data, split, window=stage.window)
-    if tuple(dataset[0]["tsdf"].shape[1:]) != tuple(model_config.grid):
-        raise UserError(f"data grid {tuple(dataset[0]['tsdf'].shape[1:])} differs from the model's {model_config.grid}")
-    sampler = torch.utils.data.distributed.DistributedSampler(dataset, seed=seed) if distributed else None
-    generator = torch.Generator().manual_seed(seed)
-    loader = DataLoader(dataset, batch_size=stage.batch_size, shuffle=sampler is None, sampler=sampler,
-                        num_workers=workers, generator=generator, drop_last=len(dataset) >= stage.batch_size,
-                        persistent_workers=workers > 0, pin_memory=dev.type == "cuda")
+    if deterministic:
+        torch.use_deterministic_algorithms(True, warn_only=True)
+        torch.backends.cudnn.benchmark = False
+    elif dev.type == "cuda":
+        torch.backends.cudnn.benchmark = True
+    dataset = SequenceWindowDataset(data, split, window=stage.window, stride=stage.window)
+    if len(dataset) == 0:
+        raise UserError(f"split {dataset.split!r} of {data} has no windows of {stage.window} pushes")
+    data_grid = _data_grid(dataset)
+    if grid is not None and tuple(grid) != data_grid:
+        raise UserError(f"--grid-size {' '.join(map(str, grid))} differs from the data's grid {data_grid}")
+    if checkpoint is not None:
+        model_config = ModelConfig.from_dict(checkpoint["model_config"])
+    else:
+        try:
+            model_config = ModelConfig.for_model(model_name, grid=data_grid)
+        except ValueError as exc:
+            raise UserError(f"{data}: {exc}") from None
+    if tuple(model_config.grid) != data_grid:
+        raise UserError(f"data grid {data_grid} differs from the checkpoint's model grid {tuple(model_config.grid)}")
+    sampler = WindowSampler(len(dataset), stage.batch_size, seed, rank, world)
+    if sampler.batches == 0:
+        raise UserError(f"{len(dataset)} windows cannot be split across {world} processes")
+    loader = DataLoader(dataset, batch_size=min(stage.batch_size, sampler.per_rank), sampler=sampler,
+                        num_workers=workers, persistent_workers=False, pin_memory=dev.type == "cuda",
+                        prefetch_factor=4 if workers > 0 else None)
     val_loader = None
-    if val_split:
-        val_loader = DataLoader(SequenceWindowDataset(data, val_split, window=stage.window), batch_size=stage.batch_size,
-                                num_workers=workers)
-    model = DSRNet(model_config).to(dev)
+    if val_split and rank == 0:
+        val_set = SequenceWindowDataset(data, val_split, window=stage.window, stride=stage.window)
+        val_loader = DataLoader(val_set, batch_size=stage.batch_size, num_workers=workers)
+    net = DSRNet(model_config).to(dev)
     if channels_last:
-        model = model.to(memory_format=torch.channels_last_3d)
+        net.to_channels_last()
     if init is not None and checkpoint is None:
-        model.load_state_dict(load_checkpoint(init)["model"])
-    optimizer = torch.optim.Adam(model.parameters(), lr=stage.lr, betas=stage.betas)
-    scheduler = torch.optim.lr_scheduler.StepLR(optimizer, step_size=stage.decay_every, gamma=stage.decay)
+        source = load_checkpoint(init, map_location=dev)
+        _load_weights(net, source, init)
+    optimizer = torch.optim.Adam(net.parameters(), lr=stage.lr_at(0), betas=stage.betas)
+    scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, lambda e: stage.lr_at(e) / stage.lr_at(0))
     start_epoch, start_batch, step = 0, 0, 0
     if checkpoint is not None:
-        model.load_state_dict(checkpoint["model"])
+        _load_weights(net, checkpoint, resume)
         optimizer.load_state_dict(checkpoint["optimizer"])
         scheduler.load_state_dict(checkpoint["scheduler"])
         start_epoch, start_batch, step = checkpoint["epoch"], checkpoint["batch_index"], checkpoint["step"]
         _set_rng_state(checkpoint["rng"])
+    model = net
     if distributed:
-        model = torch.nn.parallel.DistributedDataParallel(model)
+        model = torch.nn.parallel.DistributedDataParallel(net, device_ids=[dev.index] if dev.type == "cuda" else None)
     train_model = torch.compile(model) if compile_model else model
+    out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
+    latest = out / "last.pt"
+    log = writer = None
     if rank == 0:
-        (out / "config.json").write_text(json.dumps({"model": model_config.as_dict(), "stage": asdict(stage),
-                                                    "data": str(data), "split": dataset.split, "git": git_hash(),
-                                                    "seed": seed, "bf16": bf16}, indent=1, default=list))
-    writer = None
-    if rank == 0:
+        run_config = {"model": model_config.as_dict(), "stage": stage.as_dict(), "data": str(data),
+                      "split": dataset.split, "val_split": val_split, "windows": len(dataset), "git": git_hash(),
+                      "seed": seed, "bf16": bf16, "compile": compile_model, "channels_last": channels_last,
+                      "world_size": world, "init": str(init) if init else None, "resume": str(resume) if resume else None,
+                      "official_bn": official_bn, "deterministic": deterministic}
+        tmp = out / f".config.json.tmp-{os.getpid()}"
+        tmp.write_text(json.dumps(run_config, indent=1) + "\n")
+        os.replace(tmp, out / "config.json")
         try:
             from torch.utils.tensorboard import SummaryWriter
 
             writer = SummaryWriter(str(out / "tensorboard"))
         except Exception:  # TensorBoard is optional
             writer = None
-    log = open(out / "metrics.jsonl", "a") if rank == 0 else None
-    latest = out / "last.pt"
+        log = open(out / "metrics.jsonl", "a")
+
+    def save(epoch: int, batch_index: int) -> None:
+        if rank == 0:
+            save_checkpoint(latest, model, optimizer, scheduler, model_config, stage, epoch, batch_index, step,
+                            {"data": str(data), "split": dataset.split, "seed": seed, "world_size": world})
+
     try:
         for epoch in range(start_epoch, stage.epochs):
-            if sampler is not None:
-                sampler.set_epoch(epoch)
-            generator.manual_seed(seed + epoch)
-            bar = tqdm(loader, desc=f"{model_name} {stage.name} epoch {epoch + 1}/{stage.epochs}", disable=rank != 0,
-                       leave=False)
-            for batch_index, batch in enumerate(bar):
-                if epoch == start_epoch and batch_index < start_batch:
-                    continue  # resume at the data position
+            first = start_batch if epoch == start_epoch else 0
+            sampler.set_epoch(epoch, first)
+            bar = tqdm(loader, desc=f"{model_name} {stage.name} epoch {epoch + 1}/{stage.epochs}",
+                       disable=rank != 0 or not progress, leave=False, initial=first, total=sampler.batches)
+            batch_index = first
+            for batch in bar:
                 t0 = time.perf_counter()
-                terms = train_step(train_model, batch, optimizer, dev, bf16, deterministic)
-                step += 1
+                terms = train_step(train_model, batch, optimizer, dev, bf16, deterministic, stage.mask_reduction)
                 seconds = time.perf_counter() - t0
-                record = {"step": step, "epoch": epoch, "lr": optimizer.param_groups[0]["lr"],
-                          "loss": float(np.mean([t["total"] for t in terms])),
-                          "motion_loss": float(np.mean([t["motion"] for t in terms])),
-                          "mask_loss": float(np.mean([t["mask"] for t in terms])),
-                          "samples_per_s": batch["tsdf"].shape[0] * batch["tsdf"].shape[1] / seconds}
+                step += 1
+                batch_index += 1
                 if log is not None:
+                    samples = batch["tsdf"].shape[0] * batch["tsdf"].shape[1] * world
+                    record = {"step": step, "epoch": epoch, "batch": batch_index, "lr": optimizer.param_groups[0]["lr"],
+                              "loss": float(np.mean([t["total"] for t in terms])),
+                              "motion_loss": float(np.mean([t["motion"] for t in terms])),
+                              "mask_loss": float(np.mean([t["mask"] for t in terms])),
+                              "loss_per_step": [round(t["total"], 6) for t in terms],
+                              "samples_per_s": samples / seconds}
                     log.write(json.dumps(record) + "\n")
                     log.flush()
                     bar.set_postfix(loss=f"{record['loss']:.4f}")
                     if writer is not None and step % log_every == 0:
                         for key in ("loss", "motion_loss", "mask_loss", "lr", "samples_per_s"):
-                            writer.add_scalar(key, record[key], step)
+                            writer.add_scalar(f"train/{key}", record[key], step)
                 if max_steps is not None and step >= max_steps:
-                    if rank == 0:
-                        save_checkpoint(latest, model, optimizer, scheduler, model_config, stage, epoch, batch_index + 1,
-                                        step)
+                    save(epoch, batch_index)
                     return latest
+                if checkpoint_every and step % checkpoint_every == 0:
+                    save(epoch, batch_index)
             scheduler.step()
             if rank == 0:
-                record = {"epoch": epoch + 1, "step": step}
+                record = {"epoch": epoch + 1, "step": step, "lr_next": optimizer.param_groups[0]["lr"]}
                 if val_loader is not None:
-                    record.update(validate(model, val_loader, dev, official_bn))
+                    record.update(validate(model, val_loader, dev, official_bn, bf16))
+                    if writer is not None:
+                        writer.add_scalar("val/iou", record["val_iou"], step)
+                        writer.add_scalar("val/loss", record["val_loss"], step)
                 log.write(json.dumps(record) + "\n")
-                save_checkpoint(latest, model, optimizer, scheduler, model_config, stage, epoch + 1, 0, step)
+                log.flush()
+            save(epoch + 1, 0)
         return latest
     finally:
         if log is not None:

@@ -47,6 +47,11 @@ def test_integer_shift_moves_features_exactly():
     weight[0, 3, 3, 3] = 1.0  # only the moving voxel is foreground
     out = forward_warp(f, flow, weight)
     assert out[0, 0, 1, 4, 0] == 7.0 and out.abs().sum() == 7.0  # floor, not truncation, for negatives
+    flow[0, :, 3, 3, 3] = torch.tensor([-3.5, 0.0, 0.0])  # lands at -0.5: half of it at voxel 0, half dropped
+    out = forward_warp(f, flow, weight)
+    assert out[0, 0, 0, 3, 3] == 7.0 and out.abs().sum() == 7.0  # normalised by the weight that arrived
+    flow[0, :, 3, 3, 3] = torch.tensor([-4.5, 0.0, 0.0])  # both corners (-5, -4) outside: nothing lands
+    assert forward_warp(f, flow, weight).abs().sum() == 0
 
 
 def test_gradients_and_gradcheck():
@@ -56,11 +61,34 @@ def test_gradients_and_gradcheck():
     flow = torch.tensor(rng.uniform(-0.9, 0.9, size=(1, 3) + dims), requires_grad=True)
     w = torch.tensor(rng.uniform(0.2, 1, size=(1,) + dims), requires_grad=True)
 
-    def fn(f, flow, w):
-        return forward_warp(f, flow, w).double()
+    out = forward_warp(f, flow, w)
+    assert out.dtype == torch.float64  # fp64 inputs are warped in fp64
+    # flow within (-1, 1) and away from integer positions: the splat is smooth there
+    assert torch.autograd.gradcheck(forward_warp, (f, flow, w), eps=1e-6, atol=1e-7, rtol=1e-5)
 
-    # float64 throughout (the warp computes in fp32 internally: loosen tolerances accordingly)
-    assert torch.autograd.gradcheck(fn, (f, flow, w), eps=1e-3, atol=5e-3, rtol=5e-3)
+
+def test_gradient_flows_into_the_target_voxels():
+    f = torch.zeros(1, 1, 4, 4, 4, dtype=torch.float64)
+    f[0, 0, 1, 1, 1] = 2.0
+    w = torch.zeros(1, 4, 4, 4, dtype=torch.float64)
+    w[0, 1, 1, 1] = 1.0
+    w[0, 2, 1, 1] = 1.0  # a static neighbour with feature 0 shares the target voxels
+    flow = torch.zeros(1, 3, 4, 4, 4, dtype=torch.float64, requires_grad=True)
+    with torch.no_grad():
+        flow[0, 0, 1, 1, 1] = 0.25
+    out = forward_warp(f, flow, w)
+    # voxel (1,1,1) receives 0.75 of the moving feature and nothing else: value 2.0 exactly
+    assert out[0, 0, 1, 1, 1].item() == pytest.approx(2.0)
+    # voxel (2,1,1) mixes 0.25 x 2.0 with the static neighbour's 1.0 x 0.0
+    assert out[0, 0, 2, 1, 1].item() == pytest.approx(0.5 / 1.25)
+    out[0, 0, 2, 1, 1].backward()
+    # d/dflow of (2 a) / (a + 1) with a = flow: 2 / (a + 1)^2
+    assert flow.grad[0, 0, 1, 1, 1].item() == pytest.approx(2 / 1.25 ** 2)
+
+
+def test_bad_shapes_are_refused():
+    with pytest.raises(ValueError, match="disagree"):
+        forward_warp(torch.zeros(1, 2, 4, 4, 4), torch.zeros(1, 3, 4, 4, 2), torch.zeros(1, 4, 4, 4))
 
 
 def test_deterministic_mode_and_batch_independence():

@@ -2,22 +2,29 @@
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, fields
 
 from dsr_bench.constants import GRID_SHAPE, NUM_MASK_SLOTS
 
 MODEL_NAMES = ("dsr", "single", "nowarp", "gtwarp", "3dflow")
 
+_VARIANTS = {"dsr": {"history": "warp"}, "single": {"history": "none"}, "nowarp": {"history": "nowarp"},
+             "gtwarp": {"history": "gtwarp"}, "3dflow": {"history": "none", "motion": "flow"}}
+
 
 @dataclass(frozen=True)
 class ModelConfig:
-    """Everything that defines a model; saved in every checkpoint.
+    """Everything that defines a model; saved in every checkpoint (defaults: the official code).
 
-    history: "warp" (DSR-Net), "none" (SingleStep, 3DFlow), "nowarp", "gtwarp".
-    motion: "se3" (mask-blended rigid motions) or "flow" (3DFlow's per-voxel decoder).
-    leaky_slope: official code 0.01 (the paper says 0.2). mlp_layers: linear layers of the SE(3)
-    MLP (paper: five with 512 hidden units). euler: "official" builds R = Rz Ry Rx from passive
-    elementary rotations (R_x(theta) is the usual R_x(-theta)); "standard" uses active ones.
+    grid: volume size (D0, D1, D2) = (world y, world x, z) voxels, every side a multiple of 16.
+    history: "warp" (DSR-Net), "none" (SingleStep, 3DFlow), "nowarp", "gtwarp" (oracle).
+    motion: "se3" (mask-blended rigid motions) or "flow" (3DFlow's per-voxel conv decoder).
+    leaky_slope: official 0.01 (the paper says 0.2). mlp_layers / mlp_hidden: linear layers of the
+    SE(3) MLP (official: 4 hidden layers of 512 + the output layer = 5). euler: "official" builds
+    R = Rz Ry Rx from passive elementary rotations (R_x(a) is the usual R_x(-a)); "standard" uses
+    active ones. gtwarp_weight: splat weights of GTWarp, "predicted" foreground probability
+    (official) or the ground-truth "gt" foreground. init: "official" (Kaiming-normal convs, Xavier
+    MLP) or "zero-motion" (the same, with the last MLP layer zeroed: identity motions at the start).
     """
 
     name: str = "dsr"
@@ -31,34 +38,44 @@ class ModelConfig:
     mlp_hidden: int = 512
     euler: str = "official"
     warp_eps: float = 1e-3
-    extra: dict = field(default_factory=dict)
+    gtwarp_weight: str = "predicted"
+    init: str = "official"
 
     def __post_init__(self):
-        if self.history not in ("warp", "none", "nowarp", "gtwarp"):
-            raise ValueError(f"history {self.history!r}")
-        if self.motion not in ("se3", "flow"):
-            raise ValueError(f"motion {self.motion!r}")
-        if self.euler not in ("official", "standard"):
-            raise ValueError(f"euler {self.euler!r}")
-        if any(g % 16 for g in self.grid):
-            raise ValueError(f"grid {self.grid}: every side must be a multiple of 16 (four 2x downsamplings)")
+        choices = {"history": ("warp", "none", "nowarp", "gtwarp"), "motion": ("se3", "flow"),
+                   "euler": ("official", "standard"), "gtwarp_weight": ("predicted", "gt"),
+                   "init": ("official", "zero-motion")}
+        for key, allowed in choices.items():
+            if getattr(self, key) not in allowed:
+                raise ValueError(f"{key} {getattr(self, key)!r}: choose one of {', '.join(allowed)}")
+        if len(self.grid) != 3 or any(int(g) <= 0 or int(g) % 16 for g in self.grid):
+            raise ValueError(f"grid {tuple(self.grid)}: every side must be a positive multiple of 16 "
+                             "(four 2x downsamplings)")
+        if self.num_slots < 2 or self.mlp_layers < 1 or self.state_channels < 1:
+            raise ValueError("num_slots must be >= 2, mlp_layers and state_channels >= 1")
 
     @classmethod
     def for_model(cls, name: str, **overrides) -> ModelConfig:
-        """The configuration of a named reference model."""
-        variants = {"dsr": {"history": "warp"}, "single": {"history": "none"}, "nowarp": {"history": "nowarp"},
-                    "gtwarp": {"history": "gtwarp"}, "3dflow": {"history": "none", "motion": "flow"}}
-        if name not in variants:
+        """The configuration of a named reference model (overrides: any other field)."""
+        if name not in _VARIANTS:
             raise ValueError(f"unknown model {name!r}; choose from {', '.join(MODEL_NAMES)}")
-        return cls(name=name, **{**variants[name], **overrides})
+        if "grid" in overrides:
+            overrides["grid"] = tuple(int(g) for g in overrides["grid"])
+        return cls(name=name, **{**_VARIANTS[name], **overrides})
 
     def as_dict(self) -> dict:
+        """Plain types only (JSON and torch.load(weights_only=True) safe)."""
         out = asdict(self)
         out["grid"] = list(self.grid)
         return out
 
     @classmethod
     def from_dict(cls, data: dict) -> ModelConfig:
+        """Inverse of as_dict; unknown keys are an error (a checkpoint from another toolkit)."""
+        known = {f.name for f in fields(cls)}
+        unknown = sorted(set(data) - known)
+        if unknown:
+            raise ValueError(f"unknown model config keys {unknown}")
         data = dict(data)
-        data["grid"] = tuple(data["grid"])
+        data["grid"] = tuple(int(g) for g in data["grid"])
         return cls(**data)

@@ -1,12 +1,21 @@
-"""DSR-Net (paper appendix, official conventions) and its baselines in one network.
+"""DSR-Net (paper appendix, official code's layer layout) and its baselines in one network.
 
 Input per step: TSDF (1), voxel coordinates / grid size (3) and the 8-channel state (the warped
-representation of the previous step, zeros at t = 0 or without history): 12 channels on the grid.
-Scene encoder (22 3D conv layers with skips) -> representation S_t (8 channels). Mask head: 1x1x1
-conv to K channels, softmax, background last. Action encoder (2D convs) -> embeddings at 1/2 and
-1/4 resolution. Motion: SE(3) head (8 strided 3D convs fed with the action and its embeddings, a
-conv to a vector, an MLP) -> K - 1 transforms, blended by the masks around soft-centroid pivots;
-or, for 3DFlow, a 3D conv decoder to per-voxel flow. Motion is in voxels along (D0, D1, D2).
+representation of the previous step; zeros at t = 0 or without history): 12 channels on the grid.
+Every conv block is conv3 -> BatchNorm -> LeakyReLU (-> x2 trilinear upsampling, align_corners).
+
+- Volume encoder: 10 convs (strides 2 on the 1st, 2nd, 6th, 10th; 16/32/64/128 channels) and two
+  residual blocks; feature decoder: 8 convs with x2 upsampling and skips at 1/8, 1/4, 1/2, giving
+  the representation S_t (8 channels, full grid).
+- Mask head: 1x1x1 conv to K channels, softmax, background last.
+- SE(3) head: an action encoder (2D convs on the 8 x D0 x D1 one-hot map, embeddings of 8
+  channels at 1/2 and 16 at 1/4), 3D convs fed with S_t, the action and the embeddings (five
+  strided), a conv over the remaining volume to a 128-vector and an MLP to (K - 1) x
+  [translation (3), Euler angles (3)]; pivots are soft centroids; motion blended by the masks.
+- 3DFlow: a 3D conv decoder (3 strided convs fed with the action embeddings, 3 upsampling convs
+  with additive skips) to per-voxel flow. (The official 3DFlow has no mask head; ours keeps it so
+  the baseline also fills the predictions' masks.)
+Motion is in voxels along (D0, D1, D2) = (dy, dx, dz).
 """
 
 from __future__ import annotations
@@ -16,143 +25,159 @@ from torch import nn
 from torch.nn import functional as F
 
 from dsr_bench.models.config import ModelConfig
-from dsr_bench.models.se3 import blended_motion, euler_to_matrix, soft_centroids, voxel_grid
+from dsr_bench.models.se3 import blended_motion, euler_to_matrix, soft_centroids
 from dsr_bench.models.warp import forward_warp
 
 
-def conv3(cin: int, cout: int, stride: int, slope: float) -> nn.Sequential:
-    return nn.Sequential(nn.Conv3d(cin, cout, 3, stride, 1, bias=False), nn.BatchNorm3d(cout),
-                         nn.LeakyReLU(slope, inplace=True))
+class ConvBlock(nn.Module):
+    """conv (kernel 3, padding 1, no bias) -> BatchNorm -> LeakyReLU [-> x2 upsampling], 2D or 3D."""
+
+    def __init__(self, cin: int, cout: int, slope: float, stride: int = 1, up: bool = False, dims: int = 3):
+        super().__init__()
+        conv, norm = (nn.Conv3d, nn.BatchNorm3d) if dims == 3 else (nn.Conv2d, nn.BatchNorm2d)
+        self.conv = conv(cin, cout, 3, stride, 1, bias=False)
+        self.norm = norm(cout)
+        self.act = nn.LeakyReLU(slope, inplace=True)
+        self.up = up
+        self.mode = "trilinear" if dims == 3 else "bilinear"
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        x = self.act(self.norm(self.conv(x)))
+        return F.interpolate(x, scale_factor=2, mode=self.mode, align_corners=True) if self.up else x
 
 
-def conv2(cin: int, cout: int, stride: int, slope: float) -> nn.Sequential:
-    return nn.Sequential(nn.Conv2d(cin, cout, 3, stride, 1, bias=False), nn.BatchNorm2d(cout),
-                         nn.LeakyReLU(slope, inplace=True))
+class ResBlock(nn.Module):
+    """Two 3D convs with BatchNorm and an identity shortcut, LeakyReLU after the sum."""
 
-
-class ResBlock3d(nn.Module):
     def __init__(self, channels: int, slope: float):
         super().__init__()
-        self.body = nn.Sequential(conv3(channels, channels, 1, slope), nn.Conv3d(channels, channels, 3, 1, 1, bias=False),
-                                  nn.BatchNorm3d(channels))
+        self.conv1 = nn.Conv3d(channels, channels, 3, 1, 1, bias=False)
+        self.bn1 = nn.BatchNorm3d(channels)
+        self.conv2 = nn.Conv3d(channels, channels, 3, 1, 1, bias=False)
+        self.bn2 = nn.BatchNorm3d(channels)
         self.act = nn.LeakyReLU(slope, inplace=True)
 
-    def forward(self, x):
-        return self.act(x + self.body(x))
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        out = self.act(self.bn1(self.conv1(x)))
+        return self.act(self.bn2(self.conv2(out)) + x)
 
 
-def _up(x: torch.Tensor) -> torch.Tensor:
-    return F.interpolate(x, scale_factor=2, mode="trilinear", align_corners=False)
+class VolumeEncoder(nn.Module):
+    """(B, cin, G) -> bottleneck (B, 128, G/16) and skips at 1/8 (64 ch), 1/4 (32), 1/2 (16)."""
 
-
-class SceneEncoder(nn.Module):
-    """12 -> 8 channels: ten convs down (strides on 1, 2, 6, 10; skips after 1, 5, 9), two residual
-    blocks, eight convs up (skips into 3, 5, 7; x2 trilinear after 1, 3, 5, 7)."""
-
-    def __init__(self, cin: int, cout: int, slope: float):
+    def __init__(self, cin: int, slope: float):
         super().__init__()
-        chans = [16, 32, 32, 32, 32, 64, 64, 64, 64, 128]
-        strides = [2, 2, 1, 1, 1, 2, 1, 1, 1, 2]
-        layers, prev = [], cin
-        for ch, st in zip(chans, strides):
-            layers.append(conv3(prev, ch, st, slope))
-            prev = ch
-        self.down = nn.ModuleList(layers)
-        self.res = nn.Sequential(ResBlock3d(128, slope), ResBlock3d(128, slope))
-        self.up = nn.ModuleList([
-            conv3(128, 64, 1, slope), conv3(64, 64, 1, slope), conv3(64 + 64, 32, 1, slope), conv3(32, 32, 1, slope),
-            conv3(32 + 32, 16, 1, slope), conv3(16, 16, 1, slope), conv3(16 + 16, 8, 1, slope),
-        ])
-        self.last = nn.Conv3d(8, cout, 3, 1, 1)
+        s = slope
+        self.level0 = ConvBlock(cin, 16, s, 2)
+        self.level1 = nn.Sequential(ConvBlock(16, 32, s, 2), *(ConvBlock(32, 32, s) for _ in range(3)))
+        self.level2 = nn.Sequential(ConvBlock(32, 64, s, 2), *(ConvBlock(64, 64, s) for _ in range(3)))
+        self.level3 = nn.Sequential(ConvBlock(64, 128, s, 2), ResBlock(128, s), ResBlock(128, s))
 
-    def forward(self, x):
-        skips = {}
-        for i, layer in enumerate(self.down, start=1):
-            x = layer(x)
-            if i in (1, 5, 9):
-                skips[i] = x
-        x = self.res(x)
-        u = self.up
-        x = _up(u[0](x))
-        x = u[1](x)
-        x = _up(u[2](torch.cat([x, skips[9]], 1)))
-        x = u[3](x)
-        x = _up(u[4](torch.cat([x, skips[5]], 1)))
-        x = u[5](x)
-        x = _up(u[6](torch.cat([x, skips[1]], 1)))
-        return self.last(x)
+    def forward(self, x: torch.Tensor):
+        x0 = self.level0(x)
+        x1 = self.level1(x0)
+        x2 = self.level2(x1)
+        return self.level3(x2), (x2, x1, x0)
+
+
+class FeatureDecoder(nn.Module):
+    """Bottleneck and skips -> representation (B, cout, G); the last block keeps BN + LeakyReLU."""
+
+    def __init__(self, cout: int, slope: float):
+        super().__init__()
+        s = slope
+        self.up0 = nn.Sequential(ConvBlock(128, 64, s, up=True), ConvBlock(64, 64, s))
+        self.up1 = nn.Sequential(ConvBlock(64 + 64, 32, s, up=True), ConvBlock(32, 32, s))
+        self.up2 = nn.Sequential(ConvBlock(32 + 32, 16, s, up=True), ConvBlock(16, 16, s))
+        self.up3 = nn.Sequential(ConvBlock(16 + 16, 8, s, up=True), ConvBlock(8, cout, s))
+
+    def forward(self, x: torch.Tensor, skips) -> torch.Tensor:
+        s2, s1, s0 = skips
+        x = self.up0(x)
+        x = self.up1(torch.cat([x, s2], 1))
+        x = self.up2(torch.cat([x, s1], 1))
+        return self.up3(torch.cat([x, s0], 1))
 
 
 class ActionEncoder(nn.Module):
-    """8 x Y x X one-hot action map -> embeddings (8 ch at 1/2, 16 ch at 1/4 resolution)."""
+    """(B, 8, D0, D1) one-hot action map -> embeddings (B, 8, D0/2, D1/2) and (B, 16, D0/4, D1/4)."""
 
     def __init__(self, slope: float):
         super().__init__()
-        self.a = nn.Sequential(conv2(8, 64, 2, slope), conv2(64, 64, 1, slope), conv2(64, 64, 1, slope),
-                               conv2(64, 64, 1, slope))
-        self.emb_half = nn.Conv2d(64, 8, 3, 1, 1)
-        self.b = nn.Sequential(conv2(64, 128, 2, slope), conv2(128, 128, 1, slope), conv2(128, 128, 1, slope),
-                               conv2(128, 128, 1, slope))
-        self.emb_quarter = nn.Conv2d(128, 16, 3, 1, 1)
+        s = slope
+        self.trunk1 = nn.Sequential(ConvBlock(8, 64, s, 2, dims=2), *(ConvBlock(64, 64, s, dims=2) for _ in range(3)))
+        self.emb1 = ConvBlock(64, 8, s, dims=2)
+        self.trunk2 = nn.Sequential(ConvBlock(64, 128, s, 2, dims=2), *(ConvBlock(128, 128, s, dims=2) for _ in range(3)))
+        self.emb2 = ConvBlock(128, 16, s, dims=2)
 
-    def forward(self, action):
-        h = self.a(action)
-        return self.emb_half(h), self.emb_quarter(self.b(h))
+    def forward(self, action: torch.Tensor):
+        h1 = self.trunk1(action)
+        return self.emb1(h1), self.emb2(self.trunk2(h1))
+
+
+def _with_plane(volume: torch.Tensor, plane: torch.Tensor) -> torch.Tensor:
+    """Concatenate a (B, C, D0, D1) map, repeated along D2, to a (B, C', D0, D1, D2) volume."""
+    return torch.cat([volume, plane.unsqueeze(-1).expand(-1, -1, -1, -1, volume.shape[-1])], 1)
 
 
 def _halved(n: int, times: int) -> int:
     for _ in range(times):
-        n = (n + 1) // 2
+        n = (n + 1) // 2  # a kernel-3, padding-1, stride-2 conv
     return n
 
 
-def _repeat_z(x2d: torch.Tensor, depth: int) -> torch.Tensor:
-    return x2d.unsqueeze(-1).expand(-1, -1, -1, -1, depth)
-
-
 class SE3Head(nn.Module):
-    """Eight 3D convs (five strided) fed with the action and its two embeddings, a conv over the
-    remaining volume to a 128-vector, and an MLP to (K - 1) x [translation (3), Euler angles (3)]."""
+    """Representation + action -> (B, K-1, 6) = [translation (3) in voxels, Euler angles (3)]."""
 
     def __init__(self, config: ModelConfig):
         super().__init__()
-        s, k = config.leaky_slope, config.num_slots
-        self.c1 = conv3(config.state_channels + 8, 8, 2, s)
-        self.c2 = conv3(8 + 8, 16, 2, s)
-        self.c3 = conv3(16 + 16, 32, 2, s)
-        self.rest = nn.Sequential(conv3(32, 32, 1, s), conv3(32, 32, 2, s), conv3(32, 64, 2, s), conv3(64, 128, 1, s),
-                                  conv3(128, 128, 1, s))
-        final = tuple(_halved(g, 5) for g in config.grid)  # five stride-2 convs (kernel 3, padding 1)
-        self.to_vector = nn.Conv3d(128, 128, final)
-        layers, prev = [], 128
+        s, c = config.leaky_slope, config.state_channels
+        self.action = ActionEncoder(s)
+        self.conv0 = ConvBlock(c + 8, 8, s, 2)
+        self.conv1 = ConvBlock(8 + 8, 16, s, 2)
+        self.conv2 = nn.Sequential(ConvBlock(16 + 16, 32, s, 2), ConvBlock(32, 32, s), ConvBlock(32, 32, s),
+                                   ConvBlock(32, 64, s), ConvBlock(64, 128, s, 2), ConvBlock(128, 128, s, 2))
+        remaining = tuple(_halved(int(g), 5) for g in config.grid)  # (4, 4, 2) on the 128 x 128 x 48 grid
+        self.to_vector = nn.Conv3d(128, 128, remaining)
+        layers: list[nn.Module] = []
+        prev = 128
         for _ in range(config.mlp_layers - 1):
-            layers += [nn.Linear(prev, config.mlp_hidden), nn.LeakyReLU(s, inplace=True)]
+            layers += [nn.Linear(prev, config.mlp_hidden), nn.LeakyReLU(s)]
             prev = config.mlp_hidden
-        layers.append(nn.Linear(prev, 6 * (k - 1)))
+        layers.append(nn.Linear(prev, 6 * (config.num_slots - 1)))
         self.mlp = nn.Sequential(*layers)
-        nn.init.zeros_(self.mlp[-1].weight)
-        nn.init.zeros_(self.mlp[-1].bias)
-        self.k = k
+        self.objects = config.num_slots - 1
 
-    def forward(self, state, action, emb_half, emb_quarter):
-        x = self.c1(torch.cat([state, _repeat_z(action, state.shape[-1])], 1))
-        x = self.c2(torch.cat([x, _repeat_z(emb_half, x.shape[-1])], 1))
-        x = self.c3(torch.cat([x, _repeat_z(emb_quarter, x.shape[-1])], 1))
-        x = self.to_vector(self.rest(x)).flatten(1)
-        return self.mlp(x).reshape(-1, self.k - 1, 6)
+    def forward(self, rep: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        emb1, emb2 = self.action(action)
+        x = self.conv0(_with_plane(rep, action))
+        x = self.conv1(_with_plane(x, emb1))
+        x = self.conv2(_with_plane(x, emb2))
+        return self.mlp(self.to_vector(x).flatten(1)).reshape(-1, self.objects, 6)
 
 
 class FlowHead(nn.Module):
-    """3DFlow: per-voxel flow from the representation and the action (3D conv decoder)."""
+    """3DFlow: representation + action -> per-voxel flow (B, 3, G) in voxels."""
 
     def __init__(self, config: ModelConfig):
         super().__init__()
-        s = config.leaky_slope
-        self.net = nn.Sequential(conv3(config.state_channels + 8, 32, 1, s), conv3(32, 32, 1, s), conv3(32, 16, 1, s),
-                                 nn.Conv3d(16, 3, 3, 1, 1))
+        s, c = config.leaky_slope, config.state_channels
+        self.action = ActionEncoder(s)
+        self.down0 = ConvBlock(c + 8, 8, s, 2)
+        self.down1 = ConvBlock(8 + 8, 16, s, 2)
+        self.down2 = ConvBlock(16 + 16, 32, s, 2)
+        self.up0 = ConvBlock(32, 16, s, up=True)
+        self.up1 = ConvBlock(16, 8, s, up=True)
+        self.up2 = ConvBlock(8, 8, s, up=True)
+        self.out = nn.Conv3d(8, 3, 3, 1, 1)
 
-    def forward(self, state, action):
-        return self.net(torch.cat([state, _repeat_z(action, state.shape[-1])], 1))
+    def forward(self, rep: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        emb1, emb2 = self.action(action)
+        f0 = self.down0(_with_plane(rep, action))
+        f1 = self.down1(_with_plane(f0, emb1))
+        f2 = self.down2(_with_plane(f1, emb2))
+        x = self.up1(self.up0(f2) + f1)
+        return self.out(self.up2(x + f0))
 
 
 class DSRNet(nn.Module):
@@ -161,51 +186,92 @@ class DSRNet(nn.Module):
     def __init__(self, config: ModelConfig):
         super().__init__()
         self.config = config
+        self.channels_last = False  # feed the encoder channels_last_3d inputs (set with the weights' format)
         c = config.state_channels
-        self.encoder = SceneEncoder(1 + 3 + c, c, config.leaky_slope)
+        self.encoder = VolumeEncoder(1 + 3 + c, config.leaky_slope)
+        self.decoder = FeatureDecoder(c, config.leaky_slope)
         self.mask_head = nn.Conv3d(c, config.num_slots, 1)
-        self.action_encoder = ActionEncoder(config.leaky_slope)
         self.motion_head = SE3Head(config) if config.motion == "se3" else FlowHead(config)
-        self.register_buffer("coords", voxel_grid(config.grid, "cpu") /
-                             torch.tensor(config.grid, dtype=torch.float32).view(3, 1, 1, 1), persistent=False)
+        grid = torch.stack(torch.meshgrid(*(torch.arange(g, dtype=torch.float32) for g in config.grid), indexing="ij"))
+        self.register_buffer("coords", grid / torch.tensor(config.grid, dtype=torch.float32).view(3, 1, 1, 1),
+                             persistent=False)
+        self.reset_parameters()
+
+    def reset_parameters(self) -> None:
+        """Official initialisation: Kaiming-normal conv weights, BatchNorm (1, 0), Xavier-normal MLP
+        weights with zero biases; `init="zero-motion"` also zeroes the MLP's output layer."""
+        for m in self.modules():
+            if isinstance(m, (nn.Conv2d, nn.Conv3d)):
+                nn.init.kaiming_normal_(m.weight)
+            elif isinstance(m, (nn.BatchNorm2d, nn.BatchNorm3d)):
+                nn.init.ones_(m.weight)
+                nn.init.zeros_(m.bias)
+            elif isinstance(m, nn.Linear):
+                nn.init.xavier_normal_(m.weight)
+                nn.init.zeros_(m.bias)
+        if self.config.init == "zero-motion" and isinstance(self.motion_head, SE3Head):
+            nn.init.zeros_(self.motion_head.mlp[-1].weight)
+
+    def to_channels_last(self) -> DSRNet:
+        """channels_last_3d weights and inputs for the 3D convs (channels_last for the 2D ones)."""
+        for m in self.modules():
+            if isinstance(m, (nn.Conv3d, nn.Conv2d)):
+                fmt = torch.channels_last_3d if isinstance(m, nn.Conv3d) else torch.channels_last
+                m.weight.data = m.weight.data.contiguous(memory_format=fmt)
+        self.channels_last = True
+        return self
 
     def initial_state(self, batch: int, device) -> torch.Tensor:
-        """The zero history (B, state_channels, D0, D1, D2)."""
+        """The zero history (B, state_channels, D0, D1, D2) float32."""
         return torch.zeros(batch, self.config.state_channels, *self.config.grid, device=device)
 
     def forward(self, tsdf: torch.Tensor, action: torch.Tensor, state: torch.Tensor) -> dict[str, torch.Tensor]:
-        """tsdf (B, D0, D1, D2); action (B, 8, D0, D1); state (B, C, D0, D1, D2). Returns mask_logits
-        (B, K, ...), mask (softmax, fp32), motion (B, 3, ...) in voxels and the representation."""
+        """tsdf (B, D0, D1, D2) in [-1, 1]; action (B, 8, D0, D1) one-hot; state (B, C, D0, D1, D2).
+
+        Returns mask_logits (B, K, ...), mask (softmax, fp32, background last), motion (B, 3, ...)
+        fp32 in voxels (dy, dx, dz) and the representation (B, C, ...)."""
         b = tsdf.shape[0]
+        if tuple(tsdf.shape[1:]) != tuple(self.config.grid):
+            raise ValueError(f"tsdf grid {tuple(tsdf.shape[1:])} differs from the model's {tuple(self.config.grid)}")
         if self.config.history == "none":
             state = torch.zeros_like(state)
         coords = self.coords.unsqueeze(0).expand(b, -1, -1, -1, -1).to(tsdf.dtype)
-        rep = self.encoder(torch.cat([tsdf.unsqueeze(1), coords, state], 1))
+        x = torch.cat([tsdf.unsqueeze(1), coords, state.to(tsdf.dtype)], 1)
+        if self.channels_last:
+            x = x.contiguous(memory_format=torch.channels_last_3d)
+            action = action.contiguous(memory_format=torch.channels_last)
+        rep = self.decoder(*self.encoder(x))
         logits = self.mask_head(rep)
-        mask = torch.softmax(logits.float(), 1)
+        with torch.autocast(tsdf.device.type, enabled=False):  # softmax, pivots and blending in fp32
+            mask = torch.softmax(logits.float(), 1)
         if self.config.motion == "flow":
             motion = self.motion_head(rep, action).float()
         else:
-            emb_half, emb_quarter = self.action_encoder(action)
-            params = self.motion_head(rep, action, emb_half, emb_quarter).float()
-            rotations = euler_to_matrix(params[..., 3:], self.config.euler)
-            pivots = soft_centroids(mask[:, :-1])
-            motion = blended_motion(mask, rotations, params[..., :3], pivots)
+            params = self.motion_head(rep, action)
+            with torch.autocast(tsdf.device.type, enabled=False):
+                params = params.float()
+                rotations = euler_to_matrix(params[..., 3:], self.config.euler)
+                pivots = soft_centroids(mask[:, :-1])
+                motion = blended_motion(mask, rotations, params[..., :3], pivots)
         return {"mask_logits": logits, "mask": mask, "motion": motion, "representation": rep}
 
+    @torch.no_grad()
     def next_state(self, outputs: dict, gt_flow: torch.Tensor | None = None, gt_mask: torch.Tensor | None = None,
                    deterministic: bool = False) -> torch.Tensor:
-        """The history fed to the next step (detached): warped by the predicted motion (dsr), by
-        ground truth (gtwarp), unwarped (nowarp) or zero (single, 3dflow)."""
+        """The history fed to the next step (detached, fp32): the representation forward-warped by
+        the predicted motion (dsr) or by ground-truth flow (gtwarp), unwarped (nowarp), or zero
+        (single, 3dflow). Splat weights: the predicted foreground probability (1 - background)."""
         rep = outputs["representation"].detach().float()
         history = self.config.history
         if history == "none":
             return torch.zeros_like(rep)
         if history == "nowarp":
             return rep
+        foreground = outputs["mask"][:, :-1].detach().float().sum(1)
         if history == "gtwarp":
-            if gt_flow is None or gt_mask is None:
-                raise ValueError("gtwarp needs the ground-truth flow and mask")
-            return forward_warp(rep, gt_flow.float(), (gt_mask > 0).float(), self.config.warp_eps, deterministic)
-        foreground = outputs["mask"][:, :-1].detach().sum(1)
-        return forward_warp(rep, outputs["motion"].detach(), foreground, self.config.warp_eps, deterministic)
+            if gt_flow is None or (self.config.gtwarp_weight == "gt" and gt_mask is None):
+                raise ValueError("gtwarp needs the ground-truth flow (and mask with gtwarp_weight='gt')")
+            if self.config.gtwarp_weight == "gt":
+                foreground = (gt_mask > 0).float()
+            return forward_warp(rep, gt_flow.float(), foreground, self.config.warp_eps, deterministic)
+        return forward_warp(rep, outputs["motion"].detach().float(), foreground, self.config.warp_eps, deterministic)

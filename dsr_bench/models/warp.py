@@ -1,68 +1,76 @@
 """Forward warping of a feature volume by a flow field: a differentiable trilinear splat.
 
 Each source voxel i with features f_i moves to p_i = x_i + flow_i and splats onto the 8 voxels
-around floor(p_i) with weights m_i * prod(1 - |p_i - corner|) (m_i: the source's foreground
-probability); the output is sum(w f) / max(sum(w), eps). Floor, not truncation, so negative
-positions land correctly (the official CUDA kernel truncates). Pure PyTorch: CPU and GPU,
-differentiable in features, flow and weights. `deterministic=True` accumulates with
-index_put_(accumulate=True) under torch's deterministic algorithms (sort-based on CUDA).
+around floor(p_i) with weights m_i * prod_axes(1 - |p_i - corner|) (m_i: the source's foreground
+probability); the output at voxel j is sum_i w_ij f_i / max(sum_i w_ij, eps). Floor, not
+truncation, so negative positions land correctly (the official CUDA kernel truncates); corners
+outside the grid are dropped. Pure PyTorch (CPU and GPU), differentiable in features, flow and
+weights. Computes in fp32 (fp64 when the features or the flow are fp64). `deterministic=True`
+accumulates with index_put_(accumulate=True) under torch's deterministic algorithms (sort-based on
+CUDA), so repeated runs give identical bits; the default index_add_ uses atomics on CUDA.
 """
 
 from __future__ import annotations
 
 import torch
 
-_CORNERS = torch.tensor([[a, b, c] for a in (0, 1) for b in (0, 1) for c in (0, 1)])
+_CORNERS = [(a, b, c) for a in (0, 1) for b in (0, 1) for c in (0, 1)]
 
 
 def forward_warp(features: torch.Tensor, flow: torch.Tensor, weight: torch.Tensor, eps: float = 1e-3,
                  deterministic: bool = False) -> torch.Tensor:
     """Warp features (B, C, D0, D1, D2) by flow (B, 3, D0, D1, D2) in voxels (components along the
-    three volume axes) with per-voxel weights (B, D0, D1, D2); returns (B, C, D0, D1, D2)."""
+    three volume axes) with per-voxel weights (B, D0, D1, D2); returns (B, C, D0, D1, D2) in the
+    computation dtype (fp32, or fp64 for fp64 inputs)."""
     b, c, *dims = features.shape
-    dims_t = torch.tensor(dims, device=features.device)
+    if flow.shape != (b, 3, *dims) or weight.shape != (b, *dims):
+        raise ValueError(f"forward_warp: features {tuple(features.shape)}, flow {tuple(flow.shape)} and weight "
+                         f"{tuple(weight.shape)} disagree (expected (B, 3, *G) and (B, *G))")
+    dtype = torch.float64 if torch.float64 in (features.dtype, flow.dtype) else torch.float32
+    device = features.device
     n = dims[0] * dims[1] * dims[2]
-    grid = torch.stack(torch.meshgrid(*(torch.arange(d, device=features.device, dtype=flow.dtype) for d in dims),
-                                      indexing="ij"))  # (3, D0, D1, D2)
-    target = (grid.unsqueeze(0) + flow).reshape(b, 3, n)  # (B, 3, N)
+    axes = [torch.arange(d, device=device, dtype=dtype) for d in dims]
+    grid = torch.stack(torch.meshgrid(*axes, indexing="ij")).reshape(1, 3, n)
+    target = grid + flow.to(dtype).reshape(b, 3, n)  # (B, 3, N)
     base = torch.floor(target)
     frac = target - base
     base = base.long()
-    feats = features.reshape(b, c, n).float()
-    w_src = weight.reshape(b, n).float()
-    out = torch.zeros(b, c, n, device=features.device, dtype=torch.float32)
-    norm = torch.zeros(b, n, device=features.device, dtype=torch.float32)
-    batch_offset = (torch.arange(b, device=features.device) * n).unsqueeze(1)
-    for corner in _CORNERS.to(features.device):
-        idx = base + corner.view(1, 3, 1)
-        w = w_src.clone()
+    # one row per source voxel: [w * features..., w]; rows of all samples stacked (B * N, C + 1)
+    values = torch.cat([features.to(dtype).reshape(b, c, n), torch.ones(b, 1, n, device=device, dtype=dtype)], 1)
+    values = values.transpose(1, 2).reshape(b * n, c + 1)
+    w_src = weight.to(dtype).reshape(b * n)
+    dims_t = torch.tensor(dims, device=device).view(1, 3, 1)
+    sample_offset = (torch.arange(b, device=device) * n).view(b, 1)
+    dump = b * n  # out-of-grid corners accumulate into one extra row, dropped at the end
+    out = torch.zeros(b * n + 1, c + 1, device=device, dtype=dtype)
+    for corner in _CORNERS:
+        offset = torch.tensor(corner, device=device).view(1, 3, 1)
+        idx = base + offset  # (B, 3, N)
+        w = w_src
         for axis in range(3):
-            f = frac[:, axis].float()
-            w = w * (f if corner[axis] == 1 else 1 - f)
-        valid = ((idx >= 0) & (idx < dims_t.view(1, 3, 1))).all(1)
-        flat = (idx[:, 0] * dims[1] + idx[:, 1]) * dims[2] + idx[:, 2]
-        flat = torch.where(valid, flat, torch.zeros_like(flat)) + batch_offset
-        w = w * valid
-        contrib = feats * w.unsqueeze(1)  # (B, C, N)
+            f = frac[:, axis].reshape(b * n)
+            w = w * (f if corner[axis] else 1 - f)
+        valid = ((idx >= 0) & (idx < dims_t)).all(1)  # (B, N)
+        flat = (idx[:, 0] * dims[1] + idx[:, 1]) * dims[2] + idx[:, 2] + sample_offset
+        flat = torch.where(valid, flat, torch.full_like(flat, dump)).reshape(b * n)
+        contrib = values * w.unsqueeze(1)
         if deterministic:
             with _deterministic():
-                norm = norm.reshape(-1).index_put((flat.reshape(-1),), w.reshape(-1), accumulate=True).reshape(b, n)
-                out_t = out.transpose(0, 1).reshape(c, -1)
-                src = contrib.transpose(0, 1).reshape(c, -1)
-                out = out_t.index_put((torch.arange(c, device=out.device).unsqueeze(1), flat.reshape(1, -1)), src,
-                                      accumulate=True).reshape(c, b, n).transpose(0, 1)
+                out = out.index_put((flat,), contrib, accumulate=True)
         else:
-            norm = norm.reshape(-1).index_add(0, flat.reshape(-1), w.reshape(-1)).reshape(b, n)
-            out = out.transpose(0, 1).reshape(c, -1).index_add(1, flat.reshape(-1), contrib.transpose(0, 1).reshape(c, -1)
-                                                               ).reshape(c, b, n).transpose(0, 1)
-    out = out / torch.clamp(norm, min=eps).unsqueeze(1)
-    return out.reshape(b, c, *dims).to(features.dtype)
+            out = out.index_add(0, flat, contrib)
+    out = out[:dump].reshape(b, n, c + 1)
+    result = out[..., :c] / torch.clamp(out[..., c:], min=eps)
+    return result.transpose(1, 2).reshape(b, c, *dims)
 
 
 class _deterministic:
+    """Context manager: torch's deterministic algorithms on, restored afterwards."""
+
     def __enter__(self):
         self.previous = torch.are_deterministic_algorithms_enabled()
+        self.warn_only = torch.is_deterministic_algorithms_warn_only_enabled()
         torch.use_deterministic_algorithms(True)
 
     def __exit__(self, *exc):
-        torch.use_deterministic_algorithms(self.previous)
+        torch.use_deterministic_algorithms(self.previous, warn_only=self.warn_only)
