@@ -1,8 +1,9 @@
-"""`dsr-bench train`, resume and `dsr-bench predict --model dsr` end to end on a real dataset
-directory (full grid, one optimisation step each: slow on a CPU, so kept to the minimum)."""
+"""`dsr-bench train`, exact resume and `dsr-bench predict --model ...` end to end on a real dataset
+directory (full 128 x 128 x 48 grid, batch 1, a couple of optimisation steps: kept to the minimum)."""
 
 import json
 
+import numpy as np
 import pytest
 
 torch = pytest.importorskip("torch")
@@ -17,34 +18,92 @@ def data(tmp_path_factory):
                                    split="train")
 
 
-def test_train_resume_predict_evaluate(data, tmp_path):
-    run = tmp_path / "run"
-    common = ["train", "--model", "dsr", "--stage", "cube-single", "--data", str(data), "--out", str(run),
-              "--batch-size", "1", "--workers", "0"]
-    assert main([*common, "--max-steps", "1"]) == 0
-    first = torch.load(run / "last.pt", weights_only=True)
+def _train(data, out, *extra):
+    return main(["train", "--model", "dsr", "--stage", "cube-single", "--data", str(data), "--out", str(out),
+                 "--batch-size", "1", "--workers", "0", "--quiet", *extra])
+
+
+def test_train_resume_exactly_predict_evaluate(data, tmp_path):
+    straight, resumed = tmp_path / "straight", tmp_path / "resumed"
+    assert _train(data, straight, "--max-steps", "2") == 0
+    assert _train(data, resumed, "--max-steps", "1") == 0
+    first = torch.load(resumed / "last.pt", weights_only=True)
     assert first["step"] == 1 and first["batch_index"] == 1 and first["model_config"]["name"] == "dsr"
-    assert main([*common, "--max-steps", "2", "--resume", str(run / "last.pt")]) == 0
-    second = torch.load(run / "last.pt", weights_only=True)
-    assert second["step"] == 2 and second["batch_index"] == 2  # continued at the data position
-    log = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()]
+    assert first["model_config"]["grid"] == [128, 128, 48] and first["stage"]["name"] == "cube-single"
+    assert _train(data, resumed, "--max-steps", "2", "--resume", str(resumed / "last.pt")) == 0
+    a = torch.load(straight / "last.pt", weights_only=True)
+    b = torch.load(resumed / "last.pt", weights_only=True)
+    assert b["step"] == 2 and b["batch_index"] == 2  # continued at the data position
+    for key, value in a["model"].items():  # same data order, optimizer and BatchNorm state: same weights
+        assert torch.equal(value, b["model"][key]), key
+    log = [json.loads(line) for line in (resumed / "metrics.jsonl").read_text().splitlines()]
     assert [r["step"] for r in log if "loss" in r] == [1, 2]
-    assert all(r["lr"] == 1e-3 and r["loss"] > 0 for r in log if "loss" in r)
-    config = json.loads((run / "config.json").read_text())
-    assert config["stage"]["betas"] == [0.9, 0.95] and config["stage"]["window"] == 1
+    assert all(r["lr"] == 1e-5 and r["loss"] > 0 and r["samples_per_s"] > 0 for r in log)  # official warm-up lr
+    straight_log = [json.loads(line) for line in (straight / "metrics.jsonl").read_text().splitlines()]
+    assert [r["loss"] for r in straight_log] == [r["loss"] for r in log]
+    config = json.loads((resumed / "config.json").read_text())
+    assert config["stage"]["betas"] == [0.9, 0.95] and config["stage"]["window"] == 1 and config["git"]
     pred = tmp_path / "pred"
-    assert main(["predict", "--model", "dsr", "--checkpoint", str(run / "last.pt"), "--data", str(data),
+    assert main(["predict", "--model", "dsr", "--checkpoint", str(straight / "last.pt"), "--data", str(data),
                  "--out", str(pred)]) == 0
     assert main(["evaluate", str(pred), "--data", str(data), "--out", str(tmp_path / "r.json")]) == 0
     results = json.loads((tmp_path / "r.json").read_text())
     assert 0 <= results["metrics"]["iou_unordered"] <= 1 and results["meta"]["name"] == "dsr"
 
 
+def test_predictor_carries_the_state_as_in_training(data, tmp_path):
+    from dsr_bench.models import DSRNet, ModelConfig
+    from dsr_bench.models.inference import load_predictor
+    from dsr_bench.models.warp import forward_warp
+    from dsr_bench.sequence import SequenceReader
+    from dsr_bench.torch_data import action_map
+    from dsr_bench.train import save_checkpoint
+    from dsr_bench.train_configs import STAGES
+
+    torch.manual_seed(0)
+    cfg = ModelConfig.for_model("gtwarp")
+    net = DSRNet(cfg)
+    opt = torch.optim.Adam(net.parameters())
+    sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda e: 1.0)
+    ckpt = save_checkpoint(tmp_path / "g.pt", net, opt, sched, cfg, STAGES["cube-multi"], 0, 0, 0)
+    predictor = load_predictor("gtwarp", ckpt, "cpu")
+    assert predictor.name == "gtwarp" and predictor.num_slots == 4
+    with SequenceReader(data / "seq_0000.h5") as seq:
+        pred = predictor.predict_sequence(seq)
+        tsdf, actions = seq.read("tsdf"), seq.read("action")
+        flow, steps = seq.read("scene_flow_3d"), seq.num_steps
+    assert pred["mask"].shape == (steps, 128, 128, 48) and pred["mask"].dtype == np.uint8
+    assert pred["motion"].shape == (steps, 3, 128, 128, 48) and pred["motion"].dtype == np.float32
+    net.eval()  # BatchNorm in eval mode at evaluation
+    maps = action_map(actions)
+    with torch.no_grad():
+        state = net.initial_state(1, "cpu")
+        for t in range(steps):
+            out = net(torch.from_numpy(tsdf[t:t + 1]), maps[t:t + 1], state)
+            labels = out["mask"].argmax(1)[0]
+            expected = torch.where(labels == 4, 0, labels + 1).numpy()  # background (last) -> 0, slot k -> k + 1
+            assert np.array_equal(pred["mask"][t], expected)
+            assert np.allclose(pred["motion"][t], out["motion"][0].numpy(), atol=1e-5)
+            fg = out["mask"][:, :-1].sum(1)
+            state = forward_warp(out["representation"], torch.from_numpy(flow[t:t + 1]).float(), fg)
+    with pytest.raises(Exception, match="holds a 'gtwarp' model"):
+        load_predictor("dsr", ckpt, "cpu")
+
+
 def test_train_errors(data, tmp_path, capsys):
-    assert main(["train", "--model", "dsr", "--stage", "cube-multi", "--data", str(data), "--out", str(tmp_path / "r")]) == 2
+    out = str(tmp_path / "r")
+    assert main(["train", "--model", "dsr", "--stage", "cube-multi", "--data", str(data), "--out", out]) == 2
     assert "fewer than the window 10" in capsys.readouterr().err
-    assert main(["train", "--model", "gpt", "--stage", "cube-single", "--data", str(data), "--out", str(tmp_path / "r")]) == 2
-    assert main(["train", "--stage", "warmup", "--data", str(data), "--out", str(tmp_path / "r")]) == 2
+    assert main(["train", "--model", "gpt", "--stage", "cube-single", "--data", str(data), "--out", out]) == 2
+    assert "--model 'gpt'" in capsys.readouterr().err
+    assert main(["train", "--stage", "warmup", "--data", str(data), "--out", out]) == 2
     assert "--stage 'warmup'" in capsys.readouterr().err
+    assert _train(data, out, "--grid-size", "64", "64", "32") == 2
+    assert "differs from the data's grid" in capsys.readouterr().err
+    assert _train(data, out, "--resume", str(tmp_path / "missing.pt")) == 2
+    assert "checkpoint not found" in capsys.readouterr().err
+    (tmp_path / "junk.pt").write_bytes(b"junk")
+    assert _train(data, out, "--init", str(tmp_path / "junk.pt")) == 2
+    assert "not a loadable" in capsys.readouterr().err
     assert main(["predict", "--model", "single", "--checkpoint", str(tmp_path / "missing.pt"), "--data", str(data),
                  "--out", str(tmp_path / "p")]) == 2
