@@ -1,16 +1,20 @@
 """Benchmark: DSR-Net training and inference throughput, peak memory, and bf16 vs fp32 losses.
 
-    python bench/bench_model.py [--device cuda] [--batch 12] [--grid 128 128 48] [--steps 10] [--bf16] [--compile]
+    python bench/bench_model.py [--device cuda] [--model dsr] [--batch 12] [--grid 128 128 48]
+        [--steps 10] [--bf16] [--compile] [--channels-last] [--json OUT.json]
 
-Training: samples per second of one optimisation step (forward, matched loss, backward, Adam) at
-the given batch, as the training loop runs it. Inference: steps per second batched and at batch 1
-(state carried, warp included). Reports peak GPU memory on CUDA and the relative difference of the
-loss in bf16 autocast vs fp32 on a fixed batch. On a CPU use a small grid (e.g. --grid 32 32 16).
+Training: samples (time steps) per second of the training loop's unit of work: forward, matched
+loss, backward, Adam step, and the warp of the state for the next step, at the given batch.
+Inference: steps per second batched and at batch 1 (BatchNorm in eval mode, state carried, warp
+included). Also: the forward warp alone, peak GPU memory, and the relative difference of the loss
+under bf16 autocast vs fp32 on one fixed batch (same weights). On a CPU use a small grid (e.g.
+--grid 32 32 16); the GPU targets of the benchmark are at the full grid on an H100.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import time
 
 
@@ -21,47 +25,55 @@ def main() -> None:
     parser.add_argument("--batch", type=int, default=12)
     parser.add_argument("--grid", type=int, nargs=3, default=[128, 128, 48])
     parser.add_argument("--steps", type=int, default=10)
+    parser.add_argument("--warmup", type=int, default=3)
     parser.add_argument("--bf16", action="store_true")
     parser.add_argument("--compile", action="store_true")
     parser.add_argument("--channels-last", action="store_true")
+    parser.add_argument("--json", help="Also write the figures to this JSON file.")
     args = parser.parse_args()
 
     import torch
 
     from dsr_bench.models import DSRNet, ModelConfig
     from dsr_bench.models.loss import dsr_loss
+    from dsr_bench.models.warp import forward_warp
 
     dev = torch.device(args.device if args.device != "cuda" or torch.cuda.is_available() else "cpu")
     if dev.type == "cuda":
         torch.backends.cudnn.benchmark = True
+        torch.backends.cuda.matmul.allow_tf32 = True
+        torch.backends.cudnn.allow_tf32 = True
     grid = tuple(args.grid)
     torch.manual_seed(0)
     net = DSRNet(ModelConfig.for_model(args.model, grid=grid)).to(dev)
     if args.channels_last:
-        net = net.to(memory_format=torch.channels_last_3d)
+        net.to_channels_last()
     model = torch.compile(net) if args.compile else net
-    opt = torch.optim.Adam(net.parameters(), lr=1e-4, betas=(0.9, 0.95))
+    opt = torch.optim.Adam(net.parameters(), lr=1e-5, betas=(0.9, 0.95))
     b = args.batch
-    tsdf = torch.rand(b, *grid, device=dev) * 2 - 1
+    g = torch.Generator().manual_seed(1)
+    tsdf = (torch.rand(b, *grid, generator=g) * 2 - 1).to(dev)
     action = torch.zeros(b, 8, *grid[:2], device=dev)
     action[:, 0, grid[0] // 2, grid[1] // 2] = 1
-    gt_mask = torch.randint(0, 5, (b, *grid), device=dev)
-    gt_flow = torch.randn(b, 3, *grid, device=dev)
+    gt_mask = torch.randint(0, 5, (b, *grid), generator=g).to(dev)
+    gt_flow = torch.randn(b, 3, *grid, generator=g).to(dev)
 
     def sync():
         if dev.type == "cuda":
             torch.cuda.synchronize()
 
-    def train_once(bf16):
+    def train_once(bf16: bool) -> float:
         opt.zero_grad(set_to_none=True)
         with torch.autocast(dev.type, dtype=torch.bfloat16, enabled=bf16):
             out = model(tsdf, action, net.initial_state(b, dev))
         loss, _, _ = dsr_loss(out, gt_mask, gt_flow)
         loss.backward()
         opt.step()
+        net.next_state(out, gt_flow, gt_mask)
         return float(loss.detach())
 
-    for _ in range(2):
+    net.train()
+    for _ in range(args.warmup):
         train_once(args.bf16)
     sync()
     if dev.type == "cuda":
@@ -71,39 +83,60 @@ def main() -> None:
         train_once(args.bf16)
     sync()
     train_rate = b * args.steps / (time.perf_counter() - t0)
-    peak = torch.cuda.max_memory_allocated() / 2**30 if dev.type == "cuda" else float("nan")
+    peak_train = torch.cuda.max_memory_allocated() / 2**30 if dev.type == "cuda" else float("nan")
 
     net.eval()
 
     @torch.no_grad()
-    def infer(batch, n):
+    def infer(batch: int, n: int) -> None:
         state = net.initial_state(batch, dev)
         for _ in range(n):
             with torch.autocast(dev.type, dtype=torch.bfloat16, enabled=args.bf16):
                 out = model(tsdf[:batch], action[:batch], state)
-            state = net.next_state(out)
+            state = net.next_state(out, gt_flow[:batch], gt_mask[:batch])
         sync()
 
-    infer(b, 2)
-    t0 = time.perf_counter()
-    infer(b, args.steps)
-    batched = b * args.steps / (time.perf_counter() - t0)
-    infer(1, 2)
-    t0 = time.perf_counter()
-    infer(1, args.steps)
-    single = args.steps / (time.perf_counter() - t0)
+    rates = {}
+    for batch in (b, 1):
+        infer(batch, args.warmup)
+        if dev.type == "cuda":
+            torch.cuda.reset_peak_memory_stats()
+        t0 = time.perf_counter()
+        infer(batch, args.steps)
+        rates[batch] = batch * args.steps / (time.perf_counter() - t0)
+    peak_infer = torch.cuda.max_memory_allocated() / 2**30 if dev.type == "cuda" else float("nan")
 
     with torch.no_grad():
+        feats = torch.randn(b, 8, *grid, device=dev)
+        weight = torch.rand(b, *grid, device=dev)
+        forward_warp(feats, gt_flow, weight)
+        sync()
+        t0 = time.perf_counter()
+        for _ in range(args.steps):
+            forward_warp(feats, gt_flow, weight)
+        sync()
+        warp_ms = (time.perf_counter() - t0) / args.steps * 1000
         out32 = net(tsdf, action, net.initial_state(b, dev))
-        with torch.autocast(dev.type, dtype=torch.bfloat16, enabled=True):
+        with torch.autocast(dev.type, dtype=torch.bfloat16):
             out16 = net(tsdf, action, net.initial_state(b, dev))
         l32 = float(dsr_loss(out32, gt_mask, gt_flow)[0])
         l16 = float(dsr_loss(out16, gt_mask, gt_flow)[0])
-    print(f"device {dev} ({torch.cuda.get_device_name() if dev.type == 'cuda' else 'CPU'}), model {args.model}, "
-          f"grid {grid}, batch {b}, bf16 {args.bf16}, compile {args.compile}, channels_last {args.channels_last}")
-    print(f"training: {train_rate:.1f} samples/s; peak memory {peak:.2f} GiB")
-    print(f"inference: {batched:.1f} steps/s at batch {b}, {single:.1f} steps/s at batch 1")
-    print(f"loss fp32 {l32:.5f} vs bf16 autocast {l16:.5f}: relative difference {abs(l16 - l32) / abs(l32) * 100:.3f}%")
+    name = torch.cuda.get_device_name() if dev.type == "cuda" else f"CPU ({torch.get_num_threads()} threads)"
+    figures = {"device": name, "model": args.model, "grid": list(grid), "batch": b, "bf16": args.bf16,
+               "compile": args.compile, "channels_last": args.channels_last, "train_samples_per_s": train_rate,
+               "infer_steps_per_s_batched": rates[b], "infer_steps_per_s_batch1": rates[1], "warp_ms": warp_ms,
+               "peak_train_gib": peak_train, "peak_infer_gib": peak_infer, "loss_fp32": l32, "loss_bf16": l16,
+               "loss_rel_diff_pct": abs(l16 - l32) / abs(l32) * 100, "torch": torch.__version__}
+    print(f"device {name}, model {args.model}, grid {grid}, batch {b}, bf16 {args.bf16}, compile {args.compile}, "
+          f"channels_last {args.channels_last}")
+    print(f"training: {train_rate:.1f} samples/s ({train_rate / b:.2f} steps/s); peak memory {peak_train:.2f} GiB")
+    print(f"inference: {rates[b]:.1f} steps/s at batch {b}, {rates[1]:.1f} steps/s at batch 1; "
+          f"peak memory {peak_infer:.2f} GiB")
+    print(f"forward warp alone: {warp_ms:.2f} ms at batch {b}")
+    print(f"loss fp32 {l32:.5f} vs bf16 autocast {l16:.5f}: relative difference {figures['loss_rel_diff_pct']:.3f}%")
+    if args.json:
+        with open(args.json, "w") as f:
+            json.dump(figures, f, indent=1)
 
 
 if __name__ == "__main__":

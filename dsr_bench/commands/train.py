@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 from typing import Optional, Tuple
 
@@ -53,7 +54,8 @@ def train(
                compile_model=compile_model, channels_last=channels_last, workers=workers, seed=seed,
                official_bn=official_bn, deterministic=deterministic, grid=tuple(grid_size) if grid_size else None,
                checkpoint_every=checkpoint_every, progress=not quiet)
-    typer.echo(f"checkpoint: {path}")
+    if os.environ.get("RANK", "0") == "0":
+        typer.echo(f"checkpoint: {path}")
 
 
 def register(app: typer.Typer) -> None:
