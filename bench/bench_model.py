@@ -1,7 +1,7 @@
 """Benchmark: DSR-Net training and inference throughput, peak memory, and bf16 vs fp32 losses.
 
     python bench/bench_model.py [--device cuda] [--model dsr] [--batch 12] [--grid 128 128 48]
-        [--steps 10] [--bf16] [--compile] [--channels-last] [--json OUT.json]
+        [--steps 10] [--bf16] [--compile] [--channels-last] [--json OUT.json] [--profile]
 
 Training: samples (time steps) per second of the training loop's unit of work: forward, matched
 loss, backward, Adam step, and the warp of the state for the next step, at the given batch.
@@ -30,6 +30,8 @@ def main() -> None:
     parser.add_argument("--compile", action="store_true")
     parser.add_argument("--channels-last", action="store_true")
     parser.add_argument("--json", help="Also write the figures to this JSON file.")
+    parser.add_argument("--profile", action="store_true",
+                        help="Also print the top operators of two training and two inference steps (torch.profiler).")
     args = parser.parse_args()
 
     import torch
@@ -121,6 +123,20 @@ def main() -> None:
             out16 = net(tsdf, action, net.initial_state(b, dev))
         l32 = float(dsr_loss(out32, gt_mask, gt_flow)[0])
         l16 = float(dsr_loss(out16, gt_mask, gt_flow)[0])
+    if args.profile:
+        from torch.profiler import ProfilerActivity, profile
+
+        activities = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if dev.type == "cuda" else [])
+        sort = "cuda_time_total" if dev.type == "cuda" else "cpu_time_total"
+        for label, work in (("training", lambda: [train_once(args.bf16) for _ in range(2)]),
+                            ("inference", lambda: infer(b, 2))):
+            (net.train if label == "training" else net.eval)()
+            with profile(activities=activities) as prof:
+                work()
+                sync()
+            print(f"--- profile: two {label} steps at batch {b}")
+            print(prof.key_averages().table(sort_by=sort, row_limit=14, max_name_column_width=60))
+        net.eval()
     name = torch.cuda.get_device_name() if dev.type == "cuda" else f"CPU ({torch.get_num_threads()} threads)"
     figures = {"device": name, "model": args.model, "grid": list(grid), "batch": b, "bf16": args.bf16,
                "compile": args.compile, "channels_last": args.channels_last, "train_samples_per_s": train_rate,

@@ -41,25 +41,26 @@ def forward_warp(features: torch.Tensor, flow: torch.Tensor, weight: torch.Tenso
     w_src = weight.to(dtype).reshape(b * n)
     dims_t = torch.tensor(dims, device=device).view(1, 3, 1)
     sample_offset = (torch.arange(b, device=device) * n).view(b, 1)
-    dump = b * n  # out-of-grid corners accumulate into one extra row, dropped at the end
-    out = torch.zeros(b * n + 1, c + 1, device=device, dtype=dtype)
+    out = torch.zeros(b * n, c + 1, device=device, dtype=dtype)
     for corner in _CORNERS:
         offset = torch.tensor(corner, device=device).view(1, 3, 1)
         idx = base + offset  # (B, 3, N)
-        w = w_src
+        # an out-of-grid corner adds zero at the nearest voxel: spread over the border, never one
+        # hot address that every dropped corner's atomic add would queue on
+        inside = ((idx >= 0) & (idx < dims_t)).all(1).reshape(b * n)
+        idx = torch.minimum(idx.clamp(min=0), dims_t - 1)
+        w = w_src * inside
         for axis in range(3):
             f = frac[:, axis].reshape(b * n)
             w = w * (f if corner[axis] else 1 - f)
-        valid = ((idx >= 0) & (idx < dims_t)).all(1)  # (B, N)
-        flat = (idx[:, 0] * dims[1] + idx[:, 1]) * dims[2] + idx[:, 2] + sample_offset
-        flat = torch.where(valid, flat, torch.full_like(flat, dump)).reshape(b * n)
+        flat = ((idx[:, 0] * dims[1] + idx[:, 1]) * dims[2] + idx[:, 2] + sample_offset).reshape(b * n)
         contrib = values * w.unsqueeze(1)
         if deterministic:
             with _deterministic():
                 out = out.index_put((flat,), contrib, accumulate=True)
         else:
             out = out.index_add(0, flat, contrib)
-    out = out[:dump].reshape(b, n, c + 1)
+    out = out.reshape(b, n, c + 1)
     result = out[..., :c] / torch.clamp(out[..., c:], min=eps)
     return result.transpose(1, 2).reshape(b, c, *dims)
 
