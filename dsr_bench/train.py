@@ -210,14 +210,17 @@ def _load_weights(net: DSRNet, state: dict, source: Path) -> None:
 
 def train(model_name: str, stage_name: str, data: Path, out: Path, split: str | None = None,
           val_split: str | None = None, epochs: int | None = None, batch_size: int | None = None,
-          lr: float | None = None, window: int | None = None, max_steps: int | None = None, init: Path | None = None,
+          lr: float | None = None, window: int | None = None, max_steps: int | None = None,
+          max_seconds: float | None = None, init: Path | None = None,
           resume: Path | None = None, device: str = "cpu", bf16: bool = False, compile_model: bool = False,
           channels_last: bool = False, workers: int = 2, seed: int = 0, official_bn: bool = False,
           deterministic: bool = False, grid: tuple[int, int, int] | None = None, checkpoint_every: int = 0,
           log_every: int = 10, progress: bool = True) -> Path:
     """Train `model_name` for one stage on DATA's split; returns the last checkpoint (OUT/last.pt).
 
-    Single process by default; under torchrun (WORLD_SIZE > 1) one process per GPU with DDP."""
+    Single process by default; under torchrun (WORLD_SIZE > 1) one process per GPU with DDP.
+    `max_steps` (batches) and `max_seconds` (wall time of the loop) end the stage early, with a
+    checkpoint that resumes exactly."""
     from torch.utils.data import DataLoader
     from tqdm import tqdm
 
@@ -327,6 +330,17 @@ def train(model_name: str, stage_name: str, data: Path, out: Path, split: str | 
             save_checkpoint(latest, model, optimizer, scheduler, model_config, stage, epoch, batch_index, step,
                             {"data": str(data), "split": dataset.split, "seed": seed, "world_size": world})
 
+    started = time.monotonic()
+
+    def out_of_time() -> bool:
+        """Whether the loop has run max_seconds (rank 0 decides for every process)."""
+        if max_seconds is None:
+            return False
+        flag = torch.tensor(float(time.monotonic() - started >= max_seconds), device=dev)
+        if distributed:
+            torch.distributed.broadcast(flag, 0)
+        return bool(flag.item())
+
     try:
         for epoch in range(start_epoch, stage.epochs):
             first = start_batch if epoch == start_epoch else 0
@@ -354,7 +368,7 @@ def train(model_name: str, stage_name: str, data: Path, out: Path, split: str | 
                     if writer is not None and step % log_every == 0:
                         for key in ("loss", "motion_loss", "mask_loss", "lr", "samples_per_s"):
                             writer.add_scalar(f"train/{key}", record[key], step)
-                if max_steps is not None and step >= max_steps:
+                if (max_steps is not None and step >= max_steps) or out_of_time():
                     save(epoch, batch_index)
                     return latest
                 if checkpoint_every and step % checkpoint_every == 0:

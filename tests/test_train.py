@@ -51,6 +51,12 @@ def test_train_resume_exactly_predict_evaluate(data, tmp_path):
     assert 0 <= results["metrics"]["iou_unordered"] <= 1 and results["meta"]["name"] == "dsr"
 
 
+def test_max_minutes_ends_the_stage_with_a_resumable_checkpoint(data, tmp_path):
+    assert _train(data, tmp_path / "timed", "--max-minutes", "1e-9") == 0  # the budget is checked after each batch
+    ckpt = torch.load(tmp_path / "timed" / "last.pt", weights_only=True)
+    assert ckpt["step"] == 1 and ckpt["batch_index"] == 1
+
+
 def test_predictor_carries_the_state_as_in_training(data, tmp_path):
     from dsr_bench.models import DSRNet, ModelConfig
     from dsr_bench.models.inference import load_predictor
@@ -98,6 +104,8 @@ def test_train_errors(data, tmp_path, capsys):
     assert "--model 'gpt'" in capsys.readouterr().err
     assert main(["train", "--stage", "warmup", "--data", str(data), "--out", out]) == 2
     assert "--stage 'warmup'" in capsys.readouterr().err
+    assert _train(data, out, "--max-minutes", "0") == 2
+    assert "--max-minutes 0.0: must be positive" in capsys.readouterr().err
     assert _train(data, out, "--grid-size", "64", "64", "32") == 2
     assert "differs from the data's grid" in capsys.readouterr().err
     assert _train(data, out, "--resume", str(tmp_path / "missing.pt")) == 2

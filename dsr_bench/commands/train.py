@@ -23,6 +23,7 @@ def train(
     lr: Optional[float] = typer.Option(None, "--lr", help="Constant learning rate instead of the official schedule."),
     window: Optional[int] = typer.Option(None, "--window", help="Override the stage's window (pushes per sample)."),
     max_steps: Optional[int] = typer.Option(None, "--max-steps", help="Stop after this many windows (batches)."),
+    max_minutes: Optional[float] = typer.Option(None, "--max-minutes", help="Stop after this much training time."),
     grid_size: Optional[Tuple[int, int, int]] = typer.Option(None, "--grid-size", help="Expected grid Y X Z "
                                                              "(default: the data's)."),
     device: str = typer.Option("cpu", "--device", help="cpu or cuda (torchrun sets one GPU per process)."),
@@ -45,14 +46,17 @@ def train(
         raise UserError(f"--model {model!r}: choose one of {', '.join(MODEL_NAMES)}")
     if max_steps is not None and max_steps < 1:
         raise UserError(f"--max-steps {max_steps}: must be at least 1")
+    if max_minutes is not None and max_minutes <= 0:
+        raise UserError(f"--max-minutes {max_minutes}: must be positive")
     if workers < 0 or checkpoint_every < 0:
         raise UserError("--workers and --checkpoint-every must be >= 0")
     if resume is not None and init is not None:
         raise UserError("--resume continues a run with its own weights; drop --init")
     path = run(model, stage, data, out, split=split, val_split=val_split, epochs=epochs, batch_size=batch_size, lr=lr,
-               window=window, max_steps=max_steps, init=init, resume=resume, device=device, bf16=bf16,
-               compile_model=compile_model, channels_last=channels_last, workers=workers, seed=seed,
-               official_bn=official_bn, deterministic=deterministic, grid=tuple(grid_size) if grid_size else None,
+               window=window, max_steps=max_steps, max_seconds=None if max_minutes is None else max_minutes * 60,
+               init=init, resume=resume, device=device, bf16=bf16, compile_model=compile_model,
+               channels_last=channels_last, workers=workers, seed=seed, official_bn=official_bn,
+               deterministic=deterministic, grid=tuple(grid_size) if grid_size else None,
                checkpoint_every=checkpoint_every, progress=not quiet)
     if os.environ.get("RANK", "0") == "0":
         typer.echo(f"checkpoint: {path}")
