@@ -51,6 +51,8 @@ def main() -> None:
     if args.channels_last:
         net.to_channels_last()
     model = torch.compile(net) if args.compile else net
+    if args.compile:
+        net.compile_warp()
     opt = torch.optim.Adam(net.parameters(), lr=1e-5, betas=(0.9, 0.95))
     b = args.batch
     g = torch.Generator().manual_seed(1)
@@ -118,6 +120,16 @@ def main() -> None:
             forward_warp(feats, gt_flow, weight)
         sync()
         warp_ms = (time.perf_counter() - t0) / args.steps * 1000
+        warp_compiled_ms = warp_diff = float("nan")
+        if args.compile and dev.type == "cuda":
+            compiled = torch.compile(forward_warp, dynamic=False)
+            warp_diff = float((compiled(feats, gt_flow, weight) - forward_warp(feats, gt_flow, weight)).abs().max())
+            sync()
+            t0 = time.perf_counter()
+            for _ in range(args.steps):
+                compiled(feats, gt_flow, weight)
+            sync()
+            warp_compiled_ms = (time.perf_counter() - t0) / args.steps * 1000
         out32 = net(tsdf, action, net.initial_state(b, dev))
         with torch.autocast(dev.type, dtype=torch.bfloat16):
             out16 = net(tsdf, action, net.initial_state(b, dev))
@@ -141,14 +153,16 @@ def main() -> None:
     figures = {"device": name, "model": args.model, "grid": list(grid), "batch": b, "bf16": args.bf16,
                "compile": args.compile, "channels_last": args.channels_last, "train_samples_per_s": train_rate,
                "infer_steps_per_s_batched": rates[b], "infer_steps_per_s_batch1": rates[1], "warp_ms": warp_ms,
-               "peak_train_gib": peak_train, "peak_infer_gib": peak_infer, "loss_fp32": l32, "loss_bf16": l16,
+               "warp_compiled_ms": warp_compiled_ms,
+               "warp_compiled_max_abs_diff": warp_diff, "peak_train_gib": peak_train, "peak_infer_gib": peak_infer, "loss_fp32": l32, "loss_bf16": l16,
                "loss_rel_diff_pct": abs(l16 - l32) / abs(l32) * 100, "torch": torch.__version__}
     print(f"device {name}, model {args.model}, grid {grid}, batch {b}, bf16 {args.bf16}, compile {args.compile}, "
           f"channels_last {args.channels_last}")
     print(f"training: {train_rate:.1f} samples/s ({train_rate / b:.2f} steps/s); peak memory {peak_train:.2f} GiB")
     print(f"inference: {rates[b]:.1f} steps/s at batch {b}, {rates[1]:.1f} steps/s at batch 1; "
           f"peak memory {peak_infer:.2f} GiB")
-    print(f"forward warp alone: {warp_ms:.2f} ms at batch {b}")
+    print(f"forward warp alone: {warp_ms:.2f} ms at batch {b}; compiled {warp_compiled_ms:.2f} ms "
+          f"(max abs difference {warp_diff:.2e})")
     print(f"loss fp32 {l32:.5f} vs bf16 autocast {l16:.5f}: relative difference {figures['loss_rel_diff_pct']:.3f}%")
     if args.json:
         with open(args.json, "w") as f:

@@ -304,6 +304,8 @@ def train(model_name: str, stage_name: str, data: Path, out: Path, split: str | 
     if distributed:
         model = torch.nn.parallel.DistributedDataParallel(net, device_ids=[dev.index] if dev.type == "cuda" else None)
     train_model = torch.compile(model) if compile_model else model
+    if compile_model:
+        net.compile_warp()
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     latest = out / "last.pt"

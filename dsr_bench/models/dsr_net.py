@@ -187,6 +187,7 @@ class DSRNet(nn.Module):
         super().__init__()
         self.config = config
         self.channels_last = False  # feed the encoder channels_last_3d inputs (set with the weights' format)
+        self._warp = forward_warp  # compile_warp() swaps in a compiled one
         c = config.state_channels
         self.encoder = VolumeEncoder(1 + 3 + c, config.leaky_slope)
         self.decoder = FeatureDecoder(c, config.leaky_slope)
@@ -273,5 +274,12 @@ class DSRNet(nn.Module):
                 raise ValueError("gtwarp needs the ground-truth flow (and mask with gtwarp_weight='gt')")
             if self.config.gtwarp_weight == "gt":
                 foreground = (gt_mask > 0).float()
-            return forward_warp(rep, gt_flow.float(), foreground, self.config.warp_eps, deterministic)
-        return forward_warp(rep, outputs["motion"].detach().float(), foreground, self.config.warp_eps, deterministic)
+            return self._warp(rep, gt_flow.float(), foreground, self.config.warp_eps, deterministic)
+        return self._warp(rep, outputs["motion"].detach().float(), foreground, self.config.warp_eps, deterministic)
+
+    def compile_warp(self) -> DSRNet:
+        """Run the history warp through torch.compile (fused index arithmetic and atomic adds) when the
+        network is on a GPU; on a CPU the eager warp stays (inductor's CPU backend rejects its scatter)."""
+        if self.coords.device.type == "cuda":
+            self._warp = torch.compile(forward_warp, dynamic=False)
+        return self
