@@ -195,12 +195,16 @@ def _check_tsdf_sign(seq, camera: str = "front") -> list[str]:
         if len(neg) == 0:
             continue
         uv, z = cam.project(neg)
-        u = np.clip(np.rint(uv[:, 0]).astype(int), 0, cam.width - 1)
-        v = np.clip(np.rint(uv[:, 1]).astype(int), 0, cam.height - 1)
-        d = depth[v, u]
-        behind = z - d
-        # at the stored image's resolution a pixel spans ~3 mm, so allow that much slack
-        agree = float(np.mean((d > 0) & (behind > -0.006) & (behind < TSDF_TRUNCATION + 0.012)))
+        # at the stored image's resolution a pixel spans ~3 mm, so a voxel agrees when any of the four pixels
+        # around its projection has a surface in front of it (edges of objects alias otherwise), with 6 mm slack
+        u0, v0 = np.floor(uv[:, 0]).astype(int), np.floor(uv[:, 1]).astype(int)
+        ok = np.zeros(len(neg), dtype=bool)
+        for du in (0, 1):
+            for dv in (0, 1):
+                d = depth[np.clip(v0 + dv, 0, cam.height - 1), np.clip(u0 + du, 0, cam.width - 1)]
+                behind = z - d
+                ok |= (d > 0) & (behind > -0.006) & (behind < TSDF_TRUNCATION + 0.012)
+        agree = float(np.mean(ok))
         if agree < TSDF_SIGN_AGREEMENT:
             problems.append(f"tsdf[{t}]: only {agree:.0%} of negative voxels lie behind the {camera} depth "
                             f"image's surface (expected >= {TSDF_SIGN_AGREEMENT:.0%})")
