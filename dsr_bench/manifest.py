@@ -27,6 +27,13 @@ def _canonical_objects(objects: list[dict]) -> bytes:
     return json.dumps(objects, sort_keys=True).encode()
 
 
+def _array_bytes(a: np.ndarray):
+    """The C-order bytes of a C-contiguous array, without a copy where it can (hashlib reads buffers)."""
+    if a.dtype.hasobject:
+        return a.tobytes()
+    return a.reshape(-1).view(np.uint8)
+
+
 def content_digest(arrays: Mapping[str, np.ndarray], objects: list[dict]) -> str:
     """SHA-256 over the sorted dataset names, dtypes, shapes and little-endian C-order bytes, and the
     canonical JSON (sorted keys) of the object list. Independent of HDF5 chunking and compression."""
@@ -35,7 +42,7 @@ def content_digest(arrays: Mapping[str, np.ndarray], objects: list[dict]) -> str
         a = np.asarray(arrays[name])
         a = np.ascontiguousarray(a.astype(a.dtype.newbyteorder("<"), copy=False))
         h.update(f"{name}|{a.dtype.str}|{a.shape}|".encode())
-        h.update(a.tobytes())
+        h.update(_array_bytes(a))
     h.update(_canonical_objects(objects))
     return h.hexdigest()
 
@@ -64,10 +71,10 @@ def sequence_content_digest(path: str | Path) -> str:
             dtype = np.dtype(ds.dtype).newbyteorder("<")
             h.update(f"{name}|{dtype.str}|{tuple(ds.shape)}|".encode())
             if ds.ndim == 0 or ds.shape[0] == 0:
-                h.update(np.ascontiguousarray(np.asarray(ds[()], dtype=dtype)).tobytes())
+                h.update(_array_bytes(np.ascontiguousarray(np.asarray(ds[()], dtype=dtype))))
                 continue
             for i in range(ds.shape[0]):
-                h.update(np.ascontiguousarray(np.asarray(ds[i], dtype=dtype)).tobytes())
+                h.update(_array_bytes(np.ascontiguousarray(np.asarray(ds[i], dtype=dtype))))
         h.update(_canonical_objects(seq.objects))
         return h.hexdigest()
 

@@ -132,7 +132,8 @@ def generate_episode(config: EpisodeConfig, object_set, seed: int, name: str) ->
     from generators.render import SceneRenderer
 
     rng = np.random.default_rng(seed)
-    timings = {"physics": 0.0, "render": 0.0, "policy": 0.0}
+    # wall seconds per phase, and process CPU seconds ("<phase>_cpu": all threads, e.g. open3d's)
+    timings = {key: 0.0 for key in ("physics", "render", "policy", "physics_cpu", "render_cpu", "policy_cpu")}
     last_reason = ""
     for attempt in range(1, MAX_SCENE_ATTEMPTS + 1):
         specs = object_set.sample(rng, config.objects_per_scene)
@@ -140,19 +141,21 @@ def generate_episode(config: EpisodeConfig, object_set, seed: int, name: str) ->
         renderer = SceneRenderer(specs, cameras=config.cameras)
         world = PushWorld(specs)
         try:
-            t0 = time.perf_counter()
+            t0, c0 = time.perf_counter(), time.process_time()
             drop = _place_objects(rng, specs, random_orientation=config.objects == "cube")
             for i in range(len(specs)):
                 world.set_pose(i, drop[i])
             world.settle()
             poses = [world.poses()]
             timings["physics"] += time.perf_counter() - t0
+            timings["physics_cpu"] += time.process_time() - c0
             if not in_workspace(specs, poses[0]):
                 last_reason = "an object left the workspace while settling"
                 continue
-            t0 = time.perf_counter()
+            t0, c0 = time.perf_counter(), time.process_time()
             observations = [renderer.observe(poses[0])]
             timings["render"] += time.perf_counter() - t0
+            timings["render_cpu"] += time.process_time() - c0
             if observations[0].visible_fraction.min() < MIN_VISIBLE_FRACTION:
                 last_reason = "an object is less than 40% visible in the front camera"
                 continue
@@ -162,18 +165,20 @@ def generate_episode(config: EpisodeConfig, object_set, seed: int, name: str) ->
             for t in range(config.steps):
                 accepted, draws = None, 0
                 for _ in range(MAX_PUSH_ATTEMPTS):
-                    t0 = time.perf_counter()
+                    t0, c0 = time.perf_counter(), time.process_time()
                     decision = policy.propose(observations[-1].heightmap, poses[-1][:, :2])
                     timings["policy"] += time.perf_counter() - t0
+                    timings["policy_cpu"] += time.process_time() - c0
                     if decision is None:
                         break
                     draws += decision.attempts
                     decision = replace(decision, attempts=draws)  # counts pushes undone below too
-                    t0 = time.perf_counter()
+                    t0, c0 = time.perf_counter(), time.process_time()
                     state = world.save()
                     pushed = world.push(decision.start_xy, direction_vector(decision.direction), PUSH_LENGTH)
                     after = world.poses()
                     timings["physics"] += time.perf_counter() - t0
+                    timings["physics_cpu"] += time.process_time() - c0
                     if pushed is not None and in_workspace(specs, after):
                         start, end = pushed
                         world.discard(state)
@@ -188,9 +193,10 @@ def generate_episode(config: EpisodeConfig, object_set, seed: int, name: str) ->
                 decisions.append(decision)
                 pushes.append((start, end))
                 poses.append(after)
-                t0 = time.perf_counter()
+                t0, c0 = time.perf_counter(), time.process_time()
                 observations.append(renderer.observe(after))
                 timings["render"] += time.perf_counter() - t0
+                timings["render_cpu"] += time.process_time() - c0
         except SceneRejected as exc:
             last_reason = str(exc)
             continue
