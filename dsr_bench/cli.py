@@ -18,7 +18,7 @@ app = typer.Typer(
 )
 
 #: Command modules under dsr_bench.commands, each with a `register(app)` function.
-_COMMAND_MODULES: tuple[str, ...] = ("generate", "data", "evaluate", "view", "train", "capture")
+_COMMAND_MODULES: tuple[str, ...] = ("generate", "data", "evaluate", "view", "train", "capture", "annotate")
 
 for _name in _COMMAND_MODULES:
     importlib.import_module(f"dsr_bench.commands.{_name}").register(app)

@@ -253,7 +253,7 @@ def generate_capture(out: Path, *, name: str, seed: int, objects: str = "procedu
     colors: list[dict[str, np.ndarray]] = []
     depths: list[dict[str, np.ndarray]] = []
     for t in range(len(poses)):
-        scene, ids = renderer._scene(poses[t])  # the renderer's own scene of table + posed meshes
+        scene, ids = renderer.scene(poses[t])
         colors.append({})
         depths.append({})
         for cam in CAPTURE_CAMERAS:

@@ -89,10 +89,11 @@ class SceneRenderer:
     """Renders the benchmark's observations of a fixed set of objects at any poses.
 
     objects: sequence of ObjectSpec-like items with `.parts` (each `.vertices` (V,3) m, `.faces` (F,3))
-    and `.color` (RGB 0..1); cameras: names of the stored cameras ('front', optionally 'back').
+    and `.color` (RGB 0..1); cameras: names of the benchmark's cameras ('front', optionally 'back') at
+    `image_shape`, or a dict name -> `dsr_bench.geometry.Camera` (e.g. a capture's calibrated cameras).
     """
 
-    def __init__(self, objects, cameras: tuple[str, ...] = ("front",), image_shape=IMAGE_SHAPE,
+    def __init__(self, objects, cameras: tuple[str, ...] | dict[str, Camera] = ("front",), image_shape=IMAGE_SHAPE,
                  tsdf_image_shape=TSDF_IMAGE_SHAPE):
         import open3d as o3d
 
@@ -101,7 +102,8 @@ class SceneRenderer:
                       for obj in objects]
         self._faces = [[_faces_tensor(o3d, f) for _, f in parts] for parts in self.parts]
         self.colors = np.array([obj.color for obj in objects], dtype=np.float64).reshape(-1, 3)
-        self.cameras: dict[str, Camera] = {name: make_camera(name, *image_shape) for name in cameras}
+        self.cameras: dict[str, Camera] = dict(cameras) if isinstance(cameras, dict) else {
+            name: make_camera(name, *image_shape) for name in cameras}
         self.tsdf_camera = make_camera("front", *tsdf_image_shape)
         self._rays = {name: self._camera_rays(cam) for name, cam in self.cameras.items()}
         self._tsdf_rays = self._camera_rays(self.tsdf_camera)
@@ -147,6 +149,11 @@ class SceneRenderer:
         cx, cy, h = 0.5, 0.0, _TABLE_HALF_SIZE
         verts = np.array([[cx - h, cy - h, 0], [cx + h, cy - h, 0], [cx + h, cy + h, 0], [cx - h, cy + h, 0]], float)
         return verts, np.array([[0, 1, 2], [0, 2, 3]])
+
+    def scene(self, poses: np.ndarray):
+        """The raycasting scene of the table and the objects at `poses` (N, 7), and the instance id of each
+        geometry (0 = table, i + 1 = object i); pass both to `render_camera`."""
+        return self._scene(poses)
 
     def _scene(self, poses: np.ndarray, objects: list[int] | None = None, table: bool = True, world=None):
         """A raycasting scene and the instance id (0 = table) of each geometry id.

@@ -11,6 +11,25 @@ if ! ldconfig -p 2>/dev/null | grep -q "libusb-1.0.so"; then
     echo "warning: libusb-1.0-0 is missing; run: sudo apt-get install -y libusb-1.0-0" >&2
   fi
 fi
+# The annotator window and its test: a virtual X display (xvfb-run needs xauth) and Mesa's OpenGL, with which
+# open3d's legacy visualizer renders under `xvfb-run` (GLX through swrast; EGL for open3d's offscreen fallback);
+# xdotool lets the test type real keys into the window.
+WINDOW_PKGS="xvfb xauth libgl1 libglx-mesa0 libgl1-mesa-dri libegl1 libegl-mesa0 xdotool"
+if command -v dpkg >/dev/null 2>&1; then
+  missing=""
+  for pkg in $WINDOW_PKGS; do dpkg -s "$pkg" >/dev/null 2>&1 || missing="$missing $pkg"; done
+  if [ -n "$missing" ]; then
+    if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then
+      (apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends $missing \
+        >/dev/null 2>&1) \
+        || echo "warning: could not install$missing; the annotator window needs a display (its test skips)" >&2
+    else
+      echo "warning:$missing missing; for the annotator window run: sudo apt-get install -y$missing" >&2
+    fi
+  fi
+elif ! command -v xvfb-run >/dev/null 2>&1; then
+  echo "warning: no apt here; install Xvfb and Mesa OpenGL for the annotator window's test (it skips otherwise)" >&2
+fi
 PY=${PYTHON:-python3}
 if [ ! -x .venv/bin/python ]; then
   "$PY" -m venv .venv

@@ -1,0 +1,395 @@
+"""Rigid alignment of object meshes to a fused RGB-D point cloud (numpy + scipy only).
+
+- `kabsch`: the rigid transform of three or more picked point pairs (mesh <-> cloud), least squares.
+- `sample_surface`: area-weighted surface samples with outward normals of a mesh, in its object frame.
+- `visible_samples`: which posed samples a camera can see (front-facing, above the table, not hidden behind the
+  measured depth), so coverage counts only surface the cameras could have measured.
+- `icp`: point-to-plane ICP of the visible samples against a cloud crop (cKDTree correspondences, shrinking
+  correspondence distance, Tukey weights, damped Gauss-Newton), with jump rejection against the start pose.
+- `fit_score`: inlier RMSE, coverage of the visible samples, fitness of the crop.
+
+Transforms are 4x4 object-to-world matrices; points (..., 3) are (x, y, z) metres in the world/table frame unless
+stated; angles are radians.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass
+
+import numpy as np
+
+from dsr_bench.errors import UserError
+from dsr_bench.geometry import Camera
+
+#: Distance (m) within which a cloud point counts as lying on the mesh surface (sensor noise + calibration error).
+INLIER_DISTANCE = 0.005
+#: Initial correspondence distance (m) of ICP: the basin it converges from.
+MAX_CORRESPONDENCE = 0.02
+#: ICP results moving further than this from the start pose are rejected (m, rad).
+MAX_JUMP_TRANSLATION = 0.03
+MAX_JUMP_ROTATION = float(np.deg2rad(25.0))
+#: Points below this height (m) belong to the table: left out of crops and of the visible samples.
+TABLE_MARGIN = 0.003
+#: A sample counts as hidden from a camera when the measured surface lies this much (m) in front of it.
+OCCLUSION_TOLERANCE = 0.02
+#: A fit is good when at least this fraction of the visible samples has a cloud point within INLIER_DISTANCE ...
+MIN_COVERAGE = 0.65
+#: ... and the inlier RMSE is at most this (m).
+MAX_RMSE = 0.003
+#: ICP needs at least this many correspondences.
+MIN_CORRESPONDENCES = 30
+#: Surface sampling density: spacing (m) between samples, and the bounds of the sample count.
+SAMPLE_SPACING = 0.002
+MIN_SAMPLES, MAX_SAMPLES = 500, 20000
+#: Levenberg damping of each ICP step, relative to the mean curvature: holds still the directions the data do not
+#: constrain (the spin of a can about its axis), where noise would otherwise turn the object.
+ICP_DAMPING = 1e-3
+#: ICP iterates on a fixed random subset of at most this many samples (scores use all).
+ICP_SAMPLES = 3000
+
+
+@dataclass
+class FitScore:
+    """How well a posed mesh matches the cloud.
+
+    rmse: m, RMS point-to-plane distance (along the mesh normal) of the inlier correspondences (visible samples
+    with a cloud point within the inlier distance); coverage: 0..1, fraction of the visible samples with such a
+    point; fitness: 0..1, fraction of the cropped cloud points (around the object, table removed) within the
+    inlier distance of the mesh; accepted: the fit (or the ICP result) passed its checks (coverage >= MIN_COVERAGE,
+    RMSE <= MAX_RMSE; for ICP also no jump); reason: why not, or a short summary; visible: visible samples.
+    """
+
+    rmse: float
+    coverage: float
+    fitness: float
+    accepted: bool
+    reason: str
+    visible: int = 0  # number of visible samples
+
+    def as_dict(self) -> dict:
+        return {k: (float(v) if isinstance(v, (float, np.floating)) else v) for k, v in asdict(self).items()}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> FitScore:
+        return cls(float(d["rmse"]), float(d["coverage"]), float(d["fitness"]), bool(d["accepted"]), str(d["reason"]),
+                   int(d.get("visible", 0)))
+
+    def quality(self) -> float:
+        """One number to rank fits by (higher is better): coverage minus RMSE in units of 2 cm."""
+        rmse = float(self.rmse) if np.isfinite(self.rmse) else INLIER_DISTANCE
+        return float(self.coverage) - rmse / 0.02
+
+
+@dataclass(frozen=True)
+class SurfaceSamples:
+    """Surface samples of a mesh in its object frame: points (S, 3) m, unit outward normals (S, 3); centre (3,) of
+    the bounding box and radius (m) of the bounding sphere about it."""
+
+    points: np.ndarray
+    normals: np.ndarray
+    centre: np.ndarray
+    radius: float
+
+
+@dataclass
+class IcpResult:
+    """The outcome of `icp`: the final transform (4, 4) (the start transform when rejected), its score, the
+    iterations run, how far it moved from the start (m, rad), and whether the result was kept (`applied`: no jump,
+    enough correspondences; `score.accepted` says in addition whether the fit is good)."""
+
+    transform: np.ndarray
+    score: FitScore
+    iterations: int
+    translation: float
+    rotation: float
+    applied: bool = True
+
+
+# --- transforms ------------------------------------------------------------------------------------------------
+
+
+def rotvec_to_matrix(rotvec: np.ndarray) -> np.ndarray:
+    """Rotation matrix (3, 3) of an axis-angle vector (3,) in radians (Rodrigues)."""
+    rotvec = np.asarray(rotvec, dtype=np.float64)
+    angle = float(np.linalg.norm(rotvec))
+    if angle < 1e-12:
+        return np.eye(3)
+    k = rotvec / angle
+    kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    return np.eye(3) + np.sin(angle) * kx + (1 - np.cos(angle)) * kx @ kx
+
+
+def rotation_angle(rotation: np.ndarray) -> float:
+    """Angle (rad) of a rotation matrix (3, 3)."""
+    return float(np.arccos(np.clip((np.trace(rotation) - 1) / 2, -1.0, 1.0)))
+
+
+def matrix_to_pose(transform: np.ndarray) -> np.ndarray:
+    """Pose (7,) = (x, y, z, qx, qy, qz, qw), metres, of a rigid 4x4 transform (qw >= 0)."""
+    from scipy.spatial.transform import Rotation
+
+    q = Rotation.from_matrix(np.asarray(transform)[:3, :3]).as_quat()
+    if q[3] < 0:
+        q = -q
+    return np.concatenate([np.asarray(transform)[:3, 3], q]).astype(np.float64)
+
+
+def pose_delta(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
+    """(translation m, rotation rad) between two 4x4 transforms."""
+    return float(np.linalg.norm(b[:3, 3] - a[:3, 3])), rotation_angle(a[:3, :3].T @ b[:3, :3])
+
+
+def kabsch(source: np.ndarray, target: np.ndarray, min_spread: float = 0.005) -> np.ndarray:
+    """Rigid transform (4, 4) T minimising sum |T source_k - target_k|^2 (Kabsch/Umeyama without scale).
+
+    source, target: (k, 3) matched points, k >= 3, metres (e.g. mesh points in the object frame and picked cloud
+    points in the world). Raises UserError for fewer than 3 pairs or picks that (nearly) lie on one line
+    (second spread of either set below `min_spread` m), which leave a rotation undetermined.
+    """
+    src = np.asarray(source, dtype=np.float64).reshape(-1, 3)
+    dst = np.asarray(target, dtype=np.float64).reshape(-1, 3)
+    if len(src) != len(dst):
+        raise UserError(f"picked {len(src)} mesh points but {len(dst)} cloud points: pick them in pairs")
+    if len(src) < 3:
+        raise UserError(f"picked {len(src)} point pairs: pick at least 3 pairs (mesh <-> cloud) to place an object")
+    if not (np.all(np.isfinite(src)) and np.all(np.isfinite(dst))):
+        raise UserError("picked points contain NaN or inf: pick points on the mesh and on measured cloud points")
+    cs, cd = src.mean(0), dst.mean(0)
+    a, b = src - cs, dst - cd
+    for name, pts in (("mesh", a), ("cloud", b)):
+        spread = np.linalg.svd(pts, compute_uv=False) / np.sqrt(len(pts))
+        if spread[1] < min_spread:
+            raise UserError(f"the picked {name} points lie almost on one line (spread {spread[1] * 1000:.1f} mm across "
+                            f"it): pick 3 or more points spread over the object, not in a row")
+    u, _, vt = np.linalg.svd(a.T @ b)
+    d = np.sign(np.linalg.det(vt.T @ u.T))
+    rot = vt.T @ np.diag([1.0, 1.0, d]) @ u.T
+    out = np.eye(4)
+    out[:3, :3] = rot
+    out[:3, 3] = cd - rot @ cs
+    return out
+
+
+# --- surface samples ---------------------------------------------------------------------------------------------
+
+
+def sample_surface(vertices: np.ndarray, faces: np.ndarray, spacing: float = SAMPLE_SPACING,
+                   seed: int = 0) -> SurfaceSamples:
+    """Area-weighted random samples of a triangle mesh's surface with outward face normals.
+
+    vertices (V, 3) m, faces (F, 3) int; the sample count is area / spacing^2 clipped to [MIN_SAMPLES,
+    MAX_SAMPLES]; deterministic for a seed. A closed mesh with inward faces (negative volume) is flipped.
+    """
+    v = np.asarray(vertices, dtype=np.float64)
+    f = np.asarray(faces, dtype=np.int64)
+    tri = v[f]
+    cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    doubled = np.linalg.norm(cross, axis=1)
+    keep = doubled > 1e-14
+    tri, cross, doubled = tri[keep], cross[keep], doubled[keep]
+    if len(tri) == 0:
+        raise UserError("mesh has no triangles with area: check the mesh file")
+    volume = float(np.einsum("ij,ij->i", tri[:, 0], cross).sum() / 6.0)
+    sign = -1.0 if volume < 0 else 1.0
+    normals = sign * cross / doubled[:, None]
+    area = doubled / 2
+    count = int(np.clip(area.sum() / spacing**2, MIN_SAMPLES, MAX_SAMPLES))
+    rng = np.random.default_rng(seed)
+    which = rng.choice(len(tri), size=count, p=area / area.sum())
+    r1, r2 = rng.random((2, count))
+    s = np.sqrt(r1)
+    w = np.stack([1 - s, s * (1 - r2), s * r2], axis=1)
+    points = np.einsum("ij,ijk->ik", w, tri[which])
+    lo, hi = v.min(0), v.max(0)
+    centre = (lo + hi) / 2
+    radius = float(np.linalg.norm(v - centre, axis=1).max())
+    return SurfaceSamples(points, normals[which], centre, radius)
+
+
+def posed(samples: SurfaceSamples, transform: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """World points and normals (S, 3) of the samples at a 4x4 object-to-world transform."""
+    rot, t = transform[:3, :3], transform[:3, 3]
+    return samples.points @ rot.T + t, samples.normals @ rot.T
+
+
+@dataclass(frozen=True)
+class View:
+    """A calibrated camera and its measured z-depth (H, W) in metres (0 = missing), for visibility tests."""
+
+    camera: Camera
+    depth: np.ndarray
+
+
+def visible_samples(points: np.ndarray, normals: np.ndarray, views: Sequence[View],
+                    table_margin: float = TABLE_MARGIN, occlusion_tolerance: float = OCCLUSION_TOLERANCE) -> np.ndarray:
+    """Which posed samples (S,) bool at least one camera could have measured.
+
+    A sample counts for a camera when it faces the camera (back-face test against the camera centre), projects
+    inside its image onto a pixel with a measurement, and that measurement is not more than
+    `occlusion_tolerance` m in front of it (something else hides it). Samples below `table_margin` m are left out
+    (the table hides the contact surface). points, normals: (S, 3) world.
+    """
+    out = np.zeros(len(points), dtype=bool)
+    above = points[:, 2] > table_margin
+    for view in views:
+        cam = view.camera
+        centre = cam.extrinsics[:3, 3]
+        facing = np.einsum("ij,ij->i", normals, centre - points) > 0
+        cand = facing & above & ~out
+        if not cand.any():
+            continue
+        uv, z = cam.project(points[cand])
+        u = np.rint(uv[:, 0]).astype(np.int64)
+        v = np.rint(uv[:, 1]).astype(np.int64)
+        inside = (z > 0) & (u >= 0) & (u < cam.width) & (v >= 0) & (v < cam.height)
+        d = np.zeros(len(z))
+        d[inside] = view.depth[v[inside], u[inside]]
+        seen = inside & (d > 0) & (d >= z - occlusion_tolerance)
+        idx = np.flatnonzero(cand)
+        out[idx[seen]] = True
+    return out
+
+
+def crop_cloud(points: np.ndarray, centre: np.ndarray, radius: float, table_margin: float = TABLE_MARGIN) -> np.ndarray:
+    """Cloud points (M, 3) within `radius` m of `centre` (3,) and above the table margin."""
+    near = np.sum((points - centre) ** 2, axis=1) <= radius * radius
+    return points[near & (points[:, 2] > table_margin)]
+
+
+# --- scores and ICP ------------------------------------------------------------------------------------------------
+
+
+def fit_score(samples: SurfaceSamples, transform: np.ndarray, crop: np.ndarray, views: Sequence[View],
+              inlier_distance: float = INLIER_DISTANCE, tree=None, with_fitness: bool = True) -> FitScore:
+    """Score of the mesh at `transform` (4, 4) against a cloud crop (M, 3) (see FitScore); accepted when the
+    coverage is at least MIN_COVERAGE and the RMSE at most MAX_RMSE. `tree`: a cKDTree of `crop` to reuse;
+    `with_fitness=False` skips the fitness (reported as NaN), for fast screening."""
+    from scipy.spatial import cKDTree
+
+    pts, nrm = posed(samples, transform)
+    vis = visible_samples(pts, nrm, views)
+    nvis = int(vis.sum())
+    if len(crop) == 0 or nvis == 0:
+        why = "no cloud points around the object" if len(crop) == 0 else "no surface of the mesh is visible to a camera"
+        return FitScore(float("nan"), 0.0, 0.0, False, why, nvis)
+    tree = cKDTree(crop) if tree is None else tree
+    d, j = tree.query(pts[vis], distance_upper_bound=inlier_distance)
+    inl = np.isfinite(d)
+    coverage = float(inl.mean())
+    # RMSE along the sample normals (point-to-plane): the surface misfit, not the spacing of the cloud's points
+    along = np.einsum("ij,ij->i", pts[vis][inl] - crop[j[inl]], nrm[vis][inl])
+    rmse = float(np.sqrt(np.mean(along**2))) if inl.any() else float("nan")
+    fitness = float("nan")
+    if with_fitness:
+        d_back, _ = cKDTree(pts).query(crop, distance_upper_bound=inlier_distance)
+        fitness = float(np.isfinite(d_back).mean())
+    problems = []
+    if coverage < MIN_COVERAGE:
+        problems.append(f"coverage {coverage:.0%} < {MIN_COVERAGE:.0%}")
+    if not np.isfinite(rmse) or rmse > MAX_RMSE:
+        problems.append(f"rmse {rmse * 1000:.1f} mm > {MAX_RMSE * 1000:.1f} mm")
+    reason = "; ".join(problems) if problems else f"rmse {rmse * 1000:.1f} mm, coverage {coverage:.0%}"
+    return FitScore(rmse, coverage, fitness, not problems, reason, nvis)
+
+
+def screen_quality(samples: SurfaceSamples, transforms: np.ndarray, tree, views: Sequence[View],
+                    inlier_distance: float, min_visible: int = 20) -> np.ndarray:
+    """Coarse quality (C,) of the samples at each of C candidate transforms (C, 4, 4) against a cloud's cKDTree,
+    in one vectorised pass (for ranking start poses): coverage within `inlier_distance` minus the inliers' RMS
+    distance in units of 2 cm (as `FitScore.quality`); -1 where fewer than `min_visible` samples are visible."""
+    transforms = np.asarray(transforms, dtype=np.float64)
+    count, size = len(transforms), len(samples.points)
+    rot, t = transforms[:, :3, :3], transforms[:, :3, 3]
+    rot_t = np.ascontiguousarray(rot.transpose(0, 2, 1))
+    pts = (np.matmul(samples.points[None], rot_t) + t[:, None]).reshape(-1, 3)
+    nrm = np.matmul(samples.normals[None], rot_t).reshape(-1, 3)
+    vis = visible_samples(pts, nrm, views)
+    idx = np.flatnonzero(vis)
+    d, _ = tree.query(pts[idx], distance_upper_bound=inlier_distance)
+    ok = np.isfinite(d)
+    hit = np.zeros(count * size, dtype=bool)
+    hit[idx[ok]] = True
+    sq = np.zeros(count * size)
+    sq[idx[ok]] = d[ok] ** 2
+    nvis = vis.reshape(count, size).sum(1)
+    nhit = hit.reshape(count, size).sum(1)
+    cov = nhit / np.maximum(nvis, 1)
+    rms = np.sqrt(sq.reshape(count, size).sum(1) / np.maximum(nhit, 1))
+    rms = np.where(nhit > 0, rms, inlier_distance)
+    return np.where(nvis >= min_visible, cov - rms / 0.02, -1.0)
+
+
+def _tukey(r: np.ndarray, c: float) -> np.ndarray:
+    w = (1 - (r / c) ** 2) ** 2
+    return np.where(np.abs(r) < c, w, 0.0)
+
+
+def icp(samples: SurfaceSamples, crop: np.ndarray, start: np.ndarray, views: Sequence[View], *,
+        max_correspondence: float = MAX_CORRESPONDENCE, inlier_distance: float = INLIER_DISTANCE,
+        iterations: int = 40, max_translation: float = MAX_JUMP_TRANSLATION,
+        max_rotation: float = MAX_JUMP_ROTATION, tree=None) -> IcpResult:
+    """Point-to-plane ICP of the mesh's visible samples against a cloud crop (M, 3), from `start` (4, 4).
+
+    Each iteration matches the visible posed samples to their nearest cloud points within a correspondence
+    distance that shrinks from `max_correspondence` to 2 x `inlier_distance`, weights residuals along the sample
+    normals with Tukey's biweight, and takes one damped Gauss-Newton step (rotation about the matched samples'
+    centroid). The result is rejected (transform = start, score.accepted False, reason given) when it moved more
+    than `max_translation` m or `max_rotation` rad from the start, or found too few correspondences.
+    """
+    from scipy.spatial import cKDTree
+
+    start = np.asarray(start, dtype=np.float64)
+    if len(crop) < MIN_CORRESPONDENCES:
+        score = fit_score(samples, start, crop, views, inlier_distance)
+        score.accepted, score.reason = False, f"only {len(crop)} cloud points near the object: move it onto its points"
+        return IcpResult(start, score, 0, 0.0, 0.0, False)
+    tree = cKDTree(crop) if tree is None else tree
+    if len(samples.points) > ICP_SAMPLES:
+        keep = np.random.default_rng(0).choice(len(samples.points), ICP_SAMPLES, replace=False)
+        fit_samples = SurfaceSamples(samples.points[keep], samples.normals[keep], samples.centre, samples.radius)
+    else:
+        fit_samples = samples
+    current = start.copy()
+    dist = max_correspondence
+    floor = 2 * inlier_distance
+    it = 0
+    for it in range(1, iterations + 1):
+        pts, nrm = posed(fit_samples, current)
+        vis = visible_samples(pts, nrm, views)
+        d, j = tree.query(pts[vis], distance_upper_bound=dist)
+        ok = np.isfinite(d)
+        if ok.sum() < MIN_CORRESPONDENCES:
+            score = fit_score(samples, start, crop, views, inlier_distance, tree)
+            score.accepted = False
+            score.reason = (f"only {int(ok.sum())} mesh points have cloud points within {dist * 100:.1f} cm: "
+                            "nudge the object onto its points and snap again")
+            return IcpResult(start, score, it, 0.0, 0.0, False)
+        p, n = pts[vis][ok], nrm[vis][ok]
+        q = crop[j[ok]]
+        r = np.einsum("ij,ij->i", p - q, n)
+        w = _tukey(r, max(dist, 1e-6))
+        centroid = p.mean(0)
+        jac = np.hstack([np.cross(p - centroid, n), n])
+        a = jac.T @ (w[:, None] * jac)
+        damping = ICP_DAMPING * max(float(np.trace(a)), 1e-12) / 6
+        x = np.linalg.solve(a + damping * np.eye(6), -jac.T @ (w * r))
+        rot = rotvec_to_matrix(x[:3])
+        step = np.eye(4)
+        step[:3, :3] = rot
+        step[:3, 3] = centroid - rot @ centroid + x[3:]
+        current = step @ current
+        small = np.linalg.norm(x[3:]) < 1e-5 and np.linalg.norm(x[:3]) < 1e-4
+        if small and dist <= floor:
+            break
+        dist = max(floor, dist * 0.75)
+    moved_t, moved_r = pose_delta(start, current)
+    if moved_t > max_translation or moved_r > max_rotation:
+        score = fit_score(samples, start, crop, views, inlier_distance, tree)
+        score.accepted = False
+        score.reason = (f"rejected jump: ICP moved the object {moved_t * 100:.1f} cm and {np.rad2deg(moved_r):.0f} deg "
+                        f"(limits {max_translation * 100:.0f} cm, {np.rad2deg(max_rotation):.0f} deg); nudge it closer "
+                        "and snap again")
+        return IcpResult(start, score, it, moved_t, moved_r, False)
+    score = fit_score(samples, current, crop, views, inlier_distance, tree)
+    return IcpResult(current, score, it, moved_t, moved_r)

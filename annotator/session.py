@@ -1,0 +1,534 @@
+"""An annotation session: one capture, its annotation state, the operations a user performs, autosave and resume.
+
+The window (`annotator.window`), the CLI (`dsr-bench annotate`) and the benchmark use only this class. Every
+mutating call is one undoable user action, and the state is written atomically to `<work>/state.json` before the
+call returns, so killing the process loses nothing; `Session.open` resumes from that file.
+
+Poses are (7,) = (x, y, z, qx, qy, qz, qw) in the table frame, metres (`dsr_bench.geometry.pose_to_matrix`); unset
+poses read as NaN rows. Step s is observation s (0..T); push s moves the scene from step s to s + 1.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from collections import OrderedDict
+from pathlib import Path
+
+import numpy as np
+
+from annotator import align
+from annotator.align import FitScore
+from annotator.state import ACTION_KINDS, AnnotationState, StateError
+from dsr_bench.capture import Capture, load_capture
+from dsr_bench.constants import PUSHER_RADIUS
+from dsr_bench.errors import UserError
+from dsr_bench.geometry import pose_to_matrix
+
+__all__ = ["FitScore", "Session", "STATE_FILE", "WORK_DIRNAME"]
+
+WORK_DIRNAME = "annotation"
+STATE_FILE = "state.json"
+#: Crop radius around an object: its bounding sphere plus this margin (m).
+CROP_MARGIN = 0.03
+#: Carry-forward: an object counts as moved when its carried pose's coverage drops by this much (fraction) ...
+MOVED_COVERAGE_DROP = 0.1
+#: ... or its RMSE grows by this much (m), or its fit fails, or the pusher passed within this distance (m) of it.
+MOVED_RMSE_RISE = 0.001
+PUSH_CONTACT_MARGIN = 0.01
+#: A snap of an object the fit does not flag as moved is kept only if it moves it at least this much (m, rad).
+MIN_SNAP_CHANGE = (0.001, float(np.deg2rad(0.5)))
+#: Start-pose search for a moved object whose carried pose does not snap: steps along the push (m), sideways
+#: offsets (m), yaw candidates (rad), and how many of the best-scoring starts get an ICP.
+SEARCH_STEP = 0.01
+SEARCH_LATERAL = (-0.04, -0.02, 0.0, 0.02, 0.04)
+#: Inlier distance (m) of the coarse score that ranks the search's start poses.
+SEARCH_INLIER = 0.015
+#: Surface samples used to rank the search's start poses.
+SEARCH_SAMPLES = 400
+SEARCH_YAWS = tuple(np.deg2rad([0, 15, -15, 30, -30, 60, -60, 90, -90, 180]))
+SEARCH_ICP_STARTS = 6
+#: Ranking penalty of a start pose or result per half turn (pi rad) away from the carried pose, in quality units
+#: (coverage fraction): among fits of nearly equal quality the least turned one wins.
+TURN_PENALTY = 0.05
+#: Clouds kept in memory (steps).
+CLOUD_CACHE = 4
+
+
+def _nan_score(d: dict | None) -> FitScore | None:
+    if d is None:
+        return None
+    return FitScore.from_dict({k: (float("nan") if v is None else v) for k, v in d.items()})
+
+
+class Session:
+    """One capture being annotated (see the module docstring); create with `Session.open`."""
+
+    def __init__(self, capture: Capture, work_dir: Path, state: AnnotationState):
+        self.capture = capture
+        self.work_dir = Path(work_dir)
+        self.state = state
+        self._samples: dict[int, align.SurfaceSamples] = {}
+        self._clouds: OrderedDict[int, tuple] = OrderedDict()
+
+    # opening and saving ------------------------------------------------------------------------------------------
+    @classmethod
+    def open(cls, capture_dir: str | Path, work_dir: str | Path | None = None) -> Session:
+        """Open a capture (validated) and resume `<work_dir>/state.json` if present (default work dir:
+        `<capture_dir>/annotation/`). Raises UserError when the saved state is unreadable or belongs to another
+        capture."""
+        capture = load_capture(capture_dir)
+        work = Path(work_dir) if work_dir is not None else capture.path / WORK_DIRNAME
+        path = work / STATE_FILE
+        if path.is_file():
+            try:
+                state = AnnotationState.from_dict(json.loads(path.read_text()))
+            except (json.JSONDecodeError, UnicodeDecodeError, StateError) as exc:
+                raise UserError(f"{path}: unreadable annotation state ({exc}); move it away to start afresh or give "
+                                "another --work directory") from None
+            if state.capture != capture.name:
+                raise UserError(f"{path} belongs to capture {state.capture!r}, not {capture.name!r}; give another "
+                                f"--work directory for {capture.name!r}")
+            if (state.num_steps, state.num_objects) != (capture.num_steps, capture.num_objects):
+                raise UserError(f"{path} has {state.num_steps} pushes x {state.num_objects} objects but capture "
+                                f"{capture.name!r} has {capture.num_steps} x {capture.num_objects}; give another "
+                                "--work directory")
+            return cls(capture, work, state)
+        session = cls(capture, work, AnnotationState(capture.name, capture.num_steps, capture.num_objects))
+        session._save()
+        return session
+
+    @property
+    def state_path(self) -> Path:
+        return self.work_dir / STATE_FILE
+
+    def _save(self) -> None:
+        """Write the state atomically (temporary file, fsync, rename)."""
+        self.work_dir.mkdir(parents=True, exist_ok=True)
+        tmp = self.work_dir / f".{STATE_FILE}.tmp-{os.getpid()}"
+        try:
+            with open(tmp, "w") as f:
+                json.dump(self.state.to_dict(), f, separators=(",", ":"))
+                f.flush()
+                os.fsync(f.fileno())
+            os.replace(tmp, self.state_path)
+        finally:
+            if tmp.exists():
+                tmp.unlink()
+
+    # read-only views -------------------------------------------------------------------------------------------------
+    @property
+    def step(self) -> int:
+        """The current step (observation index 0..T)."""
+        return self.state.step
+
+    @property
+    def selected(self) -> int:
+        return self.state.selected
+
+    @property
+    def num_steps(self) -> int:
+        """Pushes T (the capture has T + 1 steps)."""
+        return self.capture.num_steps
+
+    @property
+    def num_objects(self) -> int:
+        return self.capture.num_objects
+
+    @property
+    def action_counts(self) -> dict[str, int]:
+        """User actions by kind (pick, previous, nudge, snap, confirm, step, undo, redo)."""
+        return {k: int(self.state.counts.get(k, 0)) for k in ACTION_KINDS}
+
+    @property
+    def undo_depth(self) -> int:
+        """Changes that `undo` can revert."""
+        return len(self.state.undo_stack)
+
+    @property
+    def redo_depth(self) -> int:
+        """Undone changes that `redo` can re-apply."""
+        return len(self.state.redo_stack)
+
+    def visited(self, step: int) -> bool:
+        return bool(self.state.visited[self._check_step(step)])
+
+    def poses(self, step: int | None = None) -> np.ndarray:
+        """Poses (N, 7) at a step (default the current one); NaN rows where unset."""
+        return self.state.poses[self._step(step)].copy()
+
+    def status(self, step: int | None = None) -> list[str]:
+        """Status per object at a step: 'unset' | 'initialised' | 'snapped' | 'confirmed'."""
+        return [str(s) for s in self.state.status[self._step(step)]]
+
+    def samples(self, obj: int) -> align.SurfaceSamples:
+        """Surface samples of object `obj`'s mesh (object frame), cached."""
+        if obj not in self._samples:
+            self._samples[obj] = align.sample_surface(*self.capture.mesh(obj), seed=obj)
+        return self._samples[obj]
+
+    def cloud(self, step: int | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The fused cloud of a step (points (M, 3) m, colours (M, 3) 0..1, camera index (M,)), cached."""
+        step = self._step(step)
+        if step not in self._clouds:
+            self._clouds[step] = self.capture.cloud(step) + (
+                [align.View(cam.camera, self.capture.depth(step, name)) for name, cam in self.capture.cameras.items()],)
+            while len(self._clouds) > CLOUD_CACHE:
+                self._clouds.popitem(last=False)
+        self._clouds.move_to_end(step)
+        return self._clouds[step][:3]
+
+    def _views(self, step: int) -> list[align.View]:
+        self.cloud(step)
+        return self._clouds[step][3]
+
+    # checks ---------------------------------------------------------------------------------------------------------
+    def _check_step(self, step: int) -> int:
+        step = int(step)
+        if not 0 <= step <= self.num_steps:
+            raise UserError(f"step {step} out of range: this capture has steps 0..{self.num_steps}")
+        return step
+
+    def _step(self, step: int | None) -> int:
+        return self.state.step if step is None else self._check_step(step)
+
+    def _check_obj(self, obj: int) -> int:
+        obj = int(obj)
+        if not 0 <= obj < self.num_objects:
+            raise UserError(f"object {obj} out of range: this capture has objects 0..{self.num_objects - 1}")
+        return obj
+
+    def _require_pose(self, obj: int, step: int) -> np.ndarray:
+        pose = self.state.pose(step, obj)
+        if pose is None:
+            raise UserError(f"object {obj} has no pose at step {step} yet: initialise it first (pick 3+ point pairs, "
+                            "or take the previous step's pose)")
+        return pose
+
+    # scoring ----------------------------------------------------------------------------------------------------------
+    def _crop(self, step: int, transform: np.ndarray, samples: align.SurfaceSamples, extra: float = 0.0) -> np.ndarray:
+        points = self.cloud(step)[0]
+        centre = transform[:3, :3] @ samples.centre + transform[:3, 3]
+        return align.crop_cloud(points, centre, samples.radius + CROP_MARGIN + extra)
+
+    def _fit(self, obj: int, step: int, pose: np.ndarray) -> FitScore:
+        transform = pose_to_matrix(pose)
+        samples = self.samples(obj)
+        return align.fit_score(samples, transform, self._crop(step, transform, samples), self._views(step))
+
+    def score(self, obj: int, step: int | None = None) -> FitScore:
+        """Fit score of object `obj`'s current pose at a step (default the current one) against its cloud."""
+        obj, step = self._check_obj(obj), self._step(step)
+        pose = self.state.pose(step, obj)
+        if pose is None:
+            return FitScore(float("nan"), 0.0, 0.0, False, "unset")
+        return self._fit(obj, step, pose)
+
+    def stored_score(self, obj: int, step: int | None = None) -> FitScore | None:
+        """The score recorded with the object's last change at a step (None if never scored)."""
+        return _nan_score(self.state.scores[self._step(step)][self._check_obj(obj)])
+
+    # mutations --------------------------------------------------------------------------------------------------------
+    def _commit(self, kind: str, changes: dict, cursor: int | None = None, visit: list[int] | None = None) -> None:
+        op = self.state.operation(kind, changes, cursor=cursor, visit=visit)
+        self.state.apply(op)
+        self.state.count(kind)
+        self._save()
+
+    def _set_pose(self, kind: str, obj: int, pose: np.ndarray, status: str, score: FitScore | None = None) -> None:
+        step = self.state.step
+        score = self._fit(obj, step, pose) if score is None else score
+        self._commit(kind, {(step, obj): (pose, status, score.as_dict())})
+
+    def select(self, obj: int) -> None:
+        """Select object `obj` (the target of the window's keys); saved, not an undoable action."""
+        self.state.selected = self._check_obj(obj)
+        self._save()
+
+    def init_from_picks(self, obj: int, mesh_points: np.ndarray, cloud_points: np.ndarray) -> np.ndarray:
+        """Place object `obj` at the current step from k >= 3 picked pairs: mesh points (k, 3) in the object
+        frame and cloud points (k, 3) in the world, metres. Returns the pose (7,); status 'initialised'."""
+        obj = self._check_obj(obj)
+        pose = align.matrix_to_pose(align.kabsch(mesh_points, cloud_points))
+        self._set_pose("pick", obj, pose, "initialised")
+        return pose
+
+    def _previous_pose(self, obj: int, step: int) -> tuple[int, np.ndarray] | None:
+        for s in range(step - 1, -1, -1):
+            pose = self.state.pose(s, obj)
+            if pose is not None:
+                return s, pose
+        return None
+
+    def init_from_previous(self, obj: int) -> None:
+        """Copy object `obj`'s pose from the nearest earlier step that has one; status 'initialised'."""
+        obj, step = self._check_obj(obj), self.state.step
+        found = self._previous_pose(obj, step)
+        if found is None:
+            raise UserError(f"object {obj} has no pose at any step before {step}: pick 3+ point pairs to place it")
+        self._set_pose("previous", obj, found[1], "initialised")
+
+    def nudge(self, obj: int, translation=(0.0, 0.0, 0.0), rotation=(0.0, 0.0, 0.0), frame: str = "table") -> None:
+        """Move object `obj` at the current step: translation (3,) m and rotation (3,) axis-angle rad about the
+        object's centre (its mesh's bounding-box centre), both in table axes (`frame='table'`) or the object's
+        axes (`frame='object'`). Status becomes 'initialised'."""
+        obj = self._check_obj(obj)
+        if frame not in ("table", "object"):
+            raise UserError(f"frame {frame!r}: use 'table' or 'object'")
+        m = pose_to_matrix(self._require_pose(obj, self.state.step))
+        rot, t = m[:3, :3], m[:3, 3]
+        dt = np.asarray(translation, dtype=np.float64).reshape(3)
+        dr = align.rotvec_to_matrix(np.asarray(rotation, dtype=np.float64).reshape(3))
+        centre = rot @ self.samples(obj).centre + t
+        if frame == "table":
+            new_rot = dr @ rot
+        else:
+            new_rot = rot @ dr
+            dt = rot @ dt
+        out = np.eye(4)
+        out[:3, :3] = new_rot
+        out[:3, 3] = centre - new_rot @ self.samples(obj).centre + dt
+        self._set_pose("nudge", obj, align.matrix_to_pose(out), "initialised")
+
+    def snap(self, obj: int) -> FitScore:
+        """ICP-align object `obj` at the current step to a crop of the fused cloud around it. A large jump or too
+        few correspondences rejects the result (pose unchanged, `accepted` False, `reason` says why). A kept result
+        becomes 'snapped' when its fit is good, else stays 'initialised' (check it and confirm)."""
+        obj, step = self._check_obj(obj), self.state.step
+        pose = self._require_pose(obj, step)
+        result = self._icp(obj, step, pose_to_matrix(pose))
+        if not result.applied:
+            self.state.count("snap")
+            self._save()
+            return result.score
+        status = "snapped" if result.score.accepted else "initialised"
+        self._set_pose("snap", obj, align.matrix_to_pose(result.transform), status, result.score)
+        return result.score
+
+    def _icp(self, obj: int, step: int, start: np.ndarray, extra_crop: float = 0.0, **kwargs) -> align.IcpResult:
+        samples = self.samples(obj)
+        crop = self._crop(step, start, samples, extra_crop)
+        return align.icp(samples, crop, start, self._views(step), **kwargs)
+
+    def confirm(self, obj: int) -> None:
+        """Mark object `obj`'s pose at the current step as checked by the user ('confirmed')."""
+        obj, step = self._check_obj(obj), self.state.step
+        self._set_pose("confirm", obj, self._require_pose(obj, step), "confirmed")
+
+    def undo(self) -> bool:
+        """Revert the latest change exactly; False if there is none."""
+        if self.state.undo() is None:
+            return False
+        self.state.count("undo")
+        self._save()
+        return True
+
+    def redo(self) -> bool:
+        """Re-apply the latest undone change; False if there is none."""
+        if self.state.redo() is None:
+            return False
+        self.state.count("redo")
+        self._save()
+        return True
+
+    # steps ------------------------------------------------------------------------------------------------------------
+    def go_to(self, step: int) -> list[int]:
+        """Make `step` current. A step not visited before gets the poses of the nearest earlier visited step
+        carried forward, and only the objects that moved are snapped (ICP; a start-pose search along the push
+        when the carried pose does not converge). Returns the objects whose pose the snapping changed.
+
+        Moving to a visited step only moves the cursor (not an undoable action); visiting a new step is one.
+        """
+        step = self._check_step(step)
+        if self.state.visited[step]:
+            if step != self.state.step:
+                self.state.step = step
+                self.state.count("step")
+                self._save()
+            return []
+        source = max(s for s in range(step) if self.state.visited[s])
+        changes, snapped = {}, []
+        for obj in range(self.num_objects):
+            pose = self.state.pose(source, obj)
+            if pose is None:
+                continue
+            new_pose, status, score, moved = self._carry(obj, source, step, pose)
+            changes[(step, obj)] = (new_pose, status, score.as_dict())
+            if moved:
+                snapped.append(obj)
+        self._commit("step", changes, cursor=step, visit=[step])
+        return snapped
+
+    def _near_push(self, obj: int, pose: np.ndarray, source: int, step: int) -> bool:
+        """Whether the pusher passed within its radius + PUSH_CONTACT_MARGIN of the object (xy) between steps."""
+        pts, _ = align.posed(self.samples(obj), pose_to_matrix(pose))
+        pts = pts[:, :2]
+        for a, b in self.capture.pushes_world[source:step, :, :2]:
+            ab = b - a
+            u = np.clip(((pts - a) @ ab) / max(float(ab @ ab), 1e-12), 0.0, 1.0)
+            d = np.linalg.norm(pts - (a + u[:, None] * ab), axis=1)
+            if d.min() < PUSHER_RADIUS + PUSH_CONTACT_MARGIN:
+                return True
+        return False
+
+    def _carry(self, obj: int, source: int, step: int, pose: np.ndarray) -> tuple[np.ndarray, str, FitScore, bool]:
+        """(pose, status, score, moved) of an object carried from `source` to `step`."""
+        before = self.stored_score(obj, source) or self._fit(obj, source, pose)
+        carried = self._fit(obj, step, pose)
+        src_status = str(self.state.status[source, obj])
+        checked = src_status in ("snapped", "confirmed")
+        rmse_before = before.rmse if np.isfinite(before.rmse) else 0.0
+        dropped = (not carried.accepted or carried.coverage < before.coverage - MOVED_COVERAGE_DROP
+                   or not np.isfinite(carried.rmse) or carried.rmse > rmse_before + MOVED_RMSE_RISE)
+        if not dropped and not self._near_push(obj, pose, source, step):
+            return pose, ("snapped" if checked else "initialised"), carried, False
+        start = pose_to_matrix(pose)
+        result = self._icp(obj, step, start)
+
+        def good(r: align.IcpResult) -> bool:  # accepted, and about as well covered as at the source step
+            return r.applied and r.score.accepted and r.score.coverage >= before.coverage - MOVED_COVERAGE_DROP
+
+        if not dropped:
+            # near the push but the fit did not change: keep the carried pose unless a good ICP fit clearly moves it
+            moved_t, moved_r = align.pose_delta(start, result.transform)
+            if not good(result) or (moved_t < MIN_SNAP_CHANGE[0] and moved_r < MIN_SNAP_CHANGE[1]):
+                return pose, ("snapped" if checked else "initialised"), carried, False
+            return align.matrix_to_pose(result.transform), "snapped", result.score, True
+        if not good(result):
+            searched = self._search(obj, source, step, start)
+            if searched is not None and (not result.applied or searched.score.quality() > result.score.quality()):
+                result = searched
+        if good(result):
+            return align.matrix_to_pose(result.transform), "snapped", result.score, True
+        if result.applied and result.score.quality() > carried.quality():
+            return align.matrix_to_pose(result.transform), "initialised", result.score, True
+        carried.reason = f"moved, not snapped: {result.score.reason}"
+        return pose, "initialised", carried, False
+
+    def _search(self, obj: int, source: int, step: int, start: np.ndarray) -> align.IcpResult | None:
+        """Best kept ICP result from start poses along the push direction, sideways and turned about z."""
+        pushes = self.capture.pushes_world[source:step]
+        samples = self.samples(obj)
+        vec = pushes[-1, 1, :2] - pushes[-1, 0, :2]
+        length = float(np.linalg.norm(vec))
+        direction = vec / length if length > 1e-6 else np.array([1.0, 0.0])
+        side = np.array([-direction[1], direction[0]])
+        reach = float(sum(np.linalg.norm(p[1, :2] - p[0, :2]) for p in pushes)) + 0.03
+        wide = self._crop(step, start, samples, extra=reach)
+        if len(wide) < align.MIN_CORRESPONDENCES:
+            return None
+        from scipy.spatial import cKDTree
+
+        tree = cKDTree(wide)
+        views = self._views(step)
+        centre = start[:3, :3] @ samples.centre + start[:3, 3]
+        every = max(1, len(samples.points) // SEARCH_SAMPLES)
+        screen = align.SurfaceSamples(samples.points[::every], samples.normals[::every], samples.centre,
+                                      samples.radius)
+        starts, turns = [], []
+        for along in np.arange(0.0, reach + 1e-9, SEARCH_STEP):
+            for lateral in SEARCH_LATERAL:
+                for yaw in SEARCH_YAWS:
+                    rz = align.rotvec_to_matrix([0.0, 0.0, yaw])
+                    cand = np.eye(4)
+                    cand[:3, :3] = rz @ start[:3, :3]
+                    shift = np.zeros(3)
+                    shift[:2] = along * direction + lateral * side
+                    cand[:3, 3] = rz @ (start[:3, 3] - centre) + centre + shift
+                    starts.append(cand)
+                    turns.append(abs(yaw))
+        # among equally good fits prefer the least turn: a symmetric object's turned twin fits as well but would
+        # give the wrong motion (flow)
+        quality = align.screen_quality(screen, np.stack(starts), tree, views, SEARCH_INLIER)
+        quality = quality - TURN_PENALTY * np.asarray(turns) / np.pi
+        candidates = [(quality[k], starts[k]) for k in np.argsort(-quality, kind="stable")]
+        best, best_rank = None, -np.inf
+        for _, cand in candidates[:SEARCH_ICP_STARTS]:
+            result = align.icp(samples, self._crop(step, cand, samples), cand, views)
+            rank = result.score.quality() - TURN_PENALTY * align.pose_delta(start, result.transform)[1] / np.pi
+            if result.applied and rank > best_rank:
+                best, best_rank = result, rank
+        return best
+
+    # display helpers --------------------------------------------------------------------------------------------------
+    def residual_colors(self, step: int | None = None, max_residual: float = 0.01) -> np.ndarray:
+        """Colours (M, 3) in 0..1 of `cloud(step)`'s points by their distance to the nearest posed mesh surface:
+        blue (0) through green and yellow to red (>= `max_residual` m) within 2 x `max_residual`; other points
+        (table, unannotated things) keep a dimmed grey of their own colour."""
+        from scipy.spatial import cKDTree
+
+        step = self._step(step)
+        points, colors, _ = self.cloud(step)
+        grey = np.repeat(colors.mean(1, keepdims=True), 3, axis=1) * 0.5 + 0.1
+        surfaces = [align.posed(self.samples(i), pose_to_matrix(p))[0]
+                    for i in range(self.num_objects) if (p := self.state.pose(step, i)) is not None]
+        if not surfaces:
+            return grey
+        d, _ = cKDTree(np.vstack(surfaces)).query(points, distance_upper_bound=2 * max_residual)
+        near = np.isfinite(d) & (points[:, 2] > align.TABLE_MARGIN)
+        x = np.clip(d[near] / max_residual, 0.0, 1.0)
+        ramp = np.stack([np.clip(2 * x, 0, 1), np.clip(2 - 2 * x, 0, 1) * np.clip(2 * x + 0.5, 0, 1),
+                         np.clip(1 - 2 * x, 0, 1)], axis=1)
+        out = grey.copy()
+        out[near] = ramp
+        return out
+
+    def progress(self) -> dict:
+        """Per step and object: status and last fit score; steps done; action counts (JSON-able)."""
+        steps = []
+        for s in range(self.num_steps + 1):
+            objs = [{"status": str(self.state.status[s, i]), "score": self.state.scores[s][i]}
+                    for i in range(self.num_objects)]
+            done = all(o["status"] in ("snapped", "confirmed") for o in objs)
+            steps.append({"step": s, "visited": bool(self.state.visited[s]), "done": done, "objects": objs})
+        return {"capture": self.capture.name, "num_steps": self.num_steps, "num_objects": self.num_objects,
+                "current_step": self.step, "steps_done": sum(s["done"] for s in steps), "steps": steps,
+                "action_counts": self.action_counts}
+
+    def progress_table(self) -> str:
+        """The progress as a text table: one row per step, one column per object (status, coverage, RMSE)."""
+        p = self.progress()
+        head = (f"capture {p['capture']}: {p['num_steps'] + 1} steps x {p['num_objects']} objects, "
+                f"{p['steps_done']}/{p['num_steps'] + 1} steps done, current step {p['current_step']}")
+        names = [o.name for o in self.capture.objects]
+        width = 24
+        lines = [head, "step  " + "".join(f"{n[:width - 2]:<{width}}" for n in names)]
+        for s in p["steps"]:
+            cells = []
+            for o in s["objects"]:
+                sc = o["score"]
+                text = o["status"]
+                if sc is not None and o["status"] != "unset":
+                    rmse = sc.get("rmse")
+                    text += f" {sc.get('coverage', 0):.0%}"
+                    text += f" {rmse * 1000:.1f}mm" if isinstance(rmse, (int, float)) else " -"
+                cells.append(f"{text:<{width}}")
+            mark = ">" if s["step"] == p["current_step"] else " "
+            lines.append(f"{mark}{s['step']:<4} " + "".join(cells))
+        counts = ", ".join(f"{k} {v}" for k, v in p["action_counts"].items() if v)
+        lines.append(f"actions: {counts or 'none'}")
+        return "\n".join(lines)
+
+    def unchecked(self) -> list[tuple[int, int, str]]:
+        """(step, object, status) of every object not yet 'snapped' or 'confirmed'."""
+        return [(s, i, str(self.state.status[s, i])) for s in range(self.num_steps + 1) for i in range(self.num_objects)
+                if self.state.status[s, i] not in ("snapped", "confirmed")]
+
+    def auto(self) -> dict[int, list[int]]:
+        """Visit every step not yet visited in order (carry forward + snap what moved); returns the objects
+        snapped per newly visited step. Step 0 must be initialised (every object posed)."""
+        missing = [i for i in range(self.num_objects) if self.state.pose(0, i) is None]
+        if missing:
+            raise UserError(f"step 0 has objects without a pose ({', '.join(map(str, missing))}): place them first "
+                            "(open the window: pick 3+ point pairs per object), then run --auto")
+        out = {}
+        for s in range(1, self.num_steps + 1):
+            if not self.state.visited[s]:
+                out[s] = self.go_to(s)
+        return out
+
+    def export(self, out: str | Path, allow_unchecked: bool = False) -> Path:
+        """Write the annotated sequence file (see `annotator.export.export_sequence`)."""
+        from annotator.export import export_sequence
+
+        return export_sequence(self, out, allow_unchecked=allow_unchecked)

@@ -1,0 +1,80 @@
+"""`dsr-bench annotate`: annotate object poses in a capture (window), or report, auto-carry and export."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Optional
+
+import typer
+
+
+def resolve_capture(capture: str, captures: Path) -> Path:
+    """A capture directory from a name under `captures` or a path (UserError naming both when neither exists)."""
+    from dsr_bench.errors import UserError
+
+    by_name = Path(captures) / capture
+    if by_name.is_dir():
+        return by_name
+    if Path(capture).is_dir():
+        return Path(capture)
+    raise UserError(f"capture {capture!r} not found: no directory {by_name} nor {capture}; give a capture name under "
+                    "--captures or a path (make simulated ones with `dsr-bench generate-captures`)")
+
+
+def annotate(
+    capture: str = typer.Argument(..., help="A capture name under --captures (seq_0042) or a capture directory."),
+    captures: Path = typer.Option(Path("captures"), "--captures", help="Directory holding the captures."),
+    work: Optional[Path] = typer.Option(None, "--work", help="Annotation state directory (default CAPTURE/annotation)"),
+    status: bool = typer.Option(False, "--status", help="Print the progress table and exit."),
+    auto: bool = typer.Option(False, "--auto", help="Carry poses forward over every unvisited step, snapping what "
+                                                    "moved (step 0 must be placed)."),
+    export: Optional[Path] = typer.Option(None, "--export", help="Write the annotated sequence file (OUT.h5)."),
+    allow_unchecked: bool = typer.Option(False, "--allow-unchecked",
+                                         help="Export even poses that are not snapped or confirmed."),
+) -> None:
+    """Annotate object poses in a two-camera capture; without flags, open the annotation window."""
+    from annotator.session import Session
+    from dsr_bench.errors import UserError
+
+    if allow_unchecked and export is None:
+        raise UserError("--allow-unchecked only applies to --export OUT.h5")
+    session = Session.open(resolve_capture(capture, captures), work)
+    if auto:
+        snapped = session.auto()
+        moved = sum(len(v) for v in snapped.values())
+        typer.echo(f"auto: visited {len(snapped)} steps, snapped {moved} moved objects")
+    if status or auto:
+        typer.echo(session.progress_table())
+    if export is not None:
+        path = session.export(export, allow_unchecked=allow_unchecked)
+        typer.echo(f"wrote {path}")
+    if status or auto or export is not None:
+        return
+    import os
+    import sys
+
+    if sys.platform.startswith("linux") and not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
+        raise UserError("no display to open the annotation window on: run `xvfb-run -a dsr-bench annotate ...`, or use "
+                        "--status, --auto or --export")
+    try:
+        from annotator import window
+    except ImportError as exc:
+        raise UserError(f"the annotation window is unavailable ({exc}); use --status, --auto or --export") from None
+    try:
+        window.run(session)
+    except UserError:
+        raise
+    except Exception as exc:  # noqa: BLE001 - GL/display failures surface as various errors
+        if _display_error(exc):
+            raise UserError("cannot open a display for the annotation window: run under a desktop session or "
+                            "`xvfb-run -a dsr-bench annotate ...`, or use --status / --auto / --export") from None
+        raise
+
+
+def _display_error(exc: Exception) -> bool:
+    text = f"{type(exc).__name__}: {exc}".lower()
+    return any(w in text for w in ("display", "glfw", "opengl", "x11", "window", "glx"))
+
+
+def register(app: typer.Typer) -> None:
+    app.command("annotate")(annotate)

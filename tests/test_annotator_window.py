@@ -1,0 +1,723 @@
+"""The annotator window: its pure parts (outline overlay, key table, help text, controller) without a
+display, and the real open3d window driven under a virtual display (Xvfb) with a screenshot check."""
+
+from __future__ import annotations
+
+import copy
+import os
+import shutil
+import subprocess
+import sys
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+pytest.importorskip("open3d")
+pytest.importorskip("PIL")
+
+from dsr_bench.errors import UserError  # noqa: E402
+from dsr_bench.geometry import make_camera, pose_to_matrix  # noqa: E402
+
+import annotator.window as win  # noqa: E402
+
+#: The Session API the window may call (annotator/session.py, see the annotator docs).
+SESSION_METHODS = {"poses", "status", "go_to", "select", "init_from_picks", "init_from_previous", "nudge", "snap",
+                   "confirm", "undo", "redo", "score", "residual_colors", "progress", "progress_table", "export"}
+#: The calls that change the annotation.
+MUTATING = {"go_to", "init_from_picks", "init_from_previous", "nudge", "snap", "confirm", "undo", "redo"}
+
+
+# --- a tiny capture and a stand-in Session ------------------------------------------------------------
+
+
+def _box(extents) -> tuple[np.ndarray, np.ndarray]:
+    import trimesh
+
+    mesh = trimesh.creation.box(extents=extents)
+    return np.asarray(mesh.vertices, np.float64), np.asarray(mesh.faces, np.int64)
+
+
+def _yaw(deg: float) -> np.ndarray:
+    a = np.deg2rad(deg) / 2
+    return np.array([0.0, 0.0, np.sin(a), np.cos(a)])
+
+
+@pytest.fixture(scope="module")
+def capture_dir(tmp_path_factory) -> Path:
+    """A simulated 2-push capture of 2 objects at 120x160 (generators/capture.py), or a hand-made one."""
+    out = tmp_path_factory.mktemp("capture") / "seq"
+    return _make_capture(out)
+
+
+def _make_capture(out: Path) -> Path:
+    try:
+        from generators.capture import generate_capture
+    except ImportError:
+        generate_capture = None
+    if generate_capture is not None:
+        return generate_capture(out, name="seq", seed=1, steps=2, objects_per_scene=2, image_shape=(120, 160))
+    from dsr_bench.capture import CaptureCamera, write_capture
+
+    cams = {n: make_camera(n, 120, 160) for n in ("front", "back")}
+    cameras = {n: CaptureCamera(n, c.height, c.width, c.intrinsics, c.extrinsics, 0.001) for n, c in cams.items()}
+    meshes = [_box((0.06, 0.04, 0.05)), _box((0.05, 0.05, 0.04))]
+    poses = np.array([[[0.45, 0.0, 0.025, *_yaw(10)], [0.58, 0.05, 0.02, *_yaw(-20)]]] * 3)
+    depth = {n: np.full((120, 160), 0.6) for n in cams}
+    color = {n: np.full((120, 160, 3), 128, np.uint8) for n in cams}
+    return write_capture(out, name="seq", cameras=cameras, colors=[color] * 3, depths=[depth] * 3,
+                         actions=np.zeros((2, 3), int), pushes_world=np.zeros((2, 2, 3)),
+                         objects=[(f"box{i}", v, f, {}) for i, (v, f) in enumerate(meshes)], truth_poses=poses)
+
+
+@dataclass
+class FakeScore:
+    rmse: float = 0.002
+    coverage: float = 0.8
+    fitness: float = 0.9
+    accepted: bool = True
+    reason: str = ""
+
+
+class FakeSession:
+    """A minimal in-memory stand-in of annotator.session.Session for the window's display logic.
+
+    Poses start at the capture's true poses; nudges rotate about the mesh's bounding-box centre.
+    """
+
+    def __init__(self, capture):
+        self.capture = capture
+        self.num_steps = capture.num_steps
+        self.num_objects = capture.num_objects
+        self.step = 0
+        self.selected = 0
+        truth = capture.truth_poses()
+        self._poses = {0: truth[0].copy()}
+        self._status = {0: ["initialised"] * self.num_objects}
+        self._undo: list = []
+        self._redo: list = []
+
+    # state ----------------------------------------------------------------------------------------
+    def _state(self):
+        return copy.deepcopy((self.step, self._poses, self._status))
+
+    def _push(self):
+        self._undo.append(self._state())
+        self._redo.clear()
+
+    @property
+    def undo_depth(self) -> int:
+        return len(self._undo)
+
+    @property
+    def redo_depth(self) -> int:
+        return len(self._redo)
+
+    def poses(self, step=None):
+        return self._poses[self.step if step is None else step].copy()
+
+    def status(self, step=None):
+        return list(self._status[self.step if step is None else step])
+
+    # actions --------------------------------------------------------------------------------------
+    def go_to(self, step):
+        if not 0 <= step <= self.num_steps:
+            raise UserError(f"step {step} out of range")
+        self._push()
+        if step not in self._poses:
+            self._poses[step] = self._poses[step - 1].copy()
+            self._status[step] = ["initialised"] * self.num_objects
+        self.step = step
+        return []
+
+    def select(self, obj):
+        self.selected = obj
+
+    def _set(self, obj, pose, status):
+        self._push()
+        self._poses[self.step][obj] = pose
+        self._status[self.step][obj] = status
+
+    def nudge(self, obj, translation=(0, 0, 0), rotation=(0, 0, 0), frame="table"):
+        from scipy.spatial.transform import Rotation
+
+        m = pose_to_matrix(self.poses()[obj])
+        v, _ = self.capture.mesh(obj)
+        centre = m[:3, :3] @ (0.5 * (v.min(0) + v.max(0))) + m[:3, 3]
+        rot = Rotation.from_rotvec(np.asarray(rotation, float)).as_matrix()
+        t = np.asarray(translation, float)
+        if frame == "object":
+            rot, t = m[:3, :3] @ rot @ m[:3, :3].T, m[:3, :3] @ t
+        new_r = rot @ m[:3, :3]
+        new_p = rot @ (m[:3, 3] - centre) + centre + t
+        self._set(obj, np.r_[new_p, Rotation.from_matrix(new_r).as_quat()], "initialised")
+
+    def snap(self, obj):
+        self._set(obj, self.poses()[obj], "snapped")
+        return FakeScore()
+
+    def confirm(self, obj):
+        self._set(obj, self.poses()[obj], "confirmed")
+
+    def init_from_previous(self, obj):
+        if self.step == 0:
+            raise UserError("step 0 has no previous step; pick point pairs (M) instead")
+        self._set(obj, self.poses(self.step - 1)[obj], "initialised")
+
+    def init_from_picks(self, obj, mesh_points, cloud_points):
+        from scipy.spatial.transform import Rotation
+
+        a, b = np.asarray(mesh_points, float), np.asarray(cloud_points, float)
+        rot, _ = Rotation.align_vectors(b - b.mean(0), a - a.mean(0))
+        pose = np.r_[b.mean(0) - rot.apply(a.mean(0)), rot.as_quat()]
+        self._set(obj, pose, "initialised")
+        return pose
+
+    def undo(self):
+        if not self._undo:
+            return False
+        self._redo.append(self._state())
+        self.step, self._poses, self._status = self._undo.pop()
+        return True
+
+    def redo(self):
+        if not self._redo:
+            return False
+        self._undo.append(self._state())
+        self.step, self._poses, self._status = self._redo.pop()
+        return True
+
+    def score(self, obj, step=None):
+        return FakeScore()
+
+    def residual_colors(self, step=None):
+        points, _, _ = self.capture.cloud(self.step if step is None else step)
+        return np.tile([0.0, 0.0, 1.0], (len(points), 1))
+
+    def progress(self):
+        return {"steps": {str(s): st for s, st in self._status.items()}}
+
+    def progress_table(self):
+        return "\n".join(f"step {s}: {' '.join(st)}" for s, st in sorted(self._status.items()))
+
+
+class Recorder:
+    """Wraps a session and records the names of the Session methods called on it."""
+
+    def __init__(self, session):
+        object.__setattr__(self, "_session", session)
+        object.__setattr__(self, "calls", [])
+
+    def __getattr__(self, name):
+        value = getattr(self._session, name)
+        if callable(value) and name in SESSION_METHODS:
+            def call(*args, **kwargs):
+                self.calls.append(name)
+                return value(*args, **kwargs)
+            return call
+        return value
+
+
+@pytest.fixture(scope="module")
+def capture(capture_dir):
+    from dsr_bench.capture import load_capture
+
+    return load_capture(capture_dir)
+
+
+# --- outline overlay ---------------------------------------------------------------------------------
+
+
+def _hull_distance(points_uv: np.ndarray, corners_uv: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+    """(inside (P,), distance to the boundary (P,), perimeter) of pixel centres relative to the convex hull of
+    the corners."""
+    from scipy.spatial import ConvexHull
+
+    hull = corners_uv[ConvexHull(corners_uv).vertices]
+    a, b = hull, np.roll(hull, -1, axis=0)
+    ab = b - a
+    ap = points_uv[:, None, :] - a[None]
+    t = np.clip((ap * ab).sum(-1) / (ab * ab).sum(-1), 0, 1)
+    dist = np.linalg.norm(ap - t[..., None] * ab, axis=-1).min(1)
+    cross = ab[None, :, 0] * ap[..., 1] - ab[None, :, 1] * ap[..., 0]
+    inside = np.all(cross >= 0, axis=1) | np.all(cross <= 0, axis=1)
+    return inside, dist, float(np.linalg.norm(ab, axis=1).sum())
+
+
+def test_outline_lies_on_projected_box_silhouette_boundary():
+    camera = make_camera("front", 240, 320)
+    extents = np.array([0.10, 0.06, 0.05])
+    vertices, faces = _box(extents)
+    pose = np.array([0.5, 0.02, 0.025, *_yaw(30)])
+    image = np.zeros((240, 320, 3), np.uint8)
+    image[..., 2] = 40
+    out = win.outline_overlay(image, camera, [(vertices, faces)], pose[None], colors=np.array([[1.0, 1.0, 1.0]]))
+    assert out.shape == image.shape and out.dtype == np.uint8
+    assert np.all(image[..., 2] == 40) and np.all(image[..., :2] == 0)  # input untouched
+    changed = np.any(out != image, axis=-1)
+    assert np.all(out[changed] == 255) and np.array_equal(out[~changed], image[~changed])
+
+    corners = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)]) * extents / 2
+    corners_uv, z = camera.project(corners @ pose_to_matrix(pose)[:3, :3].T + pose[:3])
+    assert np.all(z > 0)
+    v, u = np.nonzero(np.ones((240, 320), bool))
+    inside, dist, perimeter = _hull_distance(np.stack([u, v], 1).astype(float), corners_uv)
+    inside, dist = inside.reshape(240, 320), dist.reshape(240, 320)
+    # every outline pixel is a silhouette pixel next to its boundary ...
+    assert changed.sum() > 0
+    assert np.all(inside[changed] | (dist[changed] < 0.05))
+    assert dist[changed].max() <= 1.5
+    # ... the interior and the outside stay untouched ...
+    assert not np.any(changed & inside & (dist > 1.5))
+    assert not np.any(changed & ~inside & (dist > 0.05))
+    # ... and the outline goes all the way round (one pixel per pixel of perimeter, roughly)
+    assert 0.7 * perimeter < changed.sum() < 1.6 * perimeter
+
+
+def test_outline_selected_on_top_and_thicker():
+    camera = make_camera("front", 120, 160)
+    mesh = _box((0.06, 0.06, 0.06))
+    poses = np.array([[0.5, 0.0, 0.03, 0, 0, 0, 1], [0.5, 0.0, 0.03, 0, 0, 0, 1]])  # coincident objects
+    image = np.zeros((120, 160, 3), np.uint8)
+    out = win.outline_overlay(image, camera, [mesh, mesh], poses, selected=0)
+    sel = np.all(out == np.round(np.array(win.SELECTED_COLOR) * 255).astype(np.uint8), axis=-1)
+    white = np.all(out == 255, axis=-1)
+    assert sel.sum() > 0 and white.sum() == 0  # the selected outline covers the other, identical one
+    one = win.outline_overlay(image, camera, [mesh], poses[:1], colors=np.ones((1, 3)))
+    assert sel.sum() > np.all(one == 255, axis=-1).sum()  # selected: one pixel thicker
+    assert np.array_equal(win.outline_overlay(image, camera, [], np.zeros((0, 7))), image)
+    with pytest.raises(ValueError, match="does not match camera"):
+        win.outline_overlay(image[:-1], camera, [mesh], poses[:1])
+
+
+@pytest.mark.parametrize("where", ["table", "image edge", "straddling the camera plane"])
+def test_silhouettes_match_a_full_image_ray_cast(where):
+    import open3d as o3d
+
+    camera = make_camera("front", 90, 120)
+    vertices, faces = _box((0.08, 0.05, 0.05))
+    if where == "table":
+        pose = np.array([0.5, 0.0, 0.025, *_yaw(20)])
+    elif where == "image edge":
+        pose = np.array([1.1, 0.1, 0.025, *_yaw(-10)])  # its centre projects just outside the right edge
+    else:  # a long box through the camera's centre plane: some vertices behind it
+        vertices = vertices * [1.0, 30.0, 1.0]
+        pose = np.array([*camera.extrinsics[:3, 3] + [0.0, 0.0, -0.1], 0, 0, 0, 1])
+    masks = win.silhouette_masks(camera, [(vertices, faces)], pose[None])
+    assert masks.shape == (1, 90, 120) and masks.dtype == bool
+    dirs = camera.ray_directions_world().reshape(-1, 3)
+    rays = np.hstack([np.broadcast_to(camera.extrinsics[:3, 3], dirs.shape), dirs]).astype(np.float32)
+    world = vertices @ pose_to_matrix(pose)[:3, :3].T + pose[:3]
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(world.astype(np.float32)), o3d.core.Tensor(faces.astype(np.uint32)))
+    reference = np.isfinite(scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy()).reshape(90, 120)
+    assert reference.any() and np.array_equal(masks[0], reference)
+    if where == "image edge":
+        assert reference[:, -1].any() and not reference.all()
+    unset = win.silhouette_masks(camera, [(vertices, faces)], np.full((1, 7), np.nan))
+    assert not unset.any()
+
+
+def test_outline_of_object_behind_camera_is_empty():
+    camera = make_camera("front", 60, 80)
+    behind = camera.extrinsics[:3, 3] - 0.5 * camera.extrinsics[:3, 2]
+    out = win.outline_overlay(np.zeros((60, 80, 3), np.uint8), camera, [_box((0.05, 0.05, 0.05))],
+                              np.array([[*behind, 0, 0, 0, 1]]))
+    assert not out.any()
+
+
+def test_mask_boundary_and_scaled_camera():
+    mask = np.zeros((10, 12), bool)
+    mask[2:7, 3:9] = True
+    edge = win.mask_boundary(mask)
+    assert edge.sum() == 2 * 5 + 2 * 6 - 4 and not edge[3:6, 4:8].any()
+    assert win.mask_boundary(mask, 3).sum() == mask.sum()
+    cam = make_camera("front", 240, 320)
+    small = win.scaled_camera(cam, 160)
+    assert (small.height, small.width) == (120, 160)
+    point = np.array([0.55, 0.05, 0.04])
+    assert np.allclose(small.project(point)[0], cam.project(point)[0] / 2)
+
+
+# --- keys --------------------------------------------------------------------------------------------
+
+
+def test_keymap_keys_codes_and_help_are_unique_and_complete():
+    codes = [win.glfw_code(k) for k in win.KEYMAP]
+    assert len(set(codes)) == len(codes)  # no two keys share a GLFW code
+    assert len({k.upper() for k in win.KEYMAP}) == len(win.KEYMAP)
+    for required in ("1", "5", "Tab", "Space", "Enter", "Esc", "Z", "Y", "N", "P", "M", "R", "T", "G"):
+        assert required in win.KEYMAP
+    help_text = "\n".join(win.key_help_lines())
+    for key, binding in win.KEYMAP.items():
+        assert binding.group in help_text
+        assert any(key in line.split() for line in win.key_help_lines())
+    methods = {b.method for b in win.KEYMAP.values()} - {None}
+    assert methods <= SESSION_METHODS
+    try:
+        from annotator.session import Session
+    except ImportError:
+        return
+    for method in methods:
+        assert callable(getattr(Session, method, None)), f"Session has no method {method}"
+
+
+def test_docs_list_every_key():
+    text = (Path(__file__).resolve().parents[1] / "docs" / "annotator.md").read_text()
+    assert "\n## Keys\n" in text, "docs/annotator.md lacks its Keys section"
+    section = text.split("\n## Keys\n", 1)[1].split("\n## ", 1)[0]
+    for key in win.KEYMAP:
+        if key.isdigit() and key not in ("1", "5"):  # written `1` ... `5`
+            continue
+        assert f"`{key}`" in section, f"docs/annotator.md, Keys: key {key} ({win.KEYMAP[key].label}) is missing"
+
+
+@pytest.mark.parametrize("key", list(win.KEYMAP))
+def test_every_key_calls_its_session_method(capture, key):
+    fake = FakeSession(capture)
+    fake.go_to(1)  # so that both 'next' and 'previous' exist
+    fake.nudge(0, translation=(0.001, 0, 0))  # so that undo has something
+    session = Recorder(fake)
+    picks = iter([np.array([0, 10, 20, 30]), np.array([1, 2, 3, 4])])
+    echoed = []
+    ctl = win.Controller(session, picker=lambda *a: next(picks), echo=echoed.append)
+    before = fake.poses().copy()
+    changed = ctl.press(key)
+    binding = win.KEYMAP[key]
+    assert "panel" in changed
+    if binding.method is None:
+        assert not set(session.calls) & MUTATING, session.calls
+    elif key.isdigit() and int(key) > capture.num_objects:
+        assert "select" not in session.calls and "no object" in ctl.view.message
+    else:
+        assert binding.method in session.calls, (key, session.calls)
+    if binding.method == "nudge":
+        assert "meshes" in changed and not np.allclose(fake.poses(), before)
+    if key == "F":
+        assert echoed and "step" in echoed[0]
+    if key == "Esc":
+        assert ctl.view.quit
+
+
+def test_nudges_use_view_steps_and_frame(capture):
+    fake = FakeSession(capture)
+    ctl = win.Controller(fake, echo=lambda s: None)
+    p0 = fake.poses()[0].copy()
+    ctl.press("d")
+    assert np.allclose(fake.poses()[0][:3] - p0[:3], [0.001, 0, 0])
+    ctl.press("G")
+    ctl.press("W")
+    assert np.allclose(fake.poses()[0][:3] - p0[:3], [0.001, 0.01, 0])
+    ctl.press("T")
+    assert ctl.view.frame == "object"
+    ctl.press("E")  # +z in object axes
+    up = pose_to_matrix(p0)[:3, 2]
+    assert np.allclose(fake.poses()[0][:3] - p0[:3], [0.001, 0.01, 0] + 0.01 * up)
+    ctl.press("Z")
+    assert np.allclose(fake.poses()[0][:3] - p0[:3], [0.001, 0.01, 0])
+    ctl.press("Tab")
+    assert fake.selected == 1
+    ctl.press("5")
+    assert fake.selected == 1 and "no object 5" in ctl.view.message
+
+
+def test_session_errors_become_messages(capture):
+    fake = FakeSession(capture)
+    ctl = win.Controller(fake, echo=lambda s: None)
+    changed = ctl.press("C")  # no previous step at step 0
+    assert "previous step" in ctl.view.message and changed == {"panel"}
+    ctl.press("P")
+    assert "no step -1" in ctl.view.message and fake.step == 0
+    ctl.press("?")
+    assert "does nothing" in ctl.view.message
+    picks = iter([np.array([0, 1]), np.array([0, 1])])
+    ctl.picker = lambda *a: next(picks)
+    ctl.press("M")
+    assert "need 3 or more" in ctl.view.message
+    picks = iter([np.array([0, 1, 2]), np.array([0, 1])])
+    ctl.press("M")
+    assert "same number" in ctl.view.message
+
+
+def test_help_lines_and_panel(capture):
+    fake = FakeSession(capture)
+    fake.nudge(1, translation=(0.0, 0.001, 0.0))
+    fake.select(1)
+    view = win.ViewState(coarse=True, message="hello")
+    lines = win.help_lines(fake, view)
+    text = "\n".join(lines)
+    assert lines[0].startswith(f"step 0/{capture.num_steps}") and capture.objects[1].name in lines[0]
+    assert "status: initialised" in text and "rmse 2.0 mm" in text and "coverage 0.80" in text
+    assert "coarse 10 mm / 5 deg" in text and "undo 1" in text and "> hello" in text
+    assert all(line in lines for line in win.key_help_lines())
+    ctl = win.Controller(fake, echo=lambda s: None)
+    panel = ctl.panel()
+    h, w = capture.cameras["front"].height, capture.cameras["front"].width
+    img_h = round(h * win.PANEL_IMAGE_WIDTH / w)
+    assert panel.dtype == np.uint8 and panel.shape[1] == win.PANEL_TEXT_WIDTH + win.PANEL_IMAGE_WIDTH
+    assert panel.shape[0] >= 2 * img_h
+    text_area = panel[:, : win.PANEL_TEXT_WIDTH]
+    assert (text_area.max(-1) > 200).sum() > 500  # text was drawn
+    selected_rgb = np.round(np.array(win.SELECTED_COLOR) * 255).astype(np.uint8)
+    assert np.all(panel[:, win.PANEL_TEXT_WIDTH:] == selected_rgb, axis=-1).sum() > 20  # the selected outline
+
+
+@pytest.mark.parametrize("display", [None, ":87"])
+def test_run_without_display_is_a_user_error(capture, monkeypatch, display):
+    if display is None:
+        monkeypatch.delenv("DISPLAY", raising=False)
+    else:  # a display nobody serves (open3d alone would fall back to an invisible offscreen window)
+        if Path(f"/tmp/.X11-unix/X{display[1:]}").exists():
+            pytest.skip(f"an X server runs on {display}")
+        monkeypatch.setenv("DISPLAY", display)
+    with pytest.raises(UserError, match="xvfb-run") as err:
+        win.run(FakeSession(capture))
+    assert "\n" not in str(err.value) and ("DISPLAY is not set" if display is None else display) in str(err.value)
+
+
+# --- the real window under a virtual display ------------------------------------------------------------
+
+ORANGE_MIN_SATURATION = 0.6
+
+
+def _orange(image: np.ndarray) -> np.ndarray:
+    """Pixels of the selected-object colour (orange) under shading: saturated, hue about 30 degrees."""
+    rgb = image.astype(np.float64) / 255
+    mx, mn = rgb.max(-1), rgb.min(-1)
+    sat = np.where(mx > 0, (mx - mn) / np.maximum(mx, 1e-9), 0)
+    r, g, b = rgb[..., 0], rgb[..., 1], rgb[..., 2]
+    hue_ok = (r == mx) & (g > 0.45 * r) & (g < 0.75 * r) & (b < 0.1 * r)  # SELECTED_COLOR is (1, 0.55, 0)
+    return hue_ok & (sat > ORANGE_MIN_SATURATION) & (mx > 0.25)
+
+
+def _view_silhouette(params: dict, vertices, faces, pose) -> np.ndarray:
+    from dsr_bench.geometry import Camera
+
+    k = params["intrinsic"]
+    cam = Camera("view", int(params["height"]), int(params["width"]), k, np.linalg.inv(params["extrinsic"]))
+    return win.silhouette_masks(cam, [(vertices, faces)], pose[None])[0]
+
+
+def display_child(capture_dir: str, work_dir: str, out: str) -> None:
+    """Run in a subprocess under Xvfb: open the window, press keys, save screenshots to `out` (.npz)."""
+    from dsr_bench.capture import load_capture
+
+    try:
+        from annotator.session import Session
+    except ImportError:
+        Session = None
+    if Session is not None:
+        session = Session.open(Path(capture_dir), Path(work_dir))  # every object unset
+        kind = "real"
+    else:
+        session = FakeSession(load_capture(capture_dir))
+        kind = "fake"
+    window = win.AnnotatorWindow(session, width=480, height=360, echo=lambda s: None)
+    window.render()
+    unset = window.screenshot()
+    if kind == "real":
+        truth = session.capture.truth_poses()
+        for obj in range(session.num_objects):  # exact initial poses through the pick API
+            v, _ = session.capture.mesh(obj)
+            picks = v[np.unique([v[:, 0].argmin(), v[:, 0].argmax(), v[:, 1].argmin(), v[:, 1].argmax(),
+                                 v[:, 2].argmax()])]
+            m = pose_to_matrix(truth[0][obj])
+            session.init_from_picks(obj, picks, picks @ m[:3, :3].T + m[:3, 3])
+        window.refresh()
+    window.press("V")  # the default view again (it is already: the silhouettes below assume it)
+    for _ in range(2):
+        window.render()
+    obj = int(session.selected)
+    pose_before = np.asarray(session.poses()[obj]).copy()
+    before = window.screenshot()
+    cam = window.vis.get_view_control().convert_to_pinhole_camera_parameters()
+    params = {"intrinsic": cam.intrinsic.intrinsic_matrix, "extrinsic": cam.extrinsic,
+              "width": cam.intrinsic.width, "height": cam.intrinsic.height}
+    window._on_key("G", window.vis)  # through the registered callback's path: coarse steps
+    for _ in range(4):
+        window._on_key("D", window.vis)  # +x, 4 cm
+    window.render()
+    after = window.screenshot()
+    pose_after = np.asarray(session.poses()[obj]).copy()
+    panel = window.panel_screenshot()
+    selected_before_keys = int(session.selected)
+    real_keys = shutil.which("xdotool") is not None
+    messages: list[str] = []
+    press = window.ctl.press
+
+    def logged(key):
+        changed = press(key)
+        messages.append(f"{key}: {window.ctl.view.message}")
+        return changed
+
+    window.ctl.press = logged
+    if real_keys:  # real X key events through open3d's key callbacks, in the window's own loop
+        main, pick = "annotator: 3D", "pick >= 3 cloud points"
+        script = [(main, "m", "+" + pick), (pick, "q", "!" + pick),  # pick mode, closed without picks
+                  (main, "Tab", "-"), (main, "Escape", "!" + main)]
+        typist = _send_keys(script)
+        threading.Thread(target=_watchdog, args=(window,), daemon=True).start()
+        window.loop()
+        alive = bool(window.ctl.view.message == "watchdog")
+        typist.kill()
+        typist.wait()
+    else:
+        window.ctl.picker = lambda *a: np.zeros(0, np.int64)
+        for key in ("M", "Tab", "Esc"):
+            window.press(key)
+        alive = window.render()
+    selected_after_keys = int(session.selected)
+    window.close()
+    v, f = session.capture.mesh(obj)
+    np.savez(out, unset=unset, before=before, after=after, panel=panel, pose_before=pose_before,
+             pose_after=pose_after, sil_before=_view_silhouette(params, v, f, pose_before),
+             sil_after=_view_silhouette(params, v, f, pose_after), alive=alive, kind=kind, real_keys=real_keys,
+             selected=[selected_before_keys, selected_after_keys], messages=np.array(messages))
+
+
+XDO_SCRIPT = r"""
+set -u
+find() { xdotool search --name "$1" 2>/dev/null | head -n 1; }
+wait_for() { for _ in $(seq 400); do id=$(find "$1"); [ -n "$id" ] && { echo "$id"; return 0; }; sleep 0.05; done
+             return 1; }
+while [ $# -ge 3 ]; do
+  title=$1 key=$2 until=$3; shift 3
+  for _ in $(seq 5); do  # resend when the expected window has not appeared ("+T") / gone ("!T") in 5 s
+    id=$(wait_for "$title") || break
+    xdotool windowfocus --sync "$id" 2>/dev/null; xdotool key --window "$id" "$key"
+    [ "$until" = - ] && { sleep 0.2; break; }
+    done=0
+    for _ in $(seq 100); do
+      case $until in
+        +*) [ -n "$(find "${until#+}")" ] && { done=1; break; } ;;
+        !*) [ -z "$(find "${until#!}")" ] && { done=1; break; } ;;
+      esac
+      sleep 0.05
+    done
+    [ $done = 1 ] && break
+  done
+done
+"""
+
+
+def _send_keys(script: list[tuple[str, str, str]]) -> subprocess.Popen:
+    """Type keys with xdotool from another process (open3d's blocking `run` of the pick window holds the
+    GIL): `script` is (window title part, key, until) triples; a key is sent once its window exists and
+    again until `until` holds: '-' once, '+T' a window titled T exists, '!T' none does."""
+    args = [part for triple in script for part in triple]
+    return subprocess.Popen(["bash", "-c", XDO_SCRIPT, "xdo", *args], stdout=subprocess.DEVNULL,
+                            stderr=subprocess.DEVNULL)
+
+
+def _watchdog(window, timeout: float = 20.0) -> None:
+    """Stop the window's loop if it has not quit within `timeout` s (its message then reads 'watchdog')."""
+    deadline = time.monotonic() + timeout
+    while not window.ctl.view.quit and time.monotonic() < deadline:
+        time.sleep(0.05)
+    if not window.ctl.view.quit:
+        window.ctl.view.message = "watchdog"
+        window.ctl.view.quit = True
+
+
+def _display_command() -> list[str]:
+    if shutil.which("xvfb-run"):
+        return ["xvfb-run", "-a", "-s", "-screen 0 1600x1200x24"]
+    if os.environ.get("DISPLAY"):
+        return []
+    pytest.skip("no display: neither $DISPLAY nor xvfb-run is available (install xvfb: scripts/setup.sh)")
+
+
+def test_window_renders_and_moves_the_selected_mesh_under_xvfb(capture_dir, tmp_path):
+    prefix = _display_command()
+    out = tmp_path / "shots.npz"
+    code = (f"import sys; sys.path.insert(0, {str(Path(__file__).parent)!r}); import test_annotator_window as t; "
+            f"t.display_child({str(capture_dir)!r}, {str(tmp_path / 'work')!r}, {str(out)!r})")
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).parents[1])}
+    proc = subprocess.run([*prefix, sys.executable, "-c", code], capture_output=True, text=True, timeout=90, env=env,
+                          cwd=str(Path(__file__).parents[1]))
+    assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-3000:]
+    shots = np.load(out)
+    before, after, panel = shots["before"], shots["after"], shots["panel"]
+    try:
+        import annotator.session  # noqa: F401
+        assert str(shots["kind"]) == "real"  # the display test drives a real Session once it exists
+    except ImportError:
+        pass
+    # objects still unset: no mesh drawn in the selected colour, only the cloud
+    assert shots["unset"].std() > 10 and _orange(shots["unset"])[shots["sil_before"]].mean() < 0.3
+    assert before.shape == (360, 480, 3) and after.shape == before.shape
+    # not blank: many distinct colours, far from a uniform background
+    background = np.all(np.abs(before.astype(int) - before[0, 0].astype(int)) < 8, axis=-1)
+    assert background.mean() < 0.97 and before.std() > 10
+    assert len(np.unique(before.reshape(-1, 3), axis=0)) > 50
+    # the nudge moved the selected object 4 cm along +x in table axes
+    assert np.allclose(shots["pose_after"][:3] - shots["pose_before"][:3], [0.04, 0, 0], atol=1e-6)
+    # the selected mesh is drawn where its pose projects, before and after, and its pixels moved with it
+    sil_b, sil_a = shots["sil_before"], shots["sil_after"]
+    orange_b, orange_a = _orange(before), _orange(after)
+    assert sil_b.sum() > 100
+    assert orange_b[sil_b].mean() > 0.5 and orange_a[sil_a].mean() > 0.5
+    only_before = sil_b & ~sil_a
+    assert only_before.sum() > 20 and orange_a[only_before].mean() < 0.5
+    c_b = np.argwhere(orange_b & sil_b).mean(0)
+    c_a = np.argwhere(orange_a & sil_a).mean(0)
+    expected = np.argwhere(sil_a).mean(0) - np.argwhere(sil_b).mean(0)
+    assert np.linalg.norm(expected) > 5
+    assert np.linalg.norm((c_a - c_b) - expected) < 3
+    # the panel window shows text and the camera images with outlines; Esc ended the loop
+    assert panel.std() > 10 and np.any(_orange(panel))
+    assert not shots["alive"]  # Esc ended the window's loop (not the watchdog)
+    before_keys, after_keys = (int(x) for x in shots["selected"])
+    assert after_keys != before_keys  # Tab selected the next object (X key events when xdotool is installed)
+    messages = [str(m) for m in shots["messages"]]
+    assert [m.split(":")[0] for m in messages] == ["M", "Tab", "Esc"], messages
+    assert "need 3 or more" in messages[0]  # pick mode opened its window, which closed with no picks
+
+
+def test_keys_drive_a_real_session(capture_dir, tmp_path):
+    session_mod = pytest.importorskip("annotator.session")
+    session = session_mod.Session.open(capture_dir, tmp_path / "work")
+    truth = session.capture.truth_poses()
+    rec = Recorder(session)
+    echoed: list[str] = []
+    spread = lambda points, *a: np.linspace(0, len(points) - 1, 4).astype(int)  # noqa: E731 - 4 points far apart
+    ctl = win.Controller(rec, picker=spread, echo=echoed.append)
+    assert ctl.press("Space") == {"panel"} and "no pose" in ctl.view.message  # unset: a message, no exception
+    ctl.press("M")  # picks 4 cloud points and 4 mesh samples (a wrong but valid pose)
+    assert rec.calls.count("init_from_picks") == 1 and session.status()[0] == "initialised"
+    for obj in range(session.num_objects):
+        v, _ = session.capture.mesh(obj)
+        m = pose_to_matrix(truth[0][obj])
+        session.init_from_picks(obj, v[:8], v[:8] @ m[:3, :3].T + m[:3, 3])
+    ctl.press("2")
+    assert session.selected == 1
+    p0 = session.poses()[1].copy()
+    assert "meshes" in ctl.press("A")
+    assert np.allclose(session.poses()[1][:3] - p0[:3], [-0.001, 0, 0], atol=1e-9)
+    ctl.press("Space")
+    assert session.status()[1] in ("snapped", "initialised") and "rmse" in ctl.view.message
+    ctl.press("Enter")
+    assert session.status()[1] == "confirmed"
+    ctl.press("Z")
+    assert session.status()[1] != "confirmed" and "undone" in ctl.view.message
+    ctl.press("Y")
+    assert session.status()[1] == "confirmed"
+    assert "cloud" in ctl.press("N") and session.step == 1
+    ctl.press("C")
+    assert session.status()[1] == "initialised"
+    points, colors = ctl.cloud()
+    ctl.press("R")
+    points_r, colors_r = ctl.cloud()
+    assert np.array_equal(points, points_r) and colors_r.shape == colors.shape and not np.allclose(colors_r, colors)
+    ctl.press("F")
+    assert echoed and session.capture.objects[1].name[:20] in echoed[-1]
+    assert "undo" in "\n".join(win.help_lines(rec, ctl.view))
+    assert win.undo_depth(session)[0] > 0
+    ctl.press("P")
+    assert session.step == 0
+    ctl.press("Esc")
+    assert ctl.view.quit
+    assert set(rec.calls) >= {b.method for b in win.KEYMAP.values()} - {None}
