@@ -48,14 +48,59 @@ def pose_to_matrix(pose: np.ndarray) -> np.ndarray:
     return out
 
 
+# Ground truth must be identical on every x86-64 machine: numpy's `@`, `np.dot` and `np.linalg` go
+# through OpenBLAS / LAPACK, whose kernels (chosen per CPU at run time) sum in different orders. The
+# small products below are written as element-wise operations in a fixed order instead (IEEE-exact
+# on every instruction set), so a pinned split reproduces bit for bit across CPUs.
+
+
+def apply_matrix(matrix: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """matrix (3, 3) times each point (..., 3), i.e. `points @ matrix.T`, in a fixed summation order."""
+    m = np.asarray(matrix, dtype=np.float64)
+    p = np.asarray(points, dtype=np.float64)
+    return p[..., 0:1] * m[:, 0] + p[..., 1:2] * m[:, 1] + p[..., 2:3] * m[:, 2]
+
+
+def dot_last(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Dot product over the last axis (broadcast), summed left to right without BLAS (see `apply_matrix`)."""
+    a, b = np.asarray(a, dtype=np.float64), np.asarray(b, dtype=np.float64)
+    out = a[..., 0] * b[..., 0]
+    for i in range(1, max(a.shape[-1], b.shape[-1])):
+        out = out + a[..., i] * b[..., i]
+    return out
+
+
+def vector_norm(v: np.ndarray) -> np.ndarray:
+    """Euclidean norm over the last axis, without BLAS (see `apply_matrix`)."""
+    v = np.asarray(v, dtype=np.float64)
+    return np.sqrt(np.sum(v * v, axis=-1))
+
+
 def transform_points(transform: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """Apply a 4x4 transform to points (..., 3)."""
-    return points @ transform[:3, :3].T + transform[:3, 3]
+    """Apply a 4x4 transform to points (..., 3), metres."""
+    return apply_matrix(transform[:3, :3], points) + transform[:3, 3]
+
+
+def rigid_inverse(transform: np.ndarray) -> np.ndarray:
+    """Inverse of a rigid 4x4 transform: (R^T, -R^T t)."""
+    out = np.eye(4)
+    rt = np.asarray(transform, dtype=np.float64)[:3, :3].T
+    out[:3, :3] = rt
+    out[:3, 3] = -apply_matrix(rt, transform[:3, 3])
+    return out
+
+
+def compose(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """The 4x4 product a @ b of two affine transforms, in a fixed summation order."""
+    out = np.eye(4)
+    out[:3, :3] = apply_matrix(a[:3, :3], np.asarray(b, dtype=np.float64)[:3, :3].T).T
+    out[:3, 3] = apply_matrix(a[:3, :3], b[:3, 3]) + a[:3, 3]
+    return out
 
 
 def relative_motion(pose_from: np.ndarray, pose_to: np.ndarray) -> np.ndarray:
     """The world-frame 4x4 rigid motion T with T @ pose_from = pose_to (poses as (7,))."""
-    return pose_to_matrix(pose_to) @ np.linalg.inv(pose_to_matrix(pose_from))
+    return compose(pose_to_matrix(pose_to), rigid_inverse(pose_to_matrix(pose_from)))
 
 
 # --- The voxel grid ----------------------------------------------------------------------------
@@ -127,13 +172,11 @@ class Camera:
         """World-frame ray directions (H, W, 3) with unit camera z (so t along a ray = z-depth)."""
         v, u = np.meshgrid(np.arange(self.height), np.arange(self.width), indexing="ij")
         pix = np.stack([u, v, np.ones_like(u)], axis=-1).astype(np.float64)
-        cam = pix @ np.linalg.inv(self.intrinsics).T
-        return cam @ self.extrinsics[:3, :3].T
+        return apply_matrix(self.extrinsics[:3, :3], apply_matrix(pinhole_inverse(self.intrinsics), pix))
 
     def project(self, points_world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Pixel coordinates (..., 2) as (u, v) and z-depth (...,) of world points (..., 3)."""
-        world_to_cam = np.linalg.inv(self.extrinsics)
-        cam = transform_points(world_to_cam, points_world)
+        cam = transform_points(rigid_inverse(self.extrinsics), points_world)
         z = cam[..., 2]
         uv = cam[..., :2] / z[..., None] * np.diag(self.intrinsics)[:2] + self.intrinsics[:2, 2]
         return uv, z
@@ -149,13 +192,19 @@ def look_at(eye, target, up) -> np.ndarray:
     """Camera-to-world 4x4 (OpenCV axes) of a camera at `eye` looking at `target`."""
     eye, target, up = (np.asarray(a, dtype=np.float64) for a in (eye, target, up))
     forward = target - eye
-    forward /= np.linalg.norm(forward)
+    forward /= vector_norm(forward)
     right = np.cross(forward, up)
-    right /= np.linalg.norm(right)
+    right /= vector_norm(right)
     down = np.cross(forward, right)
     out = np.eye(4)
     out[:3, 0], out[:3, 1], out[:3, 2], out[:3, 3] = right, down, forward, eye
     return out
+
+
+def pinhole_inverse(intrinsics: np.ndarray) -> np.ndarray:
+    """Closed-form inverse of intrinsics [[fx, s, cx], [0, fy, cy], [0, 0, 1]] (no LAPACK, see `apply_matrix`)."""
+    (fx, s, cx), (_, fy, cy) = np.asarray(intrinsics, dtype=np.float64)[:2]
+    return np.array([[1 / fx, -s / (fx * fy), (s * cy - cx * fy) / (fx * fy)], [0.0, 1 / fy, -cy / fy], [0.0, 0.0, 1.0]])
 
 
 def pinhole_intrinsics(height: int, width: int, hfov: float = CAMERA_HFOV) -> np.ndarray:

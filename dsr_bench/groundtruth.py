@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 
 from dsr_bench.constants import GRID_BOUNDS, VOXEL_SIZE
-from dsr_bench.geometry import relative_motion
+from dsr_bench.geometry import relative_motion, transform_points
 
 
 def voxel_centers_of(indices_yxz: np.ndarray) -> np.ndarray:
@@ -37,7 +37,7 @@ def rigid_scene_flow_3d(mask_t: np.ndarray, poses_t: np.ndarray, poses_next: np.
             continue
         motion = relative_motion(poses_t[i], poses_next[i])
         centers = voxel_centers_of(indices[sel])
-        moved = centers @ motion[:3, :3].T + motion[:3, 3]
+        moved = transform_points(motion, centers)
         disp = (moved - centers)[:, [1, 0, 2]] / VOXEL_SIZE
         flow_flat[:, flat[sel]] = disp.T.astype(np.float32)
     return flow
@@ -57,6 +57,6 @@ def rigid_scene_flow_2d(points: np.ndarray, mask_2d: np.ndarray, poses_t: np.nda
             continue
         motion = relative_motion(poses_t[i], poses_next[i])
         p = points[sel].astype(np.float64)
-        disp = p @ motion[:3, :3].T + motion[:3, 3] - p
+        disp = transform_points(motion, p) - p
         flow[sel] = disp[:, [1, 0, 2]].astype(np.float32)
     return flow

@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 
 from dsr_bench.constants import GRID_SHAPE, TSDF_TRUNCATION
-from dsr_bench.geometry import Camera, voxel_centers
+from dsr_bench.geometry import Camera, rigid_inverse, transform_points, voxel_centers
 
 #: Voxel projections per (camera, grid): they depend on nothing else, and computing them costs more
 #: than integrating several depth images, so every ProjectiveTSDF of the same camera shares them.
@@ -31,8 +31,7 @@ def _projection(camera: Camera, grid_shape: tuple[int, int, int]) -> tuple[np.nd
     if hit is not None:
         return hit
     centers = voxel_centers(grid_shape).reshape(-1, 3)
-    world_to_cam = np.linalg.inv(camera.extrinsics)
-    cam = centers @ world_to_cam[:3, :3].T + world_to_cam[:3, 3]
+    cam = transform_points(rigid_inverse(camera.extrinsics), centers)
     z = cam[:, 2]
     fx, fy = camera.intrinsics[0, 0], camera.intrinsics[1, 1]
     cx, cy = camera.intrinsics[0, 2], camera.intrinsics[1, 2]

@@ -17,7 +17,7 @@ from dsr_bench.constants import (
     MIN_LARGE_SEPARATION, MIN_OBJECT_SEPARATION, MIN_VISIBLE_FRACTION, PUSH_LENGTH, TSDF_IMAGE_SHAPE, VOXEL_SIZE,
     WORKSPACE_CENTER,
 )
-from dsr_bench.geometry import direction_vector, pose_to_matrix, world_to_pixel
+from dsr_bench.geometry import direction_vector, pose_to_matrix, transform_points, vector_norm, world_to_pixel
 from dsr_bench.groundtruth import rigid_scene_flow_2d, rigid_scene_flow_3d
 
 MAX_SCENE_ATTEMPTS = 30
@@ -62,7 +62,7 @@ class Episode:
 
 def _world_vertices(spec, pose: np.ndarray) -> np.ndarray:
     m = pose_to_matrix(pose)
-    return np.vstack([np.asarray(p.vertices) for p in spec.parts]) @ m[:3, :3].T + m[:3, 3]
+    return transform_points(m, np.vstack([np.asarray(p.vertices) for p in spec.parts]))
 
 
 def in_workspace(specs, poses: np.ndarray) -> bool:
@@ -79,7 +79,7 @@ def in_workspace(specs, poses: np.ndarray) -> bool:
 
 def _random_quaternion(rng: np.random.Generator) -> np.ndarray:
     q = rng.normal(size=4)
-    return q / np.linalg.norm(q)
+    return q / vector_norm(q)
 
 
 def _yaw_quaternion(yaw: float) -> np.ndarray:
@@ -98,7 +98,7 @@ def _place_objects(rng: np.random.Generator, specs, random_orientation: bool) ->
                 need = max(MIN_OBJECT_SEPARATION, radii[i] + radii[j] + 0.005)
                 if spec.is_large or specs[j].is_large:
                     need = max(need, MIN_LARGE_SEPARATION)
-                if np.linalg.norm(cand - xy[j]) < need:
+                if vector_norm(cand - xy[j]) < need:
                     ok = False
                     break
             if ok:

@@ -10,6 +10,7 @@ from __future__ import annotations
 import numpy as np
 
 from dsr_bench.constants import GRID_BOUNDS, PUSH_HEIGHT, PUSHER_LENGTH, PUSHER_RADIUS
+from dsr_bench.geometry import vector_norm
 
 TIME_STEP = 1.0 / 240.0
 PUSH_SPEED = 0.25  # m/s along the push (quasi-static at these masses and frictions)
@@ -147,7 +148,7 @@ class PushWorld:
             still = True
             for body in self.bodies:
                 lin, ang = pb.getBaseVelocity(body, physicsClientId=c)
-                if np.linalg.norm(lin) > SETTLE_LINEAR_SPEED or np.linalg.norm(ang) > SETTLE_ANGULAR_SPEED:
+                if vector_norm(lin) > SETTLE_LINEAR_SPEED or vector_norm(ang) > SETTLE_ANGULAR_SPEED:
                     still = False
                     break
             if still:

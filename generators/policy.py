@@ -35,7 +35,7 @@ from dsr_bench.constants import (
     POLICY_MAX_SAMPLES, POLICY_NEAR_START_DISTANCE, POLICY_NEIGHBOUR_DISTANCE, POLICY_OUTWARD_PENALTY,
     START_BACKOFF, START_FREE_RADIUS_PX, START_MAX_STEPS, START_STEP, VOXEL_SIZE, WORKSPACE_CENTER,
 )
-from dsr_bench.geometry import direction_vector, pixel_to_world, world_to_pixel
+from dsr_bench.geometry import direction_vector, dot_last, pixel_to_world, vector_norm, world_to_pixel
 
 POLICIES = ("heuristic", "random")
 SCORINGS = ("official", "paper")
@@ -82,7 +82,7 @@ def softmax(x: np.ndarray) -> np.ndarray:
 
 def _unit(v: np.ndarray) -> np.ndarray:
     """v / |v| for a (2,) vector; zeros when |v| is (nearly) zero."""
-    n = np.linalg.norm(v)
+    n = vector_norm(v)
     return v / n if n > 1e-9 else np.zeros_like(v)
 
 
@@ -213,12 +213,12 @@ class HeuristicPolicy(PushPolicy):
         positions = np.asarray(positions, dtype=np.float64)
         p = positions[k]
         out = p - np.asarray(WORKSPACE_CENTER)
-        dist_out = float(np.linalg.norm(out))
-        outward = DIRECTIONS @ _unit(out)  # (8,) cos with the outward direction (0 at the centre)
+        dist_out = float(vector_norm(out))
+        outward = dot_last(DIRECTIONS, _unit(out))  # (8,) cos with the outward direction (0 at the centre)
         far = dist_out >= POLICY_FAR_FROM_CENTER
         if self.scoring == "paper":
-            scores = (AWAY_FROM_START_WEIGHT * DIRECTIONS @ _unit(p - self.initial[k])
-                      + CONTINUE_WEIGHT * DIRECTIONS @ _unit(p - self.before_push[k]))
+            scores = (AWAY_FROM_START_WEIGHT * dot_last(DIRECTIONS, _unit(p - self.initial[k]))
+                      + CONTINUE_WEIGHT * dot_last(DIRECTIONS, _unit(p - self.before_push[k])))
             if far:
                 scores = scores - POLICY_OUTWARD_PENALTY * (outward > 0)
             return scores, softmax(scores)
@@ -228,15 +228,15 @@ class HeuristicPolicy(PushPolicy):
             scores = scores - POLICY_OUTWARD_PENALTY * (outward > 0)
         for j in range(self.num_objects):
             towards = positions[j] - p
-            if j == k or np.linalg.norm(towards) >= POLICY_NEIGHBOUR_DISTANCE:
+            if j == k or vector_norm(towards) >= POLICY_NEIGHBOUR_DISTANCE:
                 continue
-            cos = DIRECTIONS @ _unit(towards)
+            cos = dot_last(DIRECTIONS, _unit(towards))
             scores = scores + (-NEIGHBOUR_WEIGHT * np.maximum(0.0, cos)
                                + PERPENDICULAR_BONUS * (np.abs(cos) < PERPENDICULAR_COS))
-        if np.linalg.norm(p - self.initial[k]) < POLICY_NEAR_START_DISTANCE:
-            scores = scores + AWAY_FROM_START_WEIGHT * DIRECTIONS @ _unit(p - self.initial[k])
+        if vector_norm(p - self.initial[k]) < POLICY_NEAR_START_DISTANCE:
+            scores = scores + AWAY_FROM_START_WEIGHT * dot_last(DIRECTIONS, _unit(p - self.initial[k]))
         if self.last_direction[k] >= 0:
-            scores = scores + CONTINUE_WEIGHT * DIRECTIONS @ DIRECTIONS[self.last_direction[k]]
+            scores = scores + CONTINUE_WEIGHT * dot_last(DIRECTIONS, DIRECTIONS[self.last_direction[k]])
         return scores, softmax(scores / POLICY_DIRECTION_TEMPERATURE)
 
     def accept(self, decision: PushDecision, positions_after: np.ndarray) -> None:

@@ -18,11 +18,11 @@ from dataclasses import dataclass
 import numpy as np
 
 from dsr_bench.constants import GRID_BOUNDS, GRID_SHAPE, IMAGE_SHAPE, TSDF_IMAGE_SHAPE, VOXEL_SIZE
-from dsr_bench.geometry import Camera, make_camera, pose_to_matrix
+from dsr_bench.geometry import Camera, dot_last, make_camera, pose_to_matrix, transform_points, vector_norm
 from dsr_bench.tsdf import ProjectiveTSDF
 
 TABLE_COLOR = np.array([0.78, 0.74, 0.66])
-LIGHT_DIRECTION = np.array([0.3, -0.5, 0.81]) / np.linalg.norm([0.3, -0.5, 0.81])
+LIGHT_DIRECTION = np.array([0.3, -0.5, 0.81]) / vector_norm(np.array([0.3, -0.5, 0.81]))
 _TABLE_HALF_SIZE = 1.0
 _HEIGHTMAP_RAY_START = 1.0
 
@@ -50,7 +50,7 @@ class Observation:
 
 def _transform(vertices: np.ndarray, pose: np.ndarray) -> np.ndarray:
     m = pose_to_matrix(pose)
-    return vertices @ m[:3, :3].T + m[:3, 3]
+    return transform_points(m, vertices)
 
 
 def _camera_key(camera: Camera) -> tuple:
@@ -262,7 +262,7 @@ class SceneRenderer:
         # base * (0.35 + 0.65 * clip(|n . l|, 0, 1)) in float64, then round(x * 255)
         palette = np.vstack([TABLE_COLOR, self.colors])
         color = palette[instance]
-        shade = normals @ LIGHT_DIRECTION
+        shade = dot_last(normals, LIGHT_DIRECTION)
         np.abs(shade, out=shade)
         np.clip(shade, 0.0, 1.0, out=shade)
         shade *= 0.65
@@ -287,7 +287,7 @@ class SceneRenderer:
         """`_camera_images` of `hits` where only the pixels `index` may differ from the table-only
         images `table`: those are computed (the same element-wise arithmetic), the rest copied."""
         t, geometry_ids, normals = hits
-        shade = (normals @ LIGHT_DIRECTION)[index]  # the full-image product, as in `_camera_images`
+        shade = dot_last(normals, LIGHT_DIRECTION)[index]  # the full-image product, as in `_camera_images`
         np.abs(shade, out=shade)
         np.clip(shade, 0.0, 1.0, out=shade)
         shade *= 0.65

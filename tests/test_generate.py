@@ -194,6 +194,20 @@ def test_deterministic_across_workers_and_shards(dataset, tmp_path):
     assert _digests(shard_dir) == reference and (shard_dir / "manifest.json").exists()
 
 
+@pytest.mark.skipif(os.uname().machine not in ("x86_64", "AMD64"), reason="OPENBLAS_CORETYPE names x86-64 kernels")
+def test_identical_whatever_blas_kernel_the_cpu_selects(dataset, tmp_path):
+    """Pinned splits must reproduce on any x86-64 CPU: OpenBLAS picks its kernels (and summation order) per
+    CPU, so the ground truth may not go through BLAS. Force an SSE-era and an AVX2 kernel set and compare."""
+    reference = _digests(dataset)
+    for coretype in ("Nehalem", "Haswell"):
+        out = tmp_path / coretype
+        cmd = [sys.executable, "-m", "dsr_bench.cli", "generate", *SMALL, "-n", "2", "--out", str(out), "--cameras",
+               "front,back"]
+        env = {**os.environ, "OPENBLAS_CORETYPE": coretype}
+        subprocess.run(cmd, env=env, check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        assert _digests(out) == reference, f"content differs with OPENBLAS_CORETYPE={coretype}"
+
+
 def test_resume_after_kill_9(tmp_path):
     out = tmp_path / "killed"
     cmd = [sys.executable, "-m", "dsr_bench.cli", "generate", *SMALL, "-n", "3", "--out", str(out)]

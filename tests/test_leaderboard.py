@@ -84,3 +84,20 @@ def test_repository_leaderboard_builds(tmp_path):
     shutil.copytree(ROOT / "leaderboard", root)
     md, _ = build(root)
     assert "reported in the paper" in md.read_text()
+
+
+def test_entry_of_an_earlier_pin_is_shown_apart_and_unranked(board, tmp_path):
+    """After a split is re-pinned, entries scored on its earlier version keep their own table and never win bold."""
+    good = tmp_path / "good.json"
+    good.write_text(json.dumps(_results()))
+    assert main(["leaderboard", "add", str(good), "--root", str(board)]) == 0
+    old = _results(checksum="0123456789ab" + "f" * 52, iou_ordered=0.9)
+    old["method"] = "OldNet"
+    (board / "entries" / "oldnet-procedural-novel-mini.json").write_text(json.dumps(old))
+    md, _ = build(board)
+    text = md.read_text()
+    current = text.split("## procedural-novel-mini: 3D track (reproduced)")[1].split("## ")[0]
+    earlier = text.split("## procedural-novel-mini: 3D track (reproduced on an earlier version of the split, "
+                         "0123456789ab)")[1].split("## ")[0]
+    assert "| MyNet" in current and "OldNet" not in current and "**0.600**" in current
+    assert "| OldNet" in earlier and "MyNet" not in earlier

@@ -21,21 +21,23 @@ def test_split_table_and_errors():
         get_split("val")
 
 
-def test_pinned_split_reproduces_bit_for_bit(tmp_path):
+@pytest.mark.parametrize("split, shard, sequence", [("procedural-novel-mini", "3/8", "seq_0003"),
+                                                     ("procedural-novel-test", "123/400", "seq_0123")])
+def test_pinned_split_reproduces_bit_for_bit(tmp_path, split, shard, sequence):
     """A shard of a pinned split, generated here, has exactly the pinned content digests."""
     pytest.importorskip("pybullet")
     pytest.importorskip("open3d")
     from dsr_bench.cli import main
 
     pins = pinned_digests()
-    if "procedural-novel-mini" not in pins:
-        pytest.skip("procedural-novel-mini is not pinned in this toolkit version")
-    spec = get_split("procedural-novel-mini")
-    assert spec.expected_digest == pins["procedural-novel-mini"]["checksum"]
-    out = tmp_path / "mini"
-    assert main(["generate", "--split", "procedural-novel-mini", "--out", str(out), "--shard", "3/8"]) == 0
-    with SequenceReader(out / "seq_0003.h5") as seq:
-        assert seq.attrs["content_sha256"] == pins["procedural-novel-mini"]["sequences"]["seq_0003"]
+    assert split in pins, f"{split} must be pinned in dsr_bench/data/split_digests.json"
+    spec = get_split(split)
+    assert spec.expected_digest == pins[split]["checksum"]
+    assert len(pins[split]["sequences"]) == spec.num_sequences
+    out = tmp_path / split
+    assert main(["generate", "--split", split, "--out", str(out), "--shard", shard]) == 0
+    with SequenceReader(out / f"{sequence}.h5") as seq:
+        assert seq.attrs["content_sha256"] == pins[split]["sequences"][sequence]
 
 
 def test_validate_compares_named_splits_with_their_pins(tmp_path, monkeypatch):

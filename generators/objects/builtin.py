@@ -18,6 +18,7 @@ from collections.abc import Callable
 
 import numpy as np
 
+from dsr_bench.geometry import vector_norm
 from generators.objects.spec import ObjectSpec, make_spec, random_color
 
 CUBE_DIVISORS = (700, 750, 800, 850, 900, 1000, 1100, 1200, 1400)
@@ -67,7 +68,7 @@ def _normalise(meshes, diagonal: float) -> list:
     """Scale meshes jointly so their bounding-box diagonal is `diagonal` metres, resting on z = 0."""
     tm = _trimesh()
     bounds = tm.util.concatenate(meshes).bounds
-    factor = diagonal / np.linalg.norm(bounds[1] - bounds[0])
+    factor = diagonal / vector_norm(bounds[1] - bounds[0])
     out = []
     for m in meshes:
         m = m.copy()
