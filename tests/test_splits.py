@@ -22,7 +22,8 @@ def test_split_table_and_errors():
 
 
 @pytest.mark.parametrize("split, shard, sequence", [("procedural-novel-mini", "3/8", "seq_0003"),
-                                                     ("procedural-novel-test", "123/400", "seq_0123")])
+                                                     ("procedural-novel-test", "123/400", "seq_0123"),
+                                                     ("cube-test", "7/400", "seq_0007")])
 def test_pinned_split_reproduces_bit_for_bit(tmp_path, split, shard, sequence):
     """A shard of a pinned split, generated here, has exactly the pinned content digests."""
     pytest.importorskip("pybullet")
