@@ -345,6 +345,16 @@ def _check_image_sizes(capture: Capture) -> None:
                                    "as uint16")
 
 
+def mesh_sha256(vertices: np.ndarray, faces: np.ndarray) -> str:
+    """SHA-256 of a mesh as float64 vertices then int64 faces, little-endian (as `ObjectSpec.mesh_sha256`)."""
+    import hashlib
+
+    h = hashlib.sha256()
+    h.update(np.asarray(vertices, dtype="<f8").tobytes())
+    h.update(np.asarray(faces, dtype="<i8").tobytes())
+    return h.hexdigest()
+
+
 def _write_png(path: Path, array: np.ndarray) -> None:
     from PIL import Image
 
@@ -388,6 +398,10 @@ def write_capture(path: str | Path, *, name: str, cameras: dict[str, CaptureCame
             rel = f"meshes/{i}.ply"
             trimesh.Trimesh(np.asarray(vertices, np.float64), np.asarray(faces, np.int64), process=False).export(
                 tmp / rel)
+            identity = dict(identity)
+            if "mesh_sha256" in identity:  # PLY keeps float32 vertices: the digest must name the stored mesh
+                identity["source_mesh_sha256"] = identity["mesh_sha256"]
+                identity["mesh_sha256"] = mesh_sha256(np.asarray(vertices, np.float32), faces)
             entries.append({"name": obj_name, "mesh": rel, "identity": identity})
         (tmp / "objects.json").write_text(json.dumps({"objects": entries}, indent=1))
         for step in range(steps + 1):

@@ -280,3 +280,13 @@ def test_load_capture_errors_name_the_file_in_one_line(captures, tmp_path, break
         load_capture(root)
     message = str(info.value)
     assert named in message and "\n" not in message, message
+
+
+def test_stored_mesh_digest_names_the_stored_mesh(captures):
+    """PLY keeps float32 vertices: objects.json's mesh_sha256 is that of the mesh read back, the source's kept aside."""
+    from dsr_bench.capture import load_capture, mesh_sha256
+
+    capture = load_capture(captures["realistic"])
+    for i, obj in enumerate(capture.objects):
+        assert obj.identity["mesh_sha256"] == mesh_sha256(*capture.mesh(i))
+        assert len(obj.identity["source_mesh_sha256"]) == 64  # the generator's float64 mesh, kept for provenance
