@@ -87,3 +87,21 @@ def test_sparse_deflate_round_trips(pattern):
     elif pattern == "tail":
         data[-7:] = 1.5
     assert zlib.decompress(_deflate_sparse(data.view(np.uint8))) == data.tobytes()
+
+
+def test_read_steps_equals_h5py_for_every_layout(tmp_path):
+    """The raw-chunk reader returns exactly what h5py decodes, for our layout and for others (fallback)."""
+    from dsr_bench.sequence import read_steps
+
+    rng = np.random.default_rng(1)
+    data = (rng.normal(size=(4, 6, 8, 5)) * (rng.random((4, 6, 8, 5)) > 0.7)).astype(np.float32)
+    with h5py.File(tmp_path / "f.h5", "w") as f:
+        f.create_dataset("ours", data=data, chunks=(1, 6, 8, 5), compression="gzip", compression_opts=1)
+        f.create_dataset("shuffled", data=data, chunks=(1, 6, 8, 5), compression="gzip", shuffle=True)
+        f.create_dataset("plain", data=data)
+        f.create_dataset("sparse", shape=data.shape, dtype=np.float32, chunks=(1, 6, 8, 5), compression="gzip")
+        f["sparse"][1] = data[1]
+    with h5py.File(tmp_path / "f.h5", "r") as f:
+        for name in ("ours", "shuffled", "plain", "sparse"):
+            for start, stop in ((0, 4), (1, 3), (2, 2)):
+                np.testing.assert_array_equal(read_steps(f[name], start, stop), f[name][start:stop])

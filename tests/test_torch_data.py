@@ -28,7 +28,7 @@ def test_windows_shapes_values_and_count(data):
     assert item["tsdf"].shape == (2, 128, 128, 48) and item["tsdf"].dtype == torch.float32
     assert item["action"].shape == (2, 8, 128, 128) and item["action"].dtype == torch.float32
     assert item["action"].sum() == 2
-    assert item["mask_3d"].dtype == torch.int64 and item["scene_flow_3d"].shape == (2, 3, 128, 128, 48)
+    assert item["mask_3d"].dtype == torch.uint8 and item["scene_flow_3d"].shape == (2, 3, 128, 128, 48)
     with SequenceReader(data / "seq_0000.h5") as seq:
         assert np.array_equal(item["tsdf"].numpy(), seq.read("tsdf", slice(1, 3)))
         assert np.array_equal(item["mask_3d"].numpy(), seq.read("mask_3d", slice(1, 3)))
