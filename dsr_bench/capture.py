@@ -30,6 +30,7 @@ import numpy as np
 from dsr_bench.constants import GRID_BOUNDS, NUM_DIRECTIONS
 from dsr_bench.errors import UserError
 from dsr_bench.geometry import Camera
+from dsr_bench.manifest import mesh_sha256
 
 CAPTURE_FORMAT = "dsr-bench-capture"
 CAPTURE_VERSION = 1
@@ -343,16 +344,6 @@ def _check_image_sizes(capture: Capture) -> None:
                 if kind == "depth" and mode not in ("I;16", "I;16B", "I;16L", "I"):
                     raise _fail(p, f"depth must be a 16-bit single-channel PNG (mode {mode}); store depth / depth_scale "
                                    "as uint16")
-
-
-def mesh_sha256(vertices: np.ndarray, faces: np.ndarray) -> str:
-    """SHA-256 of a mesh as float64 vertices then int64 faces, little-endian (as `ObjectSpec.mesh_sha256`)."""
-    import hashlib
-
-    h = hashlib.sha256()
-    h.update(np.asarray(vertices, dtype="<f8").tobytes())
-    h.update(np.asarray(faces, dtype="<i8").tobytes())
-    return h.hexdigest()
 
 
 def _write_png(path: Path, array: np.ndarray) -> None:

@@ -79,6 +79,15 @@ def sequence_content_digest(path: str | Path) -> str:
         return h.hexdigest()
 
 
+def mesh_sha256(vertices: np.ndarray, faces: np.ndarray) -> str:
+    """SHA-256 of a mesh: its vertices as float64, then its faces as int64, little-endian (stored in every
+    object identity as `mesh_sha256`)."""
+    h = hashlib.sha256()
+    h.update(np.ascontiguousarray(vertices, dtype="<f8").tobytes())
+    h.update(np.ascontiguousarray(faces, dtype="<i8").tobytes())
+    return h.hexdigest()
+
+
 def file_sha256(path: str | Path, chunk: int = 1 << 22) -> str:
     """SHA-256 of a file's bytes."""
     h = hashlib.sha256()

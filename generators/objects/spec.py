@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import hashlib
 from dataclasses import dataclass
 
 import numpy as np
@@ -43,12 +42,10 @@ class ObjectSpec:
         return np.vstack(vertices).astype(np.float64), np.vstack(faces).astype(np.int64)
 
     def mesh_sha256(self) -> str:
-        """SHA-256 of the mesh (float64 vertices, then int64 faces, little-endian)."""
-        vertices, faces = self.mesh()
-        h = hashlib.sha256()
-        h.update(vertices.astype("<f8").tobytes())
-        h.update(faces.astype("<i8").tobytes())
-        return h.hexdigest()
+        """SHA-256 of the mesh (`dsr_bench.manifest.mesh_sha256`: float64 vertices, then int64 faces)."""
+        from dsr_bench.manifest import mesh_sha256
+
+        return mesh_sha256(*self.mesh())
 
     def extent(self) -> np.ndarray:
         """Axis-aligned size (3,) in metres."""
