@@ -302,7 +302,15 @@ class SequenceReader:
     def read(self, name: str, index: int | slice | None = None) -> np.ndarray:
         """Read a dataset, or one step / a range of steps of it along the first axis."""
         ds = self.dataset(name)
-        return ds[()] if index is None else ds[index]
+        if index is None:
+            return ds[()]
+        if ds.ndim > 1 and isinstance(index, (int, np.integer)) and -ds.shape[0] <= index < ds.shape[0]:
+            step = int(index) % ds.shape[0]
+            return read_steps(ds, step, step + 1)[0]
+        if ds.ndim > 1 and isinstance(index, slice) and index.step in (None, 1):
+            start, stop, _ = index.indices(ds.shape[0])
+            return read_steps(ds, start, max(start, stop))
+        return ds[index]
 
     def camera(self, name: str = "front"):
         """The `dsr_bench.geometry.Camera` of a stored camera."""

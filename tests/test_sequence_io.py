@@ -105,3 +105,14 @@ def test_read_steps_equals_h5py_for_every_layout(tmp_path):
         for name in ("ours", "shuffled", "plain", "sparse"):
             for start, stop in ((0, 4), (1, 3), (2, 2)):
                 np.testing.assert_array_equal(read_steps(f[name], start, stop), f[name][start:stop])
+
+
+def test_reader_read_matches_h5py_for_steps_ranges_and_other_indices(tmp_path):
+    """SequenceReader.read goes through the raw-chunk reader for steps and ranges; values equal h5py's."""
+    path = write_synthetic_sequence(tmp_path / "seq_0000.h5", num_steps=3)
+    with SequenceReader(path) as seq, h5py.File(path, "r") as f:
+        for name in ("tsdf", "mask_3d", "scene_flow_3d", "action"):
+            for index in (0, 2, -1, slice(None), slice(1, 3), slice(2, 1), slice(0, 3, 2), None):
+                expected = f[name][()] if index is None else f[name][index]
+                got = seq.read(name, index)
+                assert got.dtype == expected.dtype and np.array_equal(got, expected), (name, index)
