@@ -110,14 +110,10 @@ class IcpResult:
 
 
 def rotvec_to_matrix(rotvec: np.ndarray) -> np.ndarray:
-    """Rotation matrix (3, 3) of an axis-angle vector (3,) in radians (Rodrigues)."""
-    rotvec = np.asarray(rotvec, dtype=np.float64)
-    angle = float(np.linalg.norm(rotvec))
-    if angle < 1e-12:
-        return np.eye(3)
-    k = rotvec / angle
-    kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
-    return np.eye(3) + np.sin(angle) * kx + (1 - np.cos(angle)) * kx @ kx
+    """Rotation matrix (3, 3) of an axis-angle vector (3,) in radians."""
+    from scipy.spatial.transform import Rotation
+
+    return Rotation.from_rotvec(np.asarray(rotvec, dtype=np.float64).reshape(3)).as_matrix()
 
 
 def rotation_angle(rotation: np.ndarray) -> float:
