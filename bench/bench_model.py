@@ -113,23 +113,22 @@ def main() -> None:
     with torch.no_grad():
         feats = torch.randn(b, 8, *grid, device=dev)
         weight = torch.rand(b, *grid, device=dev)
-        forward_warp(feats, gt_flow, weight)
-        sync()
-        t0 = time.perf_counter()
-        for _ in range(args.steps):
-            forward_warp(feats, gt_flow, weight)
-        sync()
-        warp_ms = (time.perf_counter() - t0) / args.steps * 1000
+
+        def warp_time_ms(warp) -> float:
+            warp(feats, gt_flow, weight)
+            sync()
+            t0 = time.perf_counter()
+            for _ in range(args.steps):
+                warp(feats, gt_flow, weight)
+            sync()
+            return (time.perf_counter() - t0) / args.steps * 1000
+
+        warp_ms = warp_time_ms(forward_warp)
         warp_compiled_ms = warp_diff = float("nan")
         if args.compile and dev.type == "cuda":
             compiled = torch.compile(forward_warp, dynamic=False)
             warp_diff = float((compiled(feats, gt_flow, weight) - forward_warp(feats, gt_flow, weight)).abs().max())
-            sync()
-            t0 = time.perf_counter()
-            for _ in range(args.steps):
-                compiled(feats, gt_flow, weight)
-            sync()
-            warp_compiled_ms = (time.perf_counter() - t0) / args.steps * 1000
+            warp_compiled_ms = warp_time_ms(compiled)
         out32 = net(tsdf, action, net.initial_state(b, dev))
         with torch.autocast(dev.type, dtype=torch.bfloat16):
             out16 = net(tsdf, action, net.initial_state(b, dev))
