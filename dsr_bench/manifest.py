@@ -74,7 +74,7 @@ def sequence_content_digest(path: str | Path) -> str:
                 h.update(_array_bytes(np.ascontiguousarray(np.asarray(ds[()], dtype=dtype))))
                 continue
             for i in range(ds.shape[0]):
-                h.update(_array_bytes(np.ascontiguousarray(np.asarray(ds[i], dtype=dtype))))
+                h.update(_array_bytes(np.ascontiguousarray(np.asarray(seq.read(name, i), dtype=dtype))))
         h.update(_canonical_objects(seq.objects))
         return h.hexdigest()
 
