@@ -1,10 +1,15 @@
 """Benchmark: DSR-Net training and inference throughput, peak memory, and bf16 vs fp32 losses.
 
     python bench/bench_model.py [--device cuda] [--model dsr] [--batch 12] [--grid 128 128 48]
-        [--steps 10] [--bf16] [--compile] [--channels-last] [--json OUT.json] [--profile]
+        [--window 1] [--resident] [--steps 10] [--bf16] [--compile] [--channels-last] [--json OUT.json]
+        [--profile]
 
-Training: samples (time steps) per second of the training loop's unit of work: forward, matched
-loss, backward, Adam step, and the warp of the state for the next step, at the given batch.
+Training: samples (time steps) per second of `dsr_bench.train.train_step`, the training loop's unit
+of work, on a window of `--window` steps held in pinned host memory as the data loader delivers it:
+the mask id check, the copy to the device, then per step forward, matched loss, backward, Adam
+(fused on a GPU, as `dsr-bench train`) and the warp of the state; the loss terms are read once per
+window. `--resident` keeps the batch on the device instead (no copy, no check: the figure that
+sessions before 2026-11-23 reported, which also read the loss after every step).
 Inference: steps per second batched and at batch 1 (BatchNorm in eval mode, state carried, warp
 included). Also: the forward warp alone, peak GPU memory, and the relative difference of the loss
 under bf16 autocast vs fp32 on one fixed batch (same weights). On a CPU use a small grid (e.g.
@@ -24,6 +29,8 @@ def main() -> None:
     parser.add_argument("--model", default="dsr")
     parser.add_argument("--batch", type=int, default=12)
     parser.add_argument("--grid", type=int, nargs=3, default=[128, 128, 48])
+    parser.add_argument("--window", type=int, default=1, help="Time steps per training window (1: single-step stage).")
+    parser.add_argument("--resident", action="store_true", help="Keep the training batch on the device (no copy).")
     parser.add_argument("--steps", type=int, default=10)
     parser.add_argument("--warmup", type=int, default=3)
     parser.add_argument("--bf16", action="store_true")
@@ -39,6 +46,7 @@ def main() -> None:
     from dsr_bench.models import DSRNet, ModelConfig
     from dsr_bench.models.loss import dsr_loss
     from dsr_bench.models.warp import forward_warp
+    from dsr_bench.train import train_step
 
     dev = torch.device(args.device if args.device != "cuda" or torch.cuda.is_available() else "cpu")
     if dev.type == "cuda":
@@ -53,7 +61,7 @@ def main() -> None:
     model = torch.compile(net) if args.compile else net
     if args.compile:
         net.compile_warp()
-    opt = torch.optim.Adam(net.parameters(), lr=1e-5, betas=(0.9, 0.95))
+    opt = torch.optim.Adam(net.parameters(), lr=1e-5, betas=(0.9, 0.95), fused=True if dev.type == "cuda" else None)
     b = args.batch
     g = torch.Generator().manual_seed(1)
     tsdf = (torch.rand(b, *grid, generator=g) * 2 - 1).to(dev)
@@ -61,20 +69,21 @@ def main() -> None:
     action[:, 0, grid[0] // 2, grid[1] // 2] = 1
     gt_mask = torch.randint(0, 5, (b, *grid), generator=g).to(dev)
     gt_flow = torch.randn(b, 3, *grid, generator=g).to(dev)
+    window = {"tsdf": tsdf, "action": action, "mask_3d": gt_mask.to(torch.uint8), "scene_flow_3d": gt_flow}
+    window = {k: v.unsqueeze(1).expand(-1, args.window, *v.shape[1:]) for k, v in window.items()}
+    if args.resident:
+        window = {k: v.contiguous() for k, v in window.items()}
+    else:  # as the DataLoader hands it over: contiguous host memory, pinned for a GPU
+        window = {k: v.cpu().contiguous() for k, v in window.items()}
+        if dev.type == "cuda":
+            window = {k: v.pin_memory() for k, v in window.items()}
 
     def sync():
         if dev.type == "cuda":
             torch.cuda.synchronize()
 
-    def train_once(bf16: bool) -> float:
-        opt.zero_grad(set_to_none=True)
-        with torch.autocast(dev.type, dtype=torch.bfloat16, enabled=bf16):
-            out = model(tsdf, action, net.initial_state(b, dev))
-        loss, _, _ = dsr_loss(out, gt_mask, gt_flow)
-        loss.backward()
-        opt.step()
-        net.next_state(out, gt_flow, gt_mask)
-        return float(loss.detach())
+    def train_once(bf16: bool) -> list[dict]:
+        return train_step(model, window, opt, dev, bf16)
 
     net.train()
     for _ in range(args.warmup):
@@ -86,7 +95,7 @@ def main() -> None:
     for _ in range(args.steps):
         train_once(args.bf16)
     sync()
-    train_rate = b * args.steps / (time.perf_counter() - t0)
+    train_rate = b * args.window * args.steps / (time.perf_counter() - t0)
     peak_train = torch.cuda.max_memory_allocated() / 2**30 if dev.type == "cuda" else float("nan")
 
     net.eval()
@@ -149,14 +158,15 @@ def main() -> None:
             print(prof.key_averages().table(sort_by=sort, row_limit=14, max_name_column_width=60))
         net.eval()
     name = torch.cuda.get_device_name() if dev.type == "cuda" else f"CPU ({torch.get_num_threads()} threads)"
-    figures = {"device": name, "model": args.model, "grid": list(grid), "batch": b, "bf16": args.bf16,
+    figures = {"device": name, "model": args.model, "grid": list(grid), "batch": b, "window": args.window,
+               "resident": args.resident, "bf16": args.bf16,
                "compile": args.compile, "channels_last": args.channels_last, "train_samples_per_s": train_rate,
                "infer_steps_per_s_batched": rates[b], "infer_steps_per_s_batch1": rates[1], "warp_ms": warp_ms,
                "warp_compiled_ms": warp_compiled_ms,
                "warp_compiled_max_abs_diff": warp_diff, "peak_train_gib": peak_train, "peak_infer_gib": peak_infer, "loss_fp32": l32, "loss_bf16": l16,
                "loss_rel_diff_pct": abs(l16 - l32) / abs(l32) * 100, "torch": torch.__version__}
-    print(f"device {name}, model {args.model}, grid {grid}, batch {b}, bf16 {args.bf16}, compile {args.compile}, "
-          f"channels_last {args.channels_last}")
+    print(f"device {name}, model {args.model}, grid {grid}, batch {b}, window {args.window}, "
+          f"resident {args.resident}, bf16 {args.bf16}, compile {args.compile}, channels_last {args.channels_last}")
     print(f"training: {train_rate:.1f} samples/s ({train_rate / b:.2f} steps/s); peak memory {peak_train:.2f} GiB")
     print(f"inference: {rates[b]:.1f} steps/s at batch {b}, {rates[1]:.1f} steps/s at batch 1; "
           f"peak memory {peak_infer:.2f} GiB")

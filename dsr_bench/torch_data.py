@@ -84,26 +84,29 @@ class SequenceWindowDataset(Dataset):
         _check_options(window, stride, tuple(fields))
         self.data_dir, self.window, self.stride, self.fields = Path(data_dir), window, stride, tuple(fields)
         self.split, names = read_split(data_dir, split)
-        known: dict[str, int] = {}
-        if (self.data_dir / MANIFEST_NAME).is_file():  # step counts without opening thousands of files
-            known = {s["name"]: s["num_steps"] for s in load_manifest(data_dir)["sequences"]}
+        known: dict[str, tuple[int, int]] = {}
+        if (self.data_dir / MANIFEST_NAME).is_file():  # counts without opening thousands of files
+            known = {s["name"]: (s["num_steps"], s["num_objects"]) for s in load_manifest(data_dir)["sequences"]}
         self.items: list[tuple[Path, str, int]] = []
+        #: Objects per sequence (from the manifest or the files' attributes).
+        self.num_objects: dict[str, int] = {}
         for name in names:
             path = self.data_dir / f"{name}.h5"
             if not path.is_file():
                 raise UserError(f"split {self.split!r} names {name}, but {path} is missing")
-            steps = known[name] if name in known else self._num_steps(path)
+            steps, self.num_objects[name] = known[name] if name in known else self._counts(path)
             if steps < window:
                 raise UserError(f"{path.name} has {steps} pushes, fewer than the window {window}")
             self.items += [(path, name, s) for s in range(0, steps - window + 1, stride)]
         self._files = _LazyFiles()
 
     @staticmethod
-    def _num_steps(path: Path) -> int:
+    def _counts(path: Path) -> tuple[int, int]:
+        """(pushes, objects) of one sequence file."""
         from dsr_bench.sequence import SequenceReader
 
         with SequenceReader(path) as seq:  # checks the format marker and schema version
-            return seq.num_steps
+            return seq.num_steps, seq.num_objects
 
     def __len__(self) -> int:
         return len(self.items)

@@ -23,7 +23,7 @@ import torch
 from dsr_bench.errors import UserError
 from dsr_bench.models.config import ModelConfig
 from dsr_bench.models.dsr_net import DSRNet
-from dsr_bench.models.loss import dsr_loss
+from dsr_bench.models.loss import MaskIdError, check_ids, dsr_loss
 from dsr_bench.train_configs import STAGES, StageConfig, stage_for
 
 __all__ = ["STAGES", "StageConfig", "load_checkpoint", "save_checkpoint", "train", "train_step", "validate",
@@ -121,33 +121,43 @@ class WindowSampler(torch.utils.data.Sampler):
         return max(self.per_rank - self.start, 0)
 
 
-def _to(batch: dict, device) -> tuple[torch.Tensor, ...]:
+def _to(batch: dict, device, num_slots: int | None = None) -> tuple[torch.Tensor, ...]:
+    """The window's tensors on `device`; masks travel as uint8 (8x less to copy) and are widened there.
+    With `num_slots`, the mask ids are checked against the model's slots first, on the CPU copy (a
+    check on the GPU copy would make the host wait for the device)."""
+    if num_slots is not None:
+        check_ids(batch["mask_3d"], num_slots)
     nb = device.type == "cuda"
     tsdf, action, mask, flow = (batch[k].to(device, non_blocking=nb) for k in ("tsdf", "action", "mask_3d", "scene_flow_3d"))
-    return tsdf, action, mask.long(), flow  # masks travel as uint8 (8x less to copy), widened on the device
+    return tsdf, action, mask.long(), flow
 
 
 def train_step(model, batch: dict, optimizer, device, bf16: bool = False, deterministic: bool = False,
                mask_reduction: str = "sum") -> list[dict]:
     """One window (B, L, ...): per step, forward, loss under the previous step's matching, backward,
-    optimiser step; the state is detached between steps. Returns the loss terms of every step."""
+    optimiser step; the state is detached between steps. Returns the loss terms of every step
+    (floats). The steps are queued without waiting for the device; the terms are read once, at the
+    end of the window (a non-finite loss is reported then, naming its step)."""
     device = torch.device(device)
-    tsdf, action, gt_mask, gt_flow = _to(batch, device)
     net = model.module if hasattr(model, "module") else model
     net = getattr(net, "_orig_mod", net)
+    tsdf, action, gt_mask, gt_flow = _to(batch, device, net.config.num_slots)
     state = net.initial_state(tsdf.shape[0], device)
-    matching, logs = None, []
+    matching, terms = None, []
     for t in range(tsdf.shape[1]):
         optimizer.zero_grad(set_to_none=True)
         with torch.autocast(device.type, dtype=torch.bfloat16, enabled=bf16):
             outputs = model(tsdf[:, t], action[:, t], state)
-        loss, terms, matching = dsr_loss(outputs, gt_mask[:, t], gt_flow[:, t], matching, reduction=mask_reduction)
-        if not math.isfinite(terms["total"]):
-            raise FloatingPointError(f"loss is {terms['total']} at window step {t}; lower the learning rate (--lr)")
+        loss, step_terms, matching = dsr_loss(outputs, gt_mask[:, t], gt_flow[:, t], matching,
+                                              reduction=mask_reduction, check=False)
         loss.backward()
         optimizer.step()
-        logs.append(terms)
+        terms.append(torch.stack([step_terms["total"], step_terms["motion"], step_terms["mask"]]))
         state = net.next_state(outputs, gt_flow[:, t], gt_mask[:, t], deterministic)
+    logs = [dict(zip(("total", "motion", "mask"), row)) for row in torch.stack(terms).tolist()]  # the one sync
+    for t, row in enumerate(logs):
+        if not math.isfinite(row["total"]):
+            raise FloatingPointError(f"loss is {row['total']} at window step {t}; lower the learning rate (--lr)")
     return logs
 
 
@@ -169,14 +179,15 @@ def validate(model, loader, device, official_bn: bool = False, bf16: bool = Fals
         for i, batch in enumerate(loader):
             if max_batches is not None and i >= max_batches:
                 break
-            tsdf, action, gt_mask, gt_flow = _to(batch, device)
+            tsdf, action, gt_mask, gt_flow = _to(batch, device, net.config.num_slots)
             state = net.initial_state(tsdf.shape[0], device)
             matching = None
             for t in range(tsdf.shape[1]):
                 with torch.autocast(device.type, dtype=torch.bfloat16, enabled=bf16):
                     out = net(tsdf[:, t], action[:, t], state)
-                _, terms, matching = dsr_loss(out, gt_mask[:, t], gt_flow[:, t], matching, reduction="mean")
-                losses.append(terms["total"])
+                _, terms, matching = dsr_loss(out, gt_mask[:, t], gt_flow[:, t], matching, reduction="mean",
+                                              check=False)
+                losses.append(float(terms["total"]))
                 k = out["mask"].shape[1]
                 labels = out["mask"].argmax(1)
                 labels = torch.where(labels == k - 1, 0, labels + 1).cpu().numpy()
@@ -276,6 +287,12 @@ def train(model_name: str, stage_name: str, data: Path, out: Path, split: str | 
             raise UserError(f"{data}: {exc}") from None
     if tuple(model_config.grid) != data_grid:
         raise UserError(f"data grid {data_grid} differs from the checkpoint's model grid {tuple(model_config.grid)}")
+    slots = model_config.num_slots
+    crowded = sorted(name for name, n in dataset.num_objects.items() if n > slots - 1)
+    if crowded:
+        raise UserError(f"{data}: {len(crowded)} sequences (e.g. {crowded[0]}) have more than {slots - 1} "
+                        f"objects, the reference models' object slots (K = {slots}); train on scenes of "
+                        f"at most {slots - 1} objects (dsr-bench generate --objects-per-scene)")
     sampler = WindowSampler(len(dataset), stage.batch_size, seed, rank, world)
     if sampler.batches == 0:
         raise UserError(f"{len(dataset)} windows cannot be split across {world} processes")
@@ -292,7 +309,9 @@ def train(model_name: str, stage_name: str, data: Path, out: Path, split: str | 
     if init is not None and checkpoint is None:
         source = load_checkpoint(init, map_location=dev)
         _load_weights(net, source, init)
-    optimizer = torch.optim.Adam(net.parameters(), lr=stage.lr_at(0), betas=stage.betas)
+    # fused Adam on a GPU: one kernel for every parameter's update instead of a few per tensor group
+    optimizer = torch.optim.Adam(net.parameters(), lr=stage.lr_at(0), betas=stage.betas,
+                                 fused=True if dev.type == "cuda" else None)
     scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, lambda e: stage.lr_at(e) / stage.lr_at(0))
     start_epoch, start_batch, step = 0, 0, 0
     if checkpoint is not None:
@@ -353,7 +372,11 @@ def train(model_name: str, stage_name: str, data: Path, out: Path, split: str | 
             batch_index = first
             for batch in bar:
                 t0 = time.perf_counter()
-                terms = train_step(train_model, batch, optimizer, dev, bf16, deterministic, stage.mask_reduction)
+                try:
+                    terms = train_step(train_model, batch, optimizer, dev, bf16, deterministic, stage.mask_reduction)
+                except (MaskIdError, FloatingPointError) as exc:
+                    raise UserError(f"batch {batch_index + 1} of epoch {epoch + 1} "
+                                    f"({', '.join(sorted(set(batch['sequence'])))}): {exc}") from None
                 seconds = time.perf_counter() - t0
                 step += 1
                 batch_index += 1
@@ -380,7 +403,10 @@ def train(model_name: str, stage_name: str, data: Path, out: Path, split: str | 
             if rank == 0:
                 record = {"epoch": epoch + 1, "step": step, "lr_next": optimizer.param_groups[0]["lr"]}
                 if val_loader is not None:
-                    record.update(validate(model, val_loader, dev, official_bn, bf16))
+                    try:
+                        record.update(validate(model, val_loader, dev, official_bn, bf16))
+                    except MaskIdError as exc:
+                        raise UserError(f"--val-split {val_split}: {exc}") from None
                     if writer is not None:
                         writer.add_scalar("val/iou", record["val_iou"], step)
                         writer.add_scalar("val/loss", record["val_loss"], step)

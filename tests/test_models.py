@@ -195,6 +195,22 @@ def test_a_few_training_steps_lower_the_loss():
     assert (losses[-3:].mean(0) < 0.8 * losses[:2].mean(0)).all(), losses
 
 
+def test_train_step_reports_the_first_non_finite_step():
+    """The window's terms are read once at its end; a non-finite loss names its step."""
+    from dsr_bench.train import train_step
+
+    torch.manual_seed(0)
+    net = DSRNet(ModelConfig.for_model("dsr", grid=TINY))
+    opt = torch.optim.Adam(net.parameters(), lr=1e-3)
+    batch = toy_batch(steps=3)
+    terms = train_step(net, batch, opt, "cpu")
+    assert len(terms) == 3 and all(isinstance(t[k], float) for t in terms for k in ("total", "motion", "mask"))
+    assert all(t["total"] == pytest.approx(t["motion"] + 5 * t["mask"], rel=1e-6) for t in terms)
+    batch["tsdf"][:, 1, 0, 0, 0] = float("nan")
+    with pytest.raises(FloatingPointError, match="loss is nan at window step 1; lower the learning rate"):
+        train_step(net, batch, opt, "cpu")
+
+
 def test_checkpoint_round_trip(tmp_path):
     from dsr_bench.train import STAGES, load_checkpoint, save_checkpoint
 

@@ -115,3 +115,22 @@ def test_train_errors(data, tmp_path, capsys):
     assert "not a loadable" in capsys.readouterr().err
     assert main(["predict", "--model", "single", "--checkpoint", str(tmp_path / "missing.pt"), "--data", str(data),
                  "--out", str(tmp_path / "p")]) == 2
+
+
+def test_object_ids_beyond_the_slots_are_refused(tmp_path, capsys):
+    """Scenes with more objects than the K - 1 = 4 slots are refused up front (from the manifest), and a
+    mask id beyond the slots inside a file is caught on the CPU copy of the batch: one line, exit 2."""
+    import h5py
+
+    crowded = write_synthetic_dataset(tmp_path / "crowded", num_sequences=1, num_steps=1, num_objects=5, split="train")
+    assert _train(crowded, tmp_path / "r1", "--max-steps", "1") == 2
+    err = capsys.readouterr().err
+    assert "1 sequences (e.g. seq_0000) have more than 4 objects" in err and "--objects-per-scene" in err
+    assert len(err.strip().splitlines()) == 1
+    broken = write_synthetic_dataset(tmp_path / "broken", num_sequences=1, num_steps=1, num_objects=2, split="train")
+    with h5py.File(broken / "seq_0000.h5", "r+") as f:
+        f["mask_3d"][0, 0, 0, 0] = 7
+    assert _train(broken, tmp_path / "r2", "--max-steps", "1") == 2
+    err = capsys.readouterr().err
+    assert "batch 1 of epoch 1 (seq_0000): mask_3d has object id 7" in err
+    assert len(err.strip().splitlines()) == 1 and not (tmp_path / "r2" / "last.pt").exists()
