@@ -1,8 +1,13 @@
 """Benchmark: training samples per second read from disk by the PyTorch dataset, with N workers.
 
     python bench/bench_loader.py --data DIR [--split S] [--window 10] [--workers 0 1 2] [--batch 4]
+        [--collate default compact] [--device cuda]
 
-Without --data, a small synthetic dataset is written to a temporary directory first.
+Without --data, a small synthetic dataset is written to a temporary directory first. `--collate`
+compares batching by torch's default_collate with `collate_compact` (what `dsr-bench train` uses:
+flow as its non-zero voxels, actions as indices), reporting the bytes each batch carries. With
+`--device cuda`, batches are pinned and every batch is also copied to the GPU and made dense
+(`batch_to_device`), as in training.
 """
 
 from __future__ import annotations
@@ -20,6 +25,8 @@ def main() -> None:
     parser.add_argument("--batch", type=int, default=4)
     parser.add_argument("--workers", type=int, nargs="+", default=[0, 1, 2])
     parser.add_argument("--batches", type=int, default=20)
+    parser.add_argument("--collate", nargs="+", default=["default", "compact"], choices=["default", "compact"])
+    parser.add_argument("--device", default="cpu")
     args = parser.parse_args()
 
     import torch
@@ -40,23 +47,34 @@ def main() -> None:
 
 
 def run(data, args, torch, SequenceWindowDataset) -> None:
+    from dsr_bench.torch_data import batch_to_device, collate_compact
+
     ds = SequenceWindowDataset(data, args.split, window=args.window)
-    print(f"dataset {data}: {len(ds)} windows of {args.window} pushes; batch {args.batch}")
-    for workers in args.workers:
-        loader = torch.utils.data.DataLoader(ds, batch_size=args.batch, shuffle=True, num_workers=workers,
-                                             persistent_workers=workers > 0)
-        it = iter(loader)
-        next(it)  # warm-up: worker start and first file opens
-        start, n = time.perf_counter(), 0
-        for _ in range(args.batches):
-            try:
-                batch = next(it)
-            except StopIteration:
-                it = iter(loader)
-                batch = next(it)
-            n += len(batch["sequence"]) * args.window
-        dt = time.perf_counter() - start
-        print(f"workers {workers}: {n / dt:8.1f} sample-steps/s ({dt / args.batches * 1e3:.1f} ms per batch)")
+    device = torch.device(args.device)
+    print(f"dataset {data}: {len(ds)} windows of {args.window} pushes; batch {args.batch}; device {device}")
+    for collate in args.collate:
+        for workers in args.workers:
+            loader = torch.utils.data.DataLoader(
+                ds, batch_size=args.batch, shuffle=True, num_workers=workers, persistent_workers=workers > 0,
+                collate_fn=collate_compact if collate == "compact" else None, pin_memory=device.type == "cuda")
+            it = iter(loader)
+            next(it)  # warm-up: worker start and first file opens
+            start, n, sent = time.perf_counter(), 0, 0
+            for _ in range(args.batches):
+                try:
+                    batch = next(it)
+                except StopIteration:
+                    it = iter(loader)
+                    batch = next(it)
+                n += len(batch["sequence"]) * args.window
+                sent += sum(v.numel() * v.element_size() for v in batch.values() if isinstance(v, torch.Tensor))
+                if device.type == "cuda":
+                    batch_to_device(batch, device)
+            if device.type == "cuda":
+                torch.cuda.synchronize()
+            dt = time.perf_counter() - start
+            print(f"collate {collate:8s} workers {workers}: {n / dt:8.1f} sample-steps/s "
+                  f"({dt / args.batches * 1e3:.1f} ms per batch, {sent / args.batches / 2**20:.1f} MiB per batch)")
 
 
 if __name__ == "__main__":

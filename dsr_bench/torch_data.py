@@ -9,6 +9,11 @@ Each item is a dict for pushes s .. s+L-1 of one sequence:
   sequence (str), start (int)
 Files are opened lazily in each worker process (h5py handles never cross a fork) and only the
 requested steps are read.
+
+`collate_compact` (a DataLoader collate_fn) batches windows in a compact form for the trip to the
+GPU: the flow as its non-zero voxels (objects only, 1-3% of the grid) and the action maps as one
+index per step, about 3x fewer bytes through shared memory, pinning and the host-to-device copy;
+`batch_to_device` rebuilds the dense tensors on the device, bit for bit.
 """
 
 from __future__ import annotations
@@ -19,7 +24,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 import torch
-from torch.utils.data import Dataset
+from torch.utils.data import Dataset, default_collate
 
 from dsr_bench.constants import GRID_SHAPE, NUM_DIRECTIONS
 from dsr_bench.errors import UserError
@@ -184,3 +189,61 @@ class OfficialWindowDataset(Dataset):
             else:
                 out[field] = torch.from_numpy(value.astype(np.float32))
         return out
+
+
+_COMPACT = ("action", "scene_flow_3d")
+
+
+def collate_compact(items: list[dict]) -> dict:
+    """Batch window items like `default_collate`, except two fields in compact form:
+
+    action_index (B, L) int64: flat index of each step's one-hot entry in its (8, Y, X) map;
+    flow_index (N,) int64: flat indices into (B, L, Y * X * Z) of the voxels with non-zero flow, and
+    flow_value (N, 3) float32: their flow (dy, dx, dz) in voxels. Other fields as default_collate."""
+    batch = default_collate([{k: v for k, v in item.items() if k not in _COMPACT} for item in items])
+    if "action" in items[0]:
+        indices = []
+        for item in items:
+            flat = item["action"].numpy().reshape(len(item["action"]), -1)  # (L, 8 * Y * X)
+            index = flat.argmax(1)
+            if not (np.all(flat.sum(1) == 1) and np.all(flat[np.arange(len(flat)), index] == 1)):
+                raise ValueError("action maps must be one-hot (one entry per step) to be sent as indices")
+            indices.append(index)
+        batch["action_index"] = torch.from_numpy(np.stack(indices))
+        batch["action_shape"] = tuple(items[0]["action"].shape[1:])
+    if "scene_flow_3d" in items[0]:
+        shape = (len(items),) + tuple(items[0]["scene_flow_3d"].shape)  # (B, L, 3, Y, X, Z)
+        per_sample = shape[1] * int(np.prod(shape[3:]))
+        index, value = [], []
+        for b, item in enumerate(items):  # numpy: about 5x faster than torch.nonzero here
+            flow = item["scene_flow_3d"].numpy().reshape(shape[1], 3, -1)
+            moving = np.flatnonzero((flow[:, 0] != 0) | (flow[:, 1] != 0) | (flow[:, 2] != 0))
+            step, voxel = np.divmod(moving, flow.shape[-1])
+            index.append(moving + b * per_sample)
+            value.append(flow[step, :, voxel])
+        batch["flow_index"] = torch.from_numpy(np.concatenate(index).astype(np.int64))
+        batch["flow_value"] = torch.from_numpy(np.concatenate(value).astype(np.float32, copy=False))
+        batch["flow_shape"] = shape
+    return batch
+
+
+def batch_to_device(batch: dict, device) -> dict:
+    """The model fields of a batch (dense, or from `collate_compact`) as dense tensors on `device`:
+    tsdf, action (B, L, 8, Y, X) one-hot, mask_3d (uint8), scene_flow_3d (B, L, 3, Y, X, Z); copies
+    from pinned memory do not block the host."""
+    device = torch.device(device)
+    nb = device.type == "cuda"
+    out = {k: batch[k].to(device, non_blocking=nb) for k in DEFAULT_FIELDS if k in batch}
+    if "action_index" in batch:
+        index = batch["action_index"].to(device, non_blocking=nb)
+        action = torch.zeros(*index.shape, int(np.prod(batch["action_shape"])), device=device)
+        action.scatter_(-1, index.unsqueeze(-1), 1.0)
+        out["action"] = action.reshape(*index.shape, *batch["action_shape"])
+    if "flow_index" in batch:
+        shape = batch["flow_shape"]
+        voxels = int(np.prod(shape[3:]))
+        index = batch["flow_index"].to(device, non_blocking=nb)
+        flow = torch.zeros(shape[0] * shape[1], 3, voxels, device=device)
+        flow[index // voxels, :, index % voxels] = batch["flow_value"].to(device, non_blocking=nb)
+        out["scene_flow_3d"] = flow.reshape(shape)
+    return out

@@ -122,14 +122,16 @@ class WindowSampler(torch.utils.data.Sampler):
 
 
 def _to(batch: dict, device, num_slots: int | None = None) -> tuple[torch.Tensor, ...]:
-    """The window's tensors on `device`; masks travel as uint8 (8x less to copy) and are widened there.
+    """The window's tensors on `device` (tsdf, action, mask int64, flow); masks travel as uint8 (8x less
+    to copy) and are widened there, flow and actions in the compact form of `collate_compact`.
     With `num_slots`, the mask ids are checked against the model's slots first, on the CPU copy (a
     check on the GPU copy would make the host wait for the device)."""
+    from dsr_bench.torch_data import batch_to_device
+
     if num_slots is not None:
         check_ids(batch["mask_3d"], num_slots)
-    nb = device.type == "cuda"
-    tsdf, action, mask, flow = (batch[k].to(device, non_blocking=nb) for k in ("tsdf", "action", "mask_3d", "scene_flow_3d"))
-    return tsdf, action, mask.long(), flow
+    dense = batch_to_device(batch, device)  # compact batches (collate_compact) are expanded there
+    return dense["tsdf"], dense["action"], dense["mask_3d"].long(), dense["scene_flow_3d"]
 
 
 def train_step(model, batch: dict, optimizer, device, bf16: bool = False, deterministic: bool = False,
@@ -236,7 +238,7 @@ def train(model_name: str, stage_name: str, data: Path, out: Path, split: str | 
     from torch.utils.data import DataLoader
     from tqdm import tqdm
 
-    from dsr_bench.torch_data import SequenceWindowDataset
+    from dsr_bench.torch_data import SequenceWindowDataset, collate_compact
 
     world = int(os.environ.get("WORLD_SIZE", "1"))
     rank = int(os.environ.get("RANK", "0"))
@@ -298,11 +300,12 @@ def train(model_name: str, stage_name: str, data: Path, out: Path, split: str | 
         raise UserError(f"{len(dataset)} windows cannot be split across {world} processes")
     loader = DataLoader(dataset, batch_size=min(stage.batch_size, sampler.per_rank), sampler=sampler,
                         num_workers=workers, persistent_workers=False, pin_memory=dev.type == "cuda",
-                        prefetch_factor=4 if workers > 0 else None)
+                        prefetch_factor=4 if workers > 0 else None, collate_fn=collate_compact)
     val_loader = None
     if val_split and rank == 0:
         val_set = SequenceWindowDataset(data, val_split, window=stage.window, stride=stage.window)
-        val_loader = DataLoader(val_set, batch_size=stage.batch_size, num_workers=workers)
+        val_loader = DataLoader(val_set, batch_size=stage.batch_size, num_workers=workers, collate_fn=collate_compact,
+                                pin_memory=dev.type == "cuda")
     net = DSRNet(model_config).to(dev)
     if channels_last:
         net.to_channels_last()

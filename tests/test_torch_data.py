@@ -12,7 +12,8 @@ from dsr_bench.errors import UserError  # noqa: E402
 from dsr_bench.official import import_official  # noqa: E402
 from dsr_bench.sequence import SequenceReader  # noqa: E402
 from dsr_bench.testing import write_synthetic_dataset  # noqa: E402
-from dsr_bench.torch_data import OfficialWindowDataset, SequenceWindowDataset, action_map  # noqa: E402
+from dsr_bench.torch_data import (OfficialWindowDataset, SequenceWindowDataset, action_map,  # noqa: E402
+                                  batch_to_device, collate_compact)
 
 
 @pytest.fixture(scope="module")
@@ -45,6 +46,34 @@ def test_stride_and_no_manifest(data, tmp_path):
     shutil.copytree(data, copy)
     (copy / "manifest.json").unlink()  # step counts then come from the files
     assert [i[1:] for i in SequenceWindowDataset(copy, "test", window=3).items] == [("seq_0000", 0), ("seq_0001", 0)]
+
+
+def test_compact_batches_rebuild_the_dense_tensors_exactly(data):
+    """collate_compact sends the flow as its non-zero voxels and the actions as indices; batch_to_device
+    rebuilds default_collate's tensors bit for bit, also through worker processes."""
+    ds = SequenceWindowDataset(data, "test", window=2)
+    items = [ds[i] for i in range(len(ds))]
+    dense = torch.utils.data.default_collate(items)
+    compact = collate_compact(items)
+    assert set(compact) == {"tsdf", "mask_3d", "action_index", "action_shape", "flow_index", "flow_value",
+                            "flow_shape", "sequence", "start"}
+    moving = int(dense["scene_flow_3d"].ne(0).any(2).sum())
+    assert 0 < moving == len(compact["flow_index"]) < dense["mask_3d"].numel() // 10  # a few % of the voxels
+    assert compact["action_index"].shape == (4, 2) and compact["flow_value"].shape == (moving, 3)
+    rebuilt = batch_to_device(compact, "cpu")
+    assert set(rebuilt) == {"tsdf", "mask_3d", "action", "scene_flow_3d"}
+    for key in rebuilt:
+        assert rebuilt[key].dtype == dense[key].dtype and torch.equal(rebuilt[key], dense[key]), key
+    sent = sum(v.numel() * v.element_size() for v in compact.values() if isinstance(v, torch.Tensor))
+    full = sum(v.numel() * v.element_size() for v in dense.values() if isinstance(v, torch.Tensor))
+    assert sent < 0.4 * full
+    loader = torch.utils.data.DataLoader(ds, batch_size=4, num_workers=2, collate_fn=collate_compact)
+    through_workers = batch_to_device(next(iter(loader)), "cpu")
+    assert all(torch.equal(through_workers[k], dense[k]) for k in rebuilt)
+    assert torch.equal(batch_to_device(dense, "cpu")["scene_flow_3d"], dense["scene_flow_3d"])  # dense passes through
+    items[0]["action"][0, 1, 0, 0] = 1.0  # two entries: not one-hot
+    with pytest.raises(ValueError, match="one-hot"):
+        collate_compact(items)
 
 
 def test_action_map_one_hot():
