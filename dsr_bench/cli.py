@@ -7,7 +7,7 @@ import sys
 
 import typer
 
-from dsr_bench.errors import UserError
+from dsr_bench.errors import UserError, one_line
 
 app = typer.Typer(
     name="dsr-bench",
@@ -45,7 +45,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         rc = app(args=argv, standalone_mode=False)  # returns the code of typer.Exit when not standalone
     except UserError as exc:
-        typer.echo(f"error: {exc}", err=True)
+        typer.echo(f"error: {one_line(exc)}", err=True)
         return 2
     except typer.Exit as exc:
         return exc.exit_code

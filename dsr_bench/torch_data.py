@@ -33,6 +33,20 @@ from dsr_bench.sequence import read_steps
 DEFAULT_FIELDS = ("tsdf", "action", "mask_3d", "scene_flow_3d")
 
 
+def check_actions(actions: np.ndarray, shape: tuple[int, int], source) -> np.ndarray:
+    """Actions (L, 3) [direction 0..7, row, col] with the pixel inside the (Y, X) map, as int64;
+    UserError naming `source` (a file) otherwise."""
+    a = np.asarray(actions)
+    ok = a.ndim == 2 and a.shape[1] == 3 and np.issubdtype(a.dtype, np.integer)
+    if ok and a.size:
+        ok = (a.min(0) >= 0).all() and a[:, 0].max() < NUM_DIRECTIONS and a[:, 1].max() < shape[0] \
+            and a[:, 2].max() < shape[1]
+    if not ok:
+        raise UserError(f"{source}: actions must be (T, 3) integers [direction 0..{NUM_DIRECTIONS - 1}, row, col] "
+                        f"inside the {shape[0]} x {shape[1]} grid; check it with `dsr-bench validate`")
+    return a.astype(np.int64, copy=False)
+
+
 def action_map(action: np.ndarray, shape: tuple[int, int] = GRID_SHAPE[:2]) -> torch.Tensor:
     """One-hot action maps (L, 8, Y, X) float32 from actions (L, 3) = [d, row, col]."""
     action = np.asarray(action, dtype=np.int64).reshape(-1, 3)
@@ -133,7 +147,7 @@ class SequenceWindowDataset(Dataset):
         for field in self.fields:
             value = read_steps(self._dataset(f, path, field, s + self.window), sl.start, sl.stop)
             if field == "action":
-                out[field] = action_map(value)
+                out[field] = action_map(check_actions(value, GRID_SHAPE[:2], path))
             elif field == "mask_3d":
                 out[field] = torch.from_numpy(np.ascontiguousarray(value, dtype=np.uint8))
             else:
@@ -181,7 +195,7 @@ class OfficialWindowDataset(Dataset):
         for field in self.fields:
             value = np.stack([self._read(p, field) for p in paths])
             if field == "action":
-                out[field] = action_map(value)
+                out[field] = action_map(check_actions(value, GRID_SHAPE[:2], paths[0]))
             elif field == "mask_3d":
                 out[field] = torch.from_numpy(np.ascontiguousarray(value, dtype=np.uint8))
             elif field == "scene_flow_3d":

@@ -137,7 +137,8 @@ def _to(batch: dict, device, num_slots: int | None = None) -> tuple[torch.Tensor
 def train_step(model, batch: dict, optimizer, device, bf16: bool = False, deterministic: bool = False,
                mask_reduction: str = "sum") -> list[dict]:
     """One window (B, L, ...): per step, forward, loss under the previous step's matching, backward,
-    optimiser step; the state is detached between steps. Returns the loss terms of every step
+    optimiser step; the state is detached between steps (and not computed after the last step: with
+    windows of 1 there is no warp at all). Returns the loss terms of every step
     (floats). The steps are queued without waiting for the device; the terms are read once, at the
     end of the window (a non-finite loss is reported then, naming its step)."""
     device = torch.device(device)
@@ -155,7 +156,8 @@ def train_step(model, batch: dict, optimizer, device, bf16: bool = False, determ
         loss.backward()
         optimizer.step()
         terms.append(torch.stack([step_terms["total"], step_terms["motion"], step_terms["mask"]]))
-        state = net.next_state(outputs, gt_flow[:, t], gt_mask[:, t], deterministic)
+        if t + 1 < tsdf.shape[1]:  # the state after a window's last step is never used: no warp for it
+            state = net.next_state(outputs, gt_flow[:, t], gt_mask[:, t], deterministic)
     logs = [dict(zip(("total", "motion", "mask"), row)) for row in torch.stack(terms).tolist()]  # the one sync
     for t, row in enumerate(logs):
         if not math.isfinite(row["total"]):
@@ -197,7 +199,8 @@ def validate(model, loader, device, official_bn: bool = False, bf16: bool = Fals
                 for pred, gt in zip(labels, gts):
                     ov = overlap(pred, gt, k - 1, max(int(gt.max()), 1))
                     ious.append(matched_iou(ov, *assignment(ov.iou))[0])
-                state = net.next_state(out, gt_flow[:, t], gt_mask[:, t])
+                if t + 1 < tsdf.shape[1]:
+                    state = net.next_state(out, gt_flow[:, t], gt_mask[:, t])
     finally:
         net.train(was_training)
     return {"val_iou": float(np.mean(ious)) if ious else float("nan"),

@@ -195,6 +195,28 @@ def test_a_few_training_steps_lower_the_loss():
     assert (losses[-3:].mean(0) < 0.8 * losses[:2].mean(0)).all(), losses
 
 
+def test_train_step_warps_the_state_between_steps_only():
+    """A window of L steps warps the state L - 1 times (the state after the last step is never used),
+    and each warp is fed the step's predicted motion and foreground probability."""
+    from dsr_bench.train import train_step
+
+    torch.manual_seed(0)
+    net = DSRNet(ModelConfig.for_model("dsr", grid=TINY))
+    calls = []
+
+    def counting_warp(features, flow, weight, eps, deterministic):
+        calls.append((features.shape, flow.shape, float(weight.min()) >= 0 and float(weight.max()) <= 1))
+        return forward_warp(features, flow, weight, eps, deterministic)
+
+    net._warp = counting_warp
+    opt = torch.optim.Adam(net.parameters(), lr=1e-4)
+    train_step(net, toy_batch(steps=3), opt, "cpu")
+    assert calls == [((2, 8, *TINY), (2, 3, *TINY), True)] * 2
+    calls.clear()
+    train_step(net, toy_batch(steps=1), opt, "cpu")
+    assert calls == []  # single-step windows: no warp
+
+
 def test_train_step_reports_the_first_non_finite_step():
     """The window's terms are read once at its end; a non-finite loss names its step."""
     from dsr_bench.train import train_step

@@ -134,3 +134,19 @@ def test_object_ids_beyond_the_slots_are_refused(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "batch 1 of epoch 1 (seq_0000): mask_3d has object id 7" in err
     assert len(err.strip().splitlines()) == 1 and not (tmp_path / "r2" / "last.pt").exists()
+
+
+def test_bad_actions_read_in_a_worker_give_one_line(tmp_path, capsys):
+    """A bad file met by a DataLoader worker process: the message names the file, on one line
+    (not the worker's re-raised traceback), exit 2."""
+    import h5py
+
+    data = write_synthetic_dataset(tmp_path / "d", num_sequences=1, num_steps=2, split="train")
+    with h5py.File(data / "seq_0000.h5", "r+") as f:
+        f["action"][0] = [9, 0, 0]
+    for workers in ("0", "1"):
+        assert main(["train", "--model", "dsr", "--stage", "cube-single", "--data", str(data), "--out",
+                     str(tmp_path / "r"), "--batch-size", "1", "--workers", workers, "--quiet", "--max-steps", "1"]) == 2
+        err = capsys.readouterr().err.strip()
+        assert err == (f"error: {data / 'seq_0000.h5'}: actions must be (T, 3) integers [direction 0..7, row, col] "
+                       "inside the 128 x 128 grid; check it with `dsr-bench validate`"), workers

@@ -37,7 +37,7 @@ class ModelPredictor:
     @torch.no_grad()
     def predict_sequence(self, seq: SequenceReader) -> dict[str, np.ndarray]:
         """{"mask": (T, Y, X, Z) uint8, "motion": (T, 3, Y, X, Z) float32} for one sequence."""
-        from dsr_bench.torch_data import action_map
+        from dsr_bench.torch_data import action_map, check_actions
 
         config = self.model.config
         grid = tuple(config.grid)
@@ -46,10 +46,9 @@ class ModelPredictor:
         if tsdf_shape[1:] != grid or tsdf_shape[0] < steps:
             raise UserError(f"{seq.path}: tsdf {tsdf_shape} does not fit the model's grid {grid}")
         actions = np.asarray(seq.read("action"))[:steps]
-        if actions.shape != (steps, 3) or actions[:, 0].min() < 0 or actions[:, 0].max() > 7 or \
-                actions[:, 1:].min() < 0 or actions[:, 1].max() >= grid[0] or actions[:, 2].max() >= grid[1]:
-            raise UserError(f"{seq.path}: actions must be (T, 3) [direction 0..7, row, col] inside the grid")
-        maps = action_map(actions, grid[:2])
+        if len(actions) != steps:
+            raise UserError(f"{seq.path}: {len(actions)} actions for {steps} pushes; check it with `dsr-bench validate`")
+        maps = action_map(check_actions(actions, grid[:2], seq.path), grid[:2])
         masks = np.zeros((steps,) + grid, dtype=np.uint8)
         motions = np.zeros((steps, 3) + grid, dtype=np.float32)
         state = self.model.initial_state(1, self.device)
