@@ -250,11 +250,12 @@ def batch_to_device(batch: dict, device) -> dict:
     out = {k: batch[k].to(device, non_blocking=nb) for k in DEFAULT_FIELDS if k in batch}
     if "action_index" in batch:
         index = batch["action_index"].to(device, non_blocking=nb)
-        action = torch.zeros(*index.shape, int(np.prod(batch["action_shape"])), device=device)
+        plane = tuple(batch["action_shape"])  # (the DataLoader's pinning turns tuples into lists)
+        action = torch.zeros(*index.shape, int(np.prod(plane)), device=device)
         action.scatter_(-1, index.unsqueeze(-1), 1.0)
-        out["action"] = action.reshape(*index.shape, *batch["action_shape"])
+        out["action"] = action.reshape(*index.shape, *plane)
     if "flow_index" in batch:
-        shape = batch["flow_shape"]
+        shape = tuple(batch["flow_shape"])
         voxels = int(np.prod(shape[3:]))
         index = batch["flow_index"].to(device, non_blocking=nb)
         flow = torch.zeros(shape[0] * shape[1], 3, voxels, device=device)

@@ -1,0 +1,205 @@
+"""The paper's history ablation (DSR-Net vs NoWarp vs SingleStep) at a reduced grid, on a CPU.
+
+    python scripts/reduced_grid_ablation.py --train-data DIR --test-data DIR [--test-split S]
+        [--train-sequences 240] [--test-sequences 100] [--factor 4 4 3] [--batch-size 8]
+        [--steps-single 1500] [--steps-multi 300] [--models dsr nowarp single] [--seed 0]
+        [--out OUT.json]
+
+Why: the benchmark's short schedule (scripts/short_schedule.py) needs a GPU and, at the budget
+one session has, sees too few 10-step windows for a recurrent state to pay off. The network's
+grid is a parameter, so this script trains the same models on sequences downsampled to a coarse
+grid (32 x 32 x 16 with the default factor) and held in memory, where a CPU affords tens of
+thousands of sample-steps per model.
+
+Downsampling by --factor (y, x, z): the TSDF is averaged over each block; masks and flow are taken
+at each block's centre voxel (flow divided by the factor: coarse voxels); the action's pixel is
+divided by the factor. Training is `dsr_bench.train.train_step` (matched loss with the matching
+carried from step to step, the state warped between steps, Adam betas (0.9, 0.95)): stage 1 on
+single-step windows (--steps-single batches, lr 1e-3), stage 2 on 10-step windows (--steps-multi
+batches, lr 5e-4, from stage 1's weights); SingleStep stays single-step and gets 10x the stage-2
+batches, i.e. the same sample-steps. Every model starts from the same initial weights and sees
+the windows in the same order. Evaluation carries the state over each test sequence with
+BatchNorm in eval mode and scores it with the benchmark's `metrics.sequence_scores` on the coarse
+grid (unordered IoU: matching per step; ordered IoU: one matching per sequence). Printed: the
+means, and the paired per-sequence differences with their standard errors.
+
+Not a leaderboard entry: the benchmark is defined on the 128 x 128 x 48 grid.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import shlex
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch.nn import functional as F
+
+from dsr_bench.manifest import read_split
+from dsr_bench.metrics import sequence_scores
+from dsr_bench.models import DSRNet, ModelConfig
+from dsr_bench.sequence import SequenceReader
+from dsr_bench.torch_data import action_map
+from dsr_bench.train import train_step
+
+LR_SINGLE, LR_MULTI = 1e-3, 5e-4
+
+
+def downsample(path: Path, factor: tuple[int, int, int]) -> dict[str, np.ndarray]:
+    """One sequence on the coarse grid: tsdf (T, ...) float32, mask (T, ...) uint8 at t, flow (T, 3, ...)
+    float32 in coarse voxels, action (T, 3) int64, num_objects."""
+    fy, fx, fz = factor
+    with SequenceReader(path) as seq:
+        steps = seq.num_steps
+        tsdf = np.asarray(seq.read("tsdf"), dtype=np.float32)[:steps]
+        mask = np.asarray(seq.read("mask_3d"))[:steps]
+        flow = np.asarray(seq.read("scene_flow_3d"), dtype=np.float32)[:steps]
+        action = np.asarray(seq.read("action"), dtype=np.int64)[:steps]
+        num_objects = seq.num_objects
+    coarse = F.avg_pool3d(torch.from_numpy(tsdf).unsqueeze(1), factor).squeeze(1).numpy()
+    centre = (slice(fy // 2, None, fy), slice(fx // 2, None, fx), slice(fz // 2, None, fz))
+    flow = flow[(slice(None), slice(None)) + centre] / np.array(factor, np.float32).reshape(1, 3, 1, 1, 1)
+    action = np.stack([action[:, 0], action[:, 1] // fy, action[:, 2] // fx], 1)
+    return {"tsdf": coarse, "mask": mask[(slice(None),) + centre].astype(np.uint8), "flow": flow, "action": action,
+            "num_objects": num_objects}
+
+
+def load(data: Path, split: str | None, count: int, factor) -> list[dict]:
+    _, names = read_split(data, split)
+    names = names[:count]
+    out = []
+    for i, name in enumerate(names):
+        out.append(downsample(data / f"{name}.h5", factor))
+        print(f"\rloading {data.name}: {i + 1}/{len(names)}", end="", flush=True)
+    print()
+    return out
+
+
+def make_batch(seqs: list[dict], picks: list[tuple[int, int]], window: int, grid) -> dict:
+    """A training window batch (B, L, ...) in the data loader's layout from (sequence, start) picks."""
+    sl = [(seqs[i], slice(s, s + window)) for i, s in picks]
+    return {"tsdf": torch.from_numpy(np.stack([q["tsdf"][s] for q, s in sl])),
+            "action": torch.stack([action_map(q["action"][s], grid[:2]) for q, s in sl]),
+            "mask_3d": torch.from_numpy(np.stack([q["mask"][s] for q, s in sl])),
+            "scene_flow_3d": torch.from_numpy(np.stack([q["flow"][s] for q, s in sl]))}
+
+
+def train_stage(net, seqs, window: int, batches: int, batch_size: int, lr: float, seed: int, label: str) -> dict:
+    opt = torch.optim.Adam(net.parameters(), lr=lr, betas=(0.9, 0.95))
+    rng = np.random.default_rng(seed)
+    steps = seqs[0]["tsdf"].shape[0]
+    grid = seqs[0]["tsdf"].shape[1:]
+    net.train()
+    start, losses = time.perf_counter(), []
+    for b in range(batches):
+        picks = [(int(rng.integers(len(seqs))), int(rng.integers(steps - window + 1))) for _ in range(batch_size)]
+        terms = train_step(net, make_batch(seqs, picks, window, grid), opt, "cpu")
+        losses.append(np.mean([t["total"] for t in terms]))
+        if (b + 1) % 50 == 0 or b + 1 == batches:
+            print(f"\r{label}: batch {b + 1}/{batches}, loss (last 50) {np.mean(losses[-50:]):.4f}, "
+                  f"{time.perf_counter() - start:.0f} s", end="", flush=True)
+    print()
+    return {"batches": batches, "window": window, "lr": lr, "sample_steps": batches * batch_size * window,
+            "seconds": round(time.perf_counter() - start, 1), "loss_first_50": float(np.mean(losses[:50])),
+            "loss_last_50": float(np.mean(losses[-50:]))}
+
+
+@torch.no_grad()
+def evaluate(net, seqs: list[dict]) -> dict[str, np.ndarray]:
+    """Per-sequence mean unordered and ordered IoU and motion MSE (coarse voxels^2), state carried."""
+    net.eval()
+    grid = seqs[0]["tsdf"].shape[1:]
+    k = net.config.num_slots
+    per_seq = {"iou_unordered": [], "iou_ordered": [], "motion_mse": []}
+    for q in seqs:
+        steps = q["tsdf"].shape[0]
+        state = net.initial_state(1, "cpu")
+        preds, errors = [], []
+        for t in range(steps):
+            out = net(torch.from_numpy(q["tsdf"][t:t + 1]), action_map(q["action"][t:t + 1], grid[:2]), state)
+            labels = out["mask"].argmax(1)[0]
+            preds.append(torch.where(labels == k - 1, 0, labels + 1).numpy().astype(np.uint8))
+            gt_flow = torch.from_numpy(q["flow"][t:t + 1])
+            errors.append(float(((out["motion"] - gt_flow) ** 2).sum(1).mean()))
+            if t + 1 < steps:
+                state = net.next_state(out, gt_flow, torch.from_numpy(q["mask"][t:t + 1]).long())
+        scores = sequence_scores(np.stack(preds), q["mask"], k - 1, q["num_objects"])
+        per_seq["iou_unordered"].append(float(np.mean(scores["iou_unordered"])))
+        per_seq["iou_ordered"].append(float(np.mean(scores["iou_ordered"])))
+        per_seq["motion_mse"].append(float(np.mean(errors)))
+    return {key: np.array(v) for key, v in per_seq.items()}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--train-data", type=Path, required=True)
+    parser.add_argument("--train-split")
+    parser.add_argument("--test-data", type=Path, required=True)
+    parser.add_argument("--test-split")
+    parser.add_argument("--train-sequences", type=int, default=240)
+    parser.add_argument("--test-sequences", type=int, default=100)
+    parser.add_argument("--factor", type=int, nargs=3, default=[4, 4, 3])
+    parser.add_argument("--batch-size", type=int, default=8)
+    parser.add_argument("--steps-single", type=int, default=1500)
+    parser.add_argument("--steps-multi", type=int, default=300)
+    parser.add_argument("--models", nargs="+", default=["dsr", "nowarp", "single"])
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--out", type=Path)
+    args = parser.parse_args()
+    factor = tuple(args.factor)
+    train = load(args.train_data, args.train_split, args.train_sequences, factor)
+    test = load(args.test_data, args.test_split, args.test_sequences, factor)
+    grid = tuple(train[0]["tsdf"].shape[1:])
+    if any(g % 16 for g in grid):
+        sys.exit(f"error: --factor {' '.join(map(str, factor))} gives the grid {grid}; every side must be a multiple of 16")
+    print(f"grid {grid}; {len(train)} training and {len(test)} test sequences; torch threads {torch.get_num_threads()}")
+    results, per_seq = {}, {}
+    for name in args.models:
+        torch.manual_seed(args.seed)
+        net = DSRNet(ModelConfig.for_model(name, grid=grid))
+        history = net.config.history != "none"
+        stage1 = train_stage(net, train, 1, args.steps_single, args.batch_size, LR_SINGLE, args.seed, f"{name} stage 1")
+        window, batches = (10, args.steps_multi) if history else (1, 10 * args.steps_multi)
+        stage2 = train_stage(net, train, window, batches, args.batch_size, LR_MULTI, args.seed + 1, f"{name} stage 2")
+        per_seq[name] = evaluate(net, test)
+        results[name] = {"stage_single": stage1, "stage_multi": stage2,
+                         **{key: float(v.mean()) for key, v in per_seq[name].items()}}
+        print(f"{name}: ordered IoU {results[name]['iou_ordered']:.4f}, unordered {results[name]['iou_unordered']:.4f}, "
+              f"motion MSE {results[name]['motion_mse']:.3f}", flush=True)
+    print(f"\n{'model':8s} {'ordered IoU':>12s} {'unordered IoU':>14s} {'motion MSE':>11s}")
+    for name, r in results.items():
+        print(f"{name:8s} {r['iou_ordered']:12.4f} {r['iou_unordered']:14.4f} {r['motion_mse']:11.3f}")
+    pairs = {}
+    for a, b in (("dsr", "nowarp"), ("nowarp", "single"), ("dsr", "single")):
+        if a in per_seq and b in per_seq:
+            d = per_seq[a]["iou_ordered"] - per_seq[b]["iou_ordered"]
+            se = float(d.std(ddof=1) / np.sqrt(len(d)))
+            pairs[f"{a}-{b}"] = {"mean": float(d.mean()), "standard_error": se, "sequences_better": int((d > 0).sum()),
+                                 "sequences": len(d)}
+            print(f"ordered IoU {a} - {b}: {d.mean():+.4f} +- {se:.4f} (standard error over {len(d)} sequences; "
+                  f"{a} better on {(d > 0).sum()})")
+    ordering = None
+    if {"dsr", "nowarp", "single"} <= set(results):
+        ordering = results["dsr"]["iou_ordered"] > results["nowarp"]["iou_ordered"] > results["single"]["iou_ordered"]
+        print(f"paper's ordering DSR-Net > NoWarp > SingleStep on ordered IoU: {'holds' if ordering else 'does not hold'}")
+    if args.out:
+        summary = {"command": "python " + " ".join(shlex.quote(a) for a in sys.argv), "grid": list(grid),
+                   "factor": list(factor), "train_data": str(args.train_data), "test_data": str(args.test_data),
+                   "train_sequences": len(train), "test_sequences": len(test), "batch_size": args.batch_size,
+                   "seed": args.seed, "torch": torch.__version__, "machine": platform.processor() or platform.machine(),
+                   "threads": torch.get_num_threads(), "models": results, "paired_ordered_iou": pairs,
+                   "ordering_holds": ordering}
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        tmp = args.out.with_name(f".{args.out.name}.tmp")
+        tmp.write_text(json.dumps(summary, indent=1) + "\n")
+        tmp.replace(args.out)
+        print(f"wrote {args.out}")
+
+
+if __name__ == "__main__":
+    main()
