@@ -35,16 +35,13 @@ DEFAULT_FIELDS = ("tsdf", "action", "mask_3d", "scene_flow_3d")
 
 def check_actions(actions: np.ndarray, shape: tuple[int, int], source) -> np.ndarray:
     """Actions (L, 3) [direction 0..7, row, col] with the pixel inside the (Y, X) map, as int64;
-    UserError naming `source` (a file) otherwise."""
-    a = np.asarray(actions)
-    ok = a.ndim == 2 and a.shape[1] == 3 and np.issubdtype(a.dtype, np.integer)
-    if ok and a.size:
-        ok = (a.min(0) >= 0).all() and a[:, 0].max() < NUM_DIRECTIONS and a[:, 1].max() < shape[0] \
-            and a[:, 2].max() < shape[1]
-    if not ok:
-        raise UserError(f"{source}: actions must be (T, 3) integers [direction 0..{NUM_DIRECTIONS - 1}, row, col] "
-                        f"inside the {shape[0]} x {shape[1]} grid; check it with `dsr-bench validate`")
-    return a.astype(np.int64, copy=False)
+    UserError naming `source` (a file) otherwise (the checks of `dsr-bench validate`)."""
+    from dsr_bench.validate import action_problems
+
+    problems = action_problems(actions, shape)
+    if problems:
+        raise UserError(f"{source}: {'; '.join(problems)}; check it with `dsr-bench validate`")
+    return np.asarray(actions).astype(np.int64, copy=False)
 
 
 def action_map(action: np.ndarray, shape: tuple[int, int] = GRID_SHAPE[:2]) -> torch.Tensor:

@@ -27,6 +27,20 @@ TSDF_SIGN_AGREEMENT = 0.95
 MASK_WARP_IOU = 0.9
 
 
+
+def action_problems(actions: np.ndarray, shape: tuple[int, int] = GRID_SHAPE[:2]) -> list[str]:
+    """What is wrong with actions (T, 3) [direction, row, col] on a (Y, X) action map (none: [])."""
+    a = np.asarray(actions)
+    if a.ndim != 2 or a.shape[1] != 3 or not np.issubdtype(a.dtype, np.integer):
+        return [f"action: {a.dtype} array of shape {a.shape}, expected (T, 3) integers [direction, row, col]"]
+    out = []
+    if a.size and (a[:, 0].min() < 0 or a[:, 0].max() >= NUM_DIRECTIONS):
+        out.append(f"action: direction outside 0..{NUM_DIRECTIONS - 1} (values {a[:, 0].min()}..{a[:, 0].max()})")
+    if a.size and (a[:, 1:].min() < 0 or a[:, 1].max() >= shape[0] or a[:, 2].max() >= shape[1]):
+        out.append(f"action: row/col outside 0..{shape[0] - 1}" if shape[0] == shape[1]
+                   else f"action: row/col outside the {shape[0]} x {shape[1]} map")
+    return out
+
 @dataclass(frozen=True)
 class Problem:
     """One problem found: where (a sequence name, a file, or 'dataset') and what."""
@@ -91,13 +105,7 @@ def _range_checks(seq, ok: set[str]) -> dict[str, Callable[[], list[str]]]:
         return out
 
     def action():
-        a = seq.read("action")
-        out = []
-        if a.size and (a[:, 0].min() < 0 or a[:, 0].max() >= NUM_DIRECTIONS):
-            out.append(f"action: direction outside 0..{NUM_DIRECTIONS - 1} (values {a[:, 0].min()}..{a[:, 0].max()})")
-        if a.size and (a[:, 1:].min() < 0 or a[:, 1].max() >= GRID_SHAPE[0] or a[:, 2].max() >= GRID_SHAPE[1]):
-            out.append(f"action: row/col outside 0..{GRID_SHAPE[0] - 1}")
-        return out
+        return action_problems(seq.read("action"))
 
     def visible():
         a = seq.read("visible_fraction")
