@@ -163,7 +163,8 @@ def main() -> None:
                "compile": args.compile, "channels_last": args.channels_last, "train_samples_per_s": train_rate,
                "infer_steps_per_s_batched": rates[b], "infer_steps_per_s_batch1": rates[1], "warp_ms": warp_ms,
                "warp_compiled_ms": warp_compiled_ms,
-               "warp_compiled_max_abs_diff": warp_diff, "peak_train_gib": peak_train, "peak_infer_gib": peak_infer, "loss_fp32": l32, "loss_bf16": l16,
+               "warp_compiled_max_abs_diff": warp_diff, "peak_train_gib": peak_train, "peak_infer_gib": peak_infer,
+               "loss_fp32": l32, "loss_bf16": l16,
                "loss_rel_diff_pct": abs(l16 - l32) / abs(l32) * 100, "torch": torch.__version__}
     print(f"device {name}, model {args.model}, grid {grid}, batch {b}, window {args.window}, "
           f"resident {args.resident}, bf16 {args.bf16}, compile {args.compile}, channels_last {args.channels_last}")

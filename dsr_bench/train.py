@@ -100,7 +100,8 @@ class WindowSampler(torch.utils.data.Sampler):
     this rank). Drops the tail so every rank gets the same number of whole batches."""
 
     def __init__(self, size: int, batch_size: int, seed: int = 0, rank: int = 0, world: int = 1, shuffle: bool = True):
-        self.size, self.batch_size, self.seed, self.rank, self.world, self.shuffle = size, batch_size, seed, rank, world, shuffle
+        self.size, self.batch_size, self.seed, self.shuffle = size, batch_size, seed, shuffle
+        self.rank, self.world = rank, world
         per_rank = size // world
         self.batches = per_rank // batch_size if per_rank >= batch_size else (1 if per_rank else 0)
         self.per_rank = min(per_rank, self.batches * batch_size)
@@ -340,7 +341,8 @@ def train(model_name: str, stage_name: str, data: Path, out: Path, split: str | 
         run_config = {"model": model_config.as_dict(), "stage": stage.as_dict(), "data": str(data),
                       "split": dataset.split, "val_split": val_split, "windows": len(dataset), "git": git_hash(),
                       "seed": seed, "bf16": bf16, "compile": compile_model, "channels_last": channels_last,
-                      "world_size": world, "init": str(init) if init else None, "resume": str(resume) if resume else None,
+                      "world_size": world, "init": str(init) if init else None,
+                      "resume": str(resume) if resume else None,
                       "official_bn": official_bn, "deterministic": deterministic}
         tmp = out / f".config.json.tmp-{os.getpid()}"
         tmp.write_text(json.dumps(run_config, indent=1) + "\n")

@@ -27,7 +27,6 @@ TSDF_SIGN_AGREEMENT = 0.95
 MASK_WARP_IOU = 0.9
 
 
-
 def action_problems(actions: np.ndarray, shape: tuple[int, int] = GRID_SHAPE[:2]) -> list[str]:
     """What is wrong with actions (T, 3) [direction, row, col] on a (Y, X) action map (none: [])."""
     a = np.asarray(actions)
@@ -40,6 +39,7 @@ def action_problems(actions: np.ndarray, shape: tuple[int, int] = GRID_SHAPE[:2]
         out.append(f"action: row/col outside 0..{shape[0] - 1}" if shape[0] == shape[1]
                    else f"action: row/col outside the {shape[0]} x {shape[1]} map")
     return out
+
 
 @dataclass(frozen=True)
 class Problem:

@@ -156,7 +156,8 @@ def main() -> None:
     test = load(args.test_data, args.test_split, args.test_sequences, factor)
     grid = tuple(train[0]["tsdf"].shape[1:])
     if any(g % 16 for g in grid):
-        sys.exit(f"error: --factor {' '.join(map(str, factor))} gives the grid {grid}; every side must be a multiple of 16")
+        sys.exit(f"error: --factor {' '.join(map(str, factor))} gives the grid {grid}; "
+                 "every side must be a multiple of 16")
     print(f"grid {grid}; {len(train)} training and {len(test)} test sequences; torch threads {torch.get_num_threads()}")
     results, per_seq = {}, {}
     for name in args.models:
@@ -169,8 +170,9 @@ def main() -> None:
         per_seq[name] = evaluate(net, test)
         results[name] = {"stage_single": stage1, "stage_multi": stage2,
                          **{key: float(v.mean()) for key, v in per_seq[name].items()}}
-        print(f"{name}: ordered IoU {results[name]['iou_ordered']:.4f}, unordered {results[name]['iou_unordered']:.4f}, "
-              f"motion MSE {results[name]['motion_mse']:.3f}", flush=True)
+        r = results[name]
+        print(f"{name}: ordered IoU {r['iou_ordered']:.4f}, unordered {r['iou_unordered']:.4f}, "
+              f"motion MSE {r['motion_mse']:.3f}", flush=True)
     print(f"\n{'model':8s} {'ordered IoU':>12s} {'unordered IoU':>14s} {'motion MSE':>11s}")
     for name, r in results.items():
         print(f"{name:8s} {r['iou_ordered']:12.4f} {r['iou_unordered']:14.4f} {r['motion_mse']:11.3f}")
@@ -186,7 +188,8 @@ def main() -> None:
     ordering = None
     if {"dsr", "nowarp", "single"} <= set(results):
         ordering = results["dsr"]["iou_ordered"] > results["nowarp"]["iou_ordered"] > results["single"]["iou_ordered"]
-        print(f"paper's ordering DSR-Net > NoWarp > SingleStep on ordered IoU: {'holds' if ordering else 'does not hold'}")
+        print("paper's ordering DSR-Net > NoWarp > SingleStep on ordered IoU: "
+              f"{'holds' if ordering else 'does not hold'}")
     if args.out:
         summary = {"command": "python " + " ".join(shlex.quote(a) for a in sys.argv), "grid": list(grid),
                    "factor": list(factor), "train_data": str(args.train_data), "test_data": str(args.test_data),

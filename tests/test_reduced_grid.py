@@ -57,5 +57,6 @@ def test_a_tiny_run_writes_its_summary(tmp_path, monkeypatch):
     assert summary["models"]["single"]["stage_multi"] == {**summary["models"]["single"]["stage_multi"], "window": 1,
                                                           "batches": 10, "sample_steps": 20}
     for name in ("dsr", "single"):
-        assert 0 <= summary["models"][name]["iou_ordered"] <= summary["models"][name]["iou_unordered"] + 1e-9 <= 1 + 1e-9
+        scores = summary["models"][name]
+        assert 0 <= scores["iou_ordered"] <= scores["iou_unordered"] + 1e-9 <= 1 + 1e-9
     assert set(summary["paired_ordered_iou"]) == {"dsr-single"}

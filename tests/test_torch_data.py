@@ -65,7 +65,8 @@ def test_compact_batches_rebuild_the_dense_tensors_exactly(data):
     for key in rebuilt:
         assert rebuilt[key].dtype == dense[key].dtype and torch.equal(rebuilt[key], dense[key]), key
     pinned_like = {**compact, "action_shape": list(compact["action_shape"]), "flow_shape": list(compact["flow_shape"])}
-    assert all(torch.equal(v, rebuilt[k]) for k, v in batch_to_device(pinned_like, "cpu").items())  # pinning lists tuples
+    # the DataLoader's pinning turns the shape tuples into lists
+    assert all(torch.equal(v, rebuilt[k]) for k, v in batch_to_device(pinned_like, "cpu").items())
     sent = sum(v.numel() * v.element_size() for v in compact.values() if isinstance(v, torch.Tensor))
     full = sum(v.numel() * v.element_size() for v in dense.values() if isinstance(v, torch.Tensor))
     assert sent < 0.4 * full

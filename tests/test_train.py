@@ -146,7 +146,8 @@ def test_bad_actions_read_in_a_worker_give_one_line(tmp_path, capsys):
         f["action"][0] = [9, 0, 0]
     for workers in ("0", "1"):
         assert main(["train", "--model", "dsr", "--stage", "cube-single", "--data", str(data), "--out",
-                     str(tmp_path / "r"), "--batch-size", "1", "--workers", workers, "--quiet", "--max-steps", "1"]) == 2
+                     str(tmp_path / "r"), "--batch-size", "1", "--workers", workers, "--quiet",
+                     "--max-steps", "1"]) == 2
         err = capsys.readouterr().err.strip()
         assert err == (f"error: {data / 'seq_0000.h5'}: action: direction outside 0..7 (values 9..9); "
                        "check it with `dsr-bench validate`"), workers

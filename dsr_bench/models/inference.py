@@ -47,7 +47,8 @@ class ModelPredictor:
             raise UserError(f"{seq.path}: tsdf {tsdf_shape} does not fit the model's grid {grid}")
         actions = np.asarray(seq.read("action"))[:steps]
         if len(actions) != steps:
-            raise UserError(f"{seq.path}: {len(actions)} actions for {steps} pushes; check it with `dsr-bench validate`")
+            raise UserError(f"{seq.path}: {len(actions)} actions for {steps} pushes; "
+                            "check it with `dsr-bench validate`")
         maps = action_map(check_actions(actions, grid[:2], seq.path), grid[:2])
         masks = np.zeros((steps,) + grid, dtype=np.uint8)
         motions = np.zeros((steps, 3) + grid, dtype=np.float32)

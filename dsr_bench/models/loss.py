@@ -66,8 +66,8 @@ def best_matching(scores: torch.Tensor) -> torch.Tensor:
 
     out = np.empty((b, n), dtype=np.int64)
     for i, s in enumerate(scores.double().cpu().numpy()):
-        rows_, cols = assignment(s)
-        out[i, rows_] = cols
+        objects, slots = assignment(s)
+        out[i, objects] = slots
     return torch.as_tensor(out, device=scores.device)
 
 
