@@ -3,7 +3,7 @@
     python scripts/reduced_grid_ablation.py --train-data DIR --test-data DIR [--test-split S]
         [--train-sequences 240] [--test-sequences 100] [--factor 4 4 3] [--batch-size 8]
         [--steps-single 1500] [--steps-multi 300] [--models dsr nowarp single] [--seed 0]
-        [--out OUT.json]
+        [--history-variants] [--out OUT.json]
 
 Why: the benchmark's short schedule (scripts/short_schedule.py) needs a GPU and, at the budget
 one session has, sees too few 10-step windows for a recurrent state to pay off. The network's
@@ -21,7 +21,9 @@ batches, i.e. the same sample-steps. Every model starts from the same initial we
 the windows in the same order. Evaluation carries the state over each test sequence with
 BatchNorm in eval mode and scores it with the benchmark's `metrics.sequence_scores` on the coarse
 grid (unordered IoU: matching per step; ordered IoU: one matching per sequence). Printed: the
-means, and the paired per-sequence differences with their standard errors.
+means, and the paired per-sequence differences with their standard errors. --history-variants
+also evaluates each trained history model with its history changed at test time only (zeroed;
+for DSR-Net also unwarped): whether the trained network uses what its state carries.
 
 Not a leaderboard entry: the benchmark is defined on the 128 x 128 x 48 grid.
 """
@@ -29,6 +31,7 @@ Not a leaderboard entry: the benchmark is defined on the 128 x 128 x 48 grid.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import platform
 import shlex
@@ -149,6 +152,8 @@ def main() -> None:
     parser.add_argument("--steps-multi", type=int, default=300)
     parser.add_argument("--models", nargs="+", default=["dsr", "nowarp", "single"])
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--history-variants", action="store_true",
+                        help="Also evaluate history models with the history zeroed (and DSR-Net unwarped) at test time.")
     parser.add_argument("--out", type=Path)
     args = parser.parse_args()
     factor = tuple(args.factor)
@@ -170,14 +175,26 @@ def main() -> None:
         per_seq[name] = evaluate(net, test)
         results[name] = {"stage_single": stage1, "stage_multi": stage2,
                          **{key: float(v.mean()) for key, v in per_seq[name].items()}}
-        r = results[name]
-        print(f"{name}: ordered IoU {r['iou_ordered']:.4f}, unordered {r['iou_unordered']:.4f}, "
-              f"motion MSE {r['motion_mse']:.3f}", flush=True)
-    print(f"\n{'model':8s} {'ordered IoU':>12s} {'unordered IoU':>14s} {'motion MSE':>11s}")
+        variants = [] if not (args.history_variants and history) else \
+            ["none"] + (["nowarp"] if net.config.history == "warp" else [])
+        trained = net.config
+        for variant in variants:  # the same weights, the history changed at test time only
+            net.config = dataclasses.replace(trained, history=variant)
+            label = f"{name}/test-history-{variant}"
+            per_seq[label] = evaluate(net, test)
+            results[label] = {key: float(v.mean()) for key, v in per_seq[label].items()}
+        net.config = trained
+        for label in [name] + [f"{name}/test-history-{v}" for v in variants]:
+            r = results[label]
+            print(f"{label}: ordered IoU {r['iou_ordered']:.4f}, unordered {r['iou_unordered']:.4f}, "
+                  f"motion MSE {r['motion_mse']:.3f}", flush=True)
+    print(f"\n{'model':26s} {'ordered IoU':>12s} {'unordered IoU':>14s} {'motion MSE':>11s}")
     for name, r in results.items():
-        print(f"{name:8s} {r['iou_ordered']:12.4f} {r['iou_unordered']:14.4f} {r['motion_mse']:11.3f}")
+        print(f"{name:26s} {r['iou_ordered']:12.4f} {r['iou_unordered']:14.4f} {r['motion_mse']:11.3f}")
     pairs = {}
-    for a, b in (("dsr", "nowarp"), ("nowarp", "single"), ("dsr", "single")):
+    comparisons = [("dsr", "nowarp"), ("nowarp", "single"), ("dsr", "single")]
+    comparisons += [(name, label) for label in per_seq if "/" in label for name in [label.split("/")[0]]]
+    for a, b in comparisons:
         if a in per_seq and b in per_seq:
             d = per_seq[a]["iou_ordered"] - per_seq[b]["iou_ordered"]
             se = float(d.std(ddof=1) / np.sqrt(len(d)))

@@ -46,7 +46,8 @@ def test_a_tiny_run_writes_its_summary(tmp_path, monkeypatch):
     out = tmp_path / "ablation.json"
     monkeypatch.setattr(sys, "argv", ["reduced_grid_ablation.py", "--train-data", str(data), "--test-data", str(data),
                                       "--factor", "8", "8", "3", "--batch-size", "2", "--steps-single", "1",
-                                      "--steps-multi", "1", "--models", "dsr", "single", "--out", str(out)])
+                                      "--steps-multi", "1", "--models", "dsr", "single", "--history-variants",
+                                      "--out", str(out)])
     spec = importlib.util.spec_from_file_location("reduced_grid_ablation_main", SCRIPT)
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
@@ -59,4 +60,7 @@ def test_a_tiny_run_writes_its_summary(tmp_path, monkeypatch):
     for name in ("dsr", "single"):
         scores = summary["models"][name]
         assert 0 <= scores["iou_ordered"] <= scores["iou_unordered"] + 1e-9 <= 1 + 1e-9
-    assert set(summary["paired_ordered_iou"]) == {"dsr-single"}
+    # DSR-Net's weights also scored with its history zeroed and unwarped at test time; SingleStep has none
+    assert set(summary["models"]) == {"dsr", "single", "dsr/test-history-none", "dsr/test-history-nowarp"}
+    assert set(summary["paired_ordered_iou"]) == {"dsr-single", "dsr-dsr/test-history-none",
+                                                  "dsr-dsr/test-history-nowarp"}
