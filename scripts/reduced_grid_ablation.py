@@ -21,7 +21,8 @@ batches, i.e. the same sample-steps. Every model starts from the same initial we
 the windows in the same order. Evaluation carries the state over each test sequence with
 BatchNorm in eval mode and scores it with the benchmark's `metrics.sequence_scores` on the coarse
 grid (unordered IoU: matching per step; ordered IoU: one matching per sequence). Printed: the
-means, and the paired per-sequence differences with their standard errors. --history-variants
+means, the motion MSE of predicting no motion, and the paired per-sequence differences with
+their standard errors. --history-variants
 also evaluates each trained history model with its history changed at test time only (zeroed;
 for DSR-Net also unwarped): whether the trained network uses what its state carries.
 
@@ -164,6 +165,8 @@ def main() -> None:
         sys.exit(f"error: --factor {' '.join(map(str, factor))} gives the grid {grid}; "
                  "every side must be a multiple of 16")
     print(f"grid {grid}; {len(train)} training and {len(test)} test sequences; torch threads {torch.get_num_threads()}")
+    zero_motion_mse = float(np.mean([((q["flow"]) ** 2).sum(1).mean() for q in test]))
+    print(f"motion MSE of predicting no motion: {zero_motion_mse:.3f}")
     results, per_seq = {}, {}
     for name in args.models:
         torch.manual_seed(args.seed)
@@ -212,7 +215,8 @@ def main() -> None:
                    "factor": list(factor), "train_data": str(args.train_data), "test_data": str(args.test_data),
                    "train_sequences": len(train), "test_sequences": len(test), "batch_size": args.batch_size,
                    "seed": args.seed, "torch": torch.__version__, "machine": platform.processor() or platform.machine(),
-                   "threads": torch.get_num_threads(), "models": results, "paired_ordered_iou": pairs,
+                   "threads": torch.get_num_threads(), "zero_motion_mse": zero_motion_mse, "models": results,
+                   "paired_ordered_iou": pairs,
                    "ordering_holds": ordering}
         args.out.parent.mkdir(parents=True, exist_ok=True)
         tmp = args.out.with_name(f".{args.out.name}.tmp")

@@ -53,7 +53,7 @@ def test_a_tiny_run_writes_its_summary(tmp_path, monkeypatch):
     spec.loader.exec_module(module)
     module.main()
     summary = json.loads(out.read_text())
-    assert summary["grid"] == [16, 16, 16] and summary["ordering_holds"] is None
+    assert summary["grid"] == [16, 16, 16] and summary["ordering_holds"] is None and summary["zero_motion_mse"] > 0
     assert summary["models"]["dsr"]["stage_multi"]["window"] == 10
     assert summary["models"]["single"]["stage_multi"] == {**summary["models"]["single"]["stage_multi"], "window": 1,
                                                           "batches": 10, "sample_steps": 20}
