@@ -366,9 +366,11 @@ def train(model_name: str, stage_name: str, data: Path, out: Path, split: str | 
         """Whether the loop has run max_seconds (rank 0 decides for every process)."""
         if max_seconds is None:
             return False
-        flag = torch.tensor(float(time.monotonic() - started >= max_seconds), device=dev)
-        if distributed:
-            torch.distributed.broadcast(flag, 0)
+        over = time.monotonic() - started >= max_seconds
+        if not distributed:
+            return over
+        flag = torch.tensor(float(over), device=dev)
+        torch.distributed.broadcast(flag, 0)
         return bool(flag.item())
 
     try:

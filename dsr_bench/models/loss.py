@@ -44,9 +44,10 @@ def score_matrix(log_probs: torch.Tensor, gt_mask: torch.Tensor) -> torch.Tensor
 
 
 @lru_cache(maxsize=None)
-def _permutations(n: int) -> np.ndarray:
-    """Every permutation of range(n) in itertools order, (n!, n) int64."""
-    return np.array(list(itertools.permutations(range(n))), dtype=np.int64).reshape(-1, n)
+def _permutations(n: int, device: torch.device) -> torch.Tensor:
+    """Every permutation of range(n) in itertools order, (n!, n) int64 on `device`; cached, so the
+    host-to-device copy (which waits for the device) happens once per process."""
+    return torch.tensor(list(itertools.permutations(range(n))), dtype=torch.long, device=device).reshape(-1, n)
 
 
 def best_matching(scores: torch.Tensor) -> torch.Tensor:
@@ -58,7 +59,7 @@ def best_matching(scores: torch.Tensor) -> torch.Tensor:
     b, n = scores.shape[:2]
     scores = scores.detach()
     if n <= MAX_ENUMERATED:
-        perms = torch.as_tensor(_permutations(n), device=scores.device)  # (P, n)
+        perms = _permutations(n, scores.device)  # (P, n)
         rows = torch.arange(n, device=scores.device).expand_as(perms)
         totals = scores[:, rows, perms].sum(-1)  # (B, P): sum_i scores[b, i, perm[i]]
         return perms[totals.argmax(1)]

@@ -39,21 +39,20 @@ def forward_warp(features: torch.Tensor, flow: torch.Tensor, weight: torch.Tenso
     values = torch.cat([features.to(dtype).reshape(b, c, n), torch.ones(b, 1, n, device=device, dtype=dtype)], 1)
     values = values.transpose(1, 2).reshape(b * n, c + 1)
     w_src = weight.to(dtype).reshape(b * n)
-    dims_t = torch.tensor(dims, device=device).view(1, 3, 1)
     sample_offset = (torch.arange(b, device=device) * n).view(b, 1)
     out = torch.zeros(b * n, c + 1, device=device, dtype=dtype)
-    for corner in _CORNERS:
-        offset = torch.tensor(corner, device=device).view(1, 3, 1)
-        idx = base + offset  # (B, 3, N)
+    for corner in _CORNERS:  # offsets and bounds are Python ints: no small host-to-device copies
+        idx = [base[:, axis] + corner[axis] for axis in range(3)]  # 3 x (B, N)
         # an out-of-grid corner adds zero at the nearest voxel: spread over the border, never one
         # hot address that every dropped corner's atomic add would queue on
-        inside = ((idx >= 0) & (idx < dims_t)).all(1).reshape(b * n)
-        idx = torch.minimum(idx.clamp(min=0), dims_t - 1)
+        inside = ((idx[0] >= 0) & (idx[0] < dims[0]) & (idx[1] >= 0) & (idx[1] < dims[1]) & (idx[2] >= 0)
+                  & (idx[2] < dims[2])).reshape(b * n)
+        idx = [i.clamp(0, d - 1) for i, d in zip(idx, dims)]
         w = w_src * inside
         for axis in range(3):
             f = frac[:, axis].reshape(b * n)
             w = w * (f if corner[axis] else 1 - f)
-        flat = ((idx[:, 0] * dims[1] + idx[:, 1]) * dims[2] + idx[:, 2] + sample_offset).reshape(b * n)
+        flat = ((idx[0] * dims[1] + idx[1]) * dims[2] + idx[2] + sample_offset).reshape(b * n)
         contrib = values * w.unsqueeze(1)
         if deterministic:
             with _deterministic():
