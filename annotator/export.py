@@ -67,15 +67,11 @@ def stored_camera(camera, shape: tuple[int, int]):
 
 
 def _identity(capture, i: int) -> dict:
-    import hashlib
+    from dsr_bench.manifest import mesh_sha256
 
-    vertices, faces = capture.mesh(i)
-    h = hashlib.sha256()
-    h.update(np.asarray(vertices, "<f8").tobytes())
-    h.update(np.asarray(faces, "<i8").tobytes())
     ident = dict(capture.objects[i].identity)
     ident.update({"name": capture.objects[i].name, "mesh_file": capture.objects[i].mesh_path.name,
-                  "mesh_sha256": h.hexdigest()})
+                  "mesh_sha256": mesh_sha256(*capture.mesh(i))})
     return ident
 
 

@@ -64,7 +64,7 @@ class ProjectiveTSDF:
     def __init__(self, camera: Camera, truncation: float = TSDF_TRUNCATION,
                  grid_shape: tuple[int, int, int] = GRID_SHAPE):
         self.camera, self.truncation, self.grid_shape = camera, truncation, tuple(grid_shape)
-        (self._voxels, self._z, self._pixels, self._inverse, self._counts,
+        (_, self._z, self._pixels, _, self._counts,
          self._g_voxels, self._g_z, self._g_pixel, self._g_z32) = _projection(camera, self.grid_shape)
         # float32 error of |d - z| where |d - z| <= trunc: a few float32 ulps of z_max + trunc
         z_max = float(self._z.max()) if len(self._z) else 0.0
@@ -135,15 +135,6 @@ class ProjectiveTSDF:
         keep = (d > 0) & (sdf >= -self.truncation)
         with np.errstate(invalid="ignore"):
             tsdf[self._g_voxels[pos]] = np.where(keep, np.minimum(1.0, sdf / self.truncation), 1.0)
-        return tsdf.reshape(self.grid_shape)
-
-    def _from_pixel_depths_dense(self, pixel_depth: np.ndarray) -> np.ndarray:
-        """The same TSDF computed over every voxel (the reference for `from_pixel_depths`)."""
-        d = np.asarray(pixel_depth, dtype=np.float64)[self._inverse]
-        sdf = d - self._z
-        keep = (d > 0) & (sdf >= -self.truncation)
-        tsdf = np.ones(int(np.prod(self.grid_shape)), dtype=np.float32)
-        tsdf[self._voxels[keep]] = np.minimum(1.0, sdf[keep] / self.truncation)
         return tsdf.reshape(self.grid_shape)
 
 
