@@ -57,6 +57,8 @@ def main() -> None:
         torch.backends.cudnn.benchmark = True
         torch.backends.cuda.matmul.allow_tf32 = True
         torch.backends.cudnn.allow_tf32 = True
+    if args.compile and dev.type != "cuda":
+        raise SystemExit("error: --compile needs a GPU (torch.compile's CPU backend fails on DSR-Net's backward pass)")
     grid = tuple(args.grid)
     torch.manual_seed(0)
     net = DSRNet(ModelConfig.for_model(args.model, grid=grid)).to(dev)
@@ -146,7 +148,7 @@ def main() -> None:
         warp_ms = warp_time_ms(forward_warp)
         warp_compiled_ms = warp_diff = float("nan")
         if args.compile and dev.type == "cuda":
-            compiled = torch.compile(forward_warp, dynamic=False)
+            compiled = net._warp  # the compiled warp the network runs (set by compile_warp), not a second one
             warp_diff = float((compiled(feats, gt_flow, weight) - forward_warp(feats, gt_flow, weight)).abs().max())
             warp_compiled_ms = warp_time_ms(compiled)
         out32 = net(tsdf, action, net.initial_state(b, dev))

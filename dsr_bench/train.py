@@ -259,6 +259,9 @@ def train(model_name: str, stage_name: str, data: Path, out: Path, split: str | 
         raise UserError(f"--device {device!r}: use cpu, cuda or cuda:N") from None
     if dev.type == "cuda" and not torch.cuda.is_available():
         raise UserError("--device cuda but no CUDA device is available; use --device cpu")
+    if compile_model and dev.type != "cuda":
+        raise UserError(f"--compile needs --device cuda: torch.compile's CPU backend fails on DSR-Net's backward "
+                        f"pass (torch {torch.__version__}); drop --compile")
     checkpoint = load_checkpoint(resume) if resume is not None else None
     if checkpoint is not None:
         saved = ModelConfig.from_dict(checkpoint["model_config"])

@@ -106,6 +106,8 @@ def test_train_errors(data, tmp_path, capsys):
     assert "--stage 'warmup'" in capsys.readouterr().err
     assert _train(data, out, "--max-minutes", "0") == 2
     assert "--max-minutes 0.0: must be positive" in capsys.readouterr().err
+    assert _train(data, out, "--compile") == 2
+    assert "--compile needs --device cuda" in capsys.readouterr().err
     assert _train(data, out, "--grid-size", "64", "64", "32") == 2
     assert "differs from the data's grid" in capsys.readouterr().err
     assert _train(data, out, "--resume", str(tmp_path / "missing.pt")) == 2

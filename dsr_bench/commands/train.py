@@ -28,7 +28,7 @@ def train(
                                                              "(default: the data's)."),
     device: str = typer.Option("cpu", "--device", help="cpu or cuda (torchrun sets one GPU per process)."),
     bf16: bool = typer.Option(False, "--bf16", help="bf16 autocast (softmax, pivots, motion, warp stay fp32)."),
-    compile_model: bool = typer.Option(False, "--compile", help="torch.compile the model."),
+    compile_model: bool = typer.Option(False, "--compile", help="torch.compile the model (GPU only)."),
     channels_last: bool = typer.Option(False, "--channels-last", help="channels_last_3d memory format."),
     deterministic: bool = typer.Option(False, "--deterministic", help="Deterministic algorithms and warp."),
     official_bn: bool = typer.Option(False, "--official-bn", help="Validate with BatchNorm in train mode (official)."),
