@@ -52,6 +52,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from annotator.align import matrix_to_pose, rotvec_to_matrix  # noqa: E402
 from dsr_bench.geometry import pose_to_matrix  # noqa: E402
 
 COARSE = (0.01, np.deg2rad(5.0))
@@ -71,18 +72,6 @@ def rotvec(matrix: np.ndarray) -> np.ndarray:
     return Rotation.from_matrix(matrix).as_rotvec()
 
 
-def rotmat(vec: np.ndarray) -> np.ndarray:
-    from scipy.spatial.transform import Rotation
-
-    return Rotation.from_rotvec(vec).as_matrix()
-
-
-def to_pose(matrix: np.ndarray) -> np.ndarray:
-    from scipy.spatial.transform import Rotation
-
-    return np.concatenate([matrix[:3, 3], Rotation.from_matrix(matrix[:3, :3]).as_quat()])
-
-
 def symmetry_axis(vertices: np.ndarray, faces: np.ndarray, samples: np.ndarray, tol: float = 5e-4) -> np.ndarray | None:
     """The object-frame axis (through the origin, the centre of mass) about which the mesh is continuously
     symmetric, among the object's x, y, z axes, or None: samples turned by several angles stay within `tol` m
@@ -92,8 +81,8 @@ def symmetry_axis(vertices: np.ndarray, faces: np.ndarray, samples: np.ndarray, 
     scene = o3d.t.geometry.RaycastingScene()
     scene.add_triangles(o3d.core.Tensor(vertices.astype(np.float32)), o3d.core.Tensor(faces.astype(np.uint32)))
     for axis in np.eye(3)[::-1]:
-        dists = [scene.compute_distance(o3d.core.Tensor((samples @ rotmat(axis * np.deg2rad(a)).T).astype(np.float32)))
-                 .numpy().mean() for a in (23.0, 71.0, 137.0)]
+        turned = [(samples @ rotvec_to_matrix(axis * np.deg2rad(a)).T).astype(np.float32) for a in (23.0, 71.0, 137.0)]
+        dists = [scene.compute_distance(o3d.core.Tensor(t)).numpy().mean() for t in turned]
         if max(dists) < tol:
             return axis
     return None
@@ -230,7 +219,7 @@ def snap_from_truth(cap, truth: np.ndarray) -> np.ndarray:
             crop = align.crop_cloud(cloud, start[:3, :3] @ smp.centre + start[:3, 3], smp.radius + 0.03)
             result = align.icp(smp, crop, start, views)
             if result.applied:
-                out[t, k] = to_pose(result.transform)
+                out[t, k] = matrix_to_pose(result.transform)
     return out
 
 
@@ -273,10 +262,10 @@ def keyboard_annotate(start: np.ndarray, target: np.ndarray, info: ObjectInfo, v
             vec = np.zeros(3)
             vec[axis] = delta
             centre = cur[:3, 3].copy()  # rotate about the object centre (the mesh frame origin: centre of mass)
-            cur[:3, :3] = rotmat(vec) @ cur[:3, :3]
+            cur[:3, :3] = rotvec_to_matrix(vec) @ cur[:3, :3]
             cur[:3, 3] = centre
         presses += 1
-    return to_pose(cur), presses
+    return matrix_to_pose(cur), presses
 
 
 def annotate_with_keyboard(truth: np.ndarray, infos: list[ObjectInfo], visible: float) -> dict:
