@@ -510,7 +510,7 @@ class Controller:
             changed.add("cloud")
         if before[2:] != after[2:]:
             changed.add("meshes")
-            if self.view.residual:
+            if self.view.residual and before[2] != after[2]:  # the residual colours follow the poses only
                 changed.add("cloud")
         return changed
 
