@@ -238,8 +238,10 @@ def generate_capture(out: Path, *, name: str, seed: int, objects: str = "procedu
     if object_set is None:
         object_set = get_object_set(objects, object_root)
     recorder = _RecordingSet(object_set)
+    # the episode gives poses, actions and pushes only (they do not depend on its cameras); both cameras'
+    # images are rendered below at the capture's size, so the episode observes with the front camera alone
     config = EpisodeConfig(objects=objects, steps=steps, objects_per_scene=objects_per_scene, policy="heuristic",
-                           cameras=CAPTURE_CAMERAS, object_root=object_root)
+                           cameras=("front",), object_root=object_root)
     episode = generate_episode(config, recorder, seed, name)
     specs = recorder.last
     poses = episode.arrays["object_poses"]
