@@ -187,9 +187,11 @@ class Capture:
         return (self._image(step, camera, "depth").astype(np.float64) * self.cameras[camera].depth_scale).astype(
             np.float32)
 
-    def points(self, step: int, camera: str = "front") -> np.ndarray:
-        """World points (H, W, 3) float32 in metres, NaN where depth is missing."""
-        return self.cameras[camera].camera.backproject(self.depth(step, camera).astype(np.float64)).astype(np.float32)
+    def points(self, step: int, camera: str = "front", depth: np.ndarray | None = None) -> np.ndarray:
+        """World points (H, W, 3) float32 in metres, NaN where depth is missing. `depth`: this step's
+        `depth(step, camera)` when the caller has already read it (the image is then not decoded again)."""
+        depth = self.depth(step, camera) if depth is None else depth
+        return self.cameras[camera].camera.backproject(depth.astype(np.float64)).astype(np.float32)
 
     def cloud(self, step: int, cameras: list[str] | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Fused valid points of the cameras inside the grid bounds (+ margin), table included.
