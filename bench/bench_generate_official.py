@@ -1,0 +1,135 @@
+"""Benchmark: seconds per 10-step cube sequence, the authors' generator against ours, side by side.
+
+    python bench/bench_generate_official.py [--official-repo PATH] [--repeats 3] [--steps 10]
+                                            [--official-python PATH] [--official-env DIR] [--no-venv]
+
+Alternates (A, B, A, B, ...), each run a fresh process that pays its imports and writes one
+sequence to a fresh directory:
+- the authors' generator, only with `--official-repo PATH` (a checkout of columbia-ai-robotics/dsr):
+  `python data_generation.py --data_path DIR --object_type cube --train_num 1 --test_num 0`, run
+  from their repository root in their own environment (built once with their dependencies, see
+  bench/official.py; --no-venv runs it with --official-python as is). It is unseeded;
+- ours: `dsr-bench generate --objects cube -n 1 --workers 1 --seed K --out DIR`, K = --seed + run.
+Prints each side's median wall seconds per sequence, the ratio of the medians and one markdown
+table row (date, cores, both medians, ratio) to quote. Without `--official-repo` only our side is
+run and no comparison is made. Both generators are single-process; run on an idle machine.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as dt
+import os
+import shutil
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from official import (add_official_args, alternate, check_official_repo, last_line,  # noqa: E402
+                      official_python, report, run_main)
+
+from dsr_bench.errors import UserError  # noqa: E402
+
+THEIRS = "authors' data_generation.py"
+OURS = "dsr-bench generate"
+
+
+def our_command(out: Path, seed: int, steps: int) -> list[str]:
+    """`dsr-bench generate` for one cube sequence (the CLI of this environment)."""
+    exe = Path(sys.executable).with_name("dsr-bench")
+    if not exe.exists():
+        found = shutil.which("dsr-bench")
+        if found is None:
+            raise UserError("dsr-bench: command not found next to this Python or on PATH; install the toolkit "
+                            "(pip install -e .[sim]) in this environment")
+        exe = Path(found)
+    cmd = [str(exe), "generate", "--objects", "cube", "-n", "1", "--workers", "1", "--seed", str(seed),
+           "--out", str(out)]
+    return cmd + (["--steps", str(steps)] if steps != 10 else [])
+
+
+def official_command(python: Path, out: Path, steps: int) -> list[str]:
+    """The authors' generator for one cube sequence (run from their repository root)."""
+    cmd = [str(python), "data_generation.py", "--data_path", str(out), "--object_type", "cube", "--train_num", "1",
+           "--test_num", "0"]
+    return cmd + (["--max_path_length", str(steps)] if steps != 10 else [])
+
+
+def run_process(what: str, cmd: list[str], out: Path, cwd: Path | None, logs: Path, timeout: float,
+                env: dict | None = None) -> float:
+    """Wall seconds of one fresh process writing into `out` (removed afterwards); a failure, or a
+    run that wrote nothing, is a one-line UserError with the last line of its output."""
+    log = logs / ("theirs.log" if what == THEIRS else "ours.log")
+    with open(log, "w") as fh:
+        t0 = time.perf_counter()
+        try:
+            proc = subprocess.run(cmd, cwd=cwd, stdout=fh, stderr=subprocess.STDOUT, timeout=timeout, env=env)
+        except subprocess.TimeoutExpired:
+            raise UserError(f"{what}: still running after {timeout:.0f} s (--timeout); output in {log}") from None
+        seconds = time.perf_counter() - t0
+    if proc.returncode != 0:
+        raise UserError(f"{what} failed: `{' '.join(cmd)}` exited {proc.returncode} "
+                        f"({last_line(log.read_text())}; output in {log})")
+    if not out.is_dir() or not any(p.is_file() for p in out.rglob("*")):
+        raise UserError(f"{what} wrote nothing under {out} (`{' '.join(cmd)}`; output in {log})")
+    shutil.rmtree(out)
+    return seconds
+
+
+def main(argv: list[str] | None = None) -> dict:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--repeats", type=int, default=3, help="runs of each side, alternated (default 3)")
+    parser.add_argument("--steps", type=int, default=10, help="pushes per sequence (default 10, the authors')")
+    parser.add_argument("--seed", type=int, default=0, help="our base seed; run i uses seed + i")
+    parser.add_argument("--timeout", type=float, default=900, help="seconds one run may take (default 900)")
+    add_official_args(parser)
+    args = parser.parse_args(argv)
+
+    repo = python = None
+    if args.official_repo is not None:
+        repo = check_official_repo(args.official_repo, ("data_generation.py",))
+        python = official_python(args, repo)
+    work = Path(tempfile.mkdtemp(prefix="dsr-bench-generate-official-"))
+    logs = Path(tempfile.mkdtemp(prefix="dsr-bench-generate-logs-"))  # kept when a run fails
+    try:
+        count = {"ours": 0, "theirs": 0}
+
+        def ours() -> float:
+            seed = args.seed + count["ours"]
+            count["ours"] += 1
+            out = work / f"ours-{seed}"
+            return run_process(OURS, our_command(out, seed, args.steps), out, None, logs, args.timeout)
+
+        def theirs() -> float:
+            count["theirs"] += 1
+            out = work / f"theirs-{count['theirs']}"
+            env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "PYTHONHOME", "VIRTUAL_ENV")}
+            return run_process(THEIRS, official_command(python, out, args.steps), out, repo, logs, args.timeout, env)
+
+        runs = {THEIRS: theirs, OURS: ours} if repo else {OURS: ours}
+        timings = alternate(runs, args.repeats)
+        shutil.rmtree(logs)
+        print(f"one {args.steps}-step cube sequence per run, a fresh process each; {os.cpu_count()} cores; "
+              f"{args.repeats} runs of each side" + (", alternated" if repo else ""))
+        figures = report(timings, [(THEIRS, OURS)] if repo else [], per=1, unit="sequence")
+        if not repo:
+            print("no comparison with the authors' code was made: pass --official-repo PATH (a checkout of "
+                  "columbia-ai-robotics/dsr) to run their data_generation.py beside ours")
+            return {"timings": timings, "figures": figures}
+        date = dt.date.today().isoformat()
+        print(f"\n| date | machine | {THEIRS}, s/sequence | {OURS}, s/sequence | ratio | runs |")
+        print("|---|---|---|---|---|---|")
+        print(f"| {date} | {os.cpu_count()} cores | {statistics.median(timings[THEIRS]):.1f} | "
+              f"{statistics.median(timings[OURS]):.2f} | {figures[f'{THEIRS} / {OURS}']:.1f}x | "
+              f"{args.repeats} + {args.repeats}, alternated, medians |")
+        return {"timings": timings, "figures": figures}
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
+
+
+if __name__ == "__main__":
+    run_main(main)
