@@ -8,7 +8,6 @@ version before anything else.
 from __future__ import annotations
 
 import json
-import os
 import zlib
 from collections.abc import Mapping
 from pathlib import Path
@@ -17,6 +16,7 @@ from typing import Any
 import h5py
 import numpy as np
 
+from dsr_bench.atomic import atomic_path
 from dsr_bench.constants import FORMAT_NAME, SCHEMA_VERSION
 from dsr_bench.schema import FIELDS, REQUIRED_ATTRS, check_array, dataset_path, resolve_shape
 
@@ -213,8 +213,7 @@ def write_sequence(
         raise SequenceFormatError(f"refusing to write {path.name}: " + "; ".join(problems))
 
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    try:
+    with atomic_path(path) as tmp:  # temporary + lock, renamed when complete (dsr_bench.atomic)
         with h5py.File(tmp, "w", track_order=True) as f:
             f.attrs["format"] = FORMAT_NAME
             f.attrs["schema_version"] = SCHEMA_VERSION
@@ -232,10 +231,6 @@ def write_sequence(
                 g = f.create_group(f"meshes/{index}")
                 g.create_dataset("vertices", data=np.asarray(vertices, np.float32), track_times=False, **_COMPRESSION)
                 g.create_dataset("faces", data=np.asarray(faces, np.int32), track_times=False, **_COMPRESSION)
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
     return path
 
 

@@ -2,8 +2,14 @@
 
 Sequence i of a run is a pure function of the run's arguments and `sequence_seed(seed, i)`, so the
 arrays do not depend on `workers` or `shard`. Every file is written under a temporary name and
-renamed when complete, so a killed run (even kill -9) leaves only complete files under final names;
-rerunning the same command skips them and finishes the rest.
+renamed when complete (`dsr_bench.atomic`), so a killed run (even kill -9) leaves only complete files
+under final names; rerunning the same command skips them and finishes the rest. Shards may run at
+the same time into one directory, on one host or several sharing it: a run removes only the
+temporaries whose writer is provably gone, never a live writer's.
+
+Before any simulation a run checks that it can write in --out and that every file already named
+like one of its sequences is a complete sequence of the same arguments (skipped); anything else
+there (another file, another format, other arguments) is refused, never overwritten.
 """
 
 from __future__ import annotations
@@ -81,32 +87,86 @@ def check_plan(plan: RunPlan) -> None:
         raise UserError(f"--cameras {','.join(cfg.cameras)!r}: use front or front,back")
     if plan.workers < 1:
         raise UserError(f"--workers {plan.workers}: must be at least 1")
-    if plan.out.exists() and not plan.out.is_dir():
-        raise UserError(f"--out {plan.out} exists and is not a directory")
+    check_writable(plan.out)
 
 
-def _existing_matches(path: Path, expected_args: dict, expected_seed: int) -> bool | str:
-    """True if a complete file with the same arguments exists; a reason string if it conflicts."""
+def check_writable(out: Path) -> None:
+    """Fail with one line unless files can be created in `out` (or, if it does not exist yet, in its
+    nearest existing parent): a probe file is created and removed, nothing else is written."""
+    import secrets
+
+    from dsr_bench.atomic import host_name
+
+    here = out
+    while True:
+        try:
+            if here.exists():
+                break
+        except OSError as exc:  # e.g. a parent without search permission
+            raise UserError(f"--out {out}: cannot look into {here.parent} ({exc.strerror}); choose another "
+                            "--out or fix its permissions") from None
+        if here.parent == here:
+            break
+        here = here.parent
+    if not here.is_dir():
+        what = "--out" if here == out else f"--out {out}: its parent"
+        raise UserError(f"{what} {here} exists and is not a directory; choose another --out or move the file away")
+    probe = here / f".dsr-bench-write-probe-{host_name()}-{os.getpid()}-{secrets.token_hex(4)}"
+    try:
+        fd = os.open(probe, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+    except OSError as exc:
+        where = "cannot create files in it" if here == out else f"cannot create it in {here}"
+        raise UserError(f"--out {out}: {where} ({exc.strerror or exc}); choose a writable --out or give write "
+                        f"permission on {here}") from None
+    os.close(fd)
+    probe.unlink(missing_ok=True)
+
+
+def _existing_problem(path: Path, expected_args: dict, expected_seed: int) -> str | None:
+    """None if `path` is a complete dsr-bench sequence generated with the same arguments (skip it);
+    else a one-line refusal naming the file and the fix (it is never overwritten)."""
     import json
 
     import h5py
 
+    from dsr_bench.constants import FORMAT_NAME, SCHEMA_VERSION
+
+    fix = "move it away or use another --out"
+    if not path.is_file():
+        return f"{path} exists and is not a file; {fix}"
     try:
         with h5py.File(path, "r") as f:
-            args = json.loads(f.attrs["generator_args"])
-            seed = int(f.attrs["seed"])
-    except Exception as exc:  # unreadable: regenerate it
-        return f"unreadable ({type(exc).__name__})"
-    args.pop("object_root", None)  # where the meshes live may differ between machines
+            attrs = dict(f.attrs)
+    except Exception:  # noqa: BLE001 - whatever h5py raises: it is not an HDF5 file we can read
+        return f"{path} is not a dsr-bench sequence (not a readable HDF5 file); {fix}"
+    fmt = attrs.get("format")
+    if isinstance(fmt, bytes):
+        fmt = fmt.decode(errors="replace")
+    if fmt != FORMAT_NAME:
+        return f"{path} is not a dsr-bench sequence (format attribute {fmt!r}); {fix}"
+    if attrs.get("schema_version") != SCHEMA_VERSION:
+        return (f"{path} was written by another dsr-bench version (schema {attrs.get('schema_version')}, this one "
+                f"writes {SCHEMA_VERSION}); {fix}")
+    try:
+        args = json.loads(attrs["generator_args"])
+        seed = int(attrs["seed"])
+    except (KeyError, TypeError, ValueError):
+        return f"{path} is a dsr-bench sequence not made by `dsr-bench generate` (no generator arguments); {fix}"
+    if isinstance(args, dict):
+        args.pop("object_root", None)  # where the meshes live may differ between machines
     expected_args = {k: v for k, v in expected_args.items() if k != "object_root"}
     if args != expected_args or seed != expected_seed:
-        return "generated with different arguments"
-    return True
+        return f"{path} was generated with different arguments; use another --out or delete the directory"
+    return None
 
 
 def _clean_partials(out: Path) -> None:
-    for tmp in out.glob(".seq_*.h5.tmp-*"):
-        tmp.unlink(missing_ok=True)
+    """Remove the temporaries of abandoned writers (killed runs); keep live writers' (other shards)."""
+    from dsr_bench.atomic import clean_temporaries
+
+    clean_temporaries(out, "seq_*.h5")
+    if (out / "splits").is_dir():
+        clean_temporaries(out / "splits", "*.txt")
 
 
 # --- worker side -------------------------------------------------------------------------------
@@ -141,7 +201,8 @@ def _pool_task(args) -> SequenceResult:
 
 def prepare_run(plan: RunPlan) -> tuple[list[int], list[str]]:
     """Check everything (arguments, meshes, existing files) before any work; return (indices to
-    generate, names already complete). Creates the output directory and removes partial files."""
+    generate, names already complete). Creates the output directory and removes abandoned partial
+    files (never those of a shard running at the same time)."""
     from generators.objects import get_object_set
 
     check_plan(plan)
@@ -149,16 +210,18 @@ def prepare_run(plan: RunPlan) -> tuple[list[int], list[str]]:
     todo, skipped = [], []
     for index in plan.indices():
         path = plan.out / f"{sequence_name(index)}.h5"
-        if path.exists():
-            status = _existing_matches(path, plan.generator_args(index), sequence_seed(plan.seed, index))
-            if status is True:
-                skipped.append(path.stem)
-                continue
-            if status == "generated with different arguments":
-                raise UserError(f"{path} was generated with different arguments; use another --out "
-                                "or delete the directory")
+        if path.exists() or path.is_symlink():
+            problem = _existing_problem(path, plan.generator_args(index), sequence_seed(plan.seed, index))
+            if problem is not None:
+                raise UserError(problem)
+            skipped.append(path.stem)
+            continue
         todo.append(index)
-    plan.out.mkdir(parents=True, exist_ok=True)
+    try:
+        plan.out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise UserError(f"--out {plan.out}: cannot create the directory ({exc.strerror or exc}); choose a "
+                        "writable --out") from None
     _clean_partials(plan.out)
     return todo, skipped
 
@@ -189,6 +252,7 @@ def generate_dataset(plan: RunPlan, todo: list[int],
 
 def finalize_dataset(plan: RunPlan) -> dict | None:
     """Write splits/<split>.txt and manifest.json once every sequence of the run exists; else None."""
+    from dsr_bench.atomic import write_text
     from dsr_bench.manifest import build_manifest, write_manifest
 
     names = [sequence_name(i) for i in range(plan.num_sequences)]
@@ -196,10 +260,7 @@ def finalize_dataset(plan: RunPlan) -> dict | None:
         return None
     split_dir = plan.out / "splits"
     split_dir.mkdir(exist_ok=True)
-    split_file = split_dir / f"{plan.split}.txt"
-    tmp = split_file.with_name(f".{split_file.name}.tmp-{os.getpid()}")
-    tmp.write_text("".join(f"{n}\n" for n in names))
-    os.replace(tmp, split_file)
+    write_text(split_dir / f"{plan.split}.txt", "".join(f"{n}\n" for n in names))
     manifest = build_manifest(plan.out)
     write_manifest(plan.out, manifest)
     return manifest

@@ -1,0 +1,253 @@
+"""Atomic writes on local and shared file systems: write to a temporary name, then rename.
+
+A file appears under its final name only when complete. Several processes, possibly on several
+hosts of a cluster sharing the directory over NFS or Lustre, may write into one directory at the
+same time, and a process may be killed (even with SIGKILL) mid-write; a later run then removes the
+temporaries that are *provably abandoned*, never a live writer's.
+
+Names. Writing ``DIR/NAME`` creates, next to it, a companion lock file and then the temporary:
+
+    DIR/.NAME.tmp-<host>-<pid>-<token>.lock   created first, locked for the whole write, removed last
+    DIR/.NAME.tmp-<host>-<pid>-<token>        the data; renamed to DIR/NAME when complete
+
+(both match ``.NAME.tmp-*``, the pattern older versions and other writers of this toolkit clean).
+
+``<host>`` is this machine's host name (characters other than ``A-Za-z0-9._`` replaced by ``_``),
+``<pid>`` the writing process and ``<token>`` random hex, so two writers never share a name, even
+with the same pid on two hosts. Host names are assumed unique among the machines sharing a
+directory (true on a cluster).
+
+Lock. The writer holds ``fcntl.flock(LOCK_EX)`` on a descriptor of the companion ``.lock`` file that
+it keeps open until the temporary is renamed or removed. Not the temporary itself: HDF5 takes its
+own ``flock`` on files it opens (which would conflict), and POSIX ``fcntl``/``lockf`` locks are
+released when *any* descriptor of the file is closed by the process (e.g. when h5py closes it). A
+``flock`` belongs to the open file description, so it survives other descriptors being closed and
+conflicts even with another descriptor in the same process. The kernel releases it when the
+process dies, however it dies.
+
+On NFS (Linux clients since 2.6.12) ``flock`` is carried out as a whole-file POSIX lock by the
+server's lock manager (NLM for v3, the protocol itself for v4), so it excludes writers on other
+hosts too; mounted with ``nolock``/``local_lock=all`` it is local to each host. On Lustre it is
+cluster-wide with the ``flock`` mount option, host-local with ``localflock``, and fails (ENOSYS)
+with ``noflock``. Emulated as a POSIX lock, it also takes on POSIX's per-process semantics there:
+clean from a process that is not itself writing (as ``dsr-bench generate`` does, before it starts
+writing). Because a lock that is merely *local* elsewhere would look free from here, the
+cleaner trusts a free lock at once only for a writer on its own host and adds a grace period for
+writers on other hosts; where locking fails the writer still writes (unlocked) and the cleaners
+fall back to the rules below.
+
+Cleaning (`clean_temporaries`), for each writer's temporary and/or lock file, removed only if:
+
+1. the writer ran on this host and its lock can be taken now (the kernel released it: the writer
+   is gone), or there is no lockable lock file and its pid is not alive;
+2. the writer ran on another host, its lock can be taken and the files have not been modified for
+   `FOREIGN_GRACE_SECONDS` (a free lock is proof of death where locks are cluster-wide; the grace
+   covers file systems where they are not);
+3. fallback, when the owner cannot be told (names of older versions such as ``.NAME.tmp-<pid>``,
+   or a writer on another host whose lock file is missing or cannot be locked): not modified for
+   `STALE_SECONDS` (a day).
+
+Anything else is kept. An abandoned temporary that is kept costs only disk space: resumption never
+depends on removing it (complete files are under final names, every writer uses fresh names).
+"""
+
+from __future__ import annotations
+
+import errno
+import fcntl
+import os
+import re
+import secrets
+import socket
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
+from dsr_bench.errors import UserError
+
+#: Temporaries of a writer on another host are removed only after this long without modification,
+#: even when their lock is free (locks may be host-local on some shared file systems).
+FOREIGN_GRACE_SECONDS = 3600.0
+#: Temporaries whose writer cannot be identified or checked are removed after this long.
+STALE_SECONDS = 24 * 3600.0
+
+_NAME = re.compile(r"^\.(?P<target>.+?)\.tmp-(?P<rest>.+?)(?P<lock>\.lock)?$")
+_OWNER = re.compile(r"^(?P<host>.+)-(?P<pid>\d+)-(?P<token>[0-9a-f]{8,})$")
+
+
+def host_name() -> str:
+    """This machine's host name as used in temporary names (no '/' or odd characters)."""
+    return re.sub(r"[^A-Za-z0-9._]", "_", socket.gethostname() or "unknown")
+
+
+def _names(path: Path, token: str) -> tuple[Path, Path]:
+    owner = f"{host_name()}-{os.getpid()}-{token}"
+    tmp = path.with_name(f".{path.name}.tmp-{owner}")
+    return tmp, tmp.with_name(f"{tmp.name}.lock")
+
+
+def _create_lock(path: Path) -> tuple[Path, Path, int | None]:
+    """(temporary, lock file, its open descriptor: locked, or unlocked where the file system has no locks)."""
+    while True:
+        tmp, lock = _names(path, secrets.token_hex(6))
+        fd = os.open(lock, os.O_RDWR | os.O_CREAT | os.O_EXCL, 0o644)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError as exc:
+            if exc.errno in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):  # a cleaner took the fresh file
+                os.close(fd)
+                continue
+            # no locks on this file system: write unlocked, cleaners fall back to pid and age
+            os.write(fd, f"{host_name()} {os.getpid()} unlocked\n".encode())
+            return tmp, lock, fd
+        try:  # a cleaner may have removed the file between open and lock: then start again
+            same = os.stat(lock).st_ino == os.fstat(fd).st_ino
+        except FileNotFoundError:
+            same = False
+        if same:
+            os.write(fd, f"{host_name()} {os.getpid()}\n".encode())
+            return tmp, lock, fd
+        os.close(fd)
+
+
+@contextmanager
+def atomic_path(path: str | Path) -> Iterator[Path]:
+    """Yield a temporary path next to `path` to write; rename it to `path` when the block succeeds,
+    remove it when the block raises. The writer's lock is held throughout (see the module doc).
+
+    >>> with atomic_path("out/seq_0000.h5") as tmp:
+    ...     with h5py.File(tmp, "w") as f: ...
+    """
+    path = Path(path)
+    tmp, lock, fd = _create_lock(path)
+    try:
+        yield tmp
+        try:
+            os.replace(tmp, path)
+        except FileNotFoundError:
+            raise UserError(f"{tmp} was removed by another process while being written (an older dsr-bench "
+                            f"sharing {path.parent}?); rerun the same command to finish") from None
+    finally:
+        try:
+            tmp.unlink(missing_ok=True)
+        finally:
+            try:
+                lock.unlink(missing_ok=True)
+            finally:
+                if fd is not None:
+                    os.close(fd)
+
+
+def write_text(path: str | Path, text: str) -> Path:
+    """Write `text` to `path` atomically (see `atomic_path`)."""
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        tmp.write_text(text)
+    return path
+
+
+def write_bytes(path: str | Path, data: bytes) -> Path:
+    """Write `data` to `path` atomically (see `atomic_path`)."""
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        tmp.write_bytes(data)
+    return path
+
+
+# --- cleaning ---------------------------------------------------------------------------------------
+def pid_alive(pid: int) -> bool:
+    """Whether process `pid` exists on this host (a zombie counts as alive)."""
+    if pid <= 0:
+        return False
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def _try_lock(lock: Path) -> tuple[str, int | None]:
+    """('taken', fd) holding the lock; 'held' by another; 'missing'; or 'unsupported'."""
+    fd = None
+    for flags in (os.O_RDWR, os.O_RDONLY):  # never O_CREAT: a new inode would prove nothing
+        try:
+            fd = os.open(lock, flags)
+            break
+        except FileNotFoundError:
+            return "missing", None
+        except OSError:  # e.g. another user's file: flock works on a read-only descriptor too
+            continue
+    if fd is None:
+        return "unsupported", None
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError as exc:
+        os.close(fd)
+        return ("held" if exc.errno in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES) else "unsupported"), None
+    return "taken", fd
+
+
+def _age(paths: list[Path]) -> float:
+    """Seconds since the most recent modification of any of `paths` (inf if none exists)."""
+    times = []
+    for p in paths:
+        try:
+            times.append(p.stat().st_mtime)
+        except FileNotFoundError:
+            pass
+    return time.time() - max(times) if times else float("inf")
+
+
+def _remove(paths: list[Path]) -> list[Path]:
+    """Remove `paths` (the temporary first, the lock file last); return those removed."""
+    removed = []
+    for p in paths:
+        try:
+            p.unlink()
+        except FileNotFoundError:
+            continue
+        except OSError:  # e.g. no permission: keep it, it only costs disk space
+            break
+        removed.append(p)
+    return removed
+
+
+def clean_temporaries(directory: str | Path, pattern: str = "*") -> list[Path]:
+    """Remove the abandoned temporaries (and lock files) of targets matching `pattern` (a glob of
+    final names, e.g. 'seq_*.h5') in `directory`; keep every live or undecidable writer's. Returns
+    the paths removed. Rules in the module doc."""
+    directory = Path(directory)
+    writers: dict[tuple[str, str], dict[str, Path]] = {}
+    for p in directory.glob(f".{pattern}.tmp-*"):
+        m = _NAME.match(p.name)
+        if m:
+            writers.setdefault((m["target"], m["rest"]), {})["lock" if m["lock"] else "tmp"] = p
+    here = host_name()
+    removed: list[Path] = []
+    for (target, rest), files in sorted(writers.items()):
+        owner = _OWNER.match(rest)
+        paths = [files[k] for k in ("tmp", "lock") if k in files]
+        lock = directory / f".{target}.tmp-{rest}.lock"
+        if owner is None:  # not this module's naming (an older version's): age only
+            if _age(paths) > STALE_SECONDS:
+                removed += _remove(paths)
+            continue
+        state, fd = _try_lock(lock)
+        try:
+            if state == "held":
+                continue
+            if owner["host"] == here:
+                abandoned = state == "taken" or not pid_alive(int(owner["pid"]))
+            elif state == "taken":
+                abandoned = _age(paths) > FOREIGN_GRACE_SECONDS
+            else:
+                abandoned = _age(paths) > STALE_SECONDS
+            if abandoned:
+                removed += _remove(paths)
+        finally:
+            if fd is not None:
+                os.close(fd)
+    return removed
