@@ -1,16 +1,20 @@
 """`dsr-bench evaluate`: score a predictions directory against a split, strictly.
 
-Structure is checked first for every file (names, presence, shapes, dtypes, attributes); the data
-checks (unreadable chunks, NaN/inf, slot ids out of range) happen in the same streaming pass that
-scores, one sequence per worker at a time. Any problem means no score, unless `allow_partial`,
-which scores the valid sequences and states the coverage.
+Structure is checked first for every file, reading no array data (names, presence, regular files
+inside the directory, the root's members and links, storage inside the file, filters, shapes,
+dtypes, `num_slots`, meta.json: `dsr_bench.predictions`); the data checks (unreadable chunks,
+NaN/inf, slot ids out of range) happen in the same streaming pass that scores, one sequence per
+worker at a time. Any problem means no score, unless `allow_partial`, which scores the valid
+sequences and states the coverage. A named split whose checksum differs from the toolkit's pin
+is scored with a warning (`pin_warning`) and `"pinned": false` in the results.
 """
 
 from __future__ import annotations
 
 import datetime as dt
 import hashlib
-import json
+import os
+import stat
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -18,30 +22,65 @@ import h5py
 import numpy as np
 
 from dsr_bench.errors import UserError
+from dsr_bench.predictions import META_TYPES
 
 RESULTS_FORMAT = "dsr-bench-results"
 HEADLINE = ("motion_visible", "motion_full", "iou_unordered", "iou_ordered")
-META_KEYS = ("name", "description", "code_url", "parameters", "hardware", "seconds_per_step")
+META_KEYS = tuple(META_TYPES)
+#: errors h5py raises on a damaged or hostile file
+READ_ERRORS = (OSError, KeyError, ValueError, TypeError, RuntimeError)
 
 
 @dataclass
 class Evaluation:
-    """Outcome of an evaluation: problems found and, if scored, the results dictionary."""
+    """Outcome of an evaluation: problems found (where, what), warnings (one line each) and, if
+    scored, the results dictionary."""
 
     problems: list[tuple[str, str]] = field(default_factory=list)
     results: dict | None = None
+    warnings: list[str] = field(default_factory=list)
+
+
+def pin_warning(manifest: dict, split: str, data_dir: str | Path | None = None) -> str | None:
+    """One line when `split` is a named split pinned in this toolkit and the dataset's split
+    checksum differs from the pin; None otherwise (a matching, unpinned or unnamed split)."""
+    from dsr_bench.manifest import split_digest
+    from dsr_bench.splits import SPLITS
+
+    spec = SPLITS.get(split)
+    if spec is None or spec.expected_digest is None:
+        return None
+    actual = split_digest(manifest, split)
+    if actual == spec.expected_digest:
+        return None
+    where = f"{data_dir}: " if data_dir is not None else ""
+    target = f" --out {data_dir}" if data_dir is not None else ""
+    return (f"{where}split {split!r} has checksum {actual[:12]}..., not this toolkit's pin "
+            f"{spec.expected_digest[:12]}...: its scores are not comparable with the leaderboard's; regenerate it "
+            f"with `dsr-bench generate --split {split}{target}`, or run `dsr-bench validate {data_dir or 'DATA_DIR'}` "
+            "to see which sequences differ")
 
 
 def score_sequence(args: tuple[str, str, str]) -> tuple[str, list[str], dict | None]:
     """Check and score one sequence, args = (name, prediction file, ground-truth file): returns
     (name, problems, per-step values or None). Used by `evaluate` and by the viewer's plots."""
     from dsr_bench.metrics import motion_2d_error, motion_errors, sequence_scores
+    from dsr_bench.predictions import check_prediction_header
     from dsr_bench.sequence import SequenceReader
 
     name, pred_path, gt_path = args
     problems: list[str] = []
     try:
+        mode = os.stat(pred_path).st_mode
+    except OSError as exc:
+        return name, [f"cannot be read ({exc.strerror})"], None
+    if not stat.S_ISREG(mode):
+        return name, ["not a regular file"], None
+    try:
         with SequenceReader(gt_path) as gt, h5py.File(pred_path, "r") as pred:
+            problems = check_prediction_header(pred, gt.num_steps)  # nothing is read before this passes
+            if problems:
+                return name, problems, None
             num_slots = int(pred.attrs["num_slots"])
             n = gt.num_objects
             pred_mask = pred["mask"][()]
@@ -71,8 +110,8 @@ def score_sequence(args: tuple[str, str, str]) -> tuple[str, list[str], dict | N
                 return name, problems, None
             visible = gt.read("visible_fraction") if "visible_fraction" in gt else None
             ious = sequence_scores(pred_mask, gt_mask, num_slots, n, visible)
-    except (OSError, KeyError, ValueError) as exc:
-        return name, [f"unreadable or truncated: {type(exc).__name__}: {exc}"], None
+    except READ_ERRORS as exc:
+        return name, [f"unreadable or truncated: {type(exc).__name__}: {' '.join(str(exc).split())}"], None
     out = {k: v.tolist() for k, v in per_step.items()}
     out["iou_unordered"] = ious["iou_unordered"].tolist()
     out["iou_ordered"] = ious["iou_ordered"].tolist()
@@ -85,45 +124,44 @@ def score_sequence(args: tuple[str, str, str]) -> tuple[str, list[str], dict | N
 
 
 def check_structure(pred_dir: Path, data_dir: Path, names: list[str]) -> tuple[dict[str, Path], list[tuple[str, str]]]:
-    """Every structural problem of a predictions directory; the files that passed."""
-    from dsr_bench.predictions import check_prediction_header
+    """Every structural problem of a predictions directory, as (file name, problem); the files that
+    passed. Reads no array data and opens only regular files inside the directory."""
+    from dsr_bench.predictions import check_prediction_header, file_problem, read_meta
 
     problems: list[tuple[str, str]] = []
     valid: dict[str, Path] = {}
-    root = pred_dir.resolve()
     expected = set(names)
     for path in sorted(pred_dir.glob("*.h5")):
         if path.stem not in expected:
             problems.append((path.name, "extra file: not a sequence of this split"))
     for name in names:
-        path = pred_dir / f"{name}.h5"
+        where = f"{name}.h5"
         if "/" in name or "\\" in name or name.startswith(".."):
             problems.append((name, "sequence name escapes the directory"))
             continue
-        if not path.exists():
-            problems.append((name, f"missing prediction file {path.name}"))
-            continue
-        if not path.resolve().is_relative_to(root):
-            problems.append((name, f"{path.name} resolves outside the predictions directory"))
+        path = pred_dir / where
+        problem = file_problem(path, pred_dir)
+        if problem:
+            problems.append((where, "missing prediction file" if problem == "missing" else problem))
             continue
         try:
-            with h5py.File(data_dir / f"{name}.h5", "r") as g:
+            with h5py.File(data_dir / where, "r") as g:
                 steps = int(g.attrs["num_steps"])
+        except READ_ERRORS as exc:
+            problem = (f"its ground truth {data_dir / where} is unreadable ({type(exc).__name__}); "
+                       f"run `dsr-bench validate {data_dir}`")
+            problems.append((where, problem))
+            continue
+        try:
             with h5py.File(path, "r") as f:
                 found = check_prediction_header(f, steps)
-        except OSError as exc:
-            found = [f"unreadable HDF5 file ({exc})"]
+        except READ_ERRORS as exc:
+            found = [f"unreadable HDF5 file ({type(exc).__name__}: {' '.join(str(exc).split())})"]
         if found:
-            problems += [(name, p) for p in found]
+            problems += [(where, p) for p in found]
         else:
             valid[name] = path
-    meta = pred_dir / "meta.json"
-    if meta.exists():
-        try:
-            if not isinstance(json.loads(meta.read_text()), dict):
-                problems.append(("meta.json", "must hold a JSON object"))
-        except json.JSONDecodeError as exc:
-            problems.append(("meta.json", f"not valid JSON ({exc})"))
+    problems += [("meta.json", p) for p in read_meta(pred_dir)[1]]
     return valid, problems
 
 
@@ -172,21 +210,29 @@ def predictions_checksum(pred_dir: Path, names: list[str]) -> str:
     return h.hexdigest()
 
 
+def _pinned(manifest: dict, split: str) -> bool:
+    """Whether `split` is a named split pinned in this toolkit and the dataset matches the pin."""
+    from dsr_bench.splits import SPLITS
+
+    spec = SPLITS.get(split)
+    return spec is not None and spec.expected_digest is not None and pin_warning(manifest, split) is None
+
+
 def evaluate(pred_dir: str | Path, data_dir: str | Path, split: str | None = None, allow_partial: bool = False,
              workers: int = 0) -> Evaluation:
     """Check and score a predictions directory against a split of a dataset."""
     from dsr_bench import __version__
     from dsr_bench.manifest import load_manifest, read_split, split_digest
+    from dsr_bench.predictions import read_meta
 
     pred_dir, data_dir = Path(pred_dir), Path(data_dir)
     if not pred_dir.is_dir():
         raise UserError(f"predictions directory not found: {pred_dir}")
     manifest = load_manifest(data_dir)
     split, names = read_split(data_dir, split)
+    warning = pin_warning(manifest, split, data_dir)
     valid, problems = check_structure(pred_dir, data_dir, names)
     jobs = [(name, str(path), str(data_dir / f"{name}.h5")) for name, path in valid.items()]
-    import os
-
     workers = workers or min(len(jobs), os.cpu_count() or 1)
     if workers > 1 and len(jobs) > 1:
         from concurrent.futures import ProcessPoolExecutor
@@ -197,22 +243,16 @@ def evaluate(pred_dir: str | Path, data_dir: str | Path, split: str | None = Non
         outcomes = [score_sequence(j) for j in jobs]
     scored = {}
     for name, found, values in outcomes:
-        problems += [(name, p) for p in found]
+        problems += [(f"{name}.h5", p) for p in found]
         if values is not None:
             scored[name] = values
-    evaluation = Evaluation(problems=problems)
+    evaluation = Evaluation(problems=problems, warnings=[warning] if warning else [])
     if (problems and not allow_partial) or not scored:
         return evaluation
-    meta = {}
-    if (pred_dir / "meta.json").exists():
-        try:
-            raw = json.loads((pred_dir / "meta.json").read_text())
-            meta = {k: raw[k] for k in META_KEYS if isinstance(raw, dict) and k in raw}
-        except json.JSONDecodeError:
-            pass
+    meta = read_meta(pred_dir)[0]
     results = {
         "format": RESULTS_FORMAT, "version": 1, "method": meta.get("name", pred_dir.name), "meta": meta,
-        "split": split, "split_checksum": split_digest(manifest, split),
+        "split": split, "split_checksum": split_digest(manifest, split), "pinned": _pinned(manifest, split),
         "predictions_checksum": predictions_checksum(pred_dir, sorted(scored)),
         "toolkit_version": __version__, "date": dt.datetime.now(dt.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ"),
         "coverage": {"scored": len(scored), "expected": len(names), "partial": len(scored) < len(names)},

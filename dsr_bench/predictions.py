@@ -4,18 +4,35 @@ PRED_DIR/seq_0042.h5 holds, for each push t = 0..T-1 (made after observations 0.
   mask       (T, 128, 128, 48) uint8    amodal instance slots: 0 empty, 1..num_slots
   motion     (T, 3, 128, 128, 48) float16 or float32  scene flow t -> t+1 in voxels, (dy, dx, dz)
   motion_2d  (T, 240, 320, 3) float16/32, optional    front-camera flow in metres, (dy, dx, dz)
-and the root attribute `num_slots` (K - 1, the number of object slots the model has; slot numbers
-are the model's own, matching is the metric's job). PRED_DIR/meta.json optionally describes the
-method: {"name", "description", "code_url", "parameters", "hardware", "seconds_per_step"}.
+and the root attribute `num_slots` (K - 1, the number of object slots the model has: a scalar
+integer in 1..254; slot numbers are the model's own, matching is the metric's job).
+PRED_DIR/meta.json optionally describes the method: a JSON object of at most 1 MiB with string
+"name", "description", "code_url", "hardware", an object "parameters" and a number
+"seconds_per_step".
+
+What a prediction file must not be, so that a score cannot be borrowed, hang or crash the
+evaluator (`check_prediction_header`, `file_problem`, `read_meta`; nothing is read before these pass):
+- anything but a regular file inside PRED_DIR (a FIFO, a directory, a device, a symlink leading out);
+- a file whose root holds anything but those datasets: no extra dataset or group, no soft,
+  external or user-defined link, no dataset linked twice;
+- a dataset whose bytes are not in the file itself: virtual datasets (other files' data, or zeros
+  when their source is missing) and external raw storage (`external=`);
+- a dataset compressed with a filter other than gzip, shuffle, fletcher32 or lzf (plugins);
+- a shape or dtype other than the contract's, checked before any data is read, so memory stays
+  bounded by the sequence's size.
 """
 
 from __future__ import annotations
 
+import json
+import math
 import os
+import stat
 from pathlib import Path
 
 import h5py
 import numpy as np
+from h5py import h5d, h5l, h5o, h5z
 
 from dsr_bench.constants import GRID_SHAPE, IMAGE_SHAPE
 from dsr_bench.errors import UserError
@@ -23,6 +40,19 @@ from dsr_bench.errors import UserError
 PREDICTION_FORMAT = "dsr-bench-predictions"
 MOTION_DTYPES = (np.dtype("float16"), np.dtype("float32"))
 MAX_SLOTS = 254
+#: the datasets a prediction file may hold at its root; motion_2d is optional
+DATASETS = ("mask", "motion", "motion_2d")
+#: filters every h5py build decodes without a plugin
+FILTERS = {h5z.FILTER_DEFLATE: "gzip", h5z.FILTER_SHUFFLE: "shuffle", h5z.FILTER_FLETCHER32: "fletcher32",
+           32000: "lzf"}
+META_NAME = "meta.json"
+META_MAX_BYTES = 1 << 20
+#: meta.json's known keys and the JSON types they must have
+META_TYPES: dict[str, tuple[tuple[type, ...], str]] = {
+    "name": ((str,), "a string"), "description": ((str,), "a string"), "code_url": ((str,), "a string"),
+    "hardware": ((str,), "a string"), "parameters": ((dict,), "an object"),
+    "seconds_per_step": ((int, float), "a number"),
+}
 
 
 def write_predictions(path: str | Path, mask: np.ndarray, motion: np.ndarray, num_slots: int,
@@ -65,23 +95,194 @@ def write_predictions(path: str | Path, mask: np.ndarray, motion: np.ndarray, nu
     return path
 
 
-def check_prediction_header(f: h5py.File, num_steps: int) -> list[str]:
-    """Structural problems of an open prediction file for a sequence of `num_steps` pushes."""
+def _kind(mode: int) -> str:
+    """A file type in words, for a mode that is not a regular file's."""
+    for test, word in ((stat.S_ISDIR, "a directory"), (stat.S_ISFIFO, "a FIFO (named pipe)"),
+                       (stat.S_ISSOCK, "a socket"), (stat.S_ISCHR, "a character device"),
+                       (stat.S_ISBLK, "a block device")):
+        if test(mode):
+            return word
+    return "not a regular file"
+
+
+def file_problem(path: Path, root: Path) -> str | None:
+    """Why `path` may not be read as a file of the directory `root` (None: a regular file inside it).
+    Only stats: a FIFO or device is never opened. A symlink must resolve to a regular file inside `root`."""
+    try:
+        mode = os.lstat(path).st_mode
+    except FileNotFoundError:
+        return "missing"
+    except OSError as exc:
+        return f"cannot be read ({exc.strerror})"
+    if stat.S_ISLNK(mode):
+        try:
+            target = path.resolve(strict=True)
+        except (OSError, RuntimeError):
+            return "a dangling or looping symlink"
+        if not target.is_relative_to(root.resolve()):
+            return "resolves outside the predictions directory (a symlink leading out of it)"
+        mode = os.stat(target).st_mode
+    if not stat.S_ISREG(mode):
+        return f"is {_kind(mode)}, not a regular file"
+    return None
+
+
+def _show(raw: bytes | str, limit: int = 80) -> str:
+    """A name or path from a file, quoted on one line and cut to `limit` characters."""
+    text = raw.decode("utf-8", "backslashreplace") if isinstance(raw, bytes) else raw
+    return repr(text if len(text) <= limit else text[:limit] + "...")
+
+
+def check_num_slots(attrs: h5py.AttributeManager) -> list[str]:
+    """Problems of the root attribute num_slots: a scalar integer (not a boolean) in 1..MAX_SLOTS.
+    Its shape and type are checked before its value is read."""
+    expected = f"attribute num_slots must be a scalar integer in 1..{MAX_SLOTS}"
+    if "num_slots" not in attrs:
+        return [f"{expected}, it is missing"]
+    aid = attrs.get_id("num_slots")
+    try:
+        dtype = aid.dtype
+    except (TypeError, ValueError):
+        return [f"{expected}, got an unsupported HDF5 type"]
+    if aid.shape is None:
+        return [f"{expected}, got an empty attribute"]
+    if aid.shape != ():
+        return [f"{expected}, got an array of shape {aid.shape}"]
+    if dtype.kind == "b":
+        return [f"{expected}, got a boolean"]
+    if dtype.kind in "SUO" or h5py.check_string_dtype(dtype) is not None:
+        return [f"{expected}, got a string"]
+    if dtype.kind not in "iuf" or dtype.itemsize > 16:
+        return [f"{expected}, got type {dtype}"]
+    value = attrs["num_slots"]
+    if dtype.kind == "f":
+        return [f"{expected}, got the float {float(value)!r} (store an integer type, e.g. np.int64)"]
+    if not 1 <= int(value) <= MAX_SLOTS:
+        return [f"{expected}, got {int(value)}"]
+    return []
+
+
+def _storage_problems(name: str, dset: h5py.Dataset) -> list[str]:
+    """A dataset whose bytes are not in this file, or need a filter plugin to decode. Reads no data."""
+    plist = dset.id.get_create_plist()
+    layout = plist.get_layout()
     problems = []
-    slots = f.attrs.get("num_slots")
-    if slots is None or not 1 <= int(slots) <= MAX_SLOTS:
-        problems.append(f"attribute num_slots missing or not in 1..{MAX_SLOTS}")
-    for name, shape, dtypes in (("mask", (num_steps,) + GRID_SHAPE, (np.dtype("uint8"),)),
-                                ("motion", (num_steps, 3) + GRID_SHAPE, MOTION_DTYPES)):
-        if name not in f or not isinstance(f[name], h5py.Dataset):
-            problems.append(f"missing dataset {name!r}")
-            continue
-        if f[name].shape != shape:
-            problems.append(f"{name}: shape {f[name].shape}, expected {shape}")
-        if f[name].dtype not in dtypes:
-            problems.append(f"{name}: dtype {f[name].dtype}, expected {' or '.join(map(str, dtypes))}")
-    if "motion_2d" in f:
-        shape = (num_steps,) + IMAGE_SHAPE + (3,)
-        if f["motion_2d"].shape != shape or f["motion_2d"].dtype not in MOTION_DTYPES:
-            problems.append(f"motion_2d: {f['motion_2d'].shape} {f['motion_2d'].dtype}, expected {shape} float16/float32")
+    if layout == h5d.VIRTUAL:
+        count = plist.get_virtual_count()
+        sources = sorted({plist.get_virtual_filename(i) for i in range(count)})
+        shown = ", ".join(_show(s) for s in sources[:2]) + (f" and {len(sources) - 2} more" if len(sources) > 2 else "")
+        problems.append(f"{name}: a virtual dataset (its data are read from {shown or 'nowhere'}, or are zeros when "
+                        "those are missing); write the arrays into the file itself")
+    elif layout not in (h5d.CONTIGUOUS, h5d.CHUNKED, h5d.COMPACT):
+        problems.append(f"{name}: unknown storage layout {layout}; write the arrays with h5py's defaults")
+    if plist.get_external_count():
+        raw = plist.get_external(0)[0]
+        problems.append(f"{name}: stored in external raw file(s) ({_show(raw)}); write the arrays into the file itself")
+    for i in range(plist.get_nfilters()):
+        code, _flags, _values, label = plist.get_filter(i)
+        if code not in FILTERS:
+            shown = f" ({_show(label)})" if label else ""
+            problems.append(f"{name}: compressed with HDF5 filter {code}{shown}, which needs a plugin; "
+                            f"use {', '.join(FILTERS.values())} or none")
     return problems
+
+
+def _root_problems(f: h5py.File) -> tuple[list[str], set[str], set[str]]:
+    """Problems of the root group's links, the names it holds, and the contract datasets found as
+    plain hard links. Never follows a link: soft and external links are named, not opened."""
+    names: list[bytes] = []
+    f.id.links.iterate(names.append)
+    problems, found, unexpected = [], set(), []
+    present = {raw.decode("utf-8", "backslashreplace") for raw in names}
+    for raw in names:
+        name = raw.decode("utf-8", "backslashreplace")
+        info = f.id.links.get_info(raw)
+        if info.type == h5l.TYPE_SOFT:
+            problems.append(f"{_show(name)} is a soft link to {_show(f.id.links.get_val(raw))}; links are refused, "
+                            "write the arrays into the file itself")
+            continue
+        if info.type == h5l.TYPE_EXTERNAL:
+            target, path = f.id.links.get_val(raw)
+            problems.append(f"{_show(name)} is an external link to {_show(target)}:{_show(path)}; links are refused, "
+                            "write the arrays into the file itself")
+            continue
+        if info.type != h5l.TYPE_HARD:
+            problems.append(f"{_show(name)} is a user-defined link (type {info.type}); links are refused")
+            continue
+        obj = h5o.get_info(f.id, raw)
+        if name not in DATASETS:
+            unexpected.append(name)
+        elif obj.type != h5o.TYPE_DATASET:
+            problems.append(f"{name!r} is {'a group' if obj.type == h5o.TYPE_GROUP else 'not a dataset'}, "
+                            "expected a dataset")
+        elif obj.rc != 1:
+            problems.append(f"{name!r} is linked {obj.rc} times; each dataset must appear once")
+        else:
+            found.add(name)
+    if unexpected:
+        more = f" and {len(unexpected) - 3} more" if len(unexpected) > 3 else ""
+        shown = ", ".join(_show(n) for n in unexpected[:3]) + more
+        problems.append(f"unexpected root member(s) {shown}: only {', '.join(DATASETS)} may exist")
+    return problems, present, found
+
+
+def check_prediction_header(f: h5py.File, num_steps: int) -> list[str]:
+    """Structural problems of an open prediction file for a sequence of `num_steps` pushes: the
+    root's members and links, num_slots, each dataset's shape, dtype, storage and filters. Reads no
+    array data, so it is safe (and cheap) on any file."""
+    problems = check_num_slots(f.attrs)
+    links, present, found = _root_problems(f)
+    problems += links
+    specs = {"mask": ((num_steps,) + GRID_SHAPE, (np.dtype("uint8"),)),
+             "motion": ((num_steps, 3) + GRID_SHAPE, MOTION_DTYPES),
+             "motion_2d": ((num_steps,) + IMAGE_SHAPE + (3,), MOTION_DTYPES)}
+    for name, (shape, dtypes) in specs.items():
+        if name not in found:
+            if name != "motion_2d" and name not in present:
+                problems.append(f"missing dataset {name!r}")
+            continue
+        dset = f[name]
+        if dset.shape != shape:
+            problems.append(f"{name}: shape {dset.shape}, expected {shape}")
+        try:
+            dtype = dset.dtype
+        except (TypeError, ValueError):
+            dtype = None
+        if dtype is None or dtype not in dtypes:
+            shown = "of an unsupported HDF5 type" if dtype is None else dtype
+            problems.append(f"{name}: dtype {shown}, expected {' or '.join(map(str, dtypes))}")
+        problems += _storage_problems(name, dset)
+    return problems
+
+
+def read_meta(pred_dir: Path) -> tuple[dict, list[str]]:
+    """PRED_DIR/meta.json's known keys and its problems ({} and [] when there is none). Checked
+    before reading: a regular file inside the directory, at most META_MAX_BYTES."""
+    path = pred_dir / META_NAME
+    if not os.path.lexists(path):
+        return {}, []
+    problem = file_problem(path, pred_dir)
+    if problem:
+        return {}, [problem]
+    size = path.stat().st_size
+    if size > META_MAX_BYTES:
+        return {}, [f"{size} bytes, more than the {META_MAX_BYTES} allowed"]
+    try:
+        with open(path, "rb") as fh:  # a regular file: opening cannot block
+            raw = json.loads(fh.read(META_MAX_BYTES + 1).decode("utf-8"))
+    except (OSError, UnicodeDecodeError, ValueError, RecursionError) as exc:
+        return {}, [f"not valid JSON ({type(exc).__name__}: {' '.join(str(exc).split())[:200]})"]
+    if not isinstance(raw, dict):
+        return {}, [f"must hold a JSON object, not {type(raw).__name__}"]
+    problems = []
+    for key, (types, words) in META_TYPES.items():
+        if key in raw:
+            value = raw[key]
+            if not isinstance(value, types) or isinstance(value, bool):
+                problems.append(f"{key!r} must be {words}, got {type(value).__name__}")
+            elif isinstance(value, float) and not math.isfinite(value):
+                problems.append(f"{key!r} must be a finite number, got {value}")
+    if not problems and "name" in raw and not raw["name"].strip():
+        problems.append("'name' must not be empty")
+    meta = {k: raw[k] for k in META_TYPES if k in raw}
+    return ({}, problems) if problems else (meta, [])

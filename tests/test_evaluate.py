@@ -40,6 +40,7 @@ def test_oracle_scores_exactly(generated_dataset, tmp_path):
     assert m["motion_visible"] == 0.0 and m["motion_full"] == 0.0 and m["motion_2d"] == 0.0
     assert results["split"] == "all" and results["coverage"] == {"scored": 2, "expected": 2, "partial": False}
     assert results["split_checksum"] == split_digest(load_manifest(generated_dataset), "all")
+    assert results["pinned"] is False  # "all" is not one of the benchmark's named, pinned splits
     assert len(results["predictions_checksum"]) == 64 and results["meta"]["name"] == "oracle"
     assert len(results["per_step"]["iou_ordered"]) == 3
 
@@ -73,8 +74,9 @@ def test_every_problem_reported_and_no_score(synthetic, tmp_path, capsys):
     os.symlink(outside, pred / "seq_0002.h5")  # escapes the directory
     assert main(["evaluate", str(pred), "--data", str(synthetic)]) == 1
     err = capsys.readouterr().err
-    for text in ("missing prediction file seq_0000.h5", "extra file", "NaN or inf", "slot id 200",
-                 "not valid JSON", "outside the predictions directory", "no score"):
+    for text in ("seq_0000.h5: missing prediction file", "seq_0042.h5: extra file",
+                 "seq_0001.h5: motion[0]: NaN or inf", "seq_0001.h5: mask: slot id 200", "meta.json: not valid JSON",
+                 "seq_0002.h5: resolves outside the predictions directory", "no score"):
         assert text in err, text
     assert "mask IoU" not in err
 
@@ -89,7 +91,7 @@ def test_wrong_shapes_and_truncation_then_allow_partial(synthetic, tmp_path, cap
     (pred / "seq_0001.h5").write_bytes(raw[: len(raw) // 3])
     evaluation = evaluate(pred, synthetic, workers=1)
     text = " ".join(f"{w}: {m}" for w, m in evaluation.problems)
-    assert "motion: dtype float64" in text and "seq_0001: unreadable" in text and evaluation.results is None
+    assert "motion: dtype float64" in text and "seq_0001.h5: unreadable" in text and evaluation.results is None
     assert main(["evaluate", str(pred), "--data", str(synthetic), "--allow-partial"]) == 0
     captured = capsys.readouterr()
     assert "scored 1 of 3 sequences" in captured.err and "mask IoU" in captured.out

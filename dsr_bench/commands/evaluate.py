@@ -63,6 +63,11 @@ def _print_results(results: dict) -> None:
     Console().print(per)
 
 
+def _printable(text: str) -> str:
+    """`text` on one line: control characters (a newline in a file name) escaped."""
+    return "".join(c if c.isprintable() else repr(c)[1:-1] for c in text)
+
+
 def evaluate(
     pred_dir: Path = typer.Argument(..., help="Predictions directory (one .h5 per sequence, meta.json)."),
     data: Path = typer.Option(..., "--data", help="Dataset directory with the ground truth."),
@@ -71,23 +76,22 @@ def evaluate(
     allow_partial: bool = typer.Option(False, "--allow-partial", help="Score the valid sequences despite problems."),
     workers: int = typer.Option(0, "--workers", "-w", help="Worker processes (0 = all cores)."),
 ) -> None:
-    """Validate a predictions directory strictly, then score it with the benchmark's metrics."""
+    """Validate a predictions directory strictly, then score it with the benchmark's metrics.
+    Each problem is one line `PRED_DIR/FILE: problem` on stderr; any problem means no score (exit 1)."""
     import os
 
     from rich.console import Console
-    from rich.table import Table
 
     from dsr_bench.evaluate import evaluate as run
 
     evaluation = run(pred_dir, data, split, allow_partial=allow_partial, workers=workers)
     console = Console(stderr=True)
+    for warning in evaluation.warnings:
+        typer.echo(f"warning: {_printable(warning)}", err=True)
     if evaluation.problems:
-        table = Table(title=f"{len(evaluation.problems)} problems in {pred_dir}")
-        table.add_column("where")
-        table.add_column("problem")
+        typer.echo(f"{len(evaluation.problems)} problems in {pred_dir}:", err=True)
         for where, message in evaluation.problems:
-            table.add_row(where, message)
-        console.print(table)
+            typer.echo(f"  {_printable(str(pred_dir / where))}: {_printable(message)}", err=True)
     if evaluation.results is None:
         console.print("[red]no score[/red]: fix the problems above, or score what is valid with --allow-partial")
         raise typer.Exit(1)
