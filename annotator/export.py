@@ -84,7 +84,7 @@ def export_sequence(session, out: str | Path, allow_unchecked: bool = False) -> 
     from dsr_bench import __version__
     from dsr_bench.constants import AXIS_ORDER, FLOW_COMPONENTS, GRID_BOUNDS, GRID_SHAPE, IMAGE_SHAPE, VOXEL_SIZE
     from dsr_bench.groundtruth import rigid_scene_flow_2d, rigid_scene_flow_3d
-    from dsr_bench.manifest import content_digest
+    from dsr_bench.digests import digest_attrs
     from dsr_bench.sequence import write_sequence
     from dsr_bench.tsdf import ProjectiveTSDF
     from annotator.state import STATE_VERSION
@@ -175,6 +175,6 @@ def export_sequence(session, out: str | Path, allow_unchecked: bool = False) -> 
         "tsdf_image_shape": [full.height, full.width], "annotation": annotation,
         "mesh_frames": "capture mesh frames; poses map object frame -> world (table) frame",
     }
-    attrs["content_sha256"] = content_digest(arrays, identities)
+    attrs.update(digest_attrs(arrays, identities))
     meshes = {i: capture.mesh(i) for i in range(n)}
     return write_sequence(out, arrays, attrs, meshes)

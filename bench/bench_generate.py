@@ -29,7 +29,7 @@ def main() -> None:
     parser.add_argument("--cameras", default="front")
     args = parser.parse_args()
 
-    from dsr_bench.manifest import content_digest
+    from dsr_bench.digests import digest_attrs
     from dsr_bench.sequence import _DEFLATE, write_sequence
     from dsr_bench.splits import sequence_seed
     from generators.episode import EpisodeConfig, generate_episode
@@ -47,7 +47,7 @@ def main() -> None:
         t0, c0 = time.perf_counter(), time.process_time()
         ep = generate_episode(config, object_set, sequence_seed(1234, i), f"seq_{i:04d}")
         t1, c1 = time.perf_counter(), time.process_time()
-        ep.attrs["content_sha256"] = content_digest(ep.arrays, ep.attrs["objects"])
+        ep.attrs.update(digest_attrs(ep.arrays, ep.attrs["objects"]))
         t2, c2 = time.perf_counter(), time.process_time()
         path = write_sequence(out / f"seq_{i:04d}.h5", ep.arrays, ep.attrs, ep.meshes)
         t3, c3 = time.perf_counter(), time.process_time()

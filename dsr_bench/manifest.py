@@ -1,9 +1,9 @@
 """Dataset directories: content digests, manifest.json, split files and checksums.
 
 A dataset directory holds `seq_*.h5` sequence files, `splits/<split>.txt` (one sequence name per
-line) and `manifest.json`. The content digest of a sequence covers its arrays and object list,
-independent of HDF5 byte layout; a split's checksum covers its sorted (name, content digest) pairs
-and is what the benchmark pins and the leaderboard checks.
+line) and `manifest.json`. Each sequence's digests (`dsr_bench.digests`: its ground truth, its
+observations, both) are independent of HDF5 byte layout; a split's checksum covers its sorted
+(name, ground-truth digest) pairs and is what the benchmark pins and the leaderboard checks.
 """
 
 from __future__ import annotations
@@ -17,66 +17,11 @@ from pathlib import Path
 import numpy as np
 
 from dsr_bench.constants import SCHEMA_VERSION
+from dsr_bench.digests import GROUND_TRUTH_KEY, OBSERVATIONS_KEY, split_checksum
 from dsr_bench.errors import UserError
 
 MANIFEST_NAME = "manifest.json"
 DATASET_FORMAT = "dsr-bench-dataset"
-
-
-def _canonical_objects(objects: list[dict]) -> bytes:
-    return json.dumps(objects, sort_keys=True).encode()
-
-
-def _array_bytes(a: np.ndarray):
-    """The C-order bytes of a C-contiguous array, without a copy where it can (hashlib reads buffers)."""
-    if a.dtype.hasobject:
-        return a.tobytes()
-    return a.reshape(-1).view(np.uint8)
-
-
-def content_digest(arrays: Mapping[str, np.ndarray], objects: list[dict]) -> str:
-    """SHA-256 over the sorted dataset names, dtypes, shapes and little-endian C-order bytes, and the
-    canonical JSON (sorted keys) of the object list. Independent of HDF5 chunking and compression."""
-    h = hashlib.sha256()
-    for name in sorted(arrays):
-        a = np.asarray(arrays[name])
-        a = np.ascontiguousarray(a.astype(a.dtype.newbyteorder("<"), copy=False))
-        h.update(f"{name}|{a.dtype.str}|{a.shape}|".encode())
-        h.update(_array_bytes(a))
-    h.update(_canonical_objects(objects))
-    return h.hexdigest()
-
-
-def sequence_content_digest(path: str | Path) -> str:
-    """Recompute a sequence file's content digest from its arrays (every dataset but `meshes/`).
-
-    Streams each dataset one step (first-axis slice) at a time, so memory stays at one step of the
-    largest array; gives the same value as `content_digest` on the in-memory arrays.
-    """
-    import h5py
-
-    from dsr_bench.sequence import SequenceReader
-
-    with SequenceReader(path) as seq:
-        names: list[str] = []
-
-        def visit(name: str, obj) -> None:
-            if isinstance(obj, h5py.Dataset) and not name.startswith("meshes/"):
-                names.append(name)
-
-        seq._file.visititems(visit)
-        h = hashlib.sha256()
-        for name in sorted(names):
-            ds = seq._file[name]
-            dtype = np.dtype(ds.dtype).newbyteorder("<")
-            h.update(f"{name}|{dtype.str}|{tuple(ds.shape)}|".encode())
-            if ds.ndim == 0 or ds.shape[0] == 0:
-                h.update(_array_bytes(np.ascontiguousarray(np.asarray(ds[()], dtype=dtype))))
-                continue
-            for i in range(ds.shape[0]):
-                h.update(_array_bytes(np.ascontiguousarray(np.asarray(seq.read(name, i), dtype=dtype))))
-        h.update(_canonical_objects(seq.objects))
-        return h.hexdigest()
 
 
 def mesh_sha256(vertices: np.ndarray, faces: np.ndarray) -> str:
@@ -105,19 +50,17 @@ def _split_names(data_dir: Path) -> dict[str, list[str]]:
 
 
 def split_digest(manifest: Mapping, split: str) -> str:
-    """The split checksum: SHA-256 over `name:content_sha256\\n` of the split's sequences, sorted by name."""
+    """The split checksum: SHA-256 over `name:ground_truth_sha256\\n` of the split's sequences, sorted by
+    name (`dsr_bench.digests.split_checksum`): what scores a model, not how it was rendered."""
     splits = manifest.get("splits", {})
     if split not in splits:
         raise UserError(f"split {split!r} is not in the manifest; available: {', '.join(sorted(splits)) or 'none'}")
-    digests = {s["name"]: s["content_sha256"] for s in manifest["sequences"]}
+    digests = {s["name"]: s[GROUND_TRUTH_KEY] for s in manifest["sequences"]}
     missing = [n for n in splits[split]["names"] if n not in digests]
     if missing:
         raise UserError(f"manifest split {split!r} names {missing[0]}, which the manifest does not list; "
                         "rebuild it with `dsr-bench manifest DIR`")
-    h = hashlib.sha256()
-    for name in sorted(splits[split]["names"]):
-        h.update(f"{name}:{digests[name]}\n".encode())
-    return h.hexdigest()
+    return split_checksum((name, digests[name]) for name in splits[split]["names"])
 
 
 def _json_attr(value, default):
@@ -139,7 +82,7 @@ def _sequence_entry(path: Path) -> dict:
             attrs = dict(f.attrs)
     except OSError as exc:
         raise UserError(f"{path}: unreadable sequence file ({exc}); delete it and regenerate or re-import it") from None
-    for key in ("content_sha256", "num_steps", "num_objects"):
+    for key in ("content_sha256", GROUND_TRUTH_KEY, OBSERVATIONS_KEY, "num_steps", "num_objects"):
         if key not in attrs:
             raise UserError(f"{path}: no {key!r} attribute (not a complete dsr-bench sequence); regenerate it or "
                             "run `dsr-bench import-official`")
@@ -147,7 +90,8 @@ def _sequence_entry(path: Path) -> dict:
     objects = _json_attr(attrs.get("objects"), [])
     return {
         "name": path.stem, "file": path.name, "sha256": file_sha256(path),
-        "content_sha256": str(attrs["content_sha256"]), "num_steps": int(attrs["num_steps"]),
+        "content_sha256": str(attrs["content_sha256"]), GROUND_TRUTH_KEY: str(attrs[GROUND_TRUTH_KEY]),
+        OBSERVATIONS_KEY: str(attrs[OBSERVATIONS_KEY]), "num_steps": int(attrs["num_steps"]),
         "num_objects": int(attrs["num_objects"]), "object_set": str(attrs.get("object_set", "")),
         "objects": objects if isinstance(objects, list) else [], "source": str(attrs.get("source", "")),
         "policy": str(attrs.get("policy", "")), "toolkit_version": str(attrs.get("toolkit_version", "")),
@@ -198,8 +142,8 @@ def write_manifest(data_dir: str | Path, manifest: Mapping) -> Path:
     return path
 
 
-_SEQUENCE_KEYS = {"name": str, "file": str, "sha256": str, "content_sha256": str, "num_steps": int,
-                  "num_objects": int}
+_SEQUENCE_KEYS = {"name": str, "file": str, "sha256": str, "content_sha256": str, GROUND_TRUTH_KEY: str,
+                  OBSERVATIONS_KEY: str, "num_steps": int, "num_objects": int}
 _SPLIT_KEYS = {"file": str, "sequences": int, "names": list, "content_sha256": str}
 
 

@@ -336,12 +336,12 @@ def official_arrays(reader, step: int) -> dict[str, np.ndarray]:
 
 
 def _import_one(args: tuple[OfficialSequence, str]) -> str:
-    from dsr_bench.manifest import content_digest
+    from dsr_bench.digests import digest_attrs
     from dsr_bench.sequence import write_sequence
 
     seq, dst = args
     arrays, extras, attrs = convert_sequence(seq)
-    attrs["content_sha256"] = content_digest({**arrays, **extras}, attrs["objects"])
+    attrs.update(digest_attrs({**arrays, **extras}, attrs["objects"]))
     write_sequence(Path(dst) / f"{attrs['sequence']}.h5", arrays, attrs, extras=extras)
     return attrs["sequence"]
 

@@ -14,6 +14,7 @@ import numpy as np
 from dsr_bench.constants import GRID_SHAPE, IMAGE_SHAPE, NUM_DIRECTIONS
 
 GRID_SYMBOLS = ("Y", "X", "Z")
+GROUND_TRUTH, OBSERVATION = "ground truth", "observation"
 
 
 @dataclass(frozen=True)
@@ -28,21 +29,25 @@ class Field:
     camera: bool = False  # lives under cameras/<name>/
     required: bool = True
     value_range: tuple[float, float] | None = None
+    #: "ground truth": what scores a model and what the policy decided, reproduced bit for bit on any
+    #: CPU; "observation": what the cameras render (images, depth, TSDF, heightmap, 2D ground truth),
+    #: reproduced to a stated tolerance (see `dsr_bench.digests`).
+    group: str = OBSERVATION
 
 
 SEQUENCE_SCHEMA: tuple[Field, ...] = (
     Field("tsdf", ("T+1", "Y", "X", "Z"), "float32", "truncation (0.02 m)",
           "Front-view TSDF: min(1, (depth - z) / trunc), +1 where unseen or free", value_range=(-1.0, 1.0)),
     Field("mask_3d", ("T+1", "Y", "X", "Z"), "uint8", "instance id",
-          "Amodal instance ids from each object's solid at its pose: 0 empty, 1..N objects"),
+          "Amodal instance ids from each object's solid at its pose: 0 empty, 1..N objects", group=GROUND_TRUTH),
     Field("scene_flow_3d", ("T", "3", "Y", "X", "Z"), "float32", "voxels (0.4 cm), (dy, dx, dz)",
-          "Rigid motion t -> t+1 of each object at the centres of its amodal voxels at t; 0 elsewhere"),
+          "Rigid motion t -> t+1 of each object at the centres of its amodal voxels at t; 0 elsewhere", group=GROUND_TRUTH),
     Field("action", ("T", "3"), "int64", "[direction 0..7, row, col]",
-          "Push: direction d (angle d*pi/4 in world xy), start cell (row along y, col along x)"),
-    Field("push_start", ("T", "3"), "float64", "m, world (x, y, z)", "Pusher tool tip (bottom centre, 5 mm above the table) at the push start"),
-    Field("push_end", ("T", "3"), "float64", "m, world (x, y, z)", "Pusher tool tip where the straight push ended"),
+          "Push: direction d (angle d*pi/4 in world xy), start cell (row along y, col along x)", group=GROUND_TRUTH),
+    Field("push_start", ("T", "3"), "float64", "m, world (x, y, z)", "Pusher tool tip (bottom centre, 5 mm above the table) at the push start", group=GROUND_TRUTH),
+    Field("push_end", ("T", "3"), "float64", "m, world (x, y, z)", "Pusher tool tip where the straight push ended", group=GROUND_TRUTH),
     Field("object_poses", ("T+1", "N", "7"), "float64", "m and unit quaternion (x, y, z, qx, qy, qz, qw)",
-          "World pose of each object's mesh frame at each observation"),
+          "World pose of each object's mesh frame at each observation", group=GROUND_TRUTH),
     Field("visible_fraction", ("T+1", "N"), "float32", "fraction",
           "Visible pixels / amodal silhouette pixels of each object in the front camera", required=False,
           value_range=(0.0, 1.0)),
@@ -58,14 +63,14 @@ SEQUENCE_SCHEMA: tuple[Field, ...] = (
     Field("scene_flow_2d", ("T", "H", "W", "3"), "float32", "m, world (dy, dx, dz)",
           "World displacement t -> t+1 of the surface point seen at each pixel; 0 for the background",
           camera=True),
-    Field("policy/chosen_object", ("T",), "int64", "object index 0..N-1", "Object the policy chose to push", required=False),
-    Field("policy/object_probs", ("T", "N"), "float32", "probability", "Object choice distribution", required=False),
+    Field("policy/chosen_object", ("T",), "int64", "object index 0..N-1", "Object the policy chose to push", required=False, group=GROUND_TRUTH),
+    Field("policy/object_probs", ("T", "N"), "float32", "probability", "Object choice distribution", required=False, group=GROUND_TRUTH),
     Field("policy/direction_scores", ("T", str(NUM_DIRECTIONS)), "float32", "score",
-          "Direction scores (NaN for the uniform policy)", required=False),
+          "Direction scores (NaN for the uniform policy)", required=False, group=GROUND_TRUTH),
     Field("policy/direction_probs", ("T", str(NUM_DIRECTIONS)), "float32", "probability",
-          "Direction choice distribution", required=False),
+          "Direction choice distribution", required=False, group=GROUND_TRUTH),
     Field("policy/attempts", ("T",), "int64", "count",
-          "Samples drawn until a valid push was found (start-point search and workspace checks)", required=False),
+          "Samples drawn until a valid push was found (start-point search and workspace checks)", required=False, group=GROUND_TRUTH),
 )
 
 FIELDS: dict[str, Field] = {f.name: f for f in SEQUENCE_SCHEMA}

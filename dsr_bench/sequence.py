@@ -260,9 +260,10 @@ class SequenceReader:
             )
         if version != SCHEMA_VERSION:
             self._file.close()
-            raise SequenceFormatError(
-                f"{self.path}: schema version {version}, this toolkit reads {SCHEMA_VERSION}; upgrade dsr-bench"
-            )
+            fix = ("it holds an earlier benchmark version's data: regenerate it (`dsr-bench generate`) or re-import "
+                   "it (`dsr-bench import-official`)" if isinstance(version, (int, np.integer)) and version < SCHEMA_VERSION
+                   else "upgrade dsr-bench")
+            raise SequenceFormatError(f"{self.path}: schema version {version}, this toolkit reads {SCHEMA_VERSION}; {fix}")
         self.attrs: dict[str, Any] = {}
         for key, value in self._file.attrs.items():
             if isinstance(value, str) and value[:1] in "[{":

@@ -1,9 +1,11 @@
 """The benchmark's fixed named splits: what `dsr-bench generate --split NAME` reproduces.
 
 A split is fully determined by its object set, size, base seed and scene parameters; sequence i is
-generated from `sequence_seed(base_seed, i)`, so any worker count or shard gives the same files'
-contents. `dsr_bench/data/split_digests.json` pins, for the splits generated with this toolkit
-version, the split checksum (`dsr_bench.manifest.split_digest`) and every sequence's content digest
+generated from `sequence_seed(base_seed, i)`, so any worker count, shard or CPU gives the same
+files' contents. `dsr_bench/data/split_pins.json` pins, for the splits generated with this toolkit
+version, the split checksum (`dsr_bench.manifest.split_digest`: the ground truth), the checksum of
+the observations, and per sequence its two group digests and a fingerprint of every array
+(`dsr_bench.digests`), so `validate` can say which arrays of which sequence differ and by how much
 (`scripts/pin_split.py DATA_DIR` writes it); `expected_digest` is None for splits not pinned yet.
 """
 
@@ -55,14 +57,20 @@ SPLITS: dict[str, Split] = {
     )
 }
 SPLIT_NAMES: tuple[str, ...] = tuple(SPLITS)
-PINNED_FILE = Path(__file__).resolve().parent / "data" / "split_digests.json"
+PINNED_FILE = Path(__file__).resolve().parent / "data" / "split_pins.json"
+PINS_FORMAT, PINS_VERSION = "dsr-bench-pins", 2
 
 
 def pinned_digests() -> dict[str, dict]:
-    """{split: {"checksum": str, "sequences": {name: content digest}}} of the pinned splits."""
+    """The pinned splits: {split: {"checksum": ground-truth split checksum, "observations_checksum",
+    "fields": [array names], "sequences": {name: {"ground_truth", "observations", "arrays": [one
+    `Fingerprint.to_list()` per field, None where the sequence lacks it]}}}}."""
     if not PINNED_FILE.is_file():
         return {}
-    return json.loads(PINNED_FILE.read_text())
+    pins = json.loads(PINNED_FILE.read_text())
+    if pins.get("format") != PINS_FORMAT or pins.get("version") != PINS_VERSION:
+        raise RuntimeError(f"{PINNED_FILE}: not {PINS_FORMAT} version {PINS_VERSION} (a broken installation)")
+    return pins["splits"]
 
 
 def _apply_pins() -> None:

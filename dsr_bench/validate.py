@@ -5,22 +5,27 @@ file against the schema (format, version, attributes, shapes, dtypes, value rang
 disabled, the ground truth against itself: flow recomputed from poses and amodal masks, flow zero
 off objects, amodal masks at t + 1 against the masks at t moved by the flow, the TSDF's sign against
 the front depth image, and content digests. A damaged file is a problem, never a crash.
+
+Flow is checked by its source's own definition: ours is the exact rigid motion of each voxel's sample
+point (`dsr_bench.groundtruth.rigid_scene_flow_3d`); the official release's (files imported with
+`source` = `official-import`) is integer-valued, the difference of rounded voxel coordinates of the
+object's solid points (see `official_flow_bound`).
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from dsr_bench.constants import GRID_SHAPE, NUM_DIRECTIONS, TSDF_TRUNCATION
+from dsr_bench.constants import FLOW_COMPONENTS, GRID_BOUNDS, GRID_SHAPE, NUM_DIRECTIONS, TSDF_TRUNCATION, VOXEL_SIZE
 
-#: Largest allowed difference (voxels) between stored flow and the rigid motion of the stored poses.
+#: Largest allowed difference (voxels) between stored flow and the rigid motion of the stored poses
+#: (our own data; also the numerical slack added to the official release's bound).
 FLOW_TOLERANCE = 1e-3
-#: The official release's flow is a difference of rounded voxel coordinates: within a voxel of ours.
-OFFICIAL_FLOW_TOLERANCE = 1.0 + FLOW_TOLERANCE
 #: Least fraction of negative TSDF voxels that must lie behind the depth image's surface (edges disagree).
 TSDF_SIGN_AGREEMENT = 0.95
 #: Least IoU between an object's amodal voxels at t + 1 and its voxels at t moved by the flow.
@@ -43,10 +48,12 @@ def action_problems(actions: np.ndarray, shape: tuple[int, int] = GRID_SHAPE[:2]
 
 @dataclass(frozen=True)
 class Problem:
-    """One problem found: where (a sequence name, a file, or 'dataset') and what."""
+    """One problem found: where (a sequence name, a file, or 'dataset') and what. A note (`note`) is
+    reported but does not make the dataset invalid (e.g. observations within the pin's tolerance)."""
 
     where: str
     message: str
+    note: bool = False
 
 
 def schema_markdown_table() -> str:
@@ -126,23 +133,126 @@ def _range_checks(seq, ok: set[str]) -> dict[str, Callable[[], list[str]]]:
 
 
 def _check_flow(seq) -> list[str]:
-    """Stored flow against the rigid motion of the stored poses, and zero off objects."""
+    """Stored flow against the rigid motion of the stored poses, and zero off objects; official imports
+    by the release's own (rounded) definition, `_check_official_flow`."""
     from dsr_bench.groundtruth import rigid_scene_flow_3d
 
+    if seq.attrs.get("source") == "official-import":
+        return _check_official_flow(seq)
     problems = []
     poses = seq.read("object_poses")
-    official = seq.attrs.get("source") == "official-import"
-    tolerance = OFFICIAL_FLOW_TOLERANCE if official else FLOW_TOLERANCE
     for t in range(seq.num_steps):
         mask = seq.read("mask_3d", t)
         flow = seq.read("scene_flow_3d", t)
-        outside = np.count_nonzero(np.any(flow[:, mask == 0] != 0, axis=0))
-        if outside:
-            problems.append(f"scene_flow_3d[{t}]: {outside} voxels outside every object have non-zero flow")
+        problems += _flow_outside_objects(t, mask, flow)
         err = float(np.abs(flow - rigid_scene_flow_3d(mask, poses[t], poses[t + 1])).max())
-        if err > tolerance:
+        if err > FLOW_TOLERANCE:
             problems.append(f"scene_flow_3d[{t}]: differs from the rigid motion of the stored poses by "
-                            f"{err:.3g} voxels (tolerance {tolerance:g})")
+                            f"{err:.3g} voxels (tolerance {FLOW_TOLERANCE:g})")
+    return problems
+
+
+def _flow_outside_objects(t: int, mask: np.ndarray, flow: np.ndarray) -> list[str]:
+    outside = np.count_nonzero(np.any(flow[:, mask == 0] != 0, axis=0))
+    return [f"scene_flow_3d[{t}]: {outside} voxels outside every object have non-zero flow"] if outside else []
+
+
+def official_flow_bound(angle: float) -> float:
+    """Largest difference (voxels, per component) between the official release's flow at a voxel and
+    the rigid motion of the stored poses at that voxel's grid point, for a push that turns the object
+    by `angle` radians.
+
+    The release stores at voxel i the flow round(c') - round(c) of a solid point c of the object with
+    round(c) = i, in voxel coordinates (c = (world - bound_min) / voxel size, so voxel i's grid point
+    is bound_min + i * voxel size, the release's corner convention), where c' = R c + t is c moved by
+    the push. With m(i) = (R - I) i + t the motion of the grid point:
+        flow - m(i) = [(round(c') - c') - (round(c) - c)] + (R - I)(c - i).
+    Each rounding moves a coordinate by at most 1/2, so the bracket is within 1 per component; c lies
+    within half a voxel of i on each axis, |c - i| <= sqrt(3)/2, and the spectral norm of R - I is
+    2 sin(angle / 2), so the second term is within sqrt(3) sin(angle / 2). The solid points themselves are not stored, so
+    this is what can be checked: 1 voxel without rotation, at most 1 + sqrt(3) (a half turn).
+    """
+    return 1.0 + math.sqrt(3.0) * math.sin(min(abs(angle), math.pi) / 2)
+
+
+def rotation_angle(rotation: np.ndarray) -> float:
+    """Angle (radians, 0..pi) of a 3x3 rotation matrix."""
+    cos = (rotation[0, 0] + rotation[1, 1] + rotation[2, 2] - 1.0) / 2.0
+    return float(np.arccos(np.clip(cos, -1.0, 1.0)))
+
+
+def _grid_point_motion(indices_yxz: np.ndarray, motion: np.ndarray) -> np.ndarray:
+    """Rigid motion (M, 3) in voxels (dy, dx, dz) of the official grid points (bound_min + i * voxel
+    size) of voxel indices (M, 3) in (iy, ix, iz)."""
+    from dsr_bench.geometry import transform_points
+
+    points = GRID_BOUNDS[:, 0] + indices_yxz[:, [1, 0, 2]].astype(np.float64) * VOXEL_SIZE
+    return ((transform_points(motion, points) - points) / VOXEL_SIZE)[:, [1, 0, 2]]
+
+
+def _official_flow_hint(got: np.ndarray, expected: np.ndarray, bound: float,
+                        others: dict[int, tuple[np.ndarray, float]]) -> str:
+    """What a flow that fails the official check would match: sign flipped, two components swapped,
+    or another object's motion (empty if none)."""
+    names = FLOW_COMPONENTS.split(",")
+    limit = bound + FLOW_TOLERANCE
+    if np.abs(-got - expected).max() <= limit:
+        return "; it matches with the sign flipped"
+    for a, b in ((0, 1), (0, 2), (1, 2)):
+        swapped = got.copy()
+        swapped[:, [a, b]] = got[:, [b, a]]
+        if np.abs(swapped - expected).max() <= limit:
+            return f"; it matches with {names[a]} and {names[b]} swapped"
+    for obj, (motion, other_bound) in others.items():
+        if np.abs(got - motion).max() <= other_bound + FLOW_TOLERANCE:
+            return f"; it matches object {obj}'s motion (flow of the wrong object?)"
+    return ""
+
+
+def _check_official_flow(seq) -> list[str]:
+    """Official flow by the release's definition: integer-valued, zero off objects, and at each voxel of
+    object k within `official_flow_bound(angle)` (+ FLOW_TOLERANCE) of the rigid motion of k's stored
+    poses at the voxel's grid point, per component."""
+    from dsr_bench.geometry import relative_motion
+
+    names = FLOW_COMPONENTS.split(",")
+    problems = []
+    poses = seq.read("object_poses")
+    for t in range(seq.num_steps):
+        mask = seq.read("mask_3d", t)
+        flow = seq.read("scene_flow_3d", t)
+        problems += _flow_outside_objects(t, mask, flow)
+        fractional = flow != np.rint(flow)
+        if fractional.any():
+            c, y, x, z = np.argwhere(fractional)[0]
+            count = np.count_nonzero(fractional.any(axis=0))
+            problems.append(f"scene_flow_3d[{t}]: {count} voxels hold non-integer flow (e.g. {names[c]} = "
+                            f"{float(flow[c, y, x, z]):g} at voxel (y, x, z) = ({y}, {x}, {z})); the official "
+                            "release's flow is a difference of rounded voxel coordinates, so integer-valued")
+        motions = {k: relative_motion(poses[t, k - 1], poses[t + 1, k - 1]) for k in range(1, seq.num_objects + 1)}
+        for k, motion in motions.items():
+            idx = np.argwhere(mask == k)
+            if len(idx) == 0:
+                continue
+            got = flow[:, idx[:, 0], idx[:, 1], idx[:, 2]].T.astype(np.float64)
+            expected = _grid_point_motion(idx, motion)
+            angle = rotation_angle(motion[:3, :3])
+            bound = official_flow_bound(angle)
+            err = np.abs(got - expected)
+            if err.max() <= bound + FLOW_TOLERANCE:
+                continue
+            bad = np.count_nonzero((err > bound + FLOW_TOLERANCE).any(axis=1))
+            j, c = np.unravel_index(np.argmax(err), err.shape)
+            others = {o: (_grid_point_motion(idx, m), official_flow_bound(rotation_angle(m[:3, :3])))
+                      for o, m in motions.items() if o != k}
+            hint = _official_flow_hint(got, expected, bound, others)
+            problems.append(
+                f"scene_flow_3d[{t}]: object {k}: {bad} of {len(idx)} voxels differ from the rounded rigid motion "
+                f"of its stored poses by more than the release's rounding allows ({bound:.2f} voxels at this "
+                f"push's {math.degrees(angle):.1f}-degree turn): up to {err[j, c]:.3g} (e.g. {names[c]} = "
+                f"{got[j, c]:g}, expected {round(expected[j, c], 2) + 0.0:.2f}, at voxel (y, x, z) = "
+                f"{tuple(int(v) for v in idx[j])})"
+                f"{hint}")
     return problems
 
 
@@ -153,14 +263,24 @@ def mask_warp_iou(mask_t: np.ndarray, flow_t: np.ndarray, mask_next: np.ndarray,
     are rounded to voxels (those leaving the grid are dropped). A voxel of either set matches if the
     other set has a voxel within one voxel (26-neighbourhood): rounding a rotated solid's voxels
     leaves holes and doubles that a plain IoU would count (it drops to ~0.6 for valid 30-degree
-    turns). Returns (matched voxels of both sets) / (voxels of both sets), or None if both are empty.
+    turns). Returns (matched voxels of both sets) / (voxels of both sets), or None if there is nothing
+    to compare: the object has no voxel at t (it is outside the grid: pushes are never undone, so an
+    object may leave the grid and come back) or at neither step.
     """
     from scipy import ndimage
 
     src = np.argwhere(mask_t == obj)
-    moved = np.rint(src + flow_t[:, src[:, 0], src[:, 1], src[:, 2]].T).astype(np.int64)
-    moved = moved[np.all((moved >= 0) & (moved < np.array(mask_t.shape)), axis=1)]
+    if len(src) == 0:
+        return None
+    shape = np.array(mask_t.shape)
+    exact = src + flow_t[:, src[:, 0], src[:, 1], src[:, 2]].T
+    moved = np.rint(exact).astype(np.int64)
+    moved = moved[np.all((moved >= 0) & (moved < shape), axis=1)]
     target = np.argwhere(mask_next == obj)
+    if len(src) >= 4 and len(target):  # leave out the part that entered the grid: it had no voxels at t
+        rotation, shift = _rigid_fit(src.astype(np.float64), exact)
+        before = (target - shift) @ rotation  # R^T (x - t), row vectors
+        target = target[np.all((before >= -0.5) & (before < shape - 0.5), axis=1)]
     if len(moved) == 0 and len(target) == 0:
         return None
     if len(moved) == 0 or len(target) == 0:
@@ -177,6 +297,15 @@ def mask_warp_iou(mask_t: np.ndarray, flow_t: np.ndarray, mask_next: np.ndarray,
     return matched / (np.count_nonzero(warped) + np.count_nonzero(truth))
 
 
+def _rigid_fit(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The rotation R (3, 3) and shift t (3,) minimising |R a_i + t - b_i| over point pairs (Kabsch)."""
+    ca, cb = a.mean(0), b.mean(0)
+    u, _, vt = np.linalg.svd((a - ca).T @ (b - cb))
+    d = np.sign(np.linalg.det(vt.T @ u.T))
+    rotation = vt.T @ np.diag([1.0, 1.0, d]) @ u.T
+    return rotation, cb - rotation @ ca
+
+
 def _check_mask_warp(seq) -> list[str]:
     problems = []
     for t in range(seq.num_steps):
@@ -191,11 +320,11 @@ def _check_mask_warp(seq) -> list[str]:
 
 def _check_tsdf_sign(seq, camera: str = "front") -> list[str]:
     """Voxels with tsdf < 0 must lie behind the depth image's surface, within the truncation."""
-    from dsr_bench.geometry import voxel_centers
+    from dsr_bench.geometry import voxel_points
 
     problems = []
     cam = seq.camera(camera)
-    centres = voxel_centers()
+    centres = voxel_points()
     for t in range(seq.num_steps + 1):
         tsdf = seq.read("tsdf", t)
         depth = seq.read(f"cameras/{camera}/depth", t)
@@ -260,19 +389,27 @@ def schema_problems(seq) -> tuple[list[str], set[str]]:
     return problems, ok
 
 
-def validate_sequence(path: str | Path, check_gt: bool = True, expected_digest: str | None = None) -> list[str]:
-    """Every problem of one sequence file (empty if none).
+def validate_sequence(path: str | Path, check_gt: bool = True, expected: dict | None = None) -> list[str]:
+    """Every problem of one sequence file (empty if none): see `_check_sequence`."""
+    return _check_sequence(path, check_gt, expected)[0]
+
+
+def _check_sequence(path: str | Path, check_gt: bool = True, expected: dict | None = None
+                    ) -> tuple[list[str], dict | None]:
+    """Every problem of one sequence file (empty if none), and its array fingerprints when computed.
 
     Schema (attributes, every dataset's shape and dtype), value ranges, and with `check_gt` the
-    ground-truth consistency and the content digest; `expected_digest` (the manifest's) is compared too.
+    ground-truth consistency and the digests, recomputed from the arrays (`dsr_bench.digests`): the
+    file's own (naming the arrays changed since writing) and `expected` (the manifest's entry).
     """
-    from dsr_bench.manifest import sequence_content_digest
+    from dsr_bench.digests import GROUND_TRUTH_KEY, OBSERVATIONS_KEY, file_digests
     from dsr_bench.schema import REQUIRED_ATTRS
 
     seq, problem = _open(path)
     if seq is None:
-        return [problem]
+        return [problem], None
     problems: list[str] = []
+    prints = None
     try:
         problems += [f"missing attribute {a!r}" for a in REQUIRED_ATTRS if a not in seq.attrs]
         found, ok = schema_problems(seq)
@@ -288,30 +425,38 @@ def validate_sequence(path: str | Path, check_gt: bool = True, expected_digest: 
                 _guard(problems, "mask_3d", lambda: _check_mask_warp(seq))
             if not range_problems and "tsdf" in ok and "cameras/front/depth" in ok:
                 _guard(problems, "tsdf", lambda: _check_tsdf_sign(seq))
-        if check_gt or expected_digest is not None:
-            stored = seq.attrs.get("content_sha256")
-            try:
-                actual = sequence_content_digest(path)
-            except Exception as exc:  # noqa: BLE001
-                problems.append(f"content digest: unreadable data ({type(exc).__name__}: {exc})")
-            else:
-                if stored is not None and actual != stored:
-                    problems.append("content digest does not match the arrays (file modified after writing)")
-                if expected_digest is not None and actual != expected_digest:
-                    problems.append("content digest differs from the manifest's")
+        stored = {k: seq.attrs.get(k) for k in ("content_sha256", GROUND_TRUTH_KEY, OBSERVATIONS_KEY, "array_sha256")}
     finally:
         seq.close()
-    return problems
+    if check_gt or expected is not None:
+        try:
+            actual = file_digests(path)
+        except Exception as exc:  # noqa: BLE001 - unreadable data is reported, not raised
+            problems.append(f"digests: unreadable data ({type(exc).__name__}: {exc})")
+        else:
+            prints = actual["fingerprints"]
+            if any(stored[k] is not None and stored[k] != actual[k] for k in ("content_sha256", GROUND_TRUTH_KEY,
+                                                                              OBSERVATIONS_KEY)):
+                listed = stored["array_sha256"] if isinstance(stored["array_sha256"], dict) else {}
+                changed = sorted(n for n in set(listed) | set(actual["array_sha256"])
+                                 if listed.get(n) != actual["array_sha256"].get(n))
+                problems.append("digests do not match the arrays (file modified after writing"
+                                + (f": {', '.join(changed)})" if changed else ")"))
+            for key in (GROUND_TRUTH_KEY, OBSERVATIONS_KEY):
+                if expected is not None and expected.get(key) != actual[key]:
+                    problems.append(f"{key} differs from the manifest's (run `dsr-bench manifest DIR` if the file "
+                                    "was replaced on purpose)")
+    return problems, prints
 
 
-def _validate_one(args: tuple[str, bool, str | None]) -> tuple[str, list[str]]:
-    path, check_gt, digest = args
-    return Path(path).stem, validate_sequence(path, check_gt, digest)
+def _validate_one(args: tuple[str, bool, dict | None]) -> tuple[str, list[str], dict | None]:
+    path, check_gt, expected = args
+    return (Path(path).stem, *_check_sequence(path, check_gt, expected))
 
 
 # --- the dataset -------------------------------------------------------------------------------------
-def _check_manifest(data_dir: Path, manifest: dict, files: dict[str, Path]) -> tuple[list[Problem], dict[str, str]]:
-    """Manifest against the files and split files; returns (problems, manifest digests by name)."""
+def _check_manifest(data_dir: Path, manifest: dict, files: dict[str, Path]) -> tuple[list[Problem], dict[str, dict]]:
+    """Manifest against the files and split files; returns (problems, manifest entries by name)."""
     from dsr_bench.errors import UserError
     from dsr_bench.manifest import file_sha256, split_digest
 
@@ -321,54 +466,62 @@ def _check_manifest(data_dir: Path, manifest: dict, files: dict[str, Path]) -> t
         problems.append(Problem(name, "listed in the manifest but the file is missing"))
     for name in sorted(set(files) - set(listed)):
         problems.append(Problem(name, "file present but not in the manifest (run `dsr-bench manifest DIR`)"))
-    digests: dict[str, str] = {}
+    digests: dict[str, dict] = {}
     for name in sorted(set(files) & set(listed)):
         if file_sha256(files[name]) != listed[name]["sha256"]:
             problems.append(Problem(name, "SHA-256 of the file differs from the manifest"))
-        digests[name] = listed[name]["content_sha256"]
+        digests[name] = listed[name]
     splits = manifest.get("splits", {})
     for split, info in sorted(splits.items()):
         path = data_dir / info["file"]
         if not path.is_file():
             problems.append(Problem(info["file"], f"split file of {split!r} is missing"))
             continue
-        names = [line.strip() for line in path.read_text().splitlines() if line.strip()]
+        try:
+            names = [line.strip() for line in path.read_text().splitlines() if line.strip()]
+        except (OSError, UnicodeDecodeError) as exc:
+            problems.append(Problem(info["file"], f"split file of {split!r} is unreadable ({exc})"))
+            continue
         if names != info["names"]:
             problems.append(Problem(info["file"], "split file differs from the manifest"))
         problems += [Problem(info["file"], f"names {n!r}, which has no file") for n in names if n not in files]
         try:
             if split_digest(manifest, split) != info["content_sha256"]:
                 problems.append(Problem(info["file"], f"split checksum of {split!r} in the manifest does not match "
-                                                      "its sequences' content digests"))
+                                                      "its sequences' ground-truth digests"))
         except UserError as exc:
             problems.append(Problem(info["file"], str(exc)))
     for path in sorted((data_dir / "splits").glob("*.txt")):
         if path.stem not in splits:
             problems.append(Problem(f"splits/{path.name}",
                                     "split file not in the manifest (run `dsr-bench manifest DIR`)"))
-    return problems + _check_pinned(manifest), digests
+    return problems, digests
 
 
-def _check_pinned(manifest: dict) -> list[Problem]:
-    """A named benchmark split must reproduce the toolkit's pinned digests, sequence by sequence."""
-    from dsr_bench.errors import UserError
-    from dsr_bench.manifest import split_digest
+def _check_pinned(data_dir: Path, manifest: dict, fingerprints: dict[str, dict]) -> list[Problem]:
+    """A named benchmark split must reproduce the toolkit's pin: its ground truth bit for bit, its
+    observations within the stated tolerance (`dsr_bench.pins`); differences name the sequences and
+    arrays, and say by how much. fingerprints: those already computed, by sequence name."""
+    from dsr_bench.digests import file_fingerprints
+    from dsr_bench.pins import compare_with_pin, summarize
     from dsr_bench.splits import pinned_digests
 
+    listed = {s["name"]: s for s in manifest["sequences"]}
     problems = []
-    digests = {s["name"]: s["content_sha256"] for s in manifest["sequences"]}
     for split, pin in pinned_digests().items():
-        if split not in manifest.get("splits", {}):
+        info = manifest.get("splits", {}).get(split)
+        if info is None:
             continue
-        try:
-            if split_digest(manifest, split) == pin["checksum"]:
-                continue
-        except UserError:
-            continue  # reported by the manifest checks
-        differing = [n for n, d in pin["sequences"].items() if digests.get(n) != d]
-        problems.append(Problem(f"splits/{split}.txt", f"differs from the toolkit's pinned {split} in "
-                                f"{len(differing)} sequences (e.g. {', '.join(differing[:3])}); regenerate it with "
-                                f"`dsr-bench generate --split {split}` on this toolkit version"))
+        digests = {n: listed[n] for n in info["names"] if n in listed}
+
+        def prints(name: str) -> dict:
+            if fingerprints.get(name) is None:
+                fingerprints[name] = file_fingerprints(data_dir / listed[name]["file"])[0]
+            return fingerprints[name]
+
+        comparison = compare_with_pin(pin, digests, prints)
+        problems += [Problem(where, message, note=message.startswith("note:"))
+                     for where, message in summarize(split, comparison)]
     return problems
 
 
@@ -383,8 +536,9 @@ def validate_dataset(data_dir: str | Path, check_gt: bool = True, workers: int =
     if workers < 1:
         raise UserError(f"--workers {workers}: must be at least 1")
     problems: list[Problem] = []
-    files = {p.stem: p for p in sorted(data_dir.glob("seq_*.h5"))}
-    digests: dict[str, str] = {}
+    files = _sequence_files(data_dir)
+    digests: dict[str, dict] = {}
+    manifest = None
     try:
         manifest = load_manifest(data_dir)
     except UserError as exc:
@@ -397,12 +551,47 @@ def validate_dataset(data_dir: str | Path, check_gt: bool = True, workers: int =
         import multiprocessing as mp
         from concurrent.futures import ProcessPoolExecutor
 
-        with ProcessPoolExecutor(min(workers, len(jobs)), mp_context=mp.get_context("spawn")) as pool:
-            results = list(pool.map(_validate_one, jobs))
+        from concurrent.futures.process import BrokenProcessPool
+
+        try:
+            with ProcessPoolExecutor(min(workers, len(jobs)), mp_context=mp.get_context("spawn")) as pool:
+                results = list(pool.map(_validate_one, jobs))
+        except BrokenProcessPool:
+            raise UserError(f"--workers {workers}: a worker process died while checking {data_dir} (out of "
+                            "memory?); run again with fewer workers") from None
     else:
         results = [_validate_one(j) for j in jobs]
-    for name, found in results:
+    fingerprints = {}
+    for name, found, prints in results:
         problems += [Problem(name, m) for m in found]
+        fingerprints[name] = prints
+    if manifest is not None:
+        problems += _check_pinned(data_dir, manifest, fingerprints)
     if not files:
         problems.append(Problem("dataset", f"no seq_*.h5 files in {data_dir}"))
     return problems, len(files)
+
+
+def _sequence_files(data_dir: Path) -> dict[str, Path]:
+    """The sequence files `validate` checks, by name."""
+    return {p.stem: p for p in sorted(Path(data_dir).glob("seq_*.h5"))}
+
+
+def summary_line(problems: list[Problem], count: int, data_dir: str | Path, named: int = 3) -> str:
+    """The last line of a failed `validate`: files checked and those with problems, and the problems that
+    belong to no checked sequence file (manifest, split files, pins, files listed but missing, an empty
+    directory), counted and the first `named` of them named, so the line alone says why it failed."""
+    files = _sequence_files(Path(data_dir))
+    notes = [p for p in problems if p.note]
+    problems = [p for p in problems if not p.note]
+    bad = len({p.where for p in problems if p.where in files})
+    line = f"{count} sequence files checked, {bad} with problems"
+    dataset = [p for p in problems if p.where not in files]
+    if dataset:
+        shown = "; ".join(f"{p.where}: {p.message}" for p in dataset[:named])
+        more = f"; and {len(dataset) - named} more above" if len(dataset) > named else ""
+        line += (f"; {len(dataset)} dataset-level problem{'s' if len(dataset) != 1 else ''} "
+                 f"({shown}{more})")
+    if notes:
+        line += f"; {len(notes)} note{'s' if len(notes) != 1 else ''} (not problems)"
+    return line

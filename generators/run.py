@@ -181,7 +181,7 @@ def _init_worker(objects: str, object_root: str | None) -> None:
 
 
 def _generate_one(plan: RunPlan, index: int) -> SequenceResult:
-    from dsr_bench.manifest import content_digest
+    from dsr_bench.digests import digest_attrs
     from dsr_bench.sequence import write_sequence
     from generators.episode import generate_episode
 
@@ -189,7 +189,7 @@ def _generate_one(plan: RunPlan, index: int) -> SequenceResult:
     name = sequence_name(index)
     episode = generate_episode(plan.config, _WORKER["set"], sequence_seed(plan.seed, index), name)
     episode.attrs["generator_args"] = plan.generator_args(index)
-    episode.attrs["content_sha256"] = content_digest(episode.arrays, episode.attrs["objects"])
+    episode.attrs.update(digest_attrs(episode.arrays, episode.attrs["objects"]))
     path = write_sequence(plan.out / f"{name}.h5", episode.arrays, episode.attrs, episode.meshes)
     return SequenceResult(name, time.perf_counter() - start, path.stat().st_size, episode.scene_attempts,
                           episode.timings)

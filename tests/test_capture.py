@@ -164,7 +164,7 @@ def _ideal_depth(cap, step: int, camera: str) -> np.ndarray:
     objects = [SimpleNamespace(parts=[SimpleNamespace(vertices=v, faces=f)], color=(0.5, 0.5, 0.5))
                for v, f in (cap.mesh(i) for i in range(cap.num_objects))]
     renderer = SceneRenderer(objects, cameras=(camera,), image_shape=(480, 640))
-    scene, ids = renderer._scene(cap.truth_poses()[step])
+    scene, ids = renderer.scene(cap.truth_poses()[step])
     return renderer.render_camera(scene, ids, camera).depth
 
 

@@ -1,4 +1,4 @@
-"""Content digests, manifest.json, split files and split checksums (dsr_bench.manifest)."""
+"""Digests (dsr_bench.digests), manifest.json, split files and split checksums (dsr_bench.manifest)."""
 
 import hashlib
 import json
@@ -7,15 +7,14 @@ import h5py
 import numpy as np
 import pytest
 
+from dsr_bench.digests import array_digest, digest_attrs, file_digests, group_digests
 from dsr_bench.errors import UserError
 from dsr_bench.manifest import (
     build_manifest,
-    content_digest,
     file_sha256,
     load_manifest,
     read_split,
     resolve_sequence,
-    sequence_content_digest,
     split_digest,
     write_manifest,
 )
@@ -27,57 +26,76 @@ def data(tmp_path_factory):
     return write_synthetic_dataset(tmp_path_factory.mktemp("man") / "data", num_sequences=2, num_steps=1)
 
 
-def test_content_digest_definition():
+def test_digest_definitions():
     a = np.arange(6, dtype=np.float32).reshape(2, 3)
     b = np.array([1, 2], np.uint8)
     objects = [{"model_id": "m", "scale": 1.5}]
-    expected = hashlib.sha256()
-    for name, arr in (("a", a), ("b", b)):  # sorted names, dtype, shape, little-endian C-order bytes
-        expected.update(f"{name}|{arr.dtype.str}|{arr.shape}|".encode() + arr.tobytes())
-    expected.update(json.dumps(objects, sort_keys=True).encode())
-    assert content_digest({"b": b, "a": a}, objects) == expected.hexdigest()
-    # independent of byte order and memory layout, sensitive to dtype, shape, values, names, objects
-    assert content_digest({"a": a.astype(">f4"), "b": b}, objects) == expected.hexdigest()
-    assert content_digest({"a": np.asfortranarray(a), "b": b}, objects) == expected.hexdigest()
-    base = expected.hexdigest()
-    assert content_digest({"a": a.astype(np.float64), "b": b}, objects) != base
-    assert content_digest({"a": a.reshape(3, 2), "b": b}, objects) != base
-    assert content_digest({"a": a + 1, "b": b}, objects) != base
-    assert content_digest({"c": a, "b": b}, objects) != base
-    assert content_digest({"a": a, "b": b}, [{"model_id": "m", "scale": 1.25}]) != base
-    assert content_digest({"a": a, "b": b}, [{"scale": 1.5, "model_id": "m"}]) == base  # key order is canonical
+    # an array: name, little-endian dtype, shape, C-order bytes
+    expected_a = hashlib.sha256(f"a|{a.dtype.str}|{a.shape}|".encode() + a.tobytes()).hexdigest()
+    assert array_digest("a", a) == expected_a
+    assert array_digest("a", a.astype(">f4")) == array_digest("a", np.asfortranarray(a)) == expected_a
+    for other in (a.astype(np.float64), a.reshape(3, 2), a + 1):
+        assert array_digest("a", other) != expected_a
+    assert array_digest("c", a) != expected_a
+    # groups: the ground truth (schema group) with the object list, the observations; content of both
+    arrays = {"mask_3d": b, "tsdf": a}
+    per = {n: array_digest(n, x) for n, x in arrays.items()}
+    gt = hashlib.sha256(f"mask_3d:{per['mask_3d']}\n".encode() + json.dumps(objects, sort_keys=True).encode())
+    obs = hashlib.sha256(f"tsdf:{per['tsdf']}\n".encode())
+    content = hashlib.sha256(f"{gt.hexdigest()}\n{obs.hexdigest()}\n".encode())
+    attrs = digest_attrs(arrays, objects)
+    assert attrs == {"array_sha256": per, "ground_truth_sha256": gt.hexdigest(),
+                     "observations_sha256": obs.hexdigest(), "content_sha256": content.hexdigest()}
+    # an observation changes the observations and the content only; the object list the ground truth
+    changed = digest_attrs({"mask_3d": b, "tsdf": a + 1}, objects)
+    assert changed["ground_truth_sha256"] == attrs["ground_truth_sha256"]
+    assert changed["observations_sha256"] != attrs["observations_sha256"]
+    assert changed["content_sha256"] != attrs["content_sha256"]
+    other = group_digests(per, [{"scale": 1.25, "model_id": "m"}])
+    assert other["ground_truth_sha256"] != attrs["ground_truth_sha256"]
+    assert group_digests(per, [{"scale": 1.5, "model_id": "m"}]) == group_digests(per, objects)  # canonical keys
 
 
-def test_file_digest_matches_in_memory_digest(data):
+def test_file_digests_match_the_stored_ones(data):
     path = data / "seq_0001.h5"
     with h5py.File(path, "r") as f:
-        stored = f.attrs["content_sha256"]
-    assert sequence_content_digest(path) == stored
+        stored = {k: f.attrs[k] for k in ("content_sha256", "ground_truth_sha256", "observations_sha256")}
+        per = json.loads(f.attrs["array_sha256"])
+    found = file_digests(path)
+    assert {k: found[k] for k in stored} == stored and found["array_sha256"] == per
+    assert {n: fp.sha256 for n, fp in found["fingerprints"].items()} == per
     assert file_sha256(path) == hashlib.sha256(path.read_bytes()).hexdigest()
 
 
-def test_file_digest_sees_any_array_change(data, tmp_path):
+def test_file_digests_see_any_array_change(data, tmp_path):
     path = tmp_path / "s.h5"
     path.write_bytes((data / "seq_0000.h5").read_bytes())
-    before = sequence_content_digest(path)
+    before = file_digests(path)
     with h5py.File(path, "r+") as f:
         f["policy/attempts"][0] += 1
-    assert sequence_content_digest(path) != before
+    after = file_digests(path)
+    assert after["ground_truth_sha256"] != before["ground_truth_sha256"]
+    assert after["observations_sha256"] == before["observations_sha256"]
+    assert [n for n in after["array_sha256"] if after["array_sha256"][n] != before["array_sha256"][n]] == [
+        "policy/attempts"]
 
 
 def test_build_manifest_fields_and_split_checksum(data):
     m = build_manifest(data)
-    assert m["format"] == "dsr-bench-dataset" and m["schema_version"] == 1
+    assert m["format"] == "dsr-bench-dataset" and m["schema_version"] == 2
     assert [s["name"] for s in m["sequences"]] == ["seq_0000", "seq_0001"]
     entry = m["sequences"][0]
     assert entry["file"] == "seq_0000.h5" and entry["num_steps"] == 1 and entry["num_objects"] == 2
     assert entry["sha256"] == file_sha256(data / "seq_0000.h5")
-    assert entry["content_sha256"] == sequence_content_digest(data / "seq_0000.h5")
+    found = file_digests(data / "seq_0000.h5")
+    for key in ("content_sha256", "ground_truth_sha256", "observations_sha256"):
+        assert entry[key] == found[key]
     assert entry["objects"][0]["category"] == "box" and entry["source"] == "synthetic"
     assert entry["generator_args"] == {"seed": 0, "steps": 1}
     split = m["splits"]["test"]
     assert split["file"] == "splits/test.txt" and split["sequences"] == 2
-    expected = hashlib.sha256("".join(f"{s['name']}:{s['content_sha256']}\n" for s in m["sequences"]).encode())
+    # the split checksum covers the ground truth only
+    expected = hashlib.sha256("".join(f"{s['name']}:{s['ground_truth_sha256']}\n" for s in m["sequences"]).encode())
     assert split["content_sha256"] == split_digest(m, "test") == expected.hexdigest()
 
 
@@ -94,9 +112,9 @@ def test_write_and_load_round_trip(data, tmp_path):
     (None, "has no manifest.json; build it with `dsr-bench manifest"),
     ("{not json", "unreadable manifest"),
     ('{"format": "other"}', "not a dsr-bench manifest"),
-    ('{"format": "dsr-bench-dataset", "schema_version": 1, "sequences": [{"name": "x"}], "splits": {}}',
+    ('{"format": "dsr-bench-dataset", "schema_version": 2, "sequences": [{"name": "x"}], "splits": {}}',
      r"sequences\[0\] lacks 'file'"),
-    ('{"format": "dsr-bench-dataset", "schema_version": 1, "sequences": [], "splits": {"t": {"file": "f"}}}',
+    ('{"format": "dsr-bench-dataset", "schema_version": 2, "sequences": [], "splits": {"t": {"file": "f"}}}',
      r"splits\['t'\] lacks 'sequences'"),
     ('{"format": "dsr-bench-dataset", "schema_version": 99, "sequences": [], "splits": {}}', "schema version 99"),
 ])

@@ -247,3 +247,183 @@ def test_wrong_shape_and_dtype_are_named(tmp_path):
 def test_import_cli_errors(tmp_path, capsys):
     assert main(["import-official", str(tmp_path / "missing"), str(tmp_path / "out")]) == 2
     assert "official data directory not found" in capsys.readouterr().err
+
+
+# --- flow by the release's own definition ------------------------------------------------------------
+def _yaw(angle_deg, axis=(0.0, 0.0, 1.0)):
+    """Quaternion (x, y, z, w) of a turn about `axis`."""
+    axis = np.asarray(axis, float) / np.linalg.norm(axis)
+    half = np.radians(angle_deg) / 2
+    return np.concatenate([axis * np.sin(half), [np.cos(half)]])
+
+
+def _quat_mul(a, b):
+    (ax, ay, az, aw), (bx, by, bz, bw) = a, b
+    return np.array([aw * bx + ax * bw + ay * bz - az * by, aw * by - ax * bz + ay * bw + az * bx,
+                     aw * bz + ax * by - ay * bx + az * bw, aw * bw - ax * bx - ay * by - az * bz])
+
+
+#: Four boxes (half extents, metres), their first poses and, per push, (translation, turn) in the world.
+#: Push 0 translates (object 2 also turns 15 degrees, object 3 stays); push 1 turns objects 1, 2 and 4.
+MOVING_BOXES = [
+    ((0.020, 0.014, 0.018), (0.40, -0.10, 0.05), 10, [((0.040, 0.0, 0.0), None),
+                                                      ((0.0, 0.030, 0.0), (40, (0, 0, 1)))]),
+    ((0.014, 0.020, 0.022), (0.60, -0.09, 0.05), 35, [((0.0, -0.020, 0.0), (15, (0, 0, 1))),
+                                                      ((0.010, 0.0, 0.004), (25, (1, 0.3, 0)))]),
+    ((0.018, 0.018, 0.018), (0.42, 0.11, 0.05), 60, [((0.0, 0.0, 0.0), None), ((0.0, 0.0, 0.0), None)]),
+    ((0.012, 0.024, 0.015), (0.60, 0.10, 0.05), 80, [((0.012, 0.020, 0.0), None),
+                                                     ((0.0, -0.010, 0.0), (-60, (0, 0, 1)))]),
+]
+
+
+def _official_voxels(points_world):
+    """The release's rounded voxel coordinates (x, y, z) of world points: round((p - bound_min) / voxel)."""
+    from dsr_bench.constants import GRID_BOUNDS, VOXEL_SIZE
+    return np.round((points_world - GRID_BOUNDS[:, 0]) / VOXEL_SIZE).astype(np.int64)
+
+
+def write_moving_official_fixture(root, seq_id="4", seed=3):
+    """One official sequence (STEPS pushes) whose mask_3d and scene_flow_3d follow the authors' definition
+    exactly: each box is a set of solid points (a half-voxel lattice in the box, jittered); mask_3d[t] holds
+    object k at the rounded voxel coordinates of its points under pose t, and scene_flow_3d[t] there the
+    difference of the rounded coordinates after and before push t, components (dy, dx, dz), as integers.
+    The images are flat (depth 0.75 m) and the TSDF +1, so every other check of `validate` passes too."""
+    from dsr_bench.constants import GRID_SHAPE
+    from dsr_bench.geometry import quat_to_matrix
+
+    rng = np.random.default_rng(seed)
+    solids, positions, orientations = [], np.zeros((STEPS + 1, 4, 3)), np.zeros((STEPS + 1, 4, 4))
+    for k, (half, start, yaw, pushes) in enumerate(MOVING_BOXES):
+        axes = [np.arange(-h, h + 1e-9, 0.002) for h in half]
+        lattice = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+        solids.append(lattice + rng.uniform(-0.0005, 0.0005, lattice.shape))
+        positions[0, k], orientations[0, k] = start, _yaw(yaw)
+        for t, (shift, turn) in enumerate(pushes):
+            positions[t + 1, k] = positions[t, k] + shift
+            orientations[t + 1, k] = orientations[t, k] if turn is None else _quat_mul(_yaw(*turn), orientations[t, k])
+    voxels = [[_official_voxels(solids[k] @ quat_to_matrix(orientations[s, k]).T + positions[s, k])
+               for k in range(4)] for s in range(STEPS + 1)]
+    masks, flows = np.zeros((STEPS + 1,) + GRID_SHAPE, np.int64), np.zeros((STEPS,) + GRID_SHAPE + (3,))
+    for s in range(STEPS + 1):
+        for k in range(4):
+            old = voxels[s][k]
+            masks[s][old[:, 1], old[:, 0], old[:, 2]] = k + 1  # volumes are (y, x, z)
+            if s < STEPS:
+                flows[s][old[:, 1], old[:, 0], old[:, 2]] = (voxels[s + 1][k] - old)[:, [1, 0, 2]]
+    for t in range(STEPS):
+        data = _official_step(rng, t, positions[t], orientations[t])
+        data.update(mask_3d=masks[t], scene_flow_3d=flows[t], tsdf=np.ones(GRID_SHAPE, np.float32),
+                    depth_image=np.full((960, 1280), 0.75, np.float32),
+                    depth_image_small=np.full((240, 320), 0.75, np.float32))
+        with h5py.File(root / f"{seq_id}_{t}.hdf5", "w") as f:
+            for name, value in data.items():
+                f.create_dataset(name, data=value, compression="gzip", compression_opts=4)
+            if t == STEPS - 1:
+                nxt = _official_step(rng, t + 1, positions[t + 1], orientations[t + 1])
+                nxt.update(mask_3d=masks[t + 1], depth_image=np.full((960, 1280), 0.75, np.float32),
+                           depth_image_small=np.full((240, 320), 0.75, np.float32))
+                for name in OFFICIAL_NEXT:
+                    f.create_dataset(f"next/{name}", data=nxt[name], compression="gzip", compression_opts=4)
+    (root / "test.txt").write_text(f"{seq_id}\n")
+    return masks, flows
+
+
+@pytest.fixture(scope="module")
+def moving(tmp_path_factory):
+    src = tmp_path_factory.mktemp("official_moving")
+    write_moving_official_fixture(src)
+    dst = tmp_path_factory.mktemp("ours_moving") / "data"
+    import_official(src, dst)
+    return dst
+
+
+def test_official_flow_bound_holds_for_the_rounded_definition():
+    """round(R c + t) - round(c) never differs from the motion of c's voxel grid point round(c) by more
+    than official_flow_bound(angle) per component, for points anywhere in the voxel; the bound is reached
+    (within sampling) and a voxel-centre reference (what validate used before) exceeds it."""
+    from dsr_bench.geometry import quat_to_matrix
+    from dsr_bench.validate import official_flow_bound, rotation_angle
+
+    assert official_flow_bound(0.0) == 1.0
+    assert official_flow_bound(np.pi) == pytest.approx(1 + np.sqrt(3))
+    assert official_flow_bound(np.radians(60)) == pytest.approx(1 + np.sqrt(3) / 2)
+    rng = np.random.default_rng(0)
+    for degrees in (0, 5, 30, 60, 90, 180):
+        worst = centre_worst = 0.0
+        for _ in range(20):
+            axis = rng.normal(size=3)
+            rot = quat_to_matrix(_yaw(degrees, axis))
+            assert rotation_angle(rot) == pytest.approx(np.radians(degrees), abs=1e-6)
+            shift = rng.uniform(-20, 20, 3)
+            c = rng.uniform(-50, 50, (20000, 3))
+            moved = c @ rot.T + shift
+            flow = np.round(moved) - np.round(c)
+            grid = np.round(c)
+            worst = max(worst, np.abs(flow - (grid @ rot.T + shift - grid)).max())
+            centre = grid + 0.5
+            centre_worst = max(centre_worst, np.abs(flow - (centre @ rot.T + shift - centre)).max())
+        bound = official_flow_bound(np.radians(degrees))
+        assert worst <= bound + 1e-9
+        assert worst > 0.97 if degrees == 0 else worst > 1.0
+        if 30 <= degrees <= 90:
+            assert centre_worst > bound  # the grid point, not the voxel centre, is the release's reference
+
+
+def test_release_flow_passes_validate(moving, capsys):
+    """The authors' rounded flow passes every check, including push 1, whose turns the check validate
+    applied before (the rigid motion at voxel centres, within 1.001 voxels) rejects."""
+    from dsr_bench.constants import GRID_BOUNDS, VOXEL_SIZE
+    from dsr_bench.geometry import relative_motion, transform_points
+
+    with SequenceReader(moving / "seq_0004.h5") as seq:
+        flow, mask, poses = seq.read("scene_flow_3d"), seq.read("mask_3d"), seq.read("object_poses")
+    assert np.array_equal(flow, np.rint(flow)) and np.abs(flow).max() >= 10
+    idx = np.argwhere(mask[1] == 1)
+    centres = GRID_BOUNDS[:, 0] + (idx[:, [1, 0, 2]] + 0.5) * VOXEL_SIZE
+    old_check = (transform_points(relative_motion(poses[1, 0], poses[2, 0]), centres) - centres)[:, [1, 0, 2]]
+    assert np.abs(flow[1][:, mask[1] == 1].T - old_check / VOXEL_SIZE).max() > 1.001
+    problems, count = validate_dataset(moving, check_gt=True)
+    assert problems == [] and count == 1
+    assert main(["validate", str(moving)]) == 0
+    assert "valid: 1 sequences" in capsys.readouterr().out
+
+
+def _flip(flow, mask):
+    flow[1] = -flow[1]
+
+
+def _swap(flow, mask):
+    flow[0, [0, 1]] = flow[0, [1, 0]]
+
+
+def _wrong_object(flow, mask):  # push 0: object 1's motion written at object 3's voxels (object 3 stays)
+    moved = np.rint(flow[0][:, mask[0] == 1].mean(axis=1))
+    flow[0][:, mask[0] == 1] = 0
+    flow[0][:, mask[0] == 3] = moved[:, None]
+
+
+def _fraction(flow, mask):
+    y, x, z = np.argwhere(mask[1] == 2)[0]
+    flow[1, 1, y, x, z] += 0.5
+
+
+@pytest.mark.parametrize("corrupt, expected", [
+    (_flip, ["scene_flow_3d[1]: object 1: ", "it matches with the sign flipped"]),
+    (_swap, ["scene_flow_3d[0]: object 1: ", "it matches with dy and dx swapped"]),
+    (_wrong_object, ["scene_flow_3d[0]: object 3: ", "it matches object 1's motion (flow of the wrong object?)",
+                     "scene_flow_3d[0]: object 1: "]),
+    (_fraction, ["scene_flow_3d[1]: 1 voxels hold non-integer flow (e.g. dx = ", "so integer-valued"]),
+])
+def test_corrupted_release_flow_is_caught(moving, tmp_path, corrupt, expected):
+    data = tmp_path / "data"
+    shutil.copytree(moving, data)
+    with h5py.File(data / "seq_0004.h5", "r+") as f:
+        flow, mask = f["scene_flow_3d"][()], f["mask_3d"][()]
+        corrupt(flow, mask)
+        f["scene_flow_3d"][...] = flow
+    problems, _ = validate_dataset(data, check_gt=True)
+    found = [p.message for p in problems if p.where == "seq_0004" and p.message.startswith("scene_flow_3d")]
+    for text in expected:
+        assert any(text in m for m in found), (text, found)
+    if corrupt is _fraction:  # within the rounding bound: only the integer check can see it
+        assert len(found) == 1

@@ -38,22 +38,40 @@ def test_pinned_split_reproduces_bit_for_bit(tmp_path, split, shard, sequence):
     out = tmp_path / split
     assert main(["generate", "--split", split, "--out", str(out), "--shard", shard]) == 0
     with SequenceReader(out / f"{sequence}.h5") as seq:
-        assert seq.attrs["content_sha256"] == pins[split]["sequences"][sequence]
+        pinned = pins[split]["sequences"][sequence]
+        assert seq.attrs["ground_truth_sha256"] == pinned["ground_truth"]
+        assert seq.attrs["observations_sha256"] == pinned["observations"]  # the renderer is exact too
 
 
 def test_validate_compares_named_splits_with_their_pins(tmp_path, monkeypatch):
+    import json
+
+    import h5py
+    import numpy as np
+
     import dsr_bench.splits as splits
-    from dsr_bench.manifest import load_manifest, split_digest
+    from dsr_bench.digests import digest_attrs
+    from dsr_bench.manifest import build_manifest, load_manifest, write_manifest
+    from dsr_bench.pins import build_pin
     from dsr_bench.testing import write_synthetic_dataset
     from dsr_bench.validate import validate_dataset
 
     data = write_synthetic_dataset(tmp_path / "d", num_sequences=2, num_steps=1, split="procedural-novel-mini")
-    manifest = load_manifest(data)
-    good = {"checksum": split_digest(manifest, "procedural-novel-mini"),
-            "sequences": {s["name"]: s["content_sha256"] for s in manifest["sequences"]}}
-    monkeypatch.setattr(splits, "pinned_digests", lambda: {"procedural-novel-mini": good})
+    pin = build_pin(data, ["seq_0000", "seq_0001"], load_manifest(data), "procedural-novel-mini")
+    monkeypatch.setattr(splits, "pinned_digests", lambda: {"procedural-novel-mini": pin})
     assert validate_dataset(data, check_gt=False)[0] == []
-    bad = {"checksum": "0" * 64, "sequences": {**good["sequences"], "seq_0001": "1" * 64}}
-    monkeypatch.setattr(splits, "pinned_digests", lambda: {"procedural-novel-mini": bad})
+    # a ground-truth change of seq_0001, written consistently (its digests and the manifest updated)
+    with h5py.File(data / "seq_0001.h5", "r+") as f:
+        f["object_poses"][1, 0, 0] += 0.001
+        names = []
+        f.visititems(lambda n, o: names.append(n) if isinstance(o, h5py.Dataset) and not n.startswith("meshes/")
+                     else None)
+        for key, value in digest_attrs({n: f[n][()] for n in names}, json.loads(f.attrs["objects"])).items():
+            f.attrs[key] = json.dumps(value, sort_keys=True) if isinstance(value, dict) else value
+    write_manifest(data, build_manifest(data))
     problems = validate_dataset(data, check_gt=False)[0]
-    assert len(problems) == 1 and "pinned procedural-novel-mini in 1 sequences (e.g. seq_0001)" in problems[0].message
+    (problem,) = problems
+    assert problem.where == "seq_0001" and not problem.note
+    assert problem.message.startswith("ground truth differs from the pinned procedural-novel-mini: object_poses: ")
+    assert "mean " in problem.message and "dsr-bench generate --split procedural-novel-mini" in problem.message
+    assert np.isfinite(float(problem.message.split("relative ")[1].split(")")[0]))

@@ -92,7 +92,7 @@ def test_ground_truth_checks(dataset):
     # --no-gt skips them; the manifest's digests still catch the change
     fast, _ = validate_dataset(dataset, check_gt=False)
     assert not any("IoU" in p.message or "behind" in p.message for p in fast)
-    assert "content digest differs from the manifest's" in _messages(fast, "seq_0000")
+    assert any(m.startswith("ground_truth_sha256 differs from the manifest's") for m in _messages(fast, "seq_0000"))
 
 
 def test_mask_warp_iou_tolerates_voxel_rounding_only():
@@ -140,7 +140,7 @@ def test_manifest_split_problems(dataset):
     (dataset / "manifest.json").write_text(json.dumps(manifest))
     (dataset / "splits" / "extra.txt").write_text("seq_0000\n")
     problems, _ = validate_dataset(dataset, check_gt=False)
-    assert "split checksum of 'test' in the manifest does not match its sequences' content digests" in _messages(
+    assert "split checksum of 'test' in the manifest does not match its sequences' ground-truth digests" in _messages(
         problems, "splits/test.txt")
     assert any("not in the manifest" in m for m in _messages(problems, "splits/extra.txt"))
 
@@ -168,9 +168,12 @@ def test_info_and_split_helpers(pristine, capsys):
     assert "not found" in capsys.readouterr().err
 
 
-def test_split_checksum_depends_on_content(pristine, dataset):
+def test_split_checksum_depends_on_the_ground_truth_only(pristine, dataset):
     with h5py.File(dataset / "seq_0000.h5", "r+") as f:
-        f.attrs["content_sha256"] = "0" * 64
+        f.attrs["observations_sha256"] = "0" * 64
+    assert split_digest(build_manifest(dataset), "test") == split_digest(load_manifest(pristine), "test")
+    with h5py.File(dataset / "seq_0000.h5", "r+") as f:
+        f.attrs["ground_truth_sha256"] = "0" * 64
     assert split_digest(build_manifest(dataset), "test") != split_digest(load_manifest(pristine), "test")
 
 
@@ -185,3 +188,67 @@ def test_generated_dataset_passes_every_check(generated_dataset):
     """The real generator's output (pybullet) is consistent by every ground-truth check."""
     problems, count = validate_dataset(generated_dataset, check_gt=True)
     assert problems == [] and count == 2
+
+
+def test_own_flow_keeps_its_tight_tolerance(dataset):
+    """Our flow is exact: a hundredth of a voxel off is reported (the official release's rounding bound
+    applies only to files imported from it)."""
+    with h5py.File(dataset / "seq_0000.h5", "r+") as f:
+        y, x, z = np.argwhere(f["mask_3d"][0] == 1)[0]
+        f["scene_flow_3d"][0, 1, y, x, z] += 0.01
+    found = validate_sequence(dataset / "seq_0000.h5")
+    assert any(m.startswith("scene_flow_3d[0]: differs from the rigid motion of the stored poses by 0.01 voxels "
+                            "(tolerance 0.001)") for m in found), found
+
+
+def _last_line(capsys):
+    return capsys.readouterr().out.strip().splitlines()[-1]
+
+
+def test_summary_says_why_validate_failed(pristine, dataset, tmp_path, capsys):
+    # only dataset-level problems: every sequence file is fine, yet validate fails; the last line says why
+    manifest = json.loads((dataset / "manifest.json").read_text())
+    manifest["splits"]["test"]["content_sha256"] = "0" * 64
+    (dataset / "manifest.json").write_text(json.dumps(manifest))
+    (dataset / "splits" / "extra.txt").write_text("seq_0000\n")
+    assert main(["validate", str(dataset), "--no-gt"]) == 1
+    assert _last_line(capsys) == (
+        "3 sequence files checked, 0 with problems; 2 dataset-level problems (splits/test.txt: split checksum of "
+        "'test' in the manifest does not match its sequences' ground-truth digests; splits/extra.txt: split file not in "
+        "the manifest (run `dsr-bench manifest DIR`))")
+    # a file listed but missing is not a checked file with problems; a modified file is
+    other = tmp_path / "other"
+    shutil.copytree(pristine, other)
+    (other / "seq_0002.h5").unlink()
+    with h5py.File(other / "seq_0000.h5", "r+") as f:
+        f["tsdf"][0, 0, 0, 0] = 0.5
+    assert main(["validate", str(other), "--no-gt"]) == 1
+    assert _last_line(capsys) == (
+        "2 sequence files checked, 1 with problems; 2 dataset-level problems (seq_0002: listed in the manifest "
+        "but the file is missing; splits/test.txt: names 'seq_0002', which has no file)")
+    # only sequence problems: no dataset-level clause
+    shutil.copy(pristine / "seq_0002.h5", other / "seq_0002.h5")
+    assert main(["validate", str(other), "--no-gt"]) == 1
+    assert _last_line(capsys) == "3 sequence files checked, 1 with problems"
+    # nothing to check at all
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    assert main(["validate", str(empty)]) == 1
+    last = _last_line(capsys)
+    assert last.startswith("0 sequence files checked, 0 with problems; 2 dataset-level problems (manifest.json: ")
+    assert f"; dataset: no seq_*.h5 files in {empty})" in last
+    # usage errors exit 2 with one line naming the reason
+    assert main(["validate", str(tmp_path / "nope")]) == 2
+    assert "error: dataset directory not found" in capsys.readouterr().err
+    assert main(["validate", str(dataset), "--workers", "0"]) == 2
+    assert "error: --workers 0: must be at least 1" in capsys.readouterr().err
+
+
+def test_summary_names_the_first_dataset_level_problems():
+    from dsr_bench.validate import Problem, summary_line
+
+    problems = [Problem(f"splits/s{i}.txt", "split file not in the manifest") for i in range(5)]
+    line = summary_line(problems, 0, "/nonexistent")
+    assert line == ("0 sequence files checked, 0 with problems; 5 dataset-level problems (splits/s0.txt: split file "
+                    "not in the manifest; splits/s1.txt: split file not in the manifest; splits/s2.txt: split file "
+                    "not in the manifest; and 2 more above)")

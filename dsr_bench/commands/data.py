@@ -17,10 +17,14 @@ def validate(
     from rich.console import Console
     from rich.table import Table
 
-    from dsr_bench.validate import validate_dataset
+    from dsr_bench.validate import summary_line, validate_dataset
 
     console = Console()
-    problems, count = validate_dataset(data_dir, check_gt=not no_gt, workers=workers)
+    found, count = validate_dataset(data_dir, check_gt=not no_gt, workers=workers)
+    problems = [p for p in found if not p.note]
+    for note in found:
+        if note.note:
+            typer.echo(f"{note.where}: {note.message}")
     if not problems:
         console.print(f"[green]valid[/green]: {count} sequences in {data_dir}"
                       f"{' (ground truth not checked)' if no_gt else ', ground truth consistent'}")
@@ -31,8 +35,7 @@ def validate(
     for p in sorted(problems, key=lambda p: p.where):  # stable: each file's problems in check order
         table.add_row(p.where, p.message)
     console.print(table)
-    bad = len({p.where for p in problems if p.where.startswith("seq_")})
-    console.print(f"{count} sequence files checked, {bad} with problems")
+    typer.echo(summary_line(found, count, data_dir))  # unwrapped: the one line that says why it failed
     raise typer.Exit(1)
 
 

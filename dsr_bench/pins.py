@@ -1,0 +1,131 @@
+"""Pins of the benchmark's named splits: making them, and comparing a dataset with them.
+
+A pin (`dsr_bench/data/split_pins.json`, see `dsr_bench.splits.pinned_digests`) holds a split's
+ground-truth checksum, its observations' checksum, and per sequence its two group digests and a
+`dsr_bench.digests.Fingerprint` of every array. Comparing a dataset with its pin says, for each
+sequence that differs, which arrays differ and by how much: a ground-truth array that differs at
+all is a different benchmark; an observation array that differs within the stated tolerance
+(`dsr_bench.digests.within_tolerance`) is rendering noise of another CPU or library, reported as a
+note and never as a changed benchmark.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from dsr_bench.digests import (
+    GROUND_TRUTH_KEY, OBSERVATIONS_KEY, Fingerprint, describe_difference, file_digests, is_ground_truth,
+    split_checksum, within_tolerance,
+)
+
+
+def build_pin(data_dir: str | Path, names: list[str], manifest: Mapping, split: str,
+              digests: Callable[[Path], dict] = file_digests) -> dict:
+    """The pin of split `split` of a dataset: its sequences `names` are read (every array, one step at a
+    time) and must match the manifest's digests (SystemExit naming the sequence otherwise)."""
+    from dsr_bench.manifest import split_digest
+
+    listed = {s["name"]: s for s in manifest["sequences"]}
+    found = {}
+    for name in names:
+        found[name] = digests(Path(data_dir) / listed[name]["file"])
+        for key in (GROUND_TRUTH_KEY, OBSERVATIONS_KEY):
+            if found[name][key] != listed[name][key]:
+                raise SystemExit(f"{name}: {key} of the file differs from the manifest; run `dsr-bench validate`")
+    fields = sorted({f for d in found.values() for f in d["fingerprints"]})
+    sequences = {
+        name: {"ground_truth": d[GROUND_TRUTH_KEY], "observations": d[OBSERVATIONS_KEY],
+               "arrays": [d["fingerprints"][f].to_list() if f in d["fingerprints"] else None for f in fields]}
+        for name, d in found.items()
+    }
+    return {"checksum": split_digest(manifest, split),
+            "observations_checksum": split_checksum((n, d[OBSERVATIONS_KEY]) for n, d in found.items()),
+            "fields": fields, "sequences": sequences}
+
+
+@dataclass
+class PinComparison:
+    """How a dataset's split compares with its pin.
+
+    ground_truth: per sequence, the ground-truth arrays that differ, described ("mask_3d: -3 non-zero
+    values, ..."), or a note that only the object list differs; observations_out: the same for
+    observation arrays beyond the tolerance; observations_within: sequences whose observations
+    differ within the tolerance only; missing: pinned sequences the dataset lacks."""
+
+    ground_truth: dict[str, list[str]] = field(default_factory=dict)
+    observations_out: dict[str, list[str]] = field(default_factory=dict)
+    observations_within: dict[str, list[str]] = field(default_factory=dict)
+    missing: list[str] = field(default_factory=list)
+
+    @property
+    def reproduced(self) -> bool:
+        """Whether the split reproduces its pin (ground truth exactly, observations within tolerance)."""
+        return not (self.ground_truth or self.observations_out or self.missing)
+
+
+def compare_with_pin(pin: Mapping, digests: Mapping[str, Mapping],
+                     fingerprints: Callable[[str], Mapping[str, Fingerprint]]) -> PinComparison:
+    """Compare a split with its pin. digests: per sequence name its "ground_truth_sha256" and
+    "observations_sha256" (the manifest's); fingerprints(name): the sequence's array fingerprints,
+    computed only for the sequences whose digests differ from the pin."""
+    out = PinComparison()
+    fields = list(pin["fields"])
+    for name, pinned in sorted(pin["sequences"].items()):
+        have = digests.get(name)
+        if have is None:
+            out.missing.append(name)
+            continue
+        gt_same = have[GROUND_TRUTH_KEY] == pinned["ground_truth"]
+        obs_same = have[OBSERVATIONS_KEY] == pinned["observations"]
+        if gt_same and obs_same:
+            continue
+        actual = fingerprints(name)
+        expected = {f: Fingerprint.from_list(v) for f, v in zip(fields, pinned["arrays"]) if v is not None}
+        gt, obs_out, obs_within = [], [], []
+        for array in sorted(set(actual) | set(expected)):
+            a, e = actual.get(array), expected.get(array)
+            if a is None or e is None:
+                (gt if is_ground_truth(array) else obs_out).append(
+                    f"{array}: {'missing' if a is None else 'not in the pin'}")
+                continue
+            if a.sha256[:16] == e.sha256[:16]:
+                continue
+            if is_ground_truth(array):
+                gt.append(describe_difference(array, a, e))
+            elif within_tolerance(a, e):
+                obs_within.append(describe_difference(array, a, e))
+            else:
+                obs_out.append(describe_difference(array, a, e))
+        if not gt_same and not gt:
+            gt.append("the object list differs (meshes, scales, colours or masses)")
+        for target, found in ((out.ground_truth, gt), (out.observations_out, obs_out),
+                              (out.observations_within, obs_within)):
+            if found:
+                target[name] = found
+    return out
+
+
+def summarize(split: str, comparison: PinComparison, limit: int = 3) -> list[tuple[str, str]]:
+    """(where, message) lines of a comparison for `validate`: problems first, then notes (prefixed
+    'note:'), each naming the sequences and arrays (at most `limit` sequences spelled out)."""
+    lines: list[tuple[str, str]] = []
+    fix = f"regenerate it with `dsr-bench generate --split {split}` on this toolkit version"
+    if comparison.missing:
+        lines.append((f"splits/{split}.txt", f"lacks {len(comparison.missing)} pinned sequences "
+                      f"(e.g. {', '.join(comparison.missing[:limit])}); {fix}"))
+    for kind, found in (("ground truth", comparison.ground_truth),
+                        ("observations beyond the tolerance", comparison.observations_out)):
+        for name, details in list(found.items())[:limit]:
+            lines.append((name, f"{kind} differs from the pinned {split}: {'; '.join(details)}; {fix}"))
+        if len(found) > limit:
+            lines.append((f"splits/{split}.txt", f"{len(found) - limit} more sequences whose {kind} differs "
+                          f"from the pin; {fix}"))
+    if comparison.observations_within:
+        names = list(comparison.observations_within)
+        arrays = sorted({d.split(":")[0] for details in comparison.observations_within.values() for d in details})
+        lines.append((f"splits/{split}.txt", f"note: {len(names)} sequences (e.g. {', '.join(names[:limit])}) have "
+                      f"observations ({', '.join(arrays)}) that differ from the pin within the stated tolerance "
+                      "(rendering noise of another CPU or library); their ground truth is identical"))
+    return lines
