@@ -21,7 +21,7 @@ from annotator import align
 from annotator.align import FitScore
 from annotator.state import ACTION_KINDS, AnnotationState, StateError
 from dsr_bench.capture import Capture, load_capture
-from dsr_bench.constants import PUSHER_RADIUS
+from dsr_bench.constants import RIG_PUSHER_RADIUS
 from dsr_bench.errors import UserError
 from dsr_bench.geometry import pose_to_matrix
 
@@ -367,7 +367,7 @@ class Session:
             ab = b - a
             u = np.clip(((pts - a) @ ab) / max(float(ab @ ab), 1e-12), 0.0, 1.0)
             d = np.linalg.norm(pts - (a + u[:, None] * ab), axis=1)
-            if d.min() < PUSHER_RADIUS + PUSH_CONTACT_MARGIN:
+            if d.min() < RIG_PUSHER_RADIUS + PUSH_CONTACT_MARGIN:
                 return True
         return False
 

@@ -15,6 +15,15 @@ VOXEL_SIZE: float = 0.004
 GRID_BOUNDS: np.ndarray = np.array([[0.244, 0.756], [-0.256, 0.256], [0.0, 0.192]])
 #: Volume shape in the benchmark's axis order (world y, world x, z).
 GRID_SHAPE: tuple[int, int, int] = (128, 128, 48)
+#: Where a volume samples voxel (iy, ix, iz), in voxels from bound_min: 0, the voxel's lower corner
+#: bound_min + index * VOXEL_SIZE, as the official release's TSDF fusion, masks and flow do (and so
+#: the inputs the authors' networks were trained on). TSDF, amodal masks and 3D flow all use it.
+VOXEL_SAMPLE_OFFSET: float = 0.0
+#: Amodal masks as the official release makes them: a voxel belongs to an object when the object's
+#: solid meets the cube of one voxel's edge centred on the voxel's sample point (the official code
+#: rounds a dense solid point set to the nearest sample point), tested on this many sub-samples per
+#: axis (4: a 1 mm sub-grid).
+MASK_SUBSAMPLES: int = 4
 #: Human-readable axis order of every volume, the action map and flow components.
 AXIS_ORDER: str = "y,x,z"
 FLOW_COMPONENTS: str = "dy,dx,dz"
@@ -31,9 +40,14 @@ NUM_DIRECTIONS: int = 8
 PUSH_APPROACH_HEIGHT: float = 0.15
 PUSH_HEIGHT: float = 0.005
 PUSH_LENGTH: float = 0.15
-#: Pusher tool: a cylinder like the real rig's (m).
-PUSHER_RADIUS: float = 0.01
+#: The simulated pusher: the official generator's thin stick, a cylinder (m).
+PUSHER_RADIUS: float = 0.003
 PUSHER_LENGTH: float = 0.10
+#: How far the tool actually travels along a push (m): the official arm stops about 2.4 cm short of
+#: the nominal PUSH_LENGTH in every sequence (its joint-space path), and the simulated tool follows it.
+PUSH_TRAVEL: float = 0.126
+#: The real rig's pusher: a cylinder tool (m), for the annotator's contact checks.
+RIG_PUSHER_RADIUS: float = 0.01
 #: Start-point search of the official code (m, pixels, count).
 START_BACKOFF: float = 0.04
 START_STEP: float = 0.01
@@ -79,5 +93,7 @@ POLICY_OUTWARD_PENALTY: float = 10.0
 POLICY_MAX_SAMPLES: int = 64
 
 # --- File format -----------------------------------------------------------------------------
-SCHEMA_VERSION: int = 1
+#: 2 (dsr-bench 0.2): digests by group (`dsr_bench.digests`), the exact renderer, the authors' policy
+#: and dynamics; files of schema 1 hold the data of an earlier benchmark version and are regenerated.
+SCHEMA_VERSION: int = 2
 FORMAT_NAME: str = "dsr-bench-sequence"

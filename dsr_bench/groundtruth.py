@@ -8,14 +8,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from dsr_bench.constants import GRID_BOUNDS, VOXEL_SIZE
-from dsr_bench.geometry import relative_motion, transform_points
-
-
-def voxel_centers_of(indices_yxz: np.ndarray) -> np.ndarray:
-    """World centres (M, 3) in (x, y, z) metres of integer voxel indices (M, 3) in (iy, ix, iz)."""
-    idx = indices_yxz[:, [1, 0, 2]].astype(np.float64)
-    return GRID_BOUNDS[:, 0] + (idx + 0.5) * VOXEL_SIZE
+from dsr_bench.constants import VOXEL_SIZE
+from dsr_bench.geometry import relative_motion, transform_points, voxel_points_of
 
 
 def rigid_scene_flow_3d(mask_t: np.ndarray, poses_t: np.ndarray, poses_next: np.ndarray,
@@ -23,8 +17,8 @@ def rigid_scene_flow_3d(mask_t: np.ndarray, poses_t: np.ndarray, poses_next: np.
     """3D scene flow (3, Y, X, Z) float32 in voxels, components (dy, dx, dz).
 
     mask_t: amodal instance ids (Y, X, Z) at t (0 empty, i + 1 = object i); poses_t, poses_next:
-    (N, 7) world poses at t and t + 1. Each object's voxel centres at t move by the object's rigid
-    motion; empty voxels get 0. `out`, if given, must be zeros; it is filled in place and returned.
+    (N, 7) world poses at t and t + 1. Each object's voxels move with the object's rigid motion,
+    evaluated at their sample points (`dsr_bench.geometry.voxel_points_of`); empty voxels get 0. `out`, if given, must be zeros; it is filled in place and returned.
     """
     flow = np.zeros((3,) + mask_t.shape, dtype=np.float32) if out is None else out
     flat = np.flatnonzero(mask_t)
@@ -36,9 +30,9 @@ def rigid_scene_flow_3d(mask_t: np.ndarray, poses_t: np.ndarray, poses_next: np.
         if not sel.any():
             continue
         motion = relative_motion(poses_t[i], poses_next[i])
-        centers = voxel_centers_of(indices[sel])
-        moved = transform_points(motion, centers)
-        disp = (moved - centers)[:, [1, 0, 2]] / VOXEL_SIZE
+        points = voxel_points_of(indices[sel])
+        moved = transform_points(motion, points)
+        disp = (moved - points)[:, [1, 0, 2]] / VOXEL_SIZE
         flow_flat[:, flat[sel]] = disp.T.astype(np.float32)
     return flow
 

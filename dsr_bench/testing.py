@@ -14,7 +14,7 @@ import numpy as np
 
 from dsr_bench import __version__
 from dsr_bench.constants import AXIS_ORDER, FLOW_COMPONENTS, GRID_BOUNDS, GRID_SHAPE, IMAGE_SHAPE, VOXEL_SIZE
-from dsr_bench.geometry import make_camera, pixel_to_world, pose_to_matrix, voxel_centers, world_to_pixel
+from dsr_bench.geometry import make_camera, pixel_to_world, pose_to_matrix, voxel_points, world_to_pixel
 from dsr_bench.groundtruth import rigid_scene_flow_2d, rigid_scene_flow_3d
 from dsr_bench.sequence import write_sequence
 from dsr_bench.tsdf import integrate_tsdf
@@ -102,7 +102,7 @@ def synthetic_arrays(num_steps: int = 3, num_objects: int = 2, seed: int = 0):
         yaw[k] += 0.2
     front = make_camera("front", *IMAGE_SHAPE)
     tsdf_camera = make_camera("front", 2 * IMAGE_SHAPE[0], 2 * IMAGE_SHAPE[1])
-    centers = voxel_centers(GRID_SHAPE)
+    centers = voxel_points(GRID_SHAPE)
     images = [_render(front, poses[t], halves) for t in range(num_steps + 1)]
     masks = np.stack([_amodal_mask(poses[t], halves, centers) for t in range(num_steps + 1)])
     tsdf = np.stack([integrate_tsdf(_render(tsdf_camera, poses[t], halves)[0], tsdf_camera)
@@ -150,11 +150,11 @@ def synthetic_arrays(num_steps: int = 3, num_objects: int = 2, seed: int = 0):
 
 def write_synthetic_sequence(path: str | Path, num_steps: int = 3, num_objects: int = 2, seed: int = 0) -> Path:
     """Write a synthetic box sequence to `path` (an .h5 file) and return the path."""
-    from dsr_bench.manifest import content_digest
+    from dsr_bench.digests import digest_attrs
 
     arrays, attrs, meshes = synthetic_arrays(num_steps, num_objects, seed)
     attrs["sequence"] = Path(path).stem
-    attrs["content_sha256"] = content_digest(arrays, attrs["objects"])
+    attrs.update(digest_attrs(arrays, attrs["objects"]))
     return write_sequence(path, arrays, attrs, meshes)
 
 

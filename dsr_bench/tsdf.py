@@ -1,9 +1,11 @@
 """Projective TSDF of one depth image on the benchmark grid (vectorised numpy).
 
-The official definition: every voxel centre is projected into the depth image; with
-sdf = depth(pixel) - z_cam(voxel), the value is min(1, sdf / trunc) where sdf >= -trunc, and the
-initial +1 elsewhere (behind the surface band, outside the image, or where depth is missing).
-Values lie in [-1, 1]; occluded space reads like free space.
+The official definition: every voxel's sample point (its lower corner, `bound_min + index *
+VOXEL_SIZE`, as the official fusion code's `vol_origin + voxel * voxel_size`) is projected into the
+depth image and reads the pixel nearest to its projection; with sdf = depth(pixel) - z_cam(voxel),
+the value is min(1, sdf / trunc) where sdf >= -trunc, and the initial +1 elsewhere (behind the
+surface band, outside the image, or where depth is missing). Values lie in [-1, 1]; occluded space
+reads like free space.
 """
 
 from __future__ import annotations
@@ -11,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 
 from dsr_bench.constants import GRID_SHAPE, TSDF_TRUNCATION
-from dsr_bench.geometry import Camera, rigid_inverse, transform_points, voxel_centers
+from dsr_bench.geometry import Camera, rigid_inverse, transform_points, voxel_points
 
 #: Voxel projections per (camera, grid): they depend on nothing else, and computing them costs more
 #: than integrating several depth images, so every ProjectiveTSDF of the same camera shares them.
@@ -30,8 +32,8 @@ def _projection(camera: Camera, grid_shape: tuple[int, int, int]) -> tuple[np.nd
     hit = _PROJECTIONS.get(key)
     if hit is not None:
         return hit
-    centers = voxel_centers(grid_shape).reshape(-1, 3)
-    cam = transform_points(rigid_inverse(camera.extrinsics), centers)
+    points = voxel_points(grid_shape).reshape(-1, 3)
+    cam = transform_points(rigid_inverse(camera.extrinsics), points)
     z = cam[:, 2]
     fx, fy = camera.intrinsics[0, 0], camera.intrinsics[1, 1]
     cx, cy = camera.intrinsics[0, 2], camera.intrinsics[1, 2]

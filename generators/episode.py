@@ -7,24 +7,38 @@ rebuilt for every scene attempt, so a sequence is a pure function of (arguments,
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field, replace
+import math
+from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
 from dsr_bench import __version__
 from dsr_bench.constants import (
-    AXIS_ORDER, DEFAULT_OBJECTS_PER_SCENE, DEFAULT_STEPS, FLOW_COMPONENTS, GRID_BOUNDS, GRID_SHAPE,
-    MIN_LARGE_SEPARATION, MIN_OBJECT_SEPARATION, MIN_VISIBLE_FRACTION, PUSH_LENGTH, TSDF_IMAGE_SHAPE, VOXEL_SIZE,
+    AXIS_ORDER,
+    DEFAULT_OBJECTS_PER_SCENE,
+    DEFAULT_STEPS,
+    FLOW_COMPONENTS,
+    GRID_BOUNDS,
+    GRID_SHAPE,
+    MIN_LARGE_SEPARATION,
+    MIN_OBJECT_SEPARATION,
+    MIN_VISIBLE_FRACTION,
+    PUSH_TRAVEL,
+    TSDF_IMAGE_SHAPE,
+    VOXEL_SIZE,
     WORKSPACE_CENTER,
 )
-from dsr_bench.geometry import direction_vector, pose_to_matrix, transform_points, vector_norm, world_to_pixel
+from dsr_bench.geometry import direction_vector, pose_to_matrix, transform_points, world_to_pixel
 from dsr_bench.groundtruth import rigid_scene_flow_2d, rigid_scene_flow_3d
 
 MAX_SCENE_ATTEMPTS = 30
-MAX_PUSH_ATTEMPTS = 8
-DROP_REGION_HALF = 0.12  # m around the workspace centre
-DROP_CLEARANCE = 0.002  # m between an object's lowest point and the table at the drop
-WORKSPACE_MARGIN = 0.0  # m an object's hull must keep inside the grid's xy bounds
+#: Official scene sampling: xy uniform in a square of this half size around the workspace centre (m),
+#: redrawn until every pair is MIN_OBJECT_SEPARATION apart (MIN_LARGE_SEPARATION from a large
+#: object), then shifted so that the mean is the centre; dropped from DROP_HEIGHT with Euler angles
+#: uniform in [0, pi).
+DROP_REGION_HALF = 0.13
+DROP_HEIGHT = 0.2
+MAX_LAYOUT_DRAWS = 10_000
 
 
 class SceneRejected(Exception):
@@ -70,48 +84,43 @@ def in_workspace(specs, poses: np.ndarray) -> bool:
     for spec, pose in zip(specs, poses):
         v = _world_vertices(spec, pose)
         lo, hi = v.min(0), v.max(0)
-        if np.any(lo[:2] < GRID_BOUNDS[:2, 0] + WORKSPACE_MARGIN) or np.any(hi[:2] > GRID_BOUNDS[:2, 1] - WORKSPACE_MARGIN):
+        if np.any(lo[:2] < GRID_BOUNDS[:2, 0]) or np.any(hi[:2] > GRID_BOUNDS[:2, 1]):
             return False
         if lo[2] < -0.01 or hi[2] > GRID_BOUNDS[2, 1]:
             return False
     return True
 
 
-def _random_quaternion(rng: np.random.Generator) -> np.ndarray:
-    q = rng.normal(size=4)
-    return q / vector_norm(q)
+def euler_quaternion(roll: float, pitch: float, yaw: float) -> np.ndarray:
+    """Quaternion (x, y, z, w) of R = Rz(yaw) Ry(pitch) Rx(roll), as pybullet's getQuaternionFromEuler
+    (glibc's sin and cos: the same bits on every CPU)."""
+    cr, sr = math.cos(roll / 2), math.sin(roll / 2)
+    cp, sp = math.cos(pitch / 2), math.sin(pitch / 2)
+    cy, sy = math.cos(yaw / 2), math.sin(yaw / 2)
+    return np.array([sr * cp * cy - cr * sp * sy, cr * sp * cy + sr * cp * sy, cr * cp * sy - sr * sp * cy,
+                     cr * cp * cy + sr * sp * sy])
 
 
-def _yaw_quaternion(yaw: float) -> np.ndarray:
-    return np.array([0.0, 0.0, np.sin(yaw / 2), np.cos(yaw / 2)])
-
-
-def _place_objects(rng: np.random.Generator, specs, random_orientation: bool) -> np.ndarray:
-    """Initial drop poses (N, 7): separated xy near the workspace centre, resting just above the table."""
-    radii = [float(np.linalg.norm(np.vstack([p.vertices for p in s.parts])[:, :2], axis=1).max()) for s in specs]
-    xy = np.zeros((len(specs), 2))
-    for i, spec in enumerate(specs):
-        for _ in range(200):
-            cand = np.array(WORKSPACE_CENTER) + rng.uniform(-DROP_REGION_HALF, DROP_REGION_HALF, 2)
-            ok = True
-            for j in range(i):
-                need = max(MIN_OBJECT_SEPARATION, radii[i] + radii[j] + 0.005)
-                if spec.is_large or specs[j].is_large:
-                    need = max(need, MIN_LARGE_SEPARATION)
-                if vector_norm(cand - xy[j]) < need:
-                    ok = False
-                    break
-            if ok:
-                xy[i] = cand
-                break
-        else:
-            raise SceneRejected("could not place objects apart")
-    poses = np.zeros((len(specs), 7))
-    for i, spec in enumerate(specs):
-        quat = _random_quaternion(rng) if random_orientation else _yaw_quaternion(rng.uniform(-np.pi, np.pi))
-        poses[i, :2], poses[i, 3:] = xy[i], quat
-        lowest = _world_vertices(spec, poses[i])[:, 2].min()
-        poses[i, 2] = DROP_CLEARANCE - lowest
+def drop_poses(rng: np.random.Generator, specs) -> np.ndarray:
+    """The official scene layout: drop poses (N, 7) at DROP_HEIGHT, xy uniform in the drop square and
+    redrawn together until they are apart, then centred on the workspace centre; random orientations."""
+    centre = np.asarray(WORKSPACE_CENTER)
+    n = len(specs)
+    large = np.array([s.is_large for s in specs])
+    need = np.where(large[:, None] | large[None, :], MIN_LARGE_SEPARATION, MIN_OBJECT_SEPARATION)
+    for _ in range(MAX_LAYOUT_DRAWS):
+        xy = centre + rng.uniform(-DROP_REGION_HALF, DROP_REGION_HALF, (n, 2))
+        d = xy[:, None, :] - xy[None, :, :]
+        dist = np.sqrt(d[..., 0] * d[..., 0] + d[..., 1] * d[..., 1])
+        if np.all((dist >= need) | np.eye(n, dtype=bool)):
+            break
+    else:
+        raise SceneRejected("could not place the objects apart")
+    xy = xy - (xy.mean(axis=0) - centre)
+    poses = np.zeros((n, 7))
+    poses[:, :2], poses[:, 2] = xy, DROP_HEIGHT
+    for i in range(n):
+        poses[i, 3:] = euler_quaternion(*rng.uniform(0.0, np.pi, 3))
     return poses
 
 
@@ -142,14 +151,11 @@ def generate_episode(config: EpisodeConfig, object_set, seed: int, name: str) ->
         world = PushWorld(specs)
         try:
             t0, c0 = time.perf_counter(), time.process_time()
-            drop = _place_objects(rng, specs, random_orientation=config.objects == "cube")
-            for i in range(len(specs)):
-                world.set_pose(i, drop[i])
-            world.settle()
+            settled = world.drop(drop_poses(rng, specs))
             poses = [world.poses()]
             timings["physics"] += time.perf_counter() - t0
             timings["physics_cpu"] += time.process_time() - c0
-            if not in_workspace(specs, poses[0]):
+            if settled < 0 or not in_workspace(specs, poses[0]):
                 last_reason = "an object left the workspace while settling"
                 continue
             t0, c0 = time.perf_counter(), time.process_time()
@@ -163,32 +169,17 @@ def generate_episode(config: EpisodeConfig, object_set, seed: int, name: str) ->
             policy.reset(poses[0][:, :2])
             decisions, pushes = [], []
             for t in range(config.steps):
-                accepted, draws = None, 0
-                for _ in range(MAX_PUSH_ATTEMPTS):
-                    t0, c0 = time.perf_counter(), time.process_time()
-                    decision = policy.propose(observations[-1].heightmap, poses[-1][:, :2])
-                    timings["policy"] += time.perf_counter() - t0
-                    timings["policy_cpu"] += time.process_time() - c0
-                    if decision is None:
-                        break
-                    draws += decision.attempts
-                    decision = replace(decision, attempts=draws)  # counts pushes undone below too
-                    t0, c0 = time.perf_counter(), time.process_time()
-                    state = world.save()
-                    pushed = world.push(decision.start_xy, direction_vector(decision.direction), PUSH_LENGTH)
-                    after = world.poses()
-                    timings["physics"] += time.perf_counter() - t0
-                    timings["physics_cpu"] += time.process_time() - c0
-                    if pushed is not None and in_workspace(specs, after):
-                        start, end = pushed
-                        world.discard(state)
-                        accepted = (decision, start, end, after)
-                        break
-                    world.restore(state)
-                    world.discard(state)
-                if accepted is None:
+                t0, c0 = time.perf_counter(), time.process_time()
+                decision = policy.propose(observations[-1].heightmap, poses[-1][:, :2])
+                timings["policy"] += time.perf_counter() - t0
+                timings["policy_cpu"] += time.process_time() - c0
+                if decision is None:
                     raise SceneRejected(f"no valid push at step {t}")
-                decision, start, end, after = accepted
+                t0, c0 = time.perf_counter(), time.process_time()
+                start, end = world.push(decision.start_xy, direction_vector(decision.direction), PUSH_TRAVEL)
+                after = world.poses()
+                timings["physics"] += time.perf_counter() - t0
+                timings["physics_cpu"] += time.process_time() - c0
                 policy.accept(decision, after[:, :2])
                 decisions.append(decision)
                 pushes.append((start, end))

@@ -6,17 +6,19 @@ Object choice (heuristic): one counter per object, starting at 0; probabilities 
 +0.5 for the optional large object. After an executed push the chosen counter += 1; a counter above
 2 becomes -2, and one that reaches 2 becomes -2 with probability 0.5 (official code).
 
-Direction choice, official scoring (default), probabilities softmax(score / 2), for unit direction v,
-the chosen object at p, its initial position p0 and the workspace centre c:
-- out of centre: -w * max(0, cos(v, p - c)) * min(1, |p - c| / 0.2), w = 5 on the object's first
-  push, 1 afterwards; and the appendix's -10 for every direction with an outward component once
-  |p - c| >= 0.2 m;
-- each neighbour closer than 0.15 m: -3 * max(0, cos(v, towards it)), +1.5 for the directions
-  within 22.5 deg of perpendicular to it;
-- +1.5 * cos(v, p - p0) while |p - p0| < 0.25 m;
-- +2 * cos(v, the direction this object was last pushed).
-`scoring="paper"`: Q(v) = 1.5 cos(v, p - p0) + 2 cos(v, p - p_prev) with the same -10 outward
-penalty and softmax(Q) (no temperature); p_prev is the object's position before its latest push.
+Direction choice, official scoring (default: the authors' generator, term by term), probabilities
+softmax(score / 2), for unit direction v, the chosen object at p, its initial position p0, the
+workspace centre c and o = c - p, u = o / |o|:
+- towards the centre: + w (u . v) exp(|o_x| + |o_y|), w = 5 on the object's first push, 1 afterwards
+  (rewards pushing towards the centre, more so the farther out the object is);
+- far out: -10 for every direction with u . v < 0 once |o| > 0.2 m;
+- each neighbour q with e = q - p, |e| < 0.15 m, cosine k = (e / |e|) . v: -3 k where k > 0.4;
+  +1.5 where |k| < 0.3;
+- back towards the start: once |p - p0|_1 > 1 mm, with g = (p - p0) / |p - p0|: + 1.5 (g . v) for the
+  directions with g . v < 0 while |p - p0| < 0.25 m (a penalty);
+- keep going: + 2 (v_last . v), v_last the direction this object was last pushed.
+`scoring="paper"`: Q(v) = 1.5 cos(v, p - p0) + 2 cos(v, p - p_prev) with the -10 far-out penalty
+and softmax(Q) (no temperature); p_prev is the object's position before its latest push.
 
 Start point (official): p - 0.04 m along v, stepped back by 0.01 m up to 5 times, until the disc of
 radius 5 cells around it is free (heightmap <= 5 mm) and something taller than 5 mm lies within
@@ -25,15 +27,32 @@ radius 5 cells around it is free (heightmap <= 5 mm) and something taller than 5
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
 
 from dsr_bench.constants import (
-    AHEAD_DISTANCE, FREE_HEIGHT, GRID_SHAPE, NUM_DIRECTIONS, POLICY_COUNTER_MAX, POLICY_COUNTER_RESET,
-    POLICY_DIRECTION_TEMPERATURE, POLICY_EARLY_RESET_PROB, POLICY_FAR_FROM_CENTER, POLICY_LARGE_OBJECT_BONUS,
-    POLICY_MAX_SAMPLES, POLICY_NEAR_START_DISTANCE, POLICY_NEIGHBOUR_DISTANCE, POLICY_OUTWARD_PENALTY,
-    START_BACKOFF, START_FREE_RADIUS_PX, START_MAX_STEPS, START_STEP, VOXEL_SIZE, WORKSPACE_CENTER,
+    AHEAD_DISTANCE,
+    FREE_HEIGHT,
+    GRID_SHAPE,
+    NUM_DIRECTIONS,
+    POLICY_COUNTER_MAX,
+    POLICY_COUNTER_RESET,
+    POLICY_DIRECTION_TEMPERATURE,
+    POLICY_EARLY_RESET_PROB,
+    POLICY_FAR_FROM_CENTER,
+    POLICY_LARGE_OBJECT_BONUS,
+    POLICY_MAX_SAMPLES,
+    POLICY_NEAR_START_DISTANCE,
+    POLICY_NEIGHBOUR_DISTANCE,
+    POLICY_OUTWARD_PENALTY,
+    START_BACKOFF,
+    START_FREE_RADIUS_PX,
+    START_MAX_STEPS,
+    START_STEP,
+    VOXEL_SIZE,
+    WORKSPACE_CENTER,
 )
 from dsr_bench.geometry import direction_vector, dot_last, pixel_to_world, vector_norm, world_to_pixel
 
@@ -41,12 +60,14 @@ POLICIES = ("heuristic", "random")
 SCORINGS = ("official", "paper")
 #: Unit push directions (8, 2) in world xy, angle d * pi / 4.
 DIRECTIONS = direction_vector(np.arange(NUM_DIRECTIONS))
-# Official direction-score weights.
-OUTWARD_WEIGHT_FIRST, OUTWARD_WEIGHT_LATER = 5.0, 1.0
+# Official direction-score weights and thresholds (the authors' generator).
+CENTRE_WEIGHT_FIRST, CENTRE_WEIGHT_LATER = 5.0, 1.0
 NEIGHBOUR_WEIGHT, PERPENDICULAR_BONUS = 3.0, 1.5
+#: A neighbour is "ahead" above this cosine and "beside" below this absolute cosine.
+NEIGHBOUR_AHEAD_COS, NEIGHBOUR_BESIDE_COS = 0.4, 0.3
 AWAY_FROM_START_WEIGHT, CONTINUE_WEIGHT = 1.5, 2.0
-#: |cos| below this: within 22.5 deg of perpendicular.
-PERPENDICULAR_COS = float(np.sin(np.pi / 8))
+#: L1 distance (m) an object must have moved from its start before the start term applies.
+MOVED_FROM_START = 0.001
 
 _HW = np.array(GRID_SHAPE[:2])
 _R = START_FREE_RADIUS_PX
@@ -75,9 +96,14 @@ class PushDecision:
 
 
 def softmax(x: np.ndarray) -> np.ndarray:
-    """Numerically stable softmax of a 1-D array."""
-    z = np.exp(np.asarray(x, dtype=np.float64) - np.max(x))
-    return z / z.sum()
+    """Numerically stable softmax of a 1-D array, the same bits on every CPU: glibc's exp element by
+    element (numpy's exp is vectorised differently per instruction set) and a left-to-right sum."""
+    x = np.asarray(x, dtype=np.float64)
+    z = np.array([math.exp(v) for v in (x - np.max(x)).tolist()])
+    total = 0.0
+    for v in z.tolist():
+        total += v
+    return z / total
 
 
 def _unit(v: np.ndarray) -> np.ndarray:
@@ -212,29 +238,31 @@ class HeuristicPolicy(PushPolicy):
         # (pinned split digests): change it only together with re-pinning.
         positions = np.asarray(positions, dtype=np.float64)
         p = positions[k]
-        out = p - np.asarray(WORKSPACE_CENTER)
-        dist_out = float(vector_norm(out))
-        outward = dot_last(DIRECTIONS, _unit(out))  # (8,) cos with the outward direction (0 at the centre)
-        far = dist_out >= POLICY_FAR_FROM_CENTER
         if self.scoring == "paper":
+            out = p - np.asarray(WORKSPACE_CENTER)
             scores = (AWAY_FROM_START_WEIGHT * dot_last(DIRECTIONS, _unit(p - self.initial[k]))
                       + CONTINUE_WEIGHT * dot_last(DIRECTIONS, _unit(p - self.before_push[k])))
-            if far:
-                scores = scores - POLICY_OUTWARD_PENALTY * (outward > 0)
+            if float(vector_norm(out)) >= POLICY_FAR_FROM_CENTER:
+                scores = scores - POLICY_OUTWARD_PENALTY * (dot_last(DIRECTIONS, _unit(out)) > 0)
             return scores, softmax(scores)
-        weight = OUTWARD_WEIGHT_FIRST if self.pushes[k] == 0 else OUTWARD_WEIGHT_LATER
-        scores = -weight * np.maximum(0.0, outward) * min(1.0, dist_out / POLICY_FAR_FROM_CENTER)
-        if far:
-            scores = scores - POLICY_OUTWARD_PENALTY * (outward > 0)
+        o = np.asarray(WORKSPACE_CENTER) - p
+        towards = dot_last(DIRECTIONS, _unit(o))  # (8,) u . v
+        weight = CENTRE_WEIGHT_FIRST if self.pushes[k] == 0 else CENTRE_WEIGHT_LATER
+        scores = weight * towards * math.exp(abs(float(o[0])) + abs(float(o[1])))
+        if float(vector_norm(o)) > POLICY_FAR_FROM_CENTER:
+            scores = scores - POLICY_OUTWARD_PENALTY * (towards < 0)
         for j in range(self.num_objects):
-            towards = positions[j] - p
-            if j == k or vector_norm(towards) >= POLICY_NEIGHBOUR_DISTANCE:
+            e = positions[j] - p
+            if j == k or float(vector_norm(e)) >= POLICY_NEIGHBOUR_DISTANCE:
                 continue
-            cos = dot_last(DIRECTIONS, _unit(towards))
-            scores = scores + (-NEIGHBOUR_WEIGHT * np.maximum(0.0, cos)
-                               + PERPENDICULAR_BONUS * (np.abs(cos) < PERPENDICULAR_COS))
-        if vector_norm(p - self.initial[k]) < POLICY_NEAR_START_DISTANCE:
-            scores = scores + AWAY_FROM_START_WEIGHT * dot_last(DIRECTIONS, _unit(p - self.initial[k]))
+            cos = dot_last(DIRECTIONS, _unit(e))
+            scores = (scores - NEIGHBOUR_WEIGHT * np.where(cos > NEIGHBOUR_AHEAD_COS, cos, 0.0)
+                      + PERPENDICULAR_BONUS * (np.abs(cos) < NEIGHBOUR_BESIDE_COS))
+        moved = p - self.initial[k]
+        if abs(float(moved[0])) + abs(float(moved[1])) > MOVED_FROM_START and \
+                float(vector_norm(moved)) < POLICY_NEAR_START_DISTANCE:
+            g = dot_last(DIRECTIONS, _unit(moved))
+            scores = scores + AWAY_FROM_START_WEIGHT * np.where(g < 0, g, 0.0)
         if self.last_direction[k] >= 0:
             scores = scores + CONTINUE_WEIGHT * dot_last(DIRECTIONS, DIRECTIONS[self.last_direction[k]])
         return scores, softmax(scores / POLICY_DIRECTION_TEMPERATURE)

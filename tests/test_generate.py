@@ -130,15 +130,17 @@ def test_flow_warps_mask_onto_next_mask(dataset):
 def test_tsdf_sign_agrees_with_depth(dataset):
     with SequenceReader(dataset / "seq_0001.h5") as seq:
         tsdf, depth, cam = seq.read("tsdf", 2), seq.read("cameras/front/depth", 2), seq.camera("front")
-    from dsr_bench.geometry import voxel_centers
+    from dsr_bench.geometry import voxel_points
 
-    centres = voxel_centers()
+    centres = voxel_points()
     uv, z = cam.project(centres[tsdf < 0])
     u = np.clip(np.rint(uv[:, 0]).astype(int), 0, cam.width - 1)
     v = np.clip(np.rint(uv[:, 1]).astype(int), 0, cam.height - 1)
     behind = z - depth[v, u]
-    # negative TSDF = just behind the observed surface (within the truncation, up to pixel size)
-    assert np.mean((behind > -0.004) & (behind < TSDF_TRUNCATION + 0.008)) > 0.95
+    # negative TSDF = just behind the observed surface (within the truncation, up to pixel size: the
+    # voxels of the z = 0 layer lie on the table, whose depth at this image's 2.7 mm pixels changes by
+    # up to ~8 mm across a pixel where the view grazes it)
+    assert np.mean((behind > -0.008) & (behind < TSDF_TRUNCATION + 0.008)) > 0.95
     uv, z = cam.project(centres[(tsdf > 0) & (tsdf < 1)])
     u = np.clip(np.rint(uv[:, 0]).astype(int), 0, cam.width - 1)
     v = np.clip(np.rint(uv[:, 1]).astype(int), 0, cam.height - 1)
@@ -161,10 +163,15 @@ def _winding_number(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray)
 
 
 def test_mask_is_the_solid_at_the_pose(dataset):
-    """mask_3d labels exactly the voxel centres inside each object's solid at its pose."""
+    """mask_3d labels a voxel with object k exactly when k's solid at its pose meets the voxel-sized cube
+    around the voxel's sample point (checked on the cube's 4 x 4 x 4 sub-samples with winding numbers)."""
+    from dsr_bench.constants import MASK_SUBSAMPLES, VOXEL_SIZE
     from dsr_bench.geometry import voxel_to_world
 
     rng = np.random.default_rng(0)
+    k4 = MASK_SUBSAMPLES
+    sub = ((np.arange(k4) + 0.5) / k4 - 0.5) * VOXEL_SIZE
+    offsets = np.stack(np.meshgrid(sub, sub, sub, indexing="ij"), -1).reshape(-1, 3)
     with SequenceReader(dataset / "seq_0000.h5") as seq:
         mask, poses = seq.read("mask_3d", 1), seq.read("object_poses", 1)
         for k in range(seq.num_objects):
@@ -175,12 +182,12 @@ def test_mask_is_the_solid_at_the_pose(dataset):
             lo, hi = labelled.min(0) - 2, labelled.max(0) + 3
             box = np.argwhere(np.ones(tuple(hi - lo), bool)) + lo
             box = box[np.all((box >= 0) & (box < mask.shape), axis=1)]
-            box = box[rng.choice(len(box), min(len(box), 3000), replace=False)]
-            inside = _winding_number(voxel_to_world(box), world, faces) > 0.5
             label = mask[tuple(box.T)]
-            free = label == 0
-            assert np.mean(inside[label == k + 1]) > 0.995
-            assert np.mean(~inside[free]) > 0.995
+            for chosen, expect in ((box[label == k + 1], True), (box[label == 0], False)):
+                chosen = chosen[rng.choice(len(chosen), min(len(chosen), 150), replace=False)]
+                points = (voxel_to_world(chosen)[:, None, :] + offsets).reshape(-1, 3)
+                meets = (_winding_number(points, world, faces) > 0.5).reshape(len(chosen), -1).any(1)
+                assert np.mean(meets == expect) > 0.99, (k, expect, np.mean(meets == expect))
 
 
 def test_deterministic_across_workers_and_shards(dataset, tmp_path):

@@ -6,7 +6,7 @@ import pytest
 from dsr_bench.constants import GRID_BOUNDS, GRID_SHAPE, VOXEL_SIZE
 from dsr_bench.geometry import (
     direction_vector, make_camera, pixel_to_world, pose_to_matrix, quat_to_matrix, relative_motion,
-    voxel_centers, voxel_to_world, world_to_pixel, world_to_voxel,
+    voxel_points, voxel_points_of, voxel_to_world, world_to_pixel, world_to_voxel,
 )
 
 
@@ -16,17 +16,19 @@ def test_grid_matches_official_bounds():
     assert np.allclose(extent[[1, 0, 2]] / VOXEL_SIZE, GRID_SHAPE)
 
 
-def test_voxel_centres_axis_order_and_round_trip():
-    centres = voxel_centers()
-    assert centres.shape == GRID_SHAPE + (3,)
+def test_voxel_sample_points_axis_order_corner_and_round_trip():
+    points = voxel_points()
+    assert points.shape == GRID_SHAPE + (3,)
     # index 0 runs along world y, index 1 along world x
-    assert np.isclose(centres[1, 0, 0, 1] - centres[0, 0, 0, 1], VOXEL_SIZE)
-    assert np.isclose(centres[0, 1, 0, 0] - centres[0, 0, 0, 0], VOXEL_SIZE)
-    assert np.allclose(centres[0, 0, 0], GRID_BOUNDS[:, 0] + VOXEL_SIZE / 2)
+    assert np.isclose(points[1, 0, 0, 1] - points[0, 0, 0, 1], VOXEL_SIZE)
+    assert np.isclose(points[0, 1, 0, 0] - points[0, 0, 0, 0], VOXEL_SIZE)
+    # the official release samples a voxel at its lower corner: bound_min + index * 0.004
+    assert np.array_equal(points[0, 0, 0], GRID_BOUNDS[:, 0])
+    assert np.allclose(points[5, 7, 3], GRID_BOUNDS[:, 0] + np.array([7, 5, 3]) * VOXEL_SIZE, atol=0)
     idx = np.array([[3, 100, 7], [127, 0, 47]])
     world = voxel_to_world(idx)
     assert np.allclose(world_to_voxel(world), idx)
-    assert np.allclose(world, centres[tuple(idx.T)])
+    assert np.allclose(world, points[tuple(idx.T)]) and np.array_equal(voxel_points_of(idx), points[tuple(idx.T)])
 
 
 def test_workspace_cells_row_along_y():
@@ -38,6 +40,12 @@ def test_workspace_cells_row_along_y():
 def test_direction_angles():
     assert np.allclose(direction_vector(0), [1, 0])
     assert np.allclose(direction_vector(2), [0, 1])
+    # exact: 0 where the cosine or sine is 0 (numpy's cos(pi / 2) is 6e-17), the same bits on every CPU
+    assert direction_vector(2)[0] == 0.0 and direction_vector(6).tolist() == [0.0, -1.0]
+    angles = np.arange(8) * np.pi / 4
+    assert np.allclose(direction_vector(np.arange(8)), np.stack([np.cos(angles), np.sin(angles)], 1), atol=1e-15)
+    with pytest.raises(ValueError, match="0..7"):
+        direction_vector(8)
     assert np.allclose(direction_vector(5), [-np.sqrt(0.5), -np.sqrt(0.5)])
 
 

@@ -111,31 +111,32 @@ def test_counter_rules_step_by_step():
 
 
 def test_official_direction_scores_match_the_terms():
-    """Object 0.1 m along +x from the centre, started 0.05 m before, last pushed along +y, a neighbour
-    0.1 m along +y: every official term written out by hand."""
+    """Object 0.1 m along +x from the centre, started 0.05 m before (along -x), last pushed along +y, a
+    neighbour 0.1 m along +y: every term of the authors' generator written out by hand."""
     policy = HeuristicPolicy(np.random.default_rng(0), 2)
     pos = np.array([[0.6, 0.0], [0.6, 0.1]])
     policy.reset(np.array([[0.55, 0.0], [0.6, 0.1]]))
     policy.accept(_decision(0, direction=2), pos)
     scores, probs = policy.direction_scores(0, pos)
     c, s = np.cos(ANGLES), np.sin(ANGLES)
-    expected = (-1.0 * np.maximum(0, c) * 0.5  # out of centre, weight 1 after the first push, 0.1 / 0.2
-                - 3.0 * np.maximum(0, s) + 1.5 * (np.abs(s) < 0.38)  # neighbour along +y
-                + 1.5 * c  # away from the start (+x), within 0.25 m of it
+    expected = (1.0 * -c * np.exp(0.1)  # towards the centre (-x), weight 1 after the first push, exp(|o_x| + |o_y|)
+                - 3.0 * np.where(s > 0.4, s, 0) + 1.5 * (np.abs(s) < 0.3)  # neighbour along +y
+                + 1.5 * np.minimum(c, 0)  # back towards the start (-x) is penalised, within 0.25 m of it
                 + 2.0 * s)  # keep going along +y
     assert np.allclose(scores, expected)
     assert np.allclose(probs, softmax(expected / 2.0)) and np.isclose(probs.sum(), 1)
 
 
-def test_first_push_weighs_the_out_of_centre_term_five_times():
+def test_first_push_rewards_the_centre_five_times_more():
     pos = np.array([[0.65, 0.0]])  # 0.15 m along +x from the centre
     policy = HeuristicPolicy(np.random.default_rng(0), 1)
     policy.reset(pos)
-    first, _ = policy.direction_scores(0, pos)
-    assert np.allclose(first, -5.0 * np.maximum(0, np.cos(ANGLES)) * 0.75)
+    first, probs = policy.direction_scores(0, pos)
+    assert np.allclose(first, -5.0 * np.cos(ANGLES) * np.exp(0.15))
+    assert np.argmax(probs) == 4  # towards the centre
     policy.accept(_decision(0, direction=4), pos)  # pushed along -x, did not move
     later, _ = policy.direction_scores(0, pos)
-    assert np.allclose(later, -1.0 * np.maximum(0, np.cos(ANGLES)) * 0.75 + 2.0 * np.cos(ANGLES - np.pi))
+    assert np.allclose(later, -1.0 * np.cos(ANGLES) * np.exp(0.15) + 2.0 * np.cos(ANGLES - np.pi))
 
 
 @pytest.mark.parametrize("scoring", ["official", "paper"])
@@ -163,14 +164,28 @@ def test_last_direction_is_favoured():
     assert np.argmax(probs) == 2 and probs[2] > probs[1] > probs[0] > probs[6]
 
 
-def test_neighbours_repel_and_favour_perpendicular_directions():
+def test_neighbours_repel_ahead_and_favour_beside():
     policy = HeuristicPolicy(np.random.default_rng(0), 3)
     pos = np.array([[0.5, 0.0], [0.6, 0.0], [0.5, -0.2]])  # a neighbour 0.1 m along +x; one 0.2 m away
     policy.reset(pos)
     scores, _ = policy.direction_scores(0, pos)
     c = np.cos(ANGLES)
-    assert np.allclose(scores, -3.0 * np.maximum(0, c) + 1.5 * (np.abs(c) < 0.38))
+    assert np.allclose(scores, -3.0 * np.where(c > 0.4, c, 0) + 1.5 * (np.abs(c) < 0.3))
     assert np.argmax(scores) in (2, 6) and scores[0] == scores.min()
+
+
+def test_moving_back_towards_the_start_is_penalised_only_near_it():
+    policy = HeuristicPolicy(np.random.default_rng(0), 1)
+    policy.reset(np.array([[0.5, 0.0]]))
+    near = np.array([[0.5, 0.1]])  # moved 0.1 m along +y
+    scores, _ = policy.direction_scores(0, near)
+    towards = -np.cos(ANGLES) * 0.0 + (-1.0) * np.sin(ANGLES)  # centre is along -y: u . v = -sin
+    expected = 5.0 * towards * np.exp(0.1) + 1.5 * np.minimum(np.sin(ANGLES), 0)
+    assert np.allclose(scores, expected)
+    far = np.array([[0.5, 0.0]])
+    policy.reset(np.array([[0.5, -0.26]]))  # 0.26 m from its start: the term is gone
+    scores, _ = policy.direction_scores(0, far)
+    assert np.allclose(scores, 0.0)
 
 
 def test_paper_scoring_is_the_appendix_q():
