@@ -51,6 +51,18 @@ SEARCH_ICP_STARTS = 6
 #: Ranking penalty of a start pose or result per half turn (pi rad) away from the carried pose, in quality units
 #: (coverage fraction): among fits of nearly equal quality the least turned one wins.
 TURN_PENALTY = 0.05
+#: A moved object that the search along the push does not find is looked for where the step's cloud shows surface
+#: that no other object explains (a can or bottle lying on its side rolls on after the push, often farther than the
+#: push and across it): cloud points above the table farther than this (m) from every other object's surface ...
+EXPLAINED_DISTANCE = 0.01
+#: ... in SEARCH_STEP cells holding at least this many of them put the object's centre over the cell, at its carried
+#: height, turned about the vertical by SEARCH_YAWS.
+LANDING_MIN_POINTS = 3
+#: Ranking penalty of such a start pose or result per metre away from the carried pose, in quality units: among
+#: fits of nearly equal quality (the same shape elsewhere) the nearest one wins.
+DISTANCE_PENALTY = 0.5
+#: Start poses screened at once (bounds the memory of the vectorised screen).
+SCREEN_CHUNK = 1000
 #: Clouds kept in memory (steps).
 CLOUD_CACHE = 4
 
@@ -335,7 +347,9 @@ class Session:
     def go_to(self, step: int) -> list[int]:
         """Make `step` current. A step not visited before gets the poses of the nearest earlier visited step
         carried forward, and only the objects that moved are snapped (ICP; a start-pose search along the push
-        when the carried pose does not converge). Returns the objects whose pose the snapping changed.
+        when the carried pose does not converge; then, for an object that left its place and is still not snapped,
+        a search over the cloud that no other object explains, e.g. a lying can that rolled on across the push).
+        Returns the objects whose pose the snapping changed.
 
         Moving to a visited step only moves the cursor (not an undoable action); visiting a new step is one.
         """
@@ -356,6 +370,14 @@ class Session:
             changes[(step, obj)] = (new_pose, status, score.as_dict())
             if moved:
                 snapped.append(obj)
+        # second pass, once every object near its push has its new pose: an object that left its place and was not
+        # found near the push is looked for where the cloud shows surface that no other object explains
+        for obj in [k for (_, k), (_, status, _) in changes.items() if status != "snapped"]:
+            others = [(k, p) for (_, k), (p, _, _) in changes.items() if k != obj]
+            landed = self._land(obj, source, step, self.state.pose(source, obj), others)
+            if landed is not None:
+                changes[(step, obj)] = (landed[0], "snapped", landed[1].as_dict())
+                snapped = sorted(set(snapped) | {obj})
         self._commit("step", changes, cursor=step, visit=[step])
         return snapped
 
@@ -446,6 +468,73 @@ class Session:
         for _, cand in candidates[:SEARCH_ICP_STARTS]:
             result = align.icp(samples, self._crop(step, cand, samples), cand, views)
             rank = result.score.quality() - TURN_PENALTY * align.pose_delta(start, result.transform)[1] / np.pi
+            if result.applied and rank > best_rank:
+                best, best_rank = result, rank
+        return best
+
+    def _land(self, obj: int, source: int, step: int, pose: np.ndarray,
+              others: list[tuple[int, np.ndarray]]) -> tuple[np.ndarray, FitScore] | None:
+        """(pose, score) of an object that left its place (its carried pose lost MOVED_COVERAGE_DROP of its
+        coverage) found by `_search_landed` with a good fit (accepted, about as well covered as at `source`), or
+        None. `others`: (object, pose) of the other objects at `step`."""
+        before = self.stored_score(obj, source) or self._fit(obj, source, pose)
+        carried = self._fit(obj, step, pose)
+        if carried.coverage >= before.coverage - MOVED_COVERAGE_DROP:
+            return None  # still (partly) where it was: not free to go looking elsewhere
+        result = self._search_landed(obj, step, pose_to_matrix(pose), others)
+        if result is None or not (result.applied and result.score.accepted
+                                  and result.score.coverage >= before.coverage - MOVED_COVERAGE_DROP):
+            return None
+        return align.matrix_to_pose(result.transform), result.score
+
+    def _search_landed(self, obj: int, step: int, start: np.ndarray,
+                       others: list[tuple[int, np.ndarray]]) -> align.IcpResult | None:
+        """Best kept ICP result from start poses over the step's unexplained surface: cloud points above the table
+        farther than EXPLAINED_DISTANCE from every other object's surface at its pose (`others`: (object, pose)),
+        binned in SEARCH_STEP cells (at least LANDING_MIN_POINTS points); the object's centre goes over each cell
+        at its carried height, turned about the vertical by SEARCH_YAWS. Finds an object wherever it went (a can
+        lying on its side rolls on across the push); ties go to the least turn, then to the nearest."""
+        from scipy.spatial import cKDTree
+
+        above = self.cloud(step)[0]
+        above = points = above[above[:, 2] > align.TABLE_MARGIN]
+        if others and len(points):
+            surfaces = np.vstack([align.posed(self.samples(k), pose_to_matrix(p))[0] for k, p in others])
+            d, _ = cKDTree(surfaces).query(points, distance_upper_bound=EXPLAINED_DISTANCE)
+            points = points[~np.isfinite(d)]
+        if len(points) < align.MIN_CORRESPONDENCES:
+            return None
+        cells, counts = np.unique(np.floor(points[:, :2] / SEARCH_STEP).astype(np.int64), axis=0, return_counts=True)
+        cells = cells[counts >= LANDING_MIN_POINTS]
+        if len(cells) == 0:
+            return None
+        samples = self.samples(obj)
+        centre = start[:3, :3] @ samples.centre + start[:3, 3]
+        xy = (cells + 0.5) * SEARCH_STEP
+        starts, penalties = [], []
+        for yaw in SEARCH_YAWS:
+            rot = align.rotvec_to_matrix([0.0, 0.0, yaw]) @ start[:3, :3]
+            for x, y in xy:
+                cand = np.eye(4)
+                cand[:3, :3] = rot
+                cand[:3, 3] = np.array([x, y, centre[2]]) - rot @ samples.centre
+                starts.append(cand)
+                penalties.append(TURN_PENALTY * abs(yaw) / np.pi + DISTANCE_PENALTY * np.hypot(x - centre[0],
+                                                                                               y - centre[1]))
+        tree = cKDTree(above)
+        views = self._views(step)
+        every = max(1, len(samples.points) // SEARCH_SAMPLES)
+        screen = align.SurfaceSamples(samples.points[::every], samples.normals[::every], samples.centre,
+                                      samples.radius)
+        starts_arr = np.stack(starts)
+        quality = np.concatenate([align.screen_quality(screen, starts_arr[k:k + SCREEN_CHUNK], tree, views,
+                                                       SEARCH_INLIER) for k in range(0, len(starts), SCREEN_CHUNK)])
+        quality = quality - np.asarray(penalties)
+        best, best_rank = None, -np.inf
+        for k in np.argsort(-quality, kind="stable")[:SEARCH_ICP_STARTS]:
+            result = align.icp(samples, self._crop(step, starts[k], samples), starts[k], views)
+            moved_t, turned = align.pose_delta(start, result.transform)
+            rank = result.score.quality() - TURN_PENALTY * turned / np.pi - DISTANCE_PENALTY * moved_t
             if result.applied and rank > best_rank:
                 best, best_rank = result, rank
         return best
