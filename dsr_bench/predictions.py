@@ -128,9 +128,13 @@ def file_problem(path: Path, root: Path) -> str | None:
 
 
 def _show(raw: bytes | str, limit: int = 80) -> str:
-    """A name or path from a file, quoted on one line and cut to `limit` characters."""
+    """A name or path from a file, quoted on one line and cut to `limit` characters in the middle (a
+    path's start and its file name stay readable)."""
     text = raw.decode("utf-8", "backslashreplace") if isinstance(raw, bytes) else raw
-    return repr(text if len(text) <= limit else text[:limit] + "...")
+    if len(text) > limit:
+        head = limit // 2 - 2
+        text = text[:head] + "..." + text[len(text) - (limit - head - 3):]
+    return repr(text)
 
 
 def check_num_slots(attrs: h5py.AttributeManager) -> list[str]:

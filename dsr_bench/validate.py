@@ -60,11 +60,12 @@ def schema_markdown_table() -> str:
     """The sequence schema (`dsr_bench.schema.SEQUENCE_SCHEMA`) as a markdown table for docs/format.md."""
     from dsr_bench.schema import SEQUENCE_SCHEMA
 
-    rows = ["| dataset | shape | dtype | units | required | meaning |", "|---|---|---|---|---|---|"]
+    rows = ["| dataset | shape | dtype | units | required | group | meaning |", "|---|---|---|---|---|---|---|"]
     for f in SEQUENCE_SCHEMA:
         name = f"cameras/<cam>/{f.name}" if f.camera else f.name
         required = "yes" if f.required else "no"
-        rows.append(f"| `{name}` | ({', '.join(f.shape)}) | {f.dtype} | {f.units} | {required} | {f.description} |")
+        rows.append(f"| `{name}` | ({', '.join(f.shape)}) | {f.dtype} | {f.units} | {required} | {f.group} | "
+                    f"{f.description} |")
     return "\n".join(rows) + "\n"
 
 
@@ -256,6 +257,10 @@ def _check_official_flow(seq) -> list[str]:
     return problems
 
 
+#: Below this many voxels inside the grid at both steps an object is not compared (an edge effect).
+MIN_WARP_VOXELS = 64
+
+
 def mask_warp_iou(mask_t: np.ndarray, flow_t: np.ndarray, mask_next: np.ndarray, obj: int) -> float | None:
     """Voxel-tolerant IoU of object `obj`'s voxels at t + 1 with its voxels at t moved by the flow.
 
@@ -265,7 +270,10 @@ def mask_warp_iou(mask_t: np.ndarray, flow_t: np.ndarray, mask_next: np.ndarray,
     leaves holes and doubles that a plain IoU would count (it drops to ~0.6 for valid 30-degree
     turns). Returns (matched voxels of both sets) / (voxels of both sets), or None if there is nothing
     to compare: the object has no voxel at t (it is outside the grid: pushes are never undone, so an
-    object may leave the grid and come back) or at neither step.
+    object may leave the grid and come back), or fewer than MIN_WARP_VOXELS in the grid's interior at
+    both steps. Voxels on the grid's side faces are left out (the faces cut a solid that crosses them,
+    and rounding decides which side a voxel there falls on), and so is the part of the object at
+    t + 1 that was outside the grid at t.
     """
     from scipy import ndimage
 
@@ -281,8 +289,13 @@ def mask_warp_iou(mask_t: np.ndarray, flow_t: np.ndarray, mask_next: np.ndarray,
         rotation, shift = _rigid_fit(src.astype(np.float64), exact)
         before = (target - shift) @ rotation  # R^T (x - t), row vectors
         target = target[np.all((before >= -0.5) & (before < shape - 0.5), axis=1)]
-    if len(moved) == 0 and len(target) == 0:
-        return None
+    # the grid's side faces (y, x) cut a solid that crosses them, and rounding decides which side a voxel
+    # there falls on: compare the interior only
+    inner = np.array([1, 1, 0]), shape - np.array([1, 1, 0])
+    moved = moved[np.all((moved >= inner[0]) & (moved < inner[1]), axis=1)]
+    target = target[np.all((target >= inner[0]) & (target < inner[1]), axis=1)]
+    if len(moved) < MIN_WARP_VOXELS and len(target) < MIN_WARP_VOXELS:
+        return None  # (almost) nothing of the object left inside the grid to compare
     if len(moved) == 0 or len(target) == 0:
         return 0.0
     both = np.concatenate([moved, target])

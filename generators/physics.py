@@ -32,8 +32,8 @@ MIN_SETTLE_STEPS = 24
 #: Official frictions: objects, the table (pybullet's plane.urdf) and the pusher stick.
 OBJECT_FRICTION = 0.25
 OBJECT_SPINNING_FRICTION = 0.003
-#: Not official (the authors set none): a round object on its side comes to rest within a push (2 mm
-#: rolling friction) instead of rolling on between observations, in and out of the grid.
+#: Not official (the authors set none): a round object on its side comes to rest within a push (a can
+#: set rolling at 0.3 m/s stops after 15 cm) instead of rolling on between observations, in and out of the grid.
 OBJECT_ROLLING_FRICTION = 0.002
 TABLE_FRICTION = 1.0
 PUSHER_FRICTION = 1.0

@@ -13,8 +13,9 @@ if ! ldconfig -p 2>/dev/null | grep -q "libusb-1.0.so"; then
 fi
 # The annotator window and its test: a virtual X display (xvfb-run needs xauth) and Mesa's OpenGL, with which
 # open3d's legacy visualizer renders under `xvfb-run` (GLX through swrast; EGL for open3d's offscreen fallback);
-# xdotool lets the test type real keys into the window.
-WINDOW_PKGS="xvfb xauth libgl1 libglx-mesa0 libgl1-mesa-dri libegl1 libegl-mesa0 xdotool"
+# xdotool lets the test type real keys into the window. qemu-user runs the generator on an emulated AVX2-only
+# CPU for the cross-instruction-set reproducibility test (tests/test_reproducibility.py; it skips without).
+WINDOW_PKGS="xvfb xauth libgl1 libglx-mesa0 libgl1-mesa-dri libegl1 libegl-mesa0 xdotool qemu-user"
 if command -v dpkg >/dev/null 2>&1; then
   missing=""
   for pkg in $WINDOW_PKGS; do dpkg -s "$pkg" >/dev/null 2>&1 || missing="$missing $pkg"; done

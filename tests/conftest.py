@@ -9,7 +9,6 @@ import pytest
 def generated_dataset(tmp_path_factory) -> Path:
     """2 sequences x 3 pushes of 3 procedural-novel objects, seed 3: the pinned-score fixture."""
     pytest.importorskip("pybullet")
-    pytest.importorskip("open3d")
     from dsr_bench.cli import main
 
     out = tmp_path_factory.mktemp("generated") / "data"

@@ -14,7 +14,6 @@ import numpy as np
 import pytest
 
 pytest.importorskip("pybullet")
-pytest.importorskip("open3d")
 
 from dsr_bench.cli import main  # noqa: E402
 from dsr_bench.constants import TSDF_TRUNCATION  # noqa: E402

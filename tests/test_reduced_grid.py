@@ -59,7 +59,9 @@ def test_a_tiny_run_writes_its_summary(tmp_path, monkeypatch):
                                                           "batches": 10, "sample_steps": 20}
     for name in ("dsr", "single"):
         scores = summary["models"][name]
-        assert 0 <= scores["iou_ordered"] <= scores["iou_unordered"] + 1e-9 <= 1 + 1e-9
+        # both in [0, 1]; ordered is not bounded by unordered: the mean runs over the matched non-empty pairs,
+        # so a sequence-wide matching can count fewer pairs at a step than that step's best-sum matching
+        assert 0 <= scores["iou_ordered"] <= 1 and 0 <= scores["iou_unordered"] <= 1
     # DSR-Net's weights also scored with its history zeroed and unwarped at test time; SingleStep has none
     assert set(summary["models"]) == {"dsr", "single", "dsr/test-history-none", "dsr/test-history-nowarp"}
     assert set(summary["paired_ordered_iou"]) == {"dsr-single", "dsr-dsr/test-history-none",

@@ -27,7 +27,6 @@ def test_split_table_and_errors():
 def test_pinned_split_reproduces_bit_for_bit(tmp_path, split, shard, sequence):
     """A shard of a pinned split, generated here, has exactly the pinned content digests."""
     pytest.importorskip("pybullet")
-    pytest.importorskip("open3d")
     from dsr_bench.cli import main
 
     pins = pinned_digests()

@@ -28,7 +28,7 @@ def test_tsdf_of_a_plane_matches_the_definition():
     sdf = z_cam * (s - 1)
     expected = np.where(sdf >= -TSDF_TRUNCATION, np.minimum(1, sdf / TSDF_TRUNCATION), 1.0)
     got = tsdf[::8, ::8].reshape(-1)
-    clear = np.abs(sdf + TSDF_TRUNCATION) > 0.002  # away from the band's far edge (pixel rounding)
+    clear = np.abs(sdf + TSDF_TRUNCATION) > 0.006  # away from the band's far edge (nearest-pixel depth: ~5 mm)
     error = np.abs(got - expected)[clear]
     # nearest-pixel depth on a grazing plane: at most ~5 mm off, and exact on average
     assert error.max() < 0.25 and error.mean() < 0.01
