@@ -1,9 +1,9 @@
-"""Annotated poses -> a sequence file in the generator's format (`dsr_bench.schema`), with provenance.
+"""Annotated poses -> a sequence file in the generator's format (`dsr_bench.dataset.schema`), with provenance.
 
 From the capture's front camera: colour, depth and world points at the benchmark's image size (IMAGE_SHAPE,
 `stored_camera`), and the TSDF of its full-resolution depth image; from the poses and
 meshes: amodal `mask_3d` (voxel centres inside each mesh's solid, `generators.render.SceneRenderer.amodal_mask`),
-`scene_flow_3d` and `scene_flow_2d` (`dsr_bench.groundtruth`), the heightmap of the posed meshes, the front view's
+`scene_flow_3d` and `scene_flow_2d` (`dsr_bench.geometry.groundtruth`), the heightmap of the posed meshes, the front view's
 visible instance mask (rendered ids where the measured depth agrees) and visible fractions. Actions and pushes
 come from the capture. Attributes carry "source": "annotated" and an "annotation" record: annotator and state
 versions, capture name and provenance, per-step/object status and fit scores, user action counts.
@@ -67,7 +67,7 @@ def stored_camera(camera, shape: tuple[int, int]):
 
 
 def _identity(capture, i: int) -> dict:
-    from dsr_bench.manifest import mesh_sha256
+    from dsr_bench.dataset.manifest import mesh_sha256
 
     ident = dict(capture.objects[i].identity)
     ident.update({"name": capture.objects[i].name, "mesh_file": capture.objects[i].mesh_path.name,
@@ -83,10 +83,10 @@ def export_sequence(session, out: str | Path, allow_unchecked: bool = False) -> 
     """
     from dsr_bench import __version__
     from dsr_bench.constants import AXIS_ORDER, FLOW_COMPONENTS, GRID_BOUNDS, GRID_SHAPE, IMAGE_SHAPE, VOXEL_SIZE
-    from dsr_bench.groundtruth import rigid_scene_flow_2d, rigid_scene_flow_3d
-    from dsr_bench.digests import digest_attrs
-    from dsr_bench.sequence import write_sequence
-    from dsr_bench.tsdf import ProjectiveTSDF
+    from dsr_bench.geometry.groundtruth import rigid_scene_flow_2d, rigid_scene_flow_3d
+    from dsr_bench.dataset.digests import digest_attrs
+    from dsr_bench.dataset.sequence import write_sequence
+    from dsr_bench.geometry.tsdf import ProjectiveTSDF
     from annotator.state import STATE_VERSION
 
     out = Path(out)

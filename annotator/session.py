@@ -20,7 +20,7 @@ import numpy as np
 from annotator import align
 from annotator.align import FitScore
 from annotator.state import ACTION_KINDS, AnnotationState, StateError
-from dsr_bench.capture import Capture, load_capture
+from dsr_bench.dataset.capture import Capture, load_capture
 from dsr_bench.constants import RIG_PUSHER_RADIUS
 from dsr_bench.errors import UserError
 from dsr_bench.geometry import pose_to_matrix

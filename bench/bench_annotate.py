@@ -294,7 +294,7 @@ def ensure_captures(args) -> list[Path]:
                args.objects, "--noise", args.noise])
     if rc != 0:
         raise SystemExit(rc)
-    from dsr_bench.splits import sequence_name
+    from dsr_bench.dataset.splits import sequence_name
 
     return [args.captures / sequence_name(i) for i in range(args.num)]
 
@@ -324,7 +324,7 @@ def main() -> None:
     parser.add_argument("--json", type=Path, default=None, help="also write the figures as JSON here")
     args = parser.parse_args()
 
-    from dsr_bench.capture import load_capture
+    from dsr_bench.dataset.capture import load_capture
     from generators.capture import calibration_error
 
     paths = ensure_captures(args)

@@ -6,7 +6,7 @@ on exactly the same inputs, side by side.
 
 Writes predictions with a reference model, then runs, alternated (A, B, C, ... A, B, C, ...):
 - reading the same files alone (the floor);
-- `dsr_bench.evaluate.evaluate` with all cores, and with one process (every metric);
+- `dsr_bench.scoring.evaluate.evaluate` with all cores, and with one process (every metric);
 - only with `--official-repo PATH` (a checkout of columbia-ai-robotics/dsr): the authors'
   `calc_iou_unordered` (per step) and `calc_iou_ordered` (per sequence), loaded from their
   `test.py` alone, in this process (torch on the CPU), timed over their calls only: the inputs
@@ -80,7 +80,7 @@ class OfficialSide:
 
         import h5py
 
-        from dsr_bench.sequence import SequenceReader
+        from dsr_bench.dataset.sequence import SequenceReader
 
         seconds = 0.0
         for name in self.names:
@@ -127,9 +127,9 @@ def main(argv: list[str] | None = None) -> dict:
     add_official_args(parser, needs_env=False)
     args = parser.parse_args(argv)
 
-    from dsr_bench.evaluate import evaluate, score_sequence
-    from dsr_bench.manifest import build_manifest, read_split, write_manifest
-    from dsr_bench.predictors import load_predictor, predict_split
+    from dsr_bench.scoring.evaluate import evaluate, score_sequence
+    from dsr_bench.dataset.manifest import build_manifest, read_split, write_manifest
+    from dsr_bench.models.predictors import load_predictor, predict_split
 
     functions = None
     if args.official_repo is not None:

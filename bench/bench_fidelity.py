@@ -8,7 +8,7 @@ Our side: a directory of dsr-bench sequences (`--ours DIR`, its seq_*.h5), or N 
 here into a temporary directory (`dsr-bench generate --objects cube -n N --seed S --workers 2`;
 default N = 40, seed 777). The authors' side: the reference file of their generator's cube sequences
 (`--reference`, default /work/shared/reference/official-cube-reference.h5), or a directory in the
-official release's per-step layout (`--official-dir`, read through `dsr_bench.official`).
+official release's per-step layout (`--official-dir`, read through `dsr_bench.dataset.official`).
 
 Both sides are reduced to one record per sequence (object positions and (x, y, z, w) quaternions at
 t = 0..T, actions [d, row, col], voxels of mask_3d == k at t = 0..T, TSDF band shares at t < T), and
@@ -142,8 +142,8 @@ def _observation(seq, name: str, t: int) -> np.ndarray:
 
 def read_official_dir(path: str | Path) -> list[Record]:
     """The sequences of a directory in the official release's per-step layout, through
-    `dsr_bench.official` (validated shapes and dtypes)."""
-    from dsr_bench.official import find_official_sequences
+    `dsr_bench.dataset.official` (validated shapes and dtypes)."""
+    from dsr_bench.dataset.official import find_official_sequences
 
     path = Path(path)
     if not path.is_dir():
@@ -169,7 +169,7 @@ def read_official_dir(path: str | Path) -> list[Record]:
 def read_ours(path: str | Path) -> tuple[list[Record], list[np.ndarray | None]]:
     """Records of a directory of dsr-bench sequences (its seq_*.h5), and each one's recorded policy choice
     (`policy/chosen_object`, or None where the file has none)."""
-    from dsr_bench.sequence import SequenceReader
+    from dsr_bench.dataset.sequence import SequenceReader
 
     path = Path(path)
     if not path.is_dir():

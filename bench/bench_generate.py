@@ -29,9 +29,9 @@ def main() -> None:
     parser.add_argument("--cameras", default="front")
     args = parser.parse_args()
 
-    from dsr_bench.digests import digest_attrs
-    from dsr_bench.sequence import _DEFLATE, write_sequence
-    from dsr_bench.splits import sequence_seed
+    from dsr_bench.dataset.digests import digest_attrs
+    from dsr_bench.dataset.sequence import _DEFLATE, write_sequence
+    from dsr_bench.dataset.splits import sequence_seed
     from generators.episode import EpisodeConfig, generate_episode
     from generators.objects import get_object_set
 

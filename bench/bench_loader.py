@@ -31,7 +31,7 @@ def main() -> None:
 
     import torch
 
-    from dsr_bench.torch_data import SequenceWindowDataset
+    from dsr_bench.models.data import SequenceWindowDataset
 
     data, tmp = args.data, None
     if data is None:
@@ -47,7 +47,7 @@ def main() -> None:
 
 
 def run(data, args, torch, SequenceWindowDataset) -> None:
-    from dsr_bench.torch_data import batch_to_device, collate_compact
+    from dsr_bench.models.data import batch_to_device, collate_compact
 
     ds = SequenceWindowDataset(data, args.split, window=args.window)
     device = torch.device(args.device)

@@ -4,7 +4,7 @@
         [--window 1] [--resident] [--steps 10] [--bf16] [--compile] [--channels-last] [--json OUT.json]
         [--profile]
 
-Training: samples (time steps) per second of `dsr_bench.train.train_step`, the training loop's unit
+Training: samples (time steps) per second of `dsr_bench.models.training.trainer.train_step`, the training loop's unit
 of work, on a window of `--window` steps in the form `dsr-bench train` hands it over (compact
 batches from `collate_compact`, in pinned host memory on a GPU): the mask id check, the copy to the
 device and expansion, then per step forward, matched loss, backward, Adam (fused on a GPU) and the
@@ -49,8 +49,8 @@ def main() -> None:
     from dsr_bench.models import DSRNet, ModelConfig
     from dsr_bench.models.loss import dsr_loss
     from dsr_bench.models.warp import forward_warp
-    from dsr_bench.torch_data import collate_compact
-    from dsr_bench.train import train_step
+    from dsr_bench.models.data import collate_compact
+    from dsr_bench.models.training.trainer import train_step
 
     dev = torch.device(args.device if args.device != "cuda" or torch.cuda.is_available() else "cpu")
     if dev.type == "cuda":

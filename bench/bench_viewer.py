@@ -28,7 +28,7 @@ def main() -> None:
 
     import rerun  # noqa: F401  (import cost excluded)
 
-    from dsr_bench.sequence import SequenceReader
+    from dsr_bench.dataset.sequence import SequenceReader
     from dsr_bench.viewer import view
 
     work = Path(tempfile.mkdtemp(prefix="bench_viewer_"))

@@ -93,7 +93,7 @@ POLICY_OUTWARD_PENALTY: float = 10.0
 POLICY_MAX_SAMPLES: int = 64
 
 # --- File format -----------------------------------------------------------------------------
-#: 2 (dsr-bench 0.2): digests by group (`dsr_bench.digests`), the exact renderer, the authors' policy
+#: 2 (dsr-bench 0.2): digests by group (`dsr_bench.dataset.digests`), the exact renderer, the authors' policy
 #: and dynamics; files of schema 1 hold the data of an earlier benchmark version and are regenerated.
 SCHEMA_VERSION: int = 2
 FORMAT_NAME: str = "dsr-bench-sequence"

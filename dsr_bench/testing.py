@@ -2,7 +2,7 @@
 
 Boxes slide and turn on the table; every array is derived from their poses with the same
 definitions the generator uses (analytic ray casting for images, solid occupancy for `mask_3d`,
-`dsr_bench.groundtruth` for flow, `dsr_bench.tsdf` for the TSDF). Use it to test readers, metrics,
+`dsr_bench.geometry.groundtruth` for flow, `dsr_bench.geometry.tsdf` for the TSDF). Use it to test readers, metrics,
 models and viewers without pybullet.
 """
 
@@ -15,9 +15,9 @@ import numpy as np
 from dsr_bench import __version__
 from dsr_bench.constants import AXIS_ORDER, FLOW_COMPONENTS, GRID_BOUNDS, GRID_SHAPE, IMAGE_SHAPE, VOXEL_SIZE
 from dsr_bench.geometry import make_camera, pixel_to_world, pose_to_matrix, voxel_points, world_to_pixel
-from dsr_bench.groundtruth import rigid_scene_flow_2d, rigid_scene_flow_3d
-from dsr_bench.sequence import write_sequence
-from dsr_bench.tsdf import integrate_tsdf
+from dsr_bench.geometry.groundtruth import rigid_scene_flow_2d, rigid_scene_flow_3d
+from dsr_bench.dataset.sequence import write_sequence
+from dsr_bench.geometry.tsdf import integrate_tsdf
 
 _COLORS = np.array([[230, 60, 60], [60, 180, 75], [60, 100, 230], [240, 200, 40], [160, 80, 200]], np.uint8)
 
@@ -150,7 +150,7 @@ def synthetic_arrays(num_steps: int = 3, num_objects: int = 2, seed: int = 0):
 
 def write_synthetic_sequence(path: str | Path, num_steps: int = 3, num_objects: int = 2, seed: int = 0) -> Path:
     """Write a synthetic box sequence to `path` (an .h5 file) and return the path."""
-    from dsr_bench.digests import digest_attrs
+    from dsr_bench.dataset.digests import digest_attrs
 
     arrays, attrs, meshes = synthetic_arrays(num_steps, num_objects, seed)
     attrs["sequence"] = Path(path).stem
@@ -161,7 +161,7 @@ def write_synthetic_sequence(path: str | Path, num_steps: int = 3, num_objects: 
 def write_synthetic_dataset(data_dir: str | Path, num_sequences: int = 2, num_steps: int = 3, num_objects: int = 2,
                             split: str = "test") -> Path:
     """A dataset directory of synthetic sequences with splits/<split>.txt and manifest.json."""
-    from dsr_bench.manifest import build_manifest, write_manifest
+    from dsr_bench.dataset.manifest import build_manifest, write_manifest
 
     data_dir = Path(data_dir)
     names = [f"seq_{i:04d}" for i in range(num_sequences)]

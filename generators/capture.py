@@ -1,7 +1,7 @@
 """Simulated two-camera RGB-D captures: the annotator's demo, test fixtures and accuracy yardstick.
 
 simulate (generators.episode, both cameras) -> ideal renders (generators.render) -> sensor model -> capture
-directory (dsr_bench.capture.write_capture). The sensor model imitates an active-stereo RealSense (D415-like):
+directory (dsr_bench.dataset.capture.write_capture). The sensor model imitates an active-stereo RealSense (D415-like):
 
 - depth comes from a disparity d = f b / z (f the focal length in pixels, b the stereo baseline): matching noise of
   `disparity_sigma` pixels (part white, part spatially correlated), so the depth error grows with z^2; the
@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from dsr_bench.capture import CaptureCamera, write_capture
+from dsr_bench.dataset.capture import CaptureCamera, write_capture
 from dsr_bench.errors import UserError
 from dsr_bench.geometry import Camera, make_camera
 

@@ -29,7 +29,7 @@ from dsr_bench.constants import (
     WORKSPACE_CENTER,
 )
 from dsr_bench.geometry import direction_vector, pose_to_matrix, transform_points, world_to_pixel
-from dsr_bench.groundtruth import rigid_scene_flow_2d, rigid_scene_flow_3d
+from dsr_bench.geometry.groundtruth import rigid_scene_flow_2d, rigid_scene_flow_3d
 
 MAX_SCENE_ATTEMPTS = 30
 #: Official scene sampling: xy uniform in a square of this half size around the workspace centre (m),
@@ -65,7 +65,7 @@ class EpisodeConfig:
 
 @dataclass
 class Episode:
-    """A generated sequence, ready for `dsr_bench.sequence.write_sequence`."""
+    """A generated sequence, ready for `dsr_bench.dataset.sequence.write_sequence`."""
 
     arrays: dict[str, np.ndarray]
     attrs: dict

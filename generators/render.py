@@ -26,7 +26,7 @@ from dsr_bench.constants import (
     VOXEL_SIZE,
 )
 from dsr_bench.geometry import Camera, make_camera, pose_to_matrix, transform_points
-from dsr_bench.tsdf import ProjectiveTSDF
+from dsr_bench.geometry.tsdf import ProjectiveTSDF
 from generators import raster
 
 TABLE_COLOR = np.array([0.78, 0.74, 0.66])

@@ -24,7 +24,7 @@ import numpy as np
 
 from dsr_bench.constants import MAX_OBJECTS_PER_SCENE
 from dsr_bench.errors import UserError
-from dsr_bench.splits import sequence_name, sequence_seed
+from dsr_bench.dataset.splits import sequence_name, sequence_seed
 from generators.episode import EpisodeConfig
 
 
@@ -181,8 +181,8 @@ def _init_worker(objects: str, object_root: str | None) -> None:
 
 
 def _generate_one(plan: RunPlan, index: int) -> SequenceResult:
-    from dsr_bench.digests import digest_attrs
-    from dsr_bench.sequence import write_sequence
+    from dsr_bench.dataset.digests import digest_attrs
+    from dsr_bench.dataset.sequence import write_sequence
     from generators.episode import generate_episode
 
     start = time.perf_counter()
@@ -253,7 +253,7 @@ def generate_dataset(plan: RunPlan, todo: list[int],
 def finalize_dataset(plan: RunPlan) -> dict | None:
     """Write splits/<split>.txt and manifest.json once every sequence of the run exists; else None."""
     from dsr_bench.atomic import write_text
-    from dsr_bench.manifest import build_manifest, write_manifest
+    from dsr_bench.dataset.manifest import build_manifest, write_manifest
 
     names = [sequence_name(i) for i in range(plan.num_sequences)]
     if not all((plan.out / f"{n}.h5").exists() for n in names):

@@ -2,7 +2,7 @@
 
     python scripts/pin_split.py DATA_DIR [--split NAME]
 
-Writes dsr_bench/data/split_pins.json["splits"][NAME] (`dsr_bench.pins.build_pin`): the split's
+Writes dsr_bench/dataset/split_pins.json["splits"][NAME] (`dsr_bench.dataset.pins.build_pin`): the split's
 ground-truth checksum, its observations' checksum, and per sequence the two group digests and a
 fingerprint of every array. Run it after `dsr-bench generate --split NAME --out DATA_DIR` and
 `dsr-bench validate DATA_DIR`, whenever the generator changes what it writes (and say so in the
@@ -23,9 +23,9 @@ def main() -> None:
     args = parser.parse_args()
 
     from dsr_bench.atomic import write_text
-    from dsr_bench.manifest import load_manifest, read_split
-    from dsr_bench.pins import build_pin
-    from dsr_bench.splits import PINNED_FILE, PINS_FORMAT, PINS_VERSION, get_split
+    from dsr_bench.dataset.manifest import load_manifest, read_split
+    from dsr_bench.dataset.pins import build_pin
+    from dsr_bench.dataset.splits import PINNED_FILE, PINS_FORMAT, PINS_VERSION, get_split
 
     split, names = read_split(args.data, args.split)
     spec = get_split(split)

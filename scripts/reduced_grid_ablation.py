@@ -13,7 +13,7 @@ thousands of sample-steps per model.
 
 Downsampling by --factor (y, x, z): the TSDF is averaged over each block; masks and flow are taken
 at each block's centre voxel (flow divided by the factor: coarse voxels); the action's pixel is
-divided by the factor. Training is `dsr_bench.train.train_step` (matched loss with the matching
+divided by the factor. Training is `dsr_bench.models.training.trainer.train_step` (matched loss with the matching
 carried from step to step, the state warped between steps, Adam betas (0.9, 0.95)): stage 1 on
 single-step windows (--steps-single batches, lr 1e-3), stage 2 on 10-step windows (--steps-multi
 batches, lr 5e-4, from stage 1's weights); SingleStep stays single-step and gets 10x the stage-2
@@ -44,12 +44,12 @@ import numpy as np
 import torch
 from torch.nn import functional as F
 
-from dsr_bench.manifest import read_split
-from dsr_bench.metrics import sequence_scores
+from dsr_bench.dataset.manifest import read_split
+from dsr_bench.scoring.metrics import sequence_scores
 from dsr_bench.models import DSRNet, ModelConfig
-from dsr_bench.sequence import SequenceReader
-from dsr_bench.torch_data import action_map
-from dsr_bench.train import train_step
+from dsr_bench.dataset.sequence import SequenceReader
+from dsr_bench.models.data import action_map
+from dsr_bench.models.training.trainer import train_step
 
 LR_SINGLE, LR_MULTI = 1e-3, 5e-4
 

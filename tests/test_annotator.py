@@ -35,7 +35,7 @@ def capture_dir(tmp_path_factory) -> Path:
 
 @pytest.fixture(scope="module")
 def truth(capture_dir) -> np.ndarray:
-    from dsr_bench.capture import load_capture
+    from dsr_bench.dataset.capture import load_capture
 
     return load_capture(capture_dir).truth_poses()
 
@@ -381,9 +381,9 @@ def test_auto_export_round_trip_and_validate(capture_dir, truth, tmp_path):
     from annotator.session import Session
     from dsr_bench.cli import main
     from dsr_bench.geometry import voxel_points
-    from dsr_bench.groundtruth import rigid_scene_flow_3d
-    from dsr_bench.sequence import SequenceReader
-    from dsr_bench.validate import validate_sequence
+    from dsr_bench.geometry.groundtruth import rigid_scene_flow_3d
+    from dsr_bench.dataset.sequence import SequenceReader
+    from dsr_bench.dataset.validate import validate_sequence
 
     work = tmp_path / "work"
     session = Session.open(capture_dir, work)
@@ -459,7 +459,7 @@ def test_export_refuses_unset_and_unchecked_poses(capture_dir, truth, tmp_path):
     assert not (tmp_path / "a.h5").exists()
     with pytest.raises(UserError, match=r"\.h5"):
         session.export(tmp_path / "a.txt")
-    from dsr_bench.sequence import SequenceReader
+    from dsr_bench.dataset.sequence import SequenceReader
 
     with SequenceReader(session.export(tmp_path / "b.h5", allow_unchecked=True)) as seq:
         assert seq.attrs["annotation"]["unchecked_allowed"] is True

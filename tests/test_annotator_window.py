@@ -60,7 +60,7 @@ def _make_capture(out: Path) -> Path:
         generate_capture = None
     if generate_capture is not None:
         return generate_capture(out, name="seq", seed=1, steps=2, objects_per_scene=2, image_shape=(120, 160))
-    from dsr_bench.capture import CaptureCamera, write_capture
+    from dsr_bench.dataset.capture import CaptureCamera, write_capture
 
     cams = {n: make_camera(n, 120, 160) for n in ("front", "back")}
     cameras = {n: CaptureCamera(n, c.height, c.width, c.intrinsics, c.extrinsics, 0.001) for n, c in cams.items()}
@@ -223,7 +223,7 @@ class Recorder:
 
 @pytest.fixture(scope="module")
 def capture(capture_dir):
-    from dsr_bench.capture import load_capture
+    from dsr_bench.dataset.capture import load_capture
 
     return load_capture(capture_dir)
 
@@ -503,7 +503,7 @@ def _view_silhouette(params: dict, vertices, faces, pose) -> np.ndarray:
 
 def display_child(capture_dir: str, work_dir: str, out: str) -> None:
     """Run in a subprocess under Xvfb: open the window, press keys, save screenshots to `out` (.npz)."""
-    from dsr_bench.capture import load_capture
+    from dsr_bench.dataset.capture import load_capture
 
     try:
         from annotator.session import Session

@@ -339,7 +339,7 @@ def test_official_dir_reader(tmp_path):
 
 
 def test_ours_reader(tmp_path):
-    from dsr_bench.sequence import SequenceReader
+    from dsr_bench.dataset.sequence import SequenceReader
     from dsr_bench.testing import write_synthetic_dataset
 
     data = write_synthetic_dataset(tmp_path / "data", num_sequences=2, num_steps=2, num_objects=2)

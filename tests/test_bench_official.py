@@ -133,11 +133,11 @@ def test_load_official_functions_skips_imports_the_functions_do_not_need(fake_re
 @pytest.mark.parametrize("num_objects", [4, 3, 2])
 def test_the_authors_functions_as_described_give_our_official_iou(fake_repo, num_objects):
     """Pins the notes' description of their inputs (and bench_evaluate's way of building them)
-    against dsr_bench.metrics' official-definition IoU."""
+    against dsr_bench.scoring.metrics' official-definition IoU."""
     pytest.importorskip("torch")
     import bench_evaluate
 
-    from dsr_bench.metrics import official_iou, overlap, sequence_scores
+    from dsr_bench.scoring.metrics import official_iou, overlap, sequence_scores
 
     functions = official.load_official_functions(fake_repo)
     rng = np.random.default_rng(num_objects)

@@ -18,7 +18,7 @@ import pytest
 pytest.importorskip("pybullet")
 pytest.importorskip("open3d")
 
-from dsr_bench.capture import CaptureCamera, CaptureFormatError, load_capture  # noqa: E402
+from dsr_bench.dataset.capture import CaptureCamera, CaptureFormatError, load_capture  # noqa: E402
 from dsr_bench.cli import main  # noqa: E402
 from dsr_bench.geometry import pinhole_intrinsics, world_to_pixel  # noqa: E402
 from generators.capture import (  # noqa: E402
@@ -284,8 +284,8 @@ def test_load_capture_errors_name_the_file_in_one_line(captures, tmp_path, break
 
 def test_stored_mesh_digest_names_the_stored_mesh(captures):
     """PLY keeps float32 vertices: objects.json's mesh_sha256 is that of the mesh read back, the source's kept aside."""
-    from dsr_bench.capture import load_capture
-    from dsr_bench.manifest import mesh_sha256
+    from dsr_bench.dataset.capture import load_capture
+    from dsr_bench.dataset.manifest import mesh_sha256
 
     capture = load_capture(captures["realistic"])
     for i, obj in enumerate(capture.objects):

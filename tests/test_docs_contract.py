@@ -3,7 +3,7 @@
 import re
 from pathlib import Path
 
-from dsr_bench.schema import SEQUENCE_SCHEMA
+from dsr_bench.dataset.schema import SEQUENCE_SCHEMA
 
 ROOT = Path(__file__).resolve().parents[1]
 

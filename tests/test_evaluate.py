@@ -10,9 +10,9 @@ import pytest
 
 from dsr_bench.cli import main
 from dsr_bench.errors import UserError
-from dsr_bench.evaluate import evaluate
-from dsr_bench.manifest import load_manifest, split_digest
-from dsr_bench.predictions import write_predictions
+from dsr_bench.scoring.evaluate import evaluate
+from dsr_bench.dataset.manifest import load_manifest, split_digest
+from dsr_bench.scoring.predictions import write_predictions
 from dsr_bench.testing import write_synthetic_dataset
 
 #: static model on the generated fixture (tests/conftest.py): pinned, so a metric or generator

@@ -18,7 +18,7 @@ pytest.importorskip("pybullet")
 from dsr_bench.cli import main  # noqa: E402
 from dsr_bench.constants import TSDF_TRUNCATION  # noqa: E402
 from dsr_bench.geometry import pose_to_matrix, world_to_pixel  # noqa: E402
-from dsr_bench.sequence import SequenceReader  # noqa: E402
+from dsr_bench.dataset.sequence import SequenceReader  # noqa: E402
 
 SMALL = ["--objects", "procedural", "--steps", "3", "--objects-per-scene", "3", "--seed", "5"]
 
@@ -43,7 +43,7 @@ def dataset(tmp_path_factory) -> Path:
 
 
 def test_layout_manifest_and_split(dataset):
-    from dsr_bench.manifest import load_manifest
+    from dsr_bench.dataset.manifest import load_manifest
 
     assert sorted(p.name for p in dataset.glob("seq_*.h5")) == ["seq_0000.h5", "seq_0001.h5"]
     assert (dataset / "splits" / "all.txt").read_text().split() == ["seq_0000", "seq_0001"]

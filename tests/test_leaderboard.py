@@ -9,8 +9,8 @@ import pytest
 
 from dsr_bench.cli import main
 from dsr_bench.errors import UserError
-from dsr_bench.leaderboard import add_entry, build, check_entry
-from dsr_bench.splits import SPLITS, Split
+from dsr_bench.scoring.leaderboard import add_entry, build, check_entry
+from dsr_bench.dataset.splits import SPLITS, Split
 
 ROOT = Path(__file__).resolve().parents[1]
 

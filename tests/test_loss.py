@@ -10,7 +10,7 @@ torch = pytest.importorskip("torch")
 
 from torch.nn import functional as F  # noqa: E402
 
-from dsr_bench.metrics import brute_force_assignment  # noqa: E402
+from dsr_bench.scoring.metrics import brute_force_assignment  # noqa: E402
 from dsr_bench.models.loss import (MASK_WEIGHT, MaskIdError, best_matching, dsr_loss, matched_target,  # noqa: E402
                                    score_matrix)
 

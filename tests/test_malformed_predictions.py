@@ -14,9 +14,9 @@ import numpy as np
 import pytest
 
 from dsr_bench.cli import main
-from dsr_bench.evaluate import pin_warning
-from dsr_bench.manifest import load_manifest, split_digest
-from dsr_bench.splits import SPLITS, Split
+from dsr_bench.scoring.evaluate import pin_warning
+from dsr_bench.dataset.manifest import load_manifest, split_digest
+from dsr_bench.dataset.splits import SPLITS, Split
 from dsr_bench.testing import write_synthetic_dataset
 
 TARGET = "seq_0000.h5"
@@ -386,7 +386,7 @@ def test_pin_match_and_unpinned_splits(pinned_data, data, monkeypatch):
 
 
 def test_results_record_whether_pinned(pinned_data, tmp_path, monkeypatch, capsys):
-    from dsr_bench.evaluate import evaluate
+    from dsr_bench.scoring.evaluate import evaluate
 
     pred = tmp_path / "pred"
     assert main(["predict", "--model", "oracle", "--data", str(pinned_data), "--out", str(pred)]) == 0

@@ -1,4 +1,4 @@
-"""Digests (dsr_bench.digests), manifest.json, split files and split checksums (dsr_bench.manifest)."""
+"""Digests (dsr_bench.dataset.digests), manifest.json, split files and split checksums (dsr_bench.dataset.manifest)."""
 
 import hashlib
 import json
@@ -7,9 +7,9 @@ import h5py
 import numpy as np
 import pytest
 
-from dsr_bench.digests import array_digest, digest_attrs, file_digests, group_digests
+from dsr_bench.dataset.digests import array_digest, digest_attrs, file_digests, group_digests
 from dsr_bench.errors import UserError
-from dsr_bench.manifest import (
+from dsr_bench.dataset.manifest import (
     build_manifest,
     file_sha256,
     load_manifest,

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from dsr_bench.metrics import (
+from dsr_bench.scoring.metrics import (
     assignment, brute_force_assignment, matched_iou, motion_2d_error, motion_errors, overlap, sequence_scores,
 )
 
@@ -127,7 +127,7 @@ def _official_loop(pred, gt, slots):
 
 @pytest.mark.parametrize("num_objects", [4, 3, 2])
 def test_official_iou_equals_the_official_loop(num_objects):
-    from dsr_bench.metrics import official_iou
+    from dsr_bench.scoring.metrics import official_iou
 
     rng = np.random.default_rng(num_objects)
     for _ in range(10):

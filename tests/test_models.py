@@ -182,7 +182,7 @@ def toy_batch(grid=TINY, steps=2, batch=2):
 
 
 def test_a_few_training_steps_lower_the_loss():
-    from dsr_bench.train import train_step
+    from dsr_bench.models.training.trainer import train_step
 
     torch.manual_seed(0)
     net = DSRNet(ModelConfig.for_model("dsr", grid=TINY))
@@ -198,7 +198,7 @@ def test_a_few_training_steps_lower_the_loss():
 def test_train_step_warps_the_state_between_steps_only():
     """A window of L steps warps the state L - 1 times (the state after the last step is never used),
     and each warp is fed the step's predicted motion and foreground probability."""
-    from dsr_bench.train import train_step
+    from dsr_bench.models.training.trainer import train_step
 
     torch.manual_seed(0)
     net = DSRNet(ModelConfig.for_model("dsr", grid=TINY))
@@ -264,7 +264,7 @@ def test_a_training_step_never_makes_the_host_wait():
 
 def test_train_step_reports_the_first_non_finite_step():
     """The window's terms are read once at its end; a non-finite loss names its step."""
-    from dsr_bench.train import train_step
+    from dsr_bench.models.training.trainer import train_step
 
     torch.manual_seed(0)
     net = DSRNet(ModelConfig.for_model("dsr", grid=TINY))
@@ -279,7 +279,7 @@ def test_train_step_reports_the_first_non_finite_step():
 
 
 def test_checkpoint_round_trip(tmp_path):
-    from dsr_bench.train import STAGES, load_checkpoint, save_checkpoint
+    from dsr_bench.models.training.trainer import STAGES, load_checkpoint, save_checkpoint
 
     cfg = ModelConfig.for_model("nowarp", grid=TINY)
     net = DSRNet(cfg)
@@ -303,7 +303,7 @@ def test_checkpoint_round_trip(tmp_path):
 
 
 def test_window_sampler_resumes_and_splits_ranks():
-    from dsr_bench.train import WindowSampler
+    from dsr_bench.models.training.trainer import WindowSampler
 
     full = WindowSampler(23, batch_size=4, seed=3)
     full.set_epoch(5)
@@ -323,7 +323,7 @@ def test_window_sampler_resumes_and_splits_ranks():
 
 
 def test_stage_configs_follow_the_official_schedule():
-    from dsr_bench.train_configs import stage_for
+    from dsr_bench.models.training.schedules import stage_for
 
     first = stage_for("dsr", "cube-single")
     assert (first.window, first.epochs, first.batch_size, first.betas) == (1, 30, 12, (0.9, 0.95))

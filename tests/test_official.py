@@ -9,11 +9,11 @@ import pytest
 
 from dsr_bench.cli import main
 from dsr_bench.errors import UserError
-from dsr_bench.manifest import load_manifest
-from dsr_bench.official import OFFICIAL_NEXT, OFFICIAL_STEP, find_official_sequences, import_official, official_arrays
-from dsr_bench.sequence import SequenceReader
+from dsr_bench.dataset.manifest import load_manifest
+from dsr_bench.dataset.official import OFFICIAL_NEXT, OFFICIAL_STEP, find_official_sequences, import_official, official_arrays
+from dsr_bench.dataset.sequence import SequenceReader
 from dsr_bench.testing import write_synthetic_dataset
-from dsr_bench.validate import validate_dataset
+from dsr_bench.dataset.validate import validate_dataset
 
 STEPS = 2
 
@@ -342,7 +342,7 @@ def test_official_flow_bound_holds_for_the_rounded_definition():
     than official_flow_bound(angle) per component, for points anywhere in the voxel; the bound is reached
     (within sampling) and a voxel-centre reference (what validate used before) exceeds it."""
     from dsr_bench.geometry import quat_to_matrix
-    from dsr_bench.validate import official_flow_bound, rotation_angle
+    from dsr_bench.dataset.validate import official_flow_bound, rotation_angle
 
     assert official_flow_bound(0.0) == 1.0
     assert official_flow_bound(np.pi) == pytest.approx(1 + np.sqrt(3))

@@ -10,7 +10,7 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from dsr_bench.sequence import SequenceReader  # noqa: E402
+from dsr_bench.dataset.sequence import SequenceReader  # noqa: E402
 from dsr_bench.testing import write_synthetic_dataset  # noqa: E402
 
 SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "reduced_grid_ablation.py"

@@ -13,10 +13,10 @@ import h5py
 import numpy as np
 import pytest
 
-from dsr_bench.digests import digest_attrs, fingerprint, within_tolerance
-from dsr_bench.manifest import build_manifest, load_manifest, write_manifest
-from dsr_bench.pins import build_pin, compare_with_pin, summarize
-from dsr_bench.sequence import SequenceReader, write_sequence
+from dsr_bench.dataset.digests import digest_attrs, fingerprint, within_tolerance
+from dsr_bench.dataset.manifest import build_manifest, load_manifest, write_manifest
+from dsr_bench.dataset.pins import build_pin, compare_with_pin, summarize
+from dsr_bench.dataset.sequence import SequenceReader, write_sequence
 
 GENERATE = ["generate", "--objects", "cube", "-n", "1", "--steps", "2", "--seed", "11"]
 
@@ -108,7 +108,7 @@ def _compare(data: Path, pin: dict):
     digests = {s["name"]: s for s in manifest["sequences"]}
 
     def prints(name):
-        from dsr_bench.digests import file_fingerprints
+        from dsr_bench.dataset.digests import file_fingerprints
         return file_fingerprints(data / f"{name}.h5")[0]
 
     return compare_with_pin(pin, digests, prints)

@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 
 from dsr_bench.constants import SCHEMA_VERSION
-from dsr_bench.schema import FIELDS, resolve_shape
-from dsr_bench.sequence import SequenceFormatError, SequenceReader, write_sequence
+from dsr_bench.dataset.schema import FIELDS, resolve_shape
+from dsr_bench.dataset.sequence import SequenceFormatError, SequenceReader, write_sequence
 from dsr_bench.testing import synthetic_arrays, write_synthetic_sequence
 
 
@@ -76,7 +76,7 @@ def test_sparse_deflate_round_trips(pattern):
     """The chunk compressor (zero blocks spliced in precompressed) inflates back to the exact bytes."""
     import zlib
 
-    from dsr_bench.sequence import _deflate_sparse
+    from dsr_bench.dataset.sequence import _deflate_sparse
 
     rng = np.random.default_rng(0)
     data = np.zeros(128 * 128 * 48, dtype=np.float32)
@@ -91,7 +91,7 @@ def test_sparse_deflate_round_trips(pattern):
 
 def test_read_steps_equals_h5py_for_every_layout(tmp_path):
     """The raw-chunk reader returns exactly what h5py decodes, for our layout and for others (fallback)."""
-    from dsr_bench.sequence import read_steps
+    from dsr_bench.dataset.sequence import read_steps
 
     rng = np.random.default_rng(1)
     data = (rng.normal(size=(4, 6, 8, 5)) * (rng.random((4, 6, 8, 5)) > 0.7)).astype(np.float32)

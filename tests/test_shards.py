@@ -29,7 +29,7 @@ ARGS = ["--objects", "cube", "-n", "4", "--steps", "2", "--seed", "5"]
 #: after a few datasets: the temporary exists, partly written, and the writer's lock is held.
 STOP_MID_WRITE = """
 import os, signal, sys
-import dsr_bench.sequence as sequence
+import dsr_bench.dataset.sequence as sequence
 create, calls = sequence._create_dataset, []
 def stopping(*args, **kwargs):
     calls.append(1)
@@ -79,7 +79,7 @@ def _datasets(path: Path) -> dict[str, np.ndarray]:
 
 
 def _assert_same_dataset(got: Path, want: Path) -> None:
-    from dsr_bench.manifest import load_manifest
+    from dsr_bench.dataset.manifest import load_manifest
 
     names = sorted(p.name for p in want.glob("seq_*.h5"))
     assert len(names) == 4 and sorted(p.name for p in got.glob("seq_*.h5")) == names

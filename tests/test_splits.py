@@ -3,8 +3,8 @@
 import pytest
 
 from dsr_bench.errors import UserError
-from dsr_bench.sequence import SequenceReader
-from dsr_bench.splits import SPLITS, get_split, pinned_digests, sequence_name, sequence_seed
+from dsr_bench.dataset.sequence import SequenceReader
+from dsr_bench.dataset.splits import SPLITS, get_split, pinned_digests, sequence_name, sequence_seed
 
 
 def test_sequence_seeds_are_stable_and_distinct():
@@ -48,12 +48,12 @@ def test_validate_compares_named_splits_with_their_pins(tmp_path, monkeypatch):
     import h5py
     import numpy as np
 
-    import dsr_bench.splits as splits
-    from dsr_bench.digests import digest_attrs
-    from dsr_bench.manifest import build_manifest, load_manifest, write_manifest
-    from dsr_bench.pins import build_pin
+    import dsr_bench.dataset.splits as splits
+    from dsr_bench.dataset.digests import digest_attrs
+    from dsr_bench.dataset.manifest import build_manifest, load_manifest, write_manifest
+    from dsr_bench.dataset.pins import build_pin
     from dsr_bench.testing import write_synthetic_dataset
-    from dsr_bench.validate import validate_dataset
+    from dsr_bench.dataset.validate import validate_dataset
 
     data = write_synthetic_dataset(tmp_path / "d", num_sequences=2, num_steps=1, split="procedural-novel-mini")
     pin = build_pin(data, ["seq_0000", "seq_0001"], load_manifest(data), "procedural-novel-mini")

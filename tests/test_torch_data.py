@@ -9,10 +9,10 @@ import pytest
 torch = pytest.importorskip("torch")
 
 from dsr_bench.errors import UserError  # noqa: E402
-from dsr_bench.official import import_official  # noqa: E402
-from dsr_bench.sequence import SequenceReader  # noqa: E402
+from dsr_bench.dataset.official import import_official  # noqa: E402
+from dsr_bench.dataset.sequence import SequenceReader  # noqa: E402
 from dsr_bench.testing import write_synthetic_dataset  # noqa: E402
-from dsr_bench.torch_data import (OfficialWindowDataset, SequenceWindowDataset, action_map,  # noqa: E402
+from dsr_bench.models.data import (OfficialWindowDataset, SequenceWindowDataset, action_map,  # noqa: E402
                                   batch_to_device, collate_compact)
 
 

@@ -61,10 +61,10 @@ def test_predictor_carries_the_state_as_in_training(data, tmp_path):
     from dsr_bench.models import DSRNet, ModelConfig
     from dsr_bench.models.inference import load_predictor
     from dsr_bench.models.warp import forward_warp
-    from dsr_bench.sequence import SequenceReader
-    from dsr_bench.torch_data import action_map
-    from dsr_bench.train import save_checkpoint
-    from dsr_bench.train_configs import STAGES
+    from dsr_bench.dataset.sequence import SequenceReader
+    from dsr_bench.models.data import action_map
+    from dsr_bench.models.training.trainer import save_checkpoint
+    from dsr_bench.models.training.schedules import STAGES
 
     torch.manual_seed(0)
     cfg = ModelConfig.for_model("gtwarp")

@@ -4,8 +4,8 @@ import numpy as np
 
 from dsr_bench.constants import GRID_BOUNDS, TSDF_TRUNCATION, VOXEL_SIZE
 from dsr_bench.geometry import make_camera, rigid_inverse, transform_points, voxel_points
-from dsr_bench.groundtruth import rigid_scene_flow_2d, rigid_scene_flow_3d
-from dsr_bench.tsdf import integrate_tsdf
+from dsr_bench.geometry.groundtruth import rigid_scene_flow_2d, rigid_scene_flow_3d
+from dsr_bench.geometry.tsdf import integrate_tsdf
 
 
 def _plane_depth(cam, height):

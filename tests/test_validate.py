@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 
 from dsr_bench.cli import main
-from dsr_bench.manifest import build_manifest, load_manifest, read_split, resolve_sequence, split_digest
-from dsr_bench.schema import SEQUENCE_SCHEMA
+from dsr_bench.dataset.manifest import build_manifest, load_manifest, read_split, resolve_sequence, split_digest
+from dsr_bench.dataset.schema import SEQUENCE_SCHEMA
 from dsr_bench.testing import write_synthetic_dataset
-from dsr_bench.validate import mask_warp_iou, schema_markdown_table, validate_dataset, validate_sequence
+from dsr_bench.dataset.validate import mask_warp_iou, schema_markdown_table, validate_dataset, validate_sequence
 
 
 @pytest.fixture(scope="module")
@@ -245,7 +245,7 @@ def test_summary_says_why_validate_failed(pristine, dataset, tmp_path, capsys):
 
 
 def test_summary_names_the_first_dataset_level_problems():
-    from dsr_bench.validate import Problem, summary_line
+    from dsr_bench.dataset.validate import Problem, summary_line
 
     problems = [Problem(f"splits/s{i}.txt", "split file not in the manifest") for i in range(5)]
     line = summary_line(problems, 0, "/nonexistent")

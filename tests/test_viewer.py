@@ -16,8 +16,8 @@ pytest.importorskip("rerun")
 from dsr_bench.cli import main  # noqa: E402
 from dsr_bench.constants import VOXEL_SIZE  # noqa: E402
 from dsr_bench.geometry import voxel_to_world, world_to_voxel  # noqa: E402
-from dsr_bench.predictions import write_predictions  # noqa: E402
-from dsr_bench.sequence import SequenceReader  # noqa: E402
+from dsr_bench.scoring.predictions import write_predictions  # noqa: E402
+from dsr_bench.dataset.sequence import SequenceReader  # noqa: E402
 from dsr_bench.testing import write_synthetic_sequence  # noqa: E402
 from dsr_bench.viewer import MAX_ARROWS, UNMATCHED, match_slots  # noqa: E402
 
@@ -191,7 +191,7 @@ def test_flow_arrows_are_the_ground_truth_flow(synthetic):
 
 
 def test_predictions_matched_disagreement_and_metrics(synthetic):
-    from dsr_bench.evaluate import score_sequence
+    from dsr_bench.scoring.evaluate import score_sequence
 
     rec, gt, mask = synthetic["rec"], synthetic["pred"]["gt"], synthetic["pred"]["mask"]
     assert rec.steps("/world/pred/mask", "Points3D:class_ids") == [1, 3, 5]

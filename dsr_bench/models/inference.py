@@ -10,7 +10,7 @@ import torch
 from dsr_bench.errors import UserError
 from dsr_bench.models.config import ModelConfig
 from dsr_bench.models.dsr_net import DSRNet
-from dsr_bench.sequence import SequenceReader
+from dsr_bench.dataset.sequence import SequenceReader
 
 _DESCRIPTIONS = {
     "dsr": "DSR-Net: history forward-warped by the predicted motion",
@@ -37,7 +37,7 @@ class ModelPredictor:
     @torch.no_grad()
     def predict_sequence(self, seq: SequenceReader) -> dict[str, np.ndarray]:
         """{"mask": (T, Y, X, Z) uint8, "motion": (T, 3, Y, X, Z) float32} for one sequence."""
-        from dsr_bench.torch_data import action_map, check_actions
+        from dsr_bench.models.data import action_map, check_actions
 
         config = self.model.config
         grid = tuple(config.grid)
@@ -74,7 +74,7 @@ class ModelPredictor:
 def load_predictor(model: str, checkpoint: Path, device: str = "cpu", official_bn: bool = False,
                    bf16: bool = False) -> ModelPredictor:
     """A predictor from a `dsr-bench train` checkpoint (loaded with weights_only=True)."""
-    from dsr_bench.train import load_checkpoint
+    from dsr_bench.models.training.trainer import load_checkpoint
 
     try:
         dev = torch.device(device)

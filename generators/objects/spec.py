@@ -42,8 +42,8 @@ class ObjectSpec:
         return np.vstack(vertices).astype(np.float64), np.vstack(faces).astype(np.int64)
 
     def mesh_sha256(self) -> str:
-        """SHA-256 of the mesh (`dsr_bench.manifest.mesh_sha256`: float64 vertices, then int64 faces)."""
-        from dsr_bench.manifest import mesh_sha256
+        """SHA-256 of the mesh (`dsr_bench.dataset.manifest.mesh_sha256`: float64 vertices, then int64 faces)."""
+        from dsr_bench.dataset.manifest import mesh_sha256
 
         return mesh_sha256(*self.mesh())
 

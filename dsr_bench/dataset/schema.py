@@ -31,7 +31,7 @@ class Field:
     value_range: tuple[float, float] | None = None
     #: "ground truth": what scores a model and what the policy decided, reproduced bit for bit on any
     #: CPU; "observation": what the cameras render (images, depth, TSDF, heightmap, 2D ground truth),
-    #: reproduced to a stated tolerance (see `dsr_bench.digests`).
+    #: reproduced to a stated tolerance (see `dsr_bench.dataset.digests`).
     group: str = OBSERVATION
 
 

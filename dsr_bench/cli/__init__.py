@@ -1,4 +1,9 @@
-"""The `dsr-bench` command line: a typer app assembled from `dsr_bench.commands`."""
+"""The `dsr-bench` command line: a typer app assembled from the library's command modules
+(`dsr_bench.cli.data`, `.scoring`, `.view`, `.train`) and the commands that the packages above the
+library register through the `dsr_bench.commands` entry point (`generators.cli`: generate,
+generate-captures; `annotator.cli`: annotate). The library never imports those packages itself.
+Each command module defines `register(app)` and imports heavy libraries inside its commands, so
+`dsr-bench --help` is fast."""
 
 from __future__ import annotations
 
@@ -17,11 +22,26 @@ app = typer.Typer(
     pretty_exceptions_enable=False,
 )
 
-#: Command modules under dsr_bench.commands, each with a `register(app)` function.
-_COMMAND_MODULES: tuple[str, ...] = ("generate", "data", "evaluate", "view", "train", "capture", "annotate")
+#: The library's command modules under dsr_bench.cli, each with a `register(app)` function.
+_COMMAND_MODULES: tuple[str, ...] = ("data", "scoring", "view", "train")
+#: The order of the commands in `dsr-bench --help` (others follow in the order they were registered).
+COMMAND_ORDER: tuple[str, ...] = ("generate", "validate", "info", "manifest", "import-official", "predict", "evaluate",
+                                  "view", "train", "generate-captures", "annotate")
+ENTRY_POINT_GROUP = "dsr_bench.commands"
 
-for _name in _COMMAND_MODULES:
-    importlib.import_module(f"dsr_bench.commands.{_name}").register(app)
+
+def _register_commands() -> None:
+    from importlib.metadata import entry_points
+
+    for name in _COMMAND_MODULES:
+        importlib.import_module(f"dsr_bench.cli.{name}").register(app)
+    for entry in entry_points(group=ENTRY_POINT_GROUP):
+        entry.load()(app)
+    rank = {name: i for i, name in enumerate(COMMAND_ORDER)}
+    app.registered_commands.sort(key=lambda c: rank.get(c.name, len(rank)))
+
+
+_register_commands()
 
 
 def _print_version(value: bool) -> None:

@@ -7,7 +7,7 @@ off objects, amodal masks at t + 1 against the masks at t moved by the flow, the
 the front depth image, and content digests. A damaged file is a problem, never a crash.
 
 Flow is checked by its source's own definition: ours is the exact rigid motion of each voxel's sample
-point (`dsr_bench.groundtruth.rigid_scene_flow_3d`); the official release's (files imported with
+point (`dsr_bench.geometry.groundtruth.rigid_scene_flow_3d`); the official release's (files imported with
 `source` = `official-import`) is integer-valued, the difference of rounded voxel coordinates of the
 object's solid points (see `official_flow_bound`).
 """
@@ -57,8 +57,8 @@ class Problem:
 
 
 def schema_markdown_table() -> str:
-    """The sequence schema (`dsr_bench.schema.SEQUENCE_SCHEMA`) as a markdown table for docs/format.md."""
-    from dsr_bench.schema import SEQUENCE_SCHEMA
+    """The sequence schema (`dsr_bench.dataset.schema.SEQUENCE_SCHEMA`) as a markdown table for docs/format.md."""
+    from dsr_bench.dataset.schema import SEQUENCE_SCHEMA
 
     rows = ["| dataset | shape | dtype | units | required | group | meaning |", "|---|---|---|---|---|---|---|"]
     for f in SEQUENCE_SCHEMA:
@@ -136,7 +136,7 @@ def _range_checks(seq, ok: set[str]) -> dict[str, Callable[[], list[str]]]:
 def _check_flow(seq) -> list[str]:
     """Stored flow against the rigid motion of the stored poses, and zero off objects; official imports
     by the release's own (rounded) definition, `_check_official_flow`."""
-    from dsr_bench.groundtruth import rigid_scene_flow_3d
+    from dsr_bench.geometry.groundtruth import rigid_scene_flow_3d
 
     if seq.attrs.get("source") == "official-import":
         return _check_official_flow(seq)
@@ -363,7 +363,7 @@ def _check_tsdf_sign(seq, camera: str = "front") -> list[str]:
 
 def _open(path: str | Path):
     """(reader, None) or (None, the problem) for a sequence file."""
-    from dsr_bench.sequence import SequenceFormatError, SequenceReader
+    from dsr_bench.dataset.sequence import SequenceFormatError, SequenceReader
 
     try:
         return SequenceReader(path), None
@@ -378,7 +378,7 @@ def _open(path: str | Path):
 def schema_problems(seq) -> tuple[list[str], set[str]]:
     """Structural problems of an open sequence (missing datasets, shapes, dtypes) and the names of
     the datasets that passed. Shared by `validate` and the viewer."""
-    from dsr_bench.schema import FIELDS, check_array, dataset_path, resolve_shape
+    from dsr_bench.dataset.schema import FIELDS, check_array, dataset_path, resolve_shape
 
     problems: list[str] = []
     ok: set[str] = set()
@@ -412,11 +412,11 @@ def _check_sequence(path: str | Path, check_gt: bool = True, expected: dict | No
     """Every problem of one sequence file (empty if none), and its array fingerprints when computed.
 
     Schema (attributes, every dataset's shape and dtype), value ranges, and with `check_gt` the
-    ground-truth consistency and the digests, recomputed from the arrays (`dsr_bench.digests`): the
+    ground-truth consistency and the digests, recomputed from the arrays (`dsr_bench.dataset.digests`): the
     file's own (naming the arrays changed since writing) and `expected` (the manifest's entry).
     """
-    from dsr_bench.digests import GROUND_TRUTH_KEY, OBSERVATIONS_KEY, file_digests
-    from dsr_bench.schema import REQUIRED_ATTRS
+    from dsr_bench.dataset.digests import GROUND_TRUTH_KEY, OBSERVATIONS_KEY, file_digests
+    from dsr_bench.dataset.schema import REQUIRED_ATTRS
 
     seq, problem = _open(path)
     if seq is None:
@@ -471,7 +471,7 @@ def _validate_one(args: tuple[str, bool, dict | None]) -> tuple[str, list[str], 
 def _check_manifest(data_dir: Path, manifest: dict, files: dict[str, Path]) -> tuple[list[Problem], dict[str, dict]]:
     """Manifest against the files and split files; returns (problems, manifest entries by name)."""
     from dsr_bench.errors import UserError
-    from dsr_bench.manifest import file_sha256, split_digest
+    from dsr_bench.dataset.manifest import file_sha256, split_digest
 
     problems: list[Problem] = []
     listed = {s["name"]: s for s in manifest["sequences"]}
@@ -513,11 +513,11 @@ def _check_manifest(data_dir: Path, manifest: dict, files: dict[str, Path]) -> t
 
 def _check_pinned(data_dir: Path, manifest: dict, fingerprints: dict[str, dict]) -> list[Problem]:
     """A named benchmark split must reproduce the toolkit's pin: its ground truth bit for bit, its
-    observations within the stated tolerance (`dsr_bench.pins`); differences name the sequences and
+    observations within the stated tolerance (`dsr_bench.dataset.pins`); differences name the sequences and
     arrays, and say by how much. fingerprints: those already computed, by sequence name."""
-    from dsr_bench.digests import file_fingerprints
-    from dsr_bench.pins import compare_with_pin, summarize
-    from dsr_bench.splits import pinned_digests
+    from dsr_bench.dataset.digests import file_fingerprints
+    from dsr_bench.dataset.pins import compare_with_pin, summarize
+    from dsr_bench.dataset.splits import pinned_digests
 
     listed = {s["name"]: s for s in manifest["sequences"]}
     problems = []
@@ -541,7 +541,7 @@ def _check_pinned(data_dir: Path, manifest: dict, fingerprints: dict[str, dict])
 def validate_dataset(data_dir: str | Path, check_gt: bool = True, workers: int = 1) -> tuple[list[Problem], int]:
     """(every problem found, number of sequence files checked) for a dataset directory."""
     from dsr_bench.errors import UserError
-    from dsr_bench.manifest import MANIFEST_NAME, load_manifest
+    from dsr_bench.dataset.manifest import MANIFEST_NAME, load_manifest
 
     data_dir = Path(data_dir)
     if not data_dir.is_dir():

@@ -29,7 +29,7 @@ import numpy as np
 from dsr_bench.constants import VOXEL_SIZE
 from dsr_bench.errors import UserError
 from dsr_bench.geometry import voxel_to_world
-from dsr_bench.sequence import SequenceReader
+from dsr_bench.dataset.sequence import SequenceReader
 
 APP_ID = "dsr-bench"
 MAX_ARROWS = 1500
@@ -79,7 +79,7 @@ def flow_arrows(flow: np.ndarray, mask: np.ndarray, rng: np.random.Generator,
 def match_slots(pred_mask: np.ndarray, gt_mask: np.ndarray, num_slots: int, num_objects: int) -> np.ndarray:
     """Lookup table (num_slots + 1,) uint8 from predicted slot to the GT object id it matches under the
     benchmark's per-step (unordered) Hungarian matching; 0 -> 0, unmatched slots -> UNMATCHED."""
-    from dsr_bench.metrics import assignment, overlap
+    from dsr_bench.scoring.metrics import assignment, overlap
 
     ov = overlap(pred_mask, gt_mask, num_slots, num_objects)
     rows, cols = assignment(ov.iou)
@@ -92,7 +92,7 @@ def match_slots(pred_mask: np.ndarray, gt_mask: np.ndarray, num_slots: int, num_
 
 def check_sequence(seq: SequenceReader) -> None:
     """Raise UserError naming every structural problem (missing datasets, shapes, dtypes) of a sequence."""
-    from dsr_bench.validate import schema_problems
+    from dsr_bench.dataset.validate import schema_problems
 
     problems, _ = schema_problems(seq)
     if problems:
@@ -104,8 +104,8 @@ def load_predictions(pred_dir: Path, seq: SequenceReader) -> dict:
     metrics exactly as `dsr-bench evaluate` computes them: {mask, motion, num_slots, metrics}."""
     import h5py
 
-    from dsr_bench.evaluate import score_sequence
-    from dsr_bench.predictions import check_prediction_header
+    from dsr_bench.scoring.evaluate import score_sequence
+    from dsr_bench.scoring.predictions import check_prediction_header
 
     pred_dir = Path(pred_dir)
     if not pred_dir.is_dir():

@@ -40,7 +40,7 @@ def train(
     """Train a reference model for one stage of the paper's curriculum (torchrun for multi-GPU)."""
     from dsr_bench.errors import UserError
     from dsr_bench.models.config import MODEL_NAMES
-    from dsr_bench.train import train as run
+    from dsr_bench.models.training.trainer import train as run
 
     if model not in MODEL_NAMES:
         raise UserError(f"--model {model!r}: choose one of {', '.join(MODEL_NAMES)}")

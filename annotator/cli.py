@@ -77,4 +77,5 @@ def _display_error(exc: Exception) -> bool:
 
 
 def register(app: typer.Typer) -> None:
+    """Add `annotate` to the `dsr-bench` CLI (the `dsr_bench.commands` entry point)."""
     app.command("annotate")(annotate)

@@ -190,7 +190,7 @@ def convert_sequence(seq: OfficialSequence) -> tuple[dict, dict, dict]:
     from dsr_bench import __version__
     from dsr_bench.constants import AXIS_ORDER, FLOW_COMPONENTS, GRID_BOUNDS, VOXEL_SIZE
     from dsr_bench.geometry import direction_vector, make_camera, pixel_to_world
-    from dsr_bench.tsdf import integrate_tsdf
+    from dsr_bench.geometry.tsdf import integrate_tsdf
 
     T = seq.num_steps
     steps = [seq.read_step(t) for t in range(T)]
@@ -307,7 +307,7 @@ _SCHEMA_HOME = {
 
 def official_arrays(reader, step: int) -> dict[str, np.ndarray]:
     """The official datasets of step file `step` (with `next/...` for the last), rebuilt bit for bit
-    from an imported file (a `dsr_bench.sequence.SequenceReader`), in the release's dtypes."""
+    from an imported file (a `dsr_bench.dataset.sequence.SequenceReader`), in the release's dtypes."""
     if reader.attrs.get("source") != "official-import":
         raise UserError(f"{reader.path}: not imported from the official release "
                         f"(source {reader.attrs.get('source')!r})")
@@ -336,8 +336,8 @@ def official_arrays(reader, step: int) -> dict[str, np.ndarray]:
 
 
 def _import_one(args: tuple[OfficialSequence, str]) -> str:
-    from dsr_bench.digests import digest_attrs
-    from dsr_bench.sequence import write_sequence
+    from dsr_bench.dataset.digests import digest_attrs
+    from dsr_bench.dataset.sequence import write_sequence
 
     seq, dst = args
     arrays, extras, attrs = convert_sequence(seq)
@@ -368,7 +368,7 @@ def import_official(src: str | Path, dst: str | Path, split: str | None = None, 
     """
     import os
 
-    from dsr_bench.manifest import build_manifest, write_manifest
+    from dsr_bench.dataset.manifest import build_manifest, write_manifest
 
     if workers < 1:
         raise UserError(f"--workers {workers}: must be at least 1")

@@ -1,4 +1,4 @@
-"""Training DSR-Net and the baselines: one curriculum stage per run (`dsr_bench.train_configs`),
+"""Training DSR-Net and the baselines: one curriculum stage per run (`dsr_bench.models.training.schedules`),
 checkpoints that resume exactly, DDP through torchrun, bf16 autocast, a JSONL metrics log.
 
 Within a window the state starts at zero, is detached between steps, and the optimiser steps at
@@ -24,7 +24,7 @@ from dsr_bench.errors import UserError
 from dsr_bench.models.config import ModelConfig
 from dsr_bench.models.dsr_net import DSRNet
 from dsr_bench.models.loss import MaskIdError, check_ids, dsr_loss
-from dsr_bench.train_configs import STAGES, StageConfig, stage_for
+from dsr_bench.models.training.schedules import STAGES, StageConfig, stage_for
 
 __all__ = ["STAGES", "StageConfig", "load_checkpoint", "save_checkpoint", "train", "train_step", "validate",
            "WindowSampler"]
@@ -127,7 +127,7 @@ def _to(batch: dict, device, num_slots: int | None = None) -> tuple[torch.Tensor
     to copy) and are widened there, flow and actions in the compact form of `collate_compact`.
     With `num_slots`, the mask ids are checked against the model's slots first, on the CPU copy (a
     check on the GPU copy would make the host wait for the device)."""
-    from dsr_bench.torch_data import batch_to_device
+    from dsr_bench.models.data import batch_to_device
 
     if num_slots is not None:
         check_ids(batch["mask_3d"], num_slots)
@@ -172,7 +172,7 @@ def validate(model, loader, device, official_bn: bool = False, bf16: bool = Fals
     """Mean per-step unordered mask IoU (the benchmark's matching) and loss on a loader, state carried
     across each window's steps. BatchNorm in eval mode unless `official_bn` (the official code
     never switches it)."""
-    from dsr_bench.metrics import assignment, matched_iou, overlap
+    from dsr_bench.scoring.metrics import assignment, matched_iou, overlap
 
     device = torch.device(device)
     net = model.module if hasattr(model, "module") else model
@@ -242,7 +242,7 @@ def train(model_name: str, stage_name: str, data: Path, out: Path, split: str | 
     from torch.utils.data import DataLoader
     from tqdm import tqdm
 
-    from dsr_bench.torch_data import SequenceWindowDataset, collate_compact
+    from dsr_bench.models.data import SequenceWindowDataset, collate_compact
 
     world = int(os.environ.get("WORLD_SIZE", "1"))
     rank = int(os.environ.get("RANK", "0"))

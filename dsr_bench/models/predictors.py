@@ -14,7 +14,7 @@ import numpy as np
 
 from dsr_bench.constants import MAX_OBJECTS_PER_SCENE, NUM_MASK_SLOTS
 from dsr_bench.errors import UserError
-from dsr_bench.sequence import SequenceReader
+from dsr_bench.dataset.sequence import SequenceReader
 
 LEARNED_MODELS = ("dsr", "single", "nowarp", "gtwarp", "3dflow")
 REFERENCE_MODELS = ("oracle", "static")
@@ -93,7 +93,7 @@ def predict_split(predictor: Predictor, data_dir: str | Path, names: list[str], 
     import os
     import time
 
-    from dsr_bench.predictions import write_predictions
+    from dsr_bench.scoring.predictions import write_predictions
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)

@@ -17,7 +17,7 @@ def validate(
     from rich.console import Console
     from rich.table import Table
 
-    from dsr_bench.validate import summary_line, validate_dataset
+    from dsr_bench.dataset.validate import summary_line, validate_dataset
 
     console = Console()
     found, count = validate_dataset(data_dir, check_gt=not no_gt, workers=workers)
@@ -77,7 +77,7 @@ def info(data_dir: Path = typer.Argument(..., help="Dataset directory.")) -> Non
     from rich.console import Console
     from rich.table import Table
 
-    from dsr_bench.manifest import load_manifest
+    from dsr_bench.dataset.manifest import load_manifest
 
     manifest = load_manifest(data_dir)
     seqs = [_with_file_attrs(Path(data_dir), s) for s in manifest["sequences"]]
@@ -119,7 +119,7 @@ def info(data_dir: Path = typer.Argument(..., help="Dataset directory.")) -> Non
 def manifest(data_dir: Path = typer.Argument(..., help="Dataset directory.")) -> None:
     """(Re)build manifest.json from the sequence and split files present (after sharded generation)."""
     from dsr_bench.errors import UserError
-    from dsr_bench.manifest import build_manifest, write_manifest
+    from dsr_bench.dataset.manifest import build_manifest, write_manifest
 
     if not Path(data_dir).is_dir():
         raise UserError(f"dataset directory not found: {data_dir}")
@@ -137,7 +137,7 @@ def import_official_command(
     """Convert the authors' release into our format, losslessly (see docs/format.md)."""
     from rich.progress import Progress
 
-    from dsr_bench.official import find_official_sequences, import_official, read_official_split
+    from dsr_bench.dataset.official import find_official_sequences, import_official, read_official_split
 
     total = len(read_official_split(src, split)) if split else len(find_official_sequences(src))
     with Progress(transient=True) as bar:

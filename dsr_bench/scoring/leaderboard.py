@@ -31,8 +31,8 @@ def _write_atomic(path: Path, text: str) -> None:
 
 def check_entry(results: dict) -> list[str]:
     """Problems that keep a results file off the leaderboard (empty list: it may join)."""
-    from dsr_bench.evaluate import HEADLINE, RESULTS_FORMAT
-    from dsr_bench.splits import SPLITS
+    from dsr_bench.scoring.evaluate import HEADLINE, RESULTS_FORMAT
+    from dsr_bench.dataset.splits import SPLITS
 
     problems = []
     if results.get("format") != RESULTS_FORMAT:
@@ -77,7 +77,7 @@ def add_entry(results_path: str | Path, root: str | Path = "leaderboard", label:
 
 def load_rows(root: str | Path = "leaderboard") -> list[dict]:
     """Flat rows (method, split, kind, metrics, date, checksum, label) of every entry and paper row."""
-    from dsr_bench.splits import SPLITS
+    from dsr_bench.dataset.splits import SPLITS
 
     root = Path(root)
     rows = []

@@ -1,4 +1,4 @@
-"""Writing and reading sequence files (one HDF5 file per sequence, see `dsr_bench.schema`).
+"""Writing and reading sequence files (one HDF5 file per sequence, see `dsr_bench.dataset.schema`).
 
 Files are written to a temporary name in the same directory and renamed into place, so a reader
 never sees a partial file under its final name. Reading validates the format marker and schema
@@ -18,7 +18,7 @@ import numpy as np
 
 from dsr_bench.atomic import atomic_path
 from dsr_bench.constants import FORMAT_NAME, SCHEMA_VERSION
-from dsr_bench.schema import FIELDS, REQUIRED_ATTRS, check_array, dataset_path, resolve_shape
+from dsr_bench.dataset.schema import FIELDS, REQUIRED_ATTRS, check_array, dataset_path, resolve_shape
 
 
 from dsr_bench.errors import UserError

@@ -22,8 +22,8 @@ def predict(
     """Run a model over a split and write the predictions contract (one .h5 per sequence + meta.json)."""
     from rich.progress import Progress
 
-    from dsr_bench.manifest import read_split
-    from dsr_bench.predictors import load_predictor, predict_split
+    from dsr_bench.dataset.manifest import read_split
+    from dsr_bench.models.predictors import load_predictor, predict_split
 
     predictor = load_predictor(model, checkpoint, device)
     split, names = read_split(data, split)
@@ -82,7 +82,7 @@ def evaluate(
 
     from rich.console import Console
 
-    from dsr_bench.evaluate import evaluate as run
+    from dsr_bench.scoring.evaluate import evaluate as run
 
     evaluation = run(pred_dir, data, split, allow_partial=allow_partial, workers=workers)
     console = Console(stderr=True)
@@ -110,7 +110,7 @@ def evaluate(
 @leaderboard_app.command("build")
 def leaderboard_build(root: Path = typer.Option(Path("leaderboard"), "--root", help="Leaderboard directory.")) -> None:
     """Write leaderboard/README.md and leaderboard/index.html from entries/ and paper.json."""
-    from dsr_bench.leaderboard import build
+    from dsr_bench.scoring.leaderboard import build
 
     md, page = build(root)
     typer.echo(f"wrote {md} and {page}")
@@ -123,7 +123,7 @@ def leaderboard_add(
     label: Optional[str] = typer.Option(None, "--label", help="Note shown with the row (e.g. 'short schedule')."),
 ) -> None:
     """Validate a results file (split checksum, complete metrics) and add it, then rebuild the tables."""
-    from dsr_bench.leaderboard import add_entry, build
+    from dsr_bench.scoring.leaderboard import add_entry, build
 
     target = add_entry(results, root, label)
     build(root)

@@ -1,11 +1,11 @@
 """Pins of the benchmark's named splits: making them, and comparing a dataset with them.
 
-A pin (`dsr_bench/data/split_pins.json`, see `dsr_bench.splits.pinned_digests`) holds a split's
+A pin (`dsr_bench/dataset/split_pins.json`, see `dsr_bench.dataset.splits.pinned_digests`) holds a split's
 ground-truth checksum, its observations' checksum, and per sequence its two group digests and a
-`dsr_bench.digests.Fingerprint` of every array. Comparing a dataset with its pin says, for each
+`dsr_bench.dataset.digests.Fingerprint` of every array. Comparing a dataset with its pin says, for each
 sequence that differs, which arrays differ and by how much: a ground-truth array that differs at
 all is a different benchmark; an observation array that differs within the stated tolerance
-(`dsr_bench.digests.within_tolerance`) is rendering noise of another CPU or library, reported as a
+(`dsr_bench.dataset.digests.within_tolerance`) is rendering noise of another CPU or library, reported as a
 note and never as a changed benchmark.
 """
 
@@ -15,7 +15,7 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from dsr_bench.digests import (
+from dsr_bench.dataset.digests import (
     GROUND_TRUTH_KEY, OBSERVATIONS_KEY, Fingerprint, describe_difference, file_digests, is_ground_truth,
     split_checksum, within_tolerance,
 )
@@ -25,7 +25,7 @@ def build_pin(data_dir: str | Path, names: list[str], manifest: Mapping, split: 
               digests: Callable[[Path], dict] = file_digests) -> dict:
     """The pin of split `split` of a dataset: its sequences `names` are read (every array, one step at a
     time) and must match the manifest's digests (SystemExit naming the sequence otherwise)."""
-    from dsr_bench.manifest import split_digest
+    from dsr_bench.dataset.manifest import split_digest
 
     listed = {s["name"]: s for s in manifest["sequences"]}
     found = {}

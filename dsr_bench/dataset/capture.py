@@ -30,7 +30,7 @@ import numpy as np
 from dsr_bench.constants import GRID_BOUNDS, NUM_DIRECTIONS
 from dsr_bench.errors import UserError
 from dsr_bench.geometry import Camera
-from dsr_bench.manifest import mesh_sha256
+from dsr_bench.dataset.manifest import mesh_sha256
 
 CAPTURE_FORMAT = "dsr-bench-capture"
 CAPTURE_VERSION = 1

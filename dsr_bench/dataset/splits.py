@@ -2,10 +2,10 @@
 
 A split is fully determined by its object set, size, base seed and scene parameters; sequence i is
 generated from `sequence_seed(base_seed, i)`, so any worker count, shard or CPU gives the same
-files' contents. `dsr_bench/data/split_pins.json` pins, for the splits generated with this toolkit
-version, the split checksum (`dsr_bench.manifest.split_digest`: the ground truth), the checksum of
+files' contents. `dsr_bench/dataset/split_pins.json` pins, for the splits generated with this toolkit
+version, the split checksum (`dsr_bench.dataset.manifest.split_digest`: the ground truth), the checksum of
 the observations, and per sequence its two group digests and a fingerprint of every array
-(`dsr_bench.digests`), so `validate` can say which arrays of which sequence differ and by how much
+(`dsr_bench.dataset.digests`), so `validate` can say which arrays of which sequence differ and by how much
 (`scripts/pin_split.py DATA_DIR` writes it); `expected_digest` is None for splits not pinned yet.
 """
 
@@ -57,7 +57,7 @@ SPLITS: dict[str, Split] = {
     )
 }
 SPLIT_NAMES: tuple[str, ...] = tuple(SPLITS)
-PINNED_FILE = Path(__file__).resolve().parent / "data" / "split_pins.json"
+PINNED_FILE = Path(__file__).resolve().parent / "split_pins.json"
 PINS_FORMAT, PINS_VERSION = "dsr-bench-pins", 2
 
 

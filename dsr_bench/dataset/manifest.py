@@ -1,7 +1,7 @@
 """Dataset directories: content digests, manifest.json, split files and checksums.
 
 A dataset directory holds `seq_*.h5` sequence files, `splits/<split>.txt` (one sequence name per
-line) and `manifest.json`. Each sequence's digests (`dsr_bench.digests`: its ground truth, its
+line) and `manifest.json`. Each sequence's digests (`dsr_bench.dataset.digests`: its ground truth, its
 observations, both) are independent of HDF5 byte layout; a split's checksum covers its sorted
 (name, ground-truth digest) pairs and is what the benchmark pins and the leaderboard checks.
 """
@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from dsr_bench.constants import SCHEMA_VERSION
-from dsr_bench.digests import GROUND_TRUTH_KEY, OBSERVATIONS_KEY, split_checksum
+from dsr_bench.dataset.digests import GROUND_TRUTH_KEY, OBSERVATIONS_KEY, split_checksum
 from dsr_bench.errors import UserError
 
 MANIFEST_NAME = "manifest.json"
@@ -51,7 +51,7 @@ def _split_names(data_dir: Path) -> dict[str, list[str]]:
 
 def split_digest(manifest: Mapping, split: str) -> str:
     """The split checksum: SHA-256 over `name:ground_truth_sha256\\n` of the split's sequences, sorted by
-    name (`dsr_bench.digests.split_checksum`): what scores a model, not how it was rendered."""
+    name (`dsr_bench.dataset.digests.split_checksum`): what scores a model, not how it was rendered."""
     splits = manifest.get("splits", {})
     if split not in splits:
         raise UserError(f"split {split!r} is not in the manifest; available: {', '.join(sorted(splits)) or 'none'}")

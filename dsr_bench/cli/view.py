@@ -19,7 +19,7 @@ def view(
 ) -> None:
     """Open a sequence in the rerun viewer: cameras, TSDF, amodal voxels, meshes, push, flow, predictions."""
     from dsr_bench.errors import UserError
-    from dsr_bench.manifest import resolve_sequence
+    from dsr_bench.dataset.manifest import resolve_sequence
 
     if save is not None and web:
         raise UserError("--save and --web exclude each other: choose one")

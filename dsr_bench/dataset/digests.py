@@ -1,6 +1,6 @@
 """What "the same sequence" means: digests of its arrays, by group, and fingerprints to compare with.
 
-A sequence's arrays fall in two groups (`dsr_bench.schema.Field.group`):
+A sequence's arrays fall in two groups (`dsr_bench.dataset.schema.Field.group`):
 - ground truth (poses, actions, pushes, amodal masks, 3D flow, the policy's choices, and the object
   list): what scores a model. Pinned bit for bit: any difference is a different benchmark.
 - observations (images, depth, TSDF, heightmap, visible fractions, 2D ground truth, anything else):
@@ -39,7 +39,7 @@ MEAN_TOLERANCE = 1e-5
 
 def is_ground_truth(name: str) -> bool:
     """Whether an HDF5 dataset path of a sequence belongs to the ground-truth group."""
-    from dsr_bench.schema import FIELDS, GROUND_TRUTH
+    from dsr_bench.dataset.schema import FIELDS, GROUND_TRUTH
 
     field = FIELDS.get(name.rsplit("/", 1)[-1] if name.startswith("cameras/") else name)
     return field is not None and field.group == GROUND_TRUTH
@@ -211,7 +211,7 @@ def file_fingerprints(path: str | Path) -> tuple[dict[str, Fingerprint], list[di
     memory of one step of the largest array), and its object list."""
     import h5py
 
-    from dsr_bench.sequence import SequenceReader
+    from dsr_bench.dataset.sequence import SequenceReader
 
     with SequenceReader(path) as seq:
         names: list[str] = []

@@ -28,7 +28,7 @@ from torch.utils.data import Dataset, default_collate
 
 from dsr_bench.constants import GRID_SHAPE, NUM_DIRECTIONS
 from dsr_bench.errors import UserError
-from dsr_bench.sequence import read_steps
+from dsr_bench.dataset.sequence import read_steps
 
 DEFAULT_FIELDS = ("tsdf", "action", "mask_3d", "scene_flow_3d")
 
@@ -36,7 +36,7 @@ DEFAULT_FIELDS = ("tsdf", "action", "mask_3d", "scene_flow_3d")
 def check_actions(actions: np.ndarray, shape: tuple[int, int], source) -> np.ndarray:
     """Actions (L, 3) [direction 0..7, row, col] with the pixel inside the (Y, X) map, as int64;
     UserError naming `source` (a file) otherwise (the checks of `dsr-bench validate`)."""
-    from dsr_bench.validate import action_problems
+    from dsr_bench.dataset.validate import action_problems
 
     problems = action_problems(actions, shape)
     if problems:
@@ -95,7 +95,7 @@ class SequenceWindowDataset(Dataset):
 
     def __init__(self, data_dir: str | Path, split: str | None = None, window: int = 1,
                  fields: tuple[str, ...] = DEFAULT_FIELDS, stride: int = 1):
-        from dsr_bench.manifest import MANIFEST_NAME, load_manifest, read_split
+        from dsr_bench.dataset.manifest import MANIFEST_NAME, load_manifest, read_split
 
         _check_options(window, stride, tuple(fields))
         self.data_dir, self.window, self.stride, self.fields = Path(data_dir), window, stride, tuple(fields)
@@ -119,7 +119,7 @@ class SequenceWindowDataset(Dataset):
     @staticmethod
     def _counts(path: Path) -> tuple[int, int]:
         """(pushes, objects) of one sequence file."""
-        from dsr_bench.sequence import SequenceReader
+        from dsr_bench.dataset.sequence import SequenceReader
 
         with SequenceReader(path) as seq:  # checks the format marker and schema version
             return seq.num_steps, seq.num_objects
@@ -158,7 +158,7 @@ class OfficialWindowDataset(Dataset):
 
     def __init__(self, src: str | Path, split: str = "train", window: int = 1,
                  fields: tuple[str, ...] = DEFAULT_FIELDS, stride: int = 1):
-        from dsr_bench.official import find_official_sequences, read_official_split
+        from dsr_bench.dataset.official import find_official_sequences, read_official_split
 
         _check_options(window, stride, tuple(fields))
         sequences = find_official_sequences(src)
@@ -177,7 +177,7 @@ class OfficialWindowDataset(Dataset):
         return len(self.items)
 
     def _read(self, path: Path, name: str) -> np.ndarray:
-        from dsr_bench.official import check_dataset
+        from dsr_bench.dataset.official import check_dataset
 
         f = self._files.get(path)
         if name not in f:

@@ -2,7 +2,7 @@
 
 Structure is checked first for every file, reading no array data (names, presence, regular files
 inside the directory, the root's members and links, storage inside the file, filters, shapes,
-dtypes, `num_slots`, meta.json: `dsr_bench.predictions`); the data checks (unreadable chunks,
+dtypes, `num_slots`, meta.json: `dsr_bench.scoring.predictions`); the data checks (unreadable chunks,
 NaN/inf, slot ids out of range) happen in the same streaming pass that scores, one sequence per
 worker at a time. Any problem means no score, unless `allow_partial`, which scores the valid
 sequences and states the coverage. A named split whose checksum differs from the toolkit's pin
@@ -22,7 +22,7 @@ import h5py
 import numpy as np
 
 from dsr_bench.errors import UserError
-from dsr_bench.predictions import META_TYPES
+from dsr_bench.scoring.predictions import META_TYPES
 
 RESULTS_FORMAT = "dsr-bench-results"
 HEADLINE = ("motion_visible", "motion_full", "iou_unordered", "iou_ordered")
@@ -44,8 +44,8 @@ class Evaluation:
 def pin_warning(manifest: dict, split: str, data_dir: str | Path | None = None) -> str | None:
     """One line when `split` is a named split pinned in this toolkit and the dataset's split
     checksum differs from the pin; None otherwise (a matching, unpinned or unnamed split)."""
-    from dsr_bench.manifest import split_digest
-    from dsr_bench.splits import SPLITS
+    from dsr_bench.dataset.manifest import split_digest
+    from dsr_bench.dataset.splits import SPLITS
 
     spec = SPLITS.get(split)
     if spec is None or spec.expected_digest is None:
@@ -64,9 +64,9 @@ def pin_warning(manifest: dict, split: str, data_dir: str | Path | None = None) 
 def score_sequence(args: tuple[str, str, str]) -> tuple[str, list[str], dict | None]:
     """Check and score one sequence, args = (name, prediction file, ground-truth file): returns
     (name, problems, per-step values or None). Used by `evaluate` and by the viewer's plots."""
-    from dsr_bench.metrics import motion_2d_error, motion_errors, sequence_scores
-    from dsr_bench.predictions import check_prediction_header
-    from dsr_bench.sequence import SequenceReader
+    from dsr_bench.scoring.metrics import motion_2d_error, motion_errors, sequence_scores
+    from dsr_bench.scoring.predictions import check_prediction_header
+    from dsr_bench.dataset.sequence import SequenceReader
 
     name, pred_path, gt_path = args
     problems: list[str] = []
@@ -126,7 +126,7 @@ def score_sequence(args: tuple[str, str, str]) -> tuple[str, list[str], dict | N
 def check_structure(pred_dir: Path, data_dir: Path, names: list[str]) -> tuple[dict[str, Path], list[tuple[str, str]]]:
     """Every structural problem of a predictions directory, as (file name, problem); the files that
     passed. Reads no array data and opens only regular files inside the directory."""
-    from dsr_bench.predictions import check_prediction_header, file_problem, read_meta
+    from dsr_bench.scoring.predictions import check_prediction_header, file_problem, read_meta
 
     problems: list[tuple[str, str]] = []
     valid: dict[str, Path] = {}
@@ -202,7 +202,7 @@ def aggregate(per_sequence: dict[str, dict]) -> dict:
 
 def predictions_checksum(pred_dir: Path, names: list[str]) -> str:
     """SHA-256 over the sorted prediction files' names and SHA-256s."""
-    from dsr_bench.manifest import file_sha256
+    from dsr_bench.dataset.manifest import file_sha256
 
     h = hashlib.sha256()
     for name in sorted(names):
@@ -212,7 +212,7 @@ def predictions_checksum(pred_dir: Path, names: list[str]) -> str:
 
 def _pinned(manifest: dict, split: str) -> bool:
     """Whether `split` is a named split pinned in this toolkit and the dataset matches the pin."""
-    from dsr_bench.splits import SPLITS
+    from dsr_bench.dataset.splits import SPLITS
 
     spec = SPLITS.get(split)
     return spec is not None and spec.expected_digest is not None and pin_warning(manifest, split) is None
@@ -222,8 +222,8 @@ def evaluate(pred_dir: str | Path, data_dir: str | Path, split: str | None = Non
              workers: int = 0) -> Evaluation:
     """Check and score a predictions directory against a split of a dataset."""
     from dsr_bench import __version__
-    from dsr_bench.manifest import load_manifest, read_split, split_digest
-    from dsr_bench.predictions import read_meta
+    from dsr_bench.dataset.manifest import load_manifest, read_split, split_digest
+    from dsr_bench.scoring.predictions import read_meta
 
     pred_dir, data_dir = Path(pred_dir), Path(data_dir)
     if not pred_dir.is_dir():
