@@ -1,0 +1,328 @@
+"""The annotator's keys: the key map, and the `Controller` that turns keys into `annotator.session.Session` calls.
+
+No window here (testable without a display): the window (`annotator.window`) registers a callback per `KEYMAP`
+key that calls `Controller.press`, and redraws what it reports changed. The Controller also holds what the
+window shows beyond the Session's own state (`ViewState`: nudge axes and steps, cloud colouring, the message).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from functools import partial
+from typing import Any, Callable, NamedTuple
+
+import numpy as np
+
+from annotator.align import FitScore
+from annotator.images import SELECTED_COLOR
+from dsr_bench.errors import UserError
+
+#: Nudge sizes: fine / coarse translation (m) and rotation (rad).
+TRANSLATION_STEPS: dict[str, float] = {"fine": 0.001, "coarse": 0.01}
+ROTATION_STEPS: dict[str, float] = {"fine": float(np.deg2rad(1.0)), "coarse": float(np.deg2rad(5.0))}
+#: Keys acted on after the key callback returns (they open a window of their own).
+DEFERRED_KEYS = ("M",)
+#: GLFW key codes of the non-character keys used in KEYMAP.
+GLFW_SPECIAL_KEYS: dict[str, int] = {"Space": 32, "Esc": 256, "Enter": 257, "Tab": 258}
+
+
+@dataclass
+class ViewState:
+    """What the window shows and how keys act, beyond the Session's own state."""
+
+    frame: str = "table"  # nudge axes: "table" or "object"
+    coarse: bool = False  # coarse (1 cm / 5 deg) or fine (1 mm / 1 deg) nudges
+    residual: bool = False  # cloud coloured by depth residual instead of the capture colours
+    quit: bool = False
+    reset_view: bool = False  # set by the key, cleared by the window once it reset the 3D view
+    message: str = ""
+    score_cache: dict = field(default_factory=dict)
+
+    @property
+    def translation_step(self) -> float:
+        return TRANSLATION_STEPS["coarse" if self.coarse else "fine"]
+
+    @property
+    def rotation_step(self) -> float:
+        return ROTATION_STEPS["coarse" if self.coarse else "fine"]
+
+
+def format_score(score: FitScore | None) -> str:
+    """One line of a FitScore: inlier RMSE (mm), coverage, fitness, accepted/reason ("fit: -" for None)."""
+    if score is None:
+        return "fit: -"
+    if not np.isfinite(score.rmse):
+        return f"fit: - ({score.reason or 'no fit'})"
+    line = f"fit: rmse {score.rmse * 1000:.1f} mm, coverage {score.coverage:.2f}, fitness {score.fitness:.2f}"
+    if not score.accepted:
+        line += f", poor: {score.reason}"
+    return line
+
+
+def object_name(session, obj: int) -> str:
+    """The capture's name of object `obj`."""
+    return str(session.capture.objects[obj].name)
+
+
+# --- Key actions: each takes the Controller; a UserError becomes the panel's message ---------------------------------
+
+
+class Binding(NamedTuple):
+    """One key: its label, the Session method its action calls (None: view-only) and the action."""
+
+    label: str
+    method: str | None
+    action: Callable[["Controller"], Any]
+    group: str
+
+
+def _select(ctl: "Controller", obj: int) -> None:
+    if obj >= ctl.session.num_objects:
+        ctl.view.message = f"no object {obj + 1}: this capture has {ctl.session.num_objects}"
+        return
+    ctl.session.select(obj)
+    ctl.view.message = f"selected {obj + 1}: {object_name(ctl.session, obj)}"
+
+
+def _select_next(ctl: "Controller") -> None:
+    _select(ctl, (ctl.session.selected + 1) % max(1, ctl.session.num_objects))
+
+
+def _translate(axis: int, sign: int, ctl: "Controller") -> None:
+    vec = np.zeros(3)
+    vec[axis] = sign * ctl.view.translation_step
+    ctl.session.nudge(ctl.session.selected, translation=tuple(vec), rotation=(0.0, 0.0, 0.0), frame=ctl.view.frame)
+    ctl.view.message = f"moved {'+' if sign > 0 else '-'}{'xyz'[axis]} {vec[axis] * 1000:+g} mm ({ctl.view.frame})"
+
+
+def _rotate(axis: int, sign: int, ctl: "Controller") -> None:
+    vec = np.zeros(3)
+    vec[axis] = sign * ctl.view.rotation_step
+    ctl.session.nudge(ctl.session.selected, translation=(0.0, 0.0, 0.0), rotation=tuple(vec), frame=ctl.view.frame)
+    name = ("roll", "pitch", "yaw")[axis]
+    ctl.view.message = f"rotated {name} {np.rad2deg(vec[axis]):+g} deg ({ctl.view.frame})"
+
+
+def _toggle_frame(ctl: "Controller") -> None:
+    ctl.view.frame = "object" if ctl.view.frame == "table" else "table"
+    ctl.view.message = f"nudges in {ctl.view.frame} axes"
+
+
+def _toggle_coarse(ctl: "Controller") -> None:
+    ctl.view.coarse = not ctl.view.coarse
+    ctl.view.message = f"{'coarse' if ctl.view.coarse else 'fine'} steps"
+
+
+def _snap(ctl: "Controller") -> None:
+    score = ctl.session.snap(ctl.session.selected)
+    verdict = "snapped" if score.accepted else "snap rejected"
+    ctl.view.message = f"{verdict}: {format_score(score)[5:]}"
+
+
+def _confirm(ctl: "Controller") -> None:
+    ctl.session.confirm(ctl.session.selected)
+    ctl.view.message = f"confirmed {object_name(ctl.session, ctl.session.selected)}"
+
+
+def _go(delta: int, ctl: "Controller") -> None:
+    target = ctl.session.step + delta
+    last = ctl.session.num_steps  # steps are 0..T
+    if not 0 <= target <= last:
+        ctl.view.message = f"no step {target}: steps are 0..{last}"
+        return
+    snapped = ctl.session.go_to(target)
+    ctl.view.message = f"step {target}" + (f", snapped objects {[i + 1 for i in snapped]}" if snapped else "")
+
+
+def _undo(ctl: "Controller") -> None:
+    ctl.view.message = "undone" if ctl.session.undo() else "nothing to undo"
+
+
+def _redo(ctl: "Controller") -> None:
+    ctl.view.message = "redone" if ctl.session.redo() else "nothing to redo"
+
+
+def _from_previous(ctl: "Controller") -> None:
+    ctl.session.init_from_previous(ctl.session.selected)
+    ctl.view.message = "pose taken from the previous step"
+
+
+def _pick(ctl: "Controller") -> None:
+    ctl.pick()
+
+
+def _toggle_residual(ctl: "Controller") -> None:
+    ctl.view.residual = not ctl.view.residual
+    if ctl.view.residual:
+        ctl.session.residual_colors()  # fail here (message) rather than while drawing
+    ctl.view.message = f"cloud coloured by {'depth residual' if ctl.view.residual else 'capture colours'}"
+
+
+def _progress(ctl: "Controller") -> None:
+    ctl.echo(ctl.session.progress_table())
+    ctl.view.message = "progress table printed to the terminal"
+
+
+def _reset_view(ctl: "Controller") -> None:
+    ctl.view.reset_view = True
+    ctl.view.message = "view reset"
+
+
+def _quit(ctl: "Controller") -> None:
+    ctl.view.quit = True
+    ctl.view.message = "bye"
+
+
+def _build_keymap() -> dict[str, Binding]:
+    km: dict[str, Binding] = {}
+    for i in range(5):
+        km[str(i + 1)] = Binding(f"select object {i + 1}", "select", partial(_select, obj=i), "select object / next")
+    km["Tab"] = Binding("select the next object", "select", _select_next, "select object / next")
+    for key, axis, sign in (("D", 0, 1), ("A", 0, -1), ("W", 1, 1), ("S", 1, -1), ("E", 2, 1), ("Q", 2, -1)):
+        km[key] = Binding(f"move {'+-'[sign < 0]}{'xyz'[axis]}", "nudge", partial(_translate, axis, sign),
+                          "move +x -x +y -y +z -z")
+    for key, axis, sign in (("L", 0, 1), ("J", 0, -1), ("I", 1, 1), ("K", 1, -1), ("O", 2, 1), ("U", 2, -1)):
+        km[key] = Binding(f"rotate {'+-'[sign < 0]}{('roll', 'pitch', 'yaw')[axis]}", "nudge",
+                          partial(_rotate, axis, sign), "rotate +-roll +-pitch +-yaw")
+    km["T"] = Binding("table / object axes", None, _toggle_frame, "table / object axes")
+    km["G"] = Binding("fine / coarse steps", None, _toggle_coarse, "fine / coarse steps")
+    km["Space"] = Binding("snap (ICP)", "snap", _snap, "snap (ICP)")
+    km["Enter"] = Binding("confirm", "confirm", _confirm, "confirm")
+    km["N"] = Binding("next step", "go_to", partial(_go, 1), "next / previous step")
+    km["P"] = Binding("previous step", "go_to", partial(_go, -1), "next / previous step")
+    km["Z"] = Binding("undo", "undo", _undo, "undo / redo")
+    km["Y"] = Binding("redo", "redo", _redo, "undo / redo")
+    km["C"] = Binding("pose from the previous step", "init_from_previous", _from_previous,
+                      "pose from the previous step")
+    km["M"] = Binding("pick >= 3 point pairs", "init_from_picks", _pick, "pick >= 3 pairs cloud <-> mesh")
+    km["R"] = Binding("depth-residual colours", "residual_colors", _toggle_residual, "depth-residual colours")
+    km["F"] = Binding("progress table (terminal)", "progress_table", _progress, "progress table (terminal)")
+    km["V"] = Binding("reset the 3D view", None, _reset_view, "reset the 3D view")
+    km["Esc"] = Binding("quit", None, _quit, "quit (all saved)")
+    return km
+
+
+#: Key name -> Binding. Letters are case-insensitive; see `glfw_code` for the key codes.
+KEYMAP: dict[str, Binding] = _build_keymap()
+
+
+def glfw_code(key: str) -> int:
+    """GLFW key code of a KEYMAP key name (upper-case letters and digits are their ASCII codes)."""
+    if key in GLFW_SPECIAL_KEYS:
+        return GLFW_SPECIAL_KEYS[key]
+    if len(key) == 1 and (key.isdigit() or "A" <= key <= "Z"):
+        return ord(key)
+    raise ValueError(f"no GLFW code for key {key!r}")
+
+
+def key_help_lines(keymap: dict[str, Binding] | None = None) -> list[str]:
+    """One line per key group: the group's keys, a tab, its label ("D A W S E Q\tmove +x -x ...")."""
+    groups: dict[str, list[str]] = {}
+    for key, binding in (keymap or KEYMAP).items():
+        groups.setdefault(binding.group, []).append(key)
+    return [f"{' '.join(keys)}\t{group}" for group, keys in groups.items()]
+
+
+# --- The controller ---------------------------------------------------------------------------------------------------
+
+
+def mesh_samples(vertices: np.ndarray, faces: np.ndarray, count: int = 6000, seed: int = 0) -> np.ndarray:
+    """Points (M, 3) on a mesh surface (object frame, m) for picking: its vertices plus uniform samples."""
+    import open3d as o3d
+
+    mesh = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(np.asarray(vertices, np.float64)),
+                                     o3d.utility.Vector3iVector(np.asarray(faces, np.int32)))
+    o3d.utility.random.seed(seed)
+    samples = np.asarray(mesh.sample_points_uniformly(count).points) if len(faces) else np.zeros((0, 3))
+    return np.vstack([np.asarray(vertices, np.float64), samples])
+
+
+def rich_echo(text: str) -> None:
+    """Print to the terminal with rich (no markup, no highlighting)."""
+    try:
+        from rich.console import Console
+
+        Console(highlight=False, soft_wrap=True).print(text, markup=False)
+    except ImportError:  # pragma: no cover - rich is a core dependency
+        print(text)
+
+
+class Controller:
+    """Keys -> Session calls and the view state; no window (testable without a display).
+
+    session: an `annotator.session.Session`; picker(points (M,3), colors (M,3) or None, title) -> picked indices
+    (the window passes `annotator.window.pick_points`; without one, pick mode says so); echo(text): terminal
+    output (default: rich).
+    """
+
+    def __init__(self, session, picker: Callable[..., np.ndarray] | None = None,
+                 echo: Callable[[str], None] | None = None):
+        self.session = session
+        self.view = ViewState()
+        self.picker = picker
+        self.echo = echo or rich_echo
+
+    def press(self, key: str) -> set[str]:
+        """Act on one key (a KEYMAP name, letters case-insensitive); returns what changed: a subset of
+        {"cloud", "meshes", "panel"}. A UserError from the session becomes the panel's message."""
+        name = key.upper() if len(key) == 1 else key
+        binding = KEYMAP.get(name)
+        if binding is None:
+            self.view.message = f"key {key!r} does nothing; see the keys listed below"
+            return {"panel"}
+        before = self._snapshot()
+        try:
+            binding.action(self)
+        except UserError as exc:
+            self.view.message = f"{binding.label}: {exc}"
+            self.echo(f"[{binding.label}] {exc}")
+        after = self._snapshot()
+        changed = {"panel"}
+        if before[:2] != after[:2]:
+            changed.add("cloud")
+        if before[2:] != after[2:]:
+            changed.add("meshes")
+            if self.view.residual and before[2] != after[2]:  # the residual colours follow the poses only
+                changed.add("cloud")
+        return changed
+
+    def _snapshot(self) -> tuple:
+        s = self.session
+        return (s.step, self.view.residual, s.poses().tobytes(), tuple(s.status()), s.selected, self.view.frame)
+
+    def cloud(self) -> tuple[np.ndarray, np.ndarray]:
+        """Points (M,3) world m and colours (M,3) 0..1 of the current step's fused cloud (the Session caches it);
+        the colours are the depth residual's in residual mode."""
+        points, colors, _ = self.session.cloud()
+        if self.view.residual:
+            try:
+                colors = self.session.residual_colors()
+            except UserError as exc:
+                self.view.message = f"residual colours: {exc}"
+        return points, colors
+
+    def pick(self) -> None:
+        """Pick mode: >= 3 cloud points, then as many mesh points (same order) -> session.init_from_picks."""
+        if self.picker is None:
+            raise UserError("pick mode needs the annotator window (no picker)")
+        s, obj = self.session, self.session.selected
+        points, colors = self.cloud()
+        cloud_idx = self.picker(points, colors, "pick >= 3 cloud points (shift+click), then close with Q")
+        if len(cloud_idx) < 3:
+            self.view.message = f"pick: {len(cloud_idx)} cloud points picked; need 3 or more (shift+click)"
+            return
+        vertices, faces = s.capture.mesh(obj)
+        samples = mesh_samples(vertices, faces)
+        shade = np.tile(np.asarray(SELECTED_COLOR), (len(samples), 1))
+        mesh_idx = self.picker(samples, shade, f"pick the same {len(cloud_idx)} points on the mesh, in order, "
+                                               "then close with Q")
+        if len(mesh_idx) != len(cloud_idx):
+            self.view.message = (f"pick: {len(mesh_idx)} mesh points for {len(cloud_idx)} cloud points; "
+                                 "pick the same number in the same order (M to retry)")
+            return
+        s.init_from_picks(obj, samples[np.asarray(mesh_idx)], points[np.asarray(cloud_idx)])
+        self.view.message = f"pose initialised from {len(cloud_idx)} picked pairs"
+
+    def meshes(self) -> list[tuple[np.ndarray, np.ndarray]]:
+        """(vertices, faces) of every object's mesh, object frame."""
+        return [self.session.capture.mesh(i) for i in range(self.session.num_objects)]
