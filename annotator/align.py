@@ -20,7 +20,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 from dsr_bench.errors import UserError
-from dsr_bench.geometry import Camera
+from dsr_bench.geometry import Camera, matrix_to_pose  # noqa: F401 - matrix_to_pose: used as align.matrix_to_pose
 
 #: Distance (m) within which a cloud point counts as lying on the mesh surface (sensor noise + calibration error).
 INLIER_DISTANCE = 0.005
@@ -119,16 +119,6 @@ def rotvec_to_matrix(rotvec: np.ndarray) -> np.ndarray:
 def rotation_angle(rotation: np.ndarray) -> float:
     """Angle (rad) of a rotation matrix (3, 3)."""
     return float(np.arccos(np.clip((np.trace(rotation) - 1) / 2, -1.0, 1.0)))
-
-
-def matrix_to_pose(transform: np.ndarray) -> np.ndarray:
-    """Pose (7,) = (x, y, z, qx, qy, qz, qw), metres, of a rigid 4x4 transform (qw >= 0)."""
-    from scipy.spatial.transform import Rotation
-
-    q = Rotation.from_matrix(np.asarray(transform)[:3, :3]).as_quat()
-    if q[3] < 0:
-        q = -q
-    return np.concatenate([np.asarray(transform)[:3, 3], q]).astype(np.float64)
 
 
 def pose_delta(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:

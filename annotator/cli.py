@@ -50,10 +50,9 @@ def annotate(
         typer.echo(f"wrote {path}")
     if status or auto or export is not None:
         return
-    import os
-    import sys
+    from dsr_bench.display import no_display
 
-    if sys.platform.startswith("linux") and not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
+    if no_display():
         raise UserError("no display to open the annotation window on: run `xvfb-run -a dsr-bench annotate ...`, or use "
                         "--status, --auto or --export")
     try:

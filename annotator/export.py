@@ -50,20 +50,17 @@ def _renderer(capture, front):
 def stored_camera(camera, shape: tuple[int, int]):
     """The camera of the stored 2D data (H', W') = `shape` and the full-resolution pixel each stored pixel takes.
 
-    Focal lengths and principal point scale by W'/W and H'/H, so stored pixel (u', v') looks along the ray of
+    Focal lengths and principal point scale by W'/W and H'/H (`dsr_bench.geometry.resized_camera`), so stored pixel (u', v') looks along the ray of
     full-resolution pixel (u' W / W', v' H / H') (exactly for integer ratios, e.g. 480 x 640 -> 240 x 320; to the
     nearest pixel otherwise). Returns (Camera, rows (H',) int, cols (W',) int).
     """
-    from dsr_bench.geometry import Camera
+    from dsr_bench.geometry import resized_camera
 
     h, w = shape
     sx, sy = w / camera.width, h / camera.height
-    k = np.asarray(camera.intrinsics, dtype=np.float64).copy()
-    k[0, :] *= sx
-    k[1, :] *= sy
     rows = np.clip(np.rint(np.arange(h) / sy).astype(np.int64), 0, camera.height - 1)
     cols = np.clip(np.rint(np.arange(w) / sx).astype(np.int64), 0, camera.width - 1)
-    return Camera(camera.name, h, w, k, np.asarray(camera.extrinsics, dtype=np.float64)), rows, cols
+    return resized_camera(camera, h, w), rows, cols
 
 
 def _identity(capture, i: int) -> dict:

@@ -11,7 +11,6 @@ poses read as NaN rows. Step s is observation s (0..T); push s moves the scene f
 from __future__ import annotations
 
 import json
-import os
 from collections import OrderedDict
 from pathlib import Path
 
@@ -20,10 +19,11 @@ import numpy as np
 from annotator import align
 from annotator.align import FitScore
 from annotator.state import ACTION_KINDS, AnnotationState, StateError
+from dsr_bench.atomic import write_text
 from dsr_bench.dataset.capture import Capture, load_capture
 from dsr_bench.constants import RIG_PUSHER_RADIUS
 from dsr_bench.errors import UserError
-from dsr_bench.geometry import pose_to_matrix
+from dsr_bench.geometry import matrix_to_pose, pose_to_matrix
 
 __all__ = ["FitScore", "Session", "STATE_FILE", "WORK_DIRNAME"]
 
@@ -115,18 +115,9 @@ class Session:
         return self.work_dir / STATE_FILE
 
     def _save(self) -> None:
-        """Write the state atomically (temporary file, fsync, rename)."""
+        """Write the state atomically (`dsr_bench.atomic`: temporary file, fsync, rename)."""
         self.work_dir.mkdir(parents=True, exist_ok=True)
-        tmp = self.work_dir / f".{STATE_FILE}.tmp-{os.getpid()}"
-        try:
-            with open(tmp, "w") as f:
-                json.dump(self.state.to_dict(), f, separators=(",", ":"))
-                f.flush()
-                os.fsync(f.fileno())
-            os.replace(tmp, self.state_path)
-        finally:
-            if tmp.exists():
-                tmp.unlink()
+        write_text(self.state_path, json.dumps(self.state.to_dict(), separators=(",", ":")), fsync=True)
 
     # read-only views -------------------------------------------------------------------------------------------------
     @property
@@ -261,7 +252,7 @@ class Session:
         """Place object `obj` at the current step from k >= 3 picked pairs: mesh points (k, 3) in the object
         frame and cloud points (k, 3) in the world, metres. Returns the pose (7,); status 'initialised'."""
         obj = self._check_obj(obj)
-        pose = align.matrix_to_pose(align.kabsch(mesh_points, cloud_points))
+        pose = matrix_to_pose(align.kabsch(mesh_points, cloud_points))
         self._set_pose("pick", obj, pose, "initialised")
         return pose
 
@@ -300,7 +291,7 @@ class Session:
         out = np.eye(4)
         out[:3, :3] = new_rot
         out[:3, 3] = centre - new_rot @ self.samples(obj).centre + dt
-        self._set_pose("nudge", obj, align.matrix_to_pose(out), "initialised")
+        self._set_pose("nudge", obj, matrix_to_pose(out), "initialised")
 
     def snap(self, obj: int) -> FitScore:
         """ICP-align object `obj` at the current step to a crop of the fused cloud around it. A large jump or too
@@ -314,7 +305,7 @@ class Session:
             self._save()
             return result.score
         status = "snapped" if result.score.accepted else "initialised"
-        self._set_pose("snap", obj, align.matrix_to_pose(result.transform), status, result.score)
+        self._set_pose("snap", obj, matrix_to_pose(result.transform), status, result.score)
         return result.score
 
     def _icp(self, obj: int, step: int, start: np.ndarray, extra_crop: float = 0.0, **kwargs) -> align.IcpResult:
@@ -415,15 +406,15 @@ class Session:
             moved_t, moved_r = align.pose_delta(start, result.transform)
             if not good(result) or (moved_t < MIN_SNAP_CHANGE[0] and moved_r < MIN_SNAP_CHANGE[1]):
                 return pose, ("snapped" if checked else "initialised"), carried, False
-            return align.matrix_to_pose(result.transform), "snapped", result.score, True
+            return matrix_to_pose(result.transform), "snapped", result.score, True
         if not good(result):
             searched = self._search(obj, source, step, start)
             if searched is not None and (not result.applied or searched.score.quality() > result.score.quality()):
                 result = searched
         if good(result):
-            return align.matrix_to_pose(result.transform), "snapped", result.score, True
+            return matrix_to_pose(result.transform), "snapped", result.score, True
         if result.applied and result.score.quality() > carried.quality():
-            return align.matrix_to_pose(result.transform), "initialised", result.score, True
+            return matrix_to_pose(result.transform), "initialised", result.score, True
         carried.reason = f"moved, not snapped: {result.score.reason}"
         return pose, "initialised", carried, False
 
@@ -485,7 +476,7 @@ class Session:
         if result is None or not (result.applied and result.score.accepted
                                   and result.score.coverage >= before.coverage - MOVED_COVERAGE_DROP):
             return None
-        return align.matrix_to_pose(result.transform), result.score
+        return matrix_to_pose(result.transform), result.score
 
     def _search_landed(self, obj: int, step: int, start: np.ndarray,
                        others: list[tuple[int, np.ndarray]]) -> align.IcpResult | None:

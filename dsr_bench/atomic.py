@@ -49,6 +49,15 @@ Cleaning (`clean_temporaries`), for each writer's temporary and/or lock file, re
 
 Anything else is kept. An abandoned temporary that is kept costs only disk space: resumption never
 depends on removing it (complete files are under final names, every writer uses fresh names).
+
+Directories (`atomic_directory`) follow the same scheme: the temporary ``DIR/.NAME.tmp-<owner>`` is a directory
+filled by the caller and renamed to ``DIR/NAME``; a directory already there is first renamed aside to another
+writer-owned temporary (``.NAME.tmp-<owner'>``, with its own lock) and removed after the new one is in place, so a
+run killed in between leaves only temporaries that `clean_temporaries` removes.
+
+Durability. With ``fsync=True`` the temporary's data is flushed to the device before the rename and the directory
+after it (a power loss then leaves either the old or the new content under the final name); a killed process
+needs no fsync, the kernel completes its writes.
 """
 
 from __future__ import annotations
@@ -58,6 +67,7 @@ import fcntl
 import os
 import re
 import secrets
+import shutil
 import socket
 import time
 from collections.abc import Iterator
@@ -111,10 +121,44 @@ def _create_lock(path: Path) -> tuple[Path, Path, int | None]:
         os.close(fd)
 
 
+def _fsync_path(path: Path) -> None:
+    """Flush `path` (a file or a directory) to its device."""
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def _release(lock: Path, fd: int | None) -> None:
+    try:
+        lock.unlink(missing_ok=True)
+    finally:
+        if fd is not None:
+            os.close(fd)
+
+
+def _rename_into_place(tmp: Path, path: Path) -> None:
+    try:
+        os.replace(tmp, path)
+    except FileNotFoundError:
+        raise UserError(f"{tmp} was removed by another process while being written (an older dsr-bench "
+                        f"sharing {path.parent}?); rerun the same command to finish") from None
+
+
+def _remove_tree(path: Path) -> None:
+    """Remove a file or a directory tree at `path` (nothing if absent)."""
+    if path.is_dir() and not path.is_symlink():
+        shutil.rmtree(path)
+    else:
+        path.unlink(missing_ok=True)
+
+
 @contextmanager
-def atomic_path(path: str | Path) -> Iterator[Path]:
+def atomic_path(path: str | Path, fsync: bool = False) -> Iterator[Path]:
     """Yield a temporary path next to `path` to write; rename it to `path` when the block succeeds,
     remove it when the block raises. The writer's lock is held throughout (see the module doc).
+    `fsync`: flush the data before the rename and the directory after it.
 
     >>> with atomic_path("out/seq_0000.h5") as tmp:
     ...     with h5py.File(tmp, "w") as f: ...
@@ -123,34 +167,65 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
     tmp, lock, fd = _create_lock(path)
     try:
         yield tmp
-        try:
-            os.replace(tmp, path)
-        except FileNotFoundError:
-            raise UserError(f"{tmp} was removed by another process while being written (an older dsr-bench "
-                            f"sharing {path.parent}?); rerun the same command to finish") from None
+        if fsync:
+            _fsync_path(tmp)
+        _rename_into_place(tmp, path)
+        if fsync:
+            _fsync_path(path.parent)
     finally:
         try:
             tmp.unlink(missing_ok=True)
         finally:
+            _release(lock, fd)
+
+
+@contextmanager
+def atomic_directory(path: str | Path, fsync: bool = False) -> Iterator[Path]:
+    """Yield a new, empty temporary directory next to `path` to fill; when the block succeeds it is renamed
+    to `path` (replacing a file or directory already there, renamed aside first and then removed), when the
+    block raises it is removed. Names, locks and cleaning as for `atomic_path` (see the module doc).
+    `fsync`: flush the parent directory after the renames (the files inside are the caller's to flush)."""
+    path = Path(path)
+    tmp, lock, fd = _create_lock(path)
+    try:
+        tmp.mkdir()
+        yield tmp
+        if not (path.exists() or path.is_symlink()):
+            _rename_into_place(tmp, path)
+        else:
+            old, old_lock, old_fd = _create_lock(path)  # the replaced one, a temporary of this writer until removed
             try:
-                lock.unlink(missing_ok=True)
+                os.replace(path, old)
+                try:
+                    _rename_into_place(tmp, path)
+                except BaseException:
+                    os.replace(old, path)  # put the replaced one back
+                    raise
+                _remove_tree(old)
             finally:
-                if fd is not None:
-                    os.close(fd)
+                _release(old_lock, old_fd)
+        if fsync:
+            _fsync_path(path.parent)
+    finally:
+        try:
+            if tmp.exists() or tmp.is_symlink():
+                _remove_tree(tmp)
+        finally:
+            _release(lock, fd)
 
 
-def write_text(path: str | Path, text: str) -> Path:
+def write_text(path: str | Path, text: str, fsync: bool = False) -> Path:
     """Write `text` to `path` atomically (see `atomic_path`)."""
     path = Path(path)
-    with atomic_path(path) as tmp:
+    with atomic_path(path, fsync=fsync) as tmp:
         tmp.write_text(text)
     return path
 
 
-def write_bytes(path: str | Path, data: bytes) -> Path:
+def write_bytes(path: str | Path, data: bytes, fsync: bool = False) -> Path:
     """Write `data` to `path` atomically (see `atomic_path`)."""
     path = Path(path)
-    with atomic_path(path) as tmp:
+    with atomic_path(path, fsync=fsync) as tmp:
         tmp.write_bytes(data)
     return path
 
@@ -202,11 +277,12 @@ def _age(paths: list[Path]) -> float:
 
 
 def _remove(paths: list[Path]) -> list[Path]:
-    """Remove `paths` (the temporary first, the lock file last); return those removed."""
+    """Remove `paths` (the temporary, a file or a directory of `atomic_directory`, first; the lock file last);
+    return those removed."""
     removed = []
     for p in paths:
         try:
-            p.unlink()
+            _remove_tree(p)
         except FileNotFoundError:
             continue
         except OSError:  # e.g. no permission: keep it, it only costs disk space

@@ -18,6 +18,7 @@ arguments and seed (the episode from `sequence_seed`-style seed, the sensor nois
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
@@ -289,15 +290,104 @@ def capture_arguments(*, seed: int, objects: str, steps: int, objects_per_scene:
             "noise": noise, "image_shape": list(image_shape)}
 
 
-def existing_capture(path: Path, expected: dict) -> str:
-    """'absent', 'same' (a complete capture made with the `expected` capture_arguments) or 'different'."""
+def recorded_capture_arguments(path: Path) -> dict:
+    """The `capture_arguments` an existing capture directory records in its capture.json `source` (a key it
+    lacks reads None; an unreadable capture.json reads {}): compared with the expected ones on resumption."""
     import json
 
-    meta_path = Path(path) / "capture.json"
-    if not Path(path).exists():
-        return "absent"
+    keys = capture_arguments(seed=0, objects="", steps=0, objects_per_scene=0, noise="")
     try:
-        source = json.loads(meta_path.read_text()).get("source", {})
+        source = json.loads((Path(path) / "capture.json").read_text()).get("source", {})
+        return {k: source.get(k) for k in keys}
     except (OSError, ValueError, AttributeError):
-        return "different"
-    return "same" if all(source.get(k) == v for k, v in expected.items()) else "different"
+        return {}
+
+
+# --- many captures -------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class CapturePlan:
+    """What a `dsr-bench generate-captures` invocation produces: captures OUT/seq_0000 ... of `num` sequences,
+    capture i from `sequence_seed(seed, i)`."""
+
+    out: Path
+    num: int = 1
+    objects: str = "procedural"
+    steps: int = 10
+    objects_per_scene: int = 4
+    seed: int = 0
+    noise: str = "realistic"
+    object_root: str | None = None
+    overwrite: bool = False
+
+    def arguments(self, seed: int) -> dict:
+        """The capture_arguments of the capture made from `seed`."""
+        return capture_arguments(seed=seed, objects=self.objects, steps=self.steps,
+                                 objects_per_scene=self.objects_per_scene, noise=self.noise)
+
+
+@dataclass
+class CaptureJobs:
+    """What `prepare_captures` found: the captures to write (name, seed), those already complete, the object set."""
+
+    todo: list[tuple[str, int]]
+    skipped: list[str]
+    object_set: object
+
+
+def prepare_captures(plan: CapturePlan) -> CaptureJobs:
+    """Check everything (arguments, --out, meshes, existing captures) before any simulation. An existing capture
+    made with the same arguments is skipped; one made with other arguments is refused unless `plan.overwrite`
+    (`generators.run.needs_writing`). Removes the temporaries of abandoned writers in --out."""
+    from dsr_bench.atomic import clean_temporaries
+    from dsr_bench.constants import MAX_OBJECTS_PER_SCENE
+    from dsr_bench.dataset.splits import sequence_name, sequence_seed
+    from generators.objects import get_object_set
+    from generators.run import needs_writing
+
+    if plan.num < 1:
+        raise UserError(f"--num-sequences {plan.num}: must be at least 1")
+    if plan.steps < 1:
+        raise UserError(f"--steps {plan.steps}: must be at least 1")
+    if not 1 <= plan.objects_per_scene <= MAX_OBJECTS_PER_SCENE:
+        raise UserError(f"--objects-per-scene {plan.objects_per_scene}: must be 1..{MAX_OBJECTS_PER_SCENE}")
+    get_sensor_model(plan.noise)
+    out = Path(plan.out)
+    if out.exists() and not out.is_dir():
+        raise UserError(f"--out {out} exists and is not a directory; give a directory for the captures")
+    object_set = get_object_set(plan.objects, plan.object_root)
+    todo, skipped = [], []
+    for i in range(plan.num):
+        name, seed = sequence_name(i), sequence_seed(plan.seed, i)
+        if needs_writing(out / name, plan.arguments(seed), recorded_capture_arguments,
+                         f"{out / name} exists with other arguments; pass --overwrite to replace it or choose "
+                         "another --out", overwrite=plan.overwrite):
+            todo.append((name, seed))
+        else:
+            skipped.append(name)
+    if out.is_dir():
+        clean_temporaries(out, "seq_*")
+    return CaptureJobs(todo, skipped, object_set)
+
+
+def generate_captures(plan: CapturePlan, jobs: CaptureJobs, started: Callable[[str], None] | None = None,
+                      finished: Callable[[str], None] | None = None) -> list[Path]:
+    """Write the captures `jobs.todo` (from `prepare_captures`) in order, each atomically; `started(name)` /
+    `finished(name)` are called around each. A scene that cannot be set up is a UserError naming the fix."""
+    from generators.episode import SceneRejected
+
+    written = []
+    for name, seed in jobs.todo:
+        if started:
+            started(name)
+        try:
+            written.append(generate_capture(Path(plan.out) / name, name=name, seed=seed, objects=plan.objects,
+                                            steps=plan.steps, objects_per_scene=plan.objects_per_scene,
+                                            noise=plan.noise, object_root=plan.object_root,
+                                            object_set=jobs.object_set, overwrite=True))
+        except SceneRejected as exc:
+            raise UserError(f"{exc}; try another --seed or fewer --objects-per-scene") from None
+        if finished:
+            finished(name)
+    return written

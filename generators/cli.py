@@ -8,8 +8,6 @@ from typing import Optional
 
 import typer
 
-from dsr_bench.errors import UserError
-
 OBJECT_SETS_HELP = "cube | shapenet | ycb | procedural | procedural-novel"
 
 
@@ -32,34 +30,12 @@ def generate(
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
     from rich.table import Table
 
-    from dsr_bench.constants import DEFAULT_OBJECTS_PER_SCENE, DEFAULT_STEPS
-    from dsr_bench.dataset.splits import get_split
-    from generators.episode import EpisodeConfig
-    from generators.run import RunPlan, finalize_dataset, generate_dataset, parse_shard, prepare_run, summarize
+    from generators.run import finalize_dataset, generate_dataset, plan_from_arguments, prepare_run, summarize
 
     console = Console(stderr=True)
-    if split is not None:
-        spec = get_split(split)
-        given = {"--objects": objects, "--num-sequences": num_sequences, "--seed": seed, "--steps": steps,
-                 "--objects-per-scene": objects_per_scene, "--policy": policy}
-        clash = [flag for flag, value in given.items() if value is not None]
-        if clash:
-            raise UserError(f"--split {split} fixes {', '.join(clash)}; drop them or generate without --split")
-        objects, num_sequences, seed = spec.objects, spec.num_sequences, spec.base_seed
-        steps, objects_per_scene, policy = spec.steps, spec.objects_per_scene, spec.policy
-        out = out or Path("data") / split
-    else:
-        if objects is None or num_sequences is None or out is None:
-            raise UserError("give --objects, --num-sequences and --out (or a named --split)")
-        seed = 0 if seed is None else seed
-        steps = DEFAULT_STEPS if steps is None else steps
-        objects_per_scene = DEFAULT_OBJECTS_PER_SCENE if objects_per_scene is None else objects_per_scene
-        policy = policy or "heuristic"
-    config = EpisodeConfig(objects=objects, steps=steps, objects_per_scene=objects_per_scene, policy=policy,
-                           cameras=tuple(c.strip() for c in cameras.split(",") if c.strip()),
-                           object_root=str(object_root) if object_root else None)
-    plan = RunPlan(config=config, out=out, num_sequences=num_sequences, seed=seed, split=split or "all",
-                   shard=parse_shard(shard), workers=workers)
+    plan = plan_from_arguments(objects=objects, num_sequences=num_sequences, out=out, split=split, seed=seed,
+                               steps=steps, objects_per_scene=objects_per_scene, policy=policy, cameras=cameras,
+                               workers=workers, shard=shard, object_root=object_root)
     total = len(plan.indices())
     todo, skipped = prepare_run(plan)
     with Progress(TextColumn("[bold]generate"), BarColumn(), MofNCompleteColumn(),
@@ -78,13 +54,13 @@ def generate(
     manifest = finalize_dataset(plan)
     stats = summarize(results)
     table = Table(title=f"dsr-bench generate: {plan.out}", show_header=False)
-    table.add_row("object set / policy", f"{objects} / {policy}")
-    table.add_row("shard", f"{plan.shard[0]}/{plan.shard[1]}: {total} of {num_sequences} sequences")
+    table.add_row("object set / policy", f"{plan.config.objects} / {plan.config.policy}")
+    table.add_row("shard", f"{plan.shard[0]}/{plan.shard[1]}: {total} of {plan.num_sequences} sequences")
     table.add_row("generated / already present", f"{len(results)} / {len(skipped)}")
     if stats:
         table.add_row("seconds per sequence (per worker)", f"{stats['mean_seconds']:.2f}")
         table.add_row("  physics / render", f"{stats['mean_physics_seconds']:.2f} / {stats['mean_render_seconds']:.2f}")
-        table.add_row("MB per step on disk", f"{stats['total_bytes'] / len(results) / steps / 1e6:.2f}")
+        table.add_row("MB per step on disk", f"{stats['total_bytes'] / len(results) / plan.config.steps / 1e6:.2f}")
     if manifest is not None:
         from dsr_bench.dataset.manifest import split_digest
 
@@ -114,50 +90,18 @@ def generate_captures(
     from rich.console import Console
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
-    from dsr_bench.constants import MAX_OBJECTS_PER_SCENE
-    from dsr_bench.dataset.splits import sequence_name, sequence_seed
-    from generators.capture import capture_arguments, existing_capture, generate_capture, get_sensor_model
-    from generators.episode import SceneRejected
-    from generators.objects import get_object_set
+    from generators.capture import CapturePlan, generate_captures as run, prepare_captures
 
-    if num < 1:
-        raise UserError(f"--num-sequences {num}: must be at least 1")
-    if steps < 1:
-        raise UserError(f"--steps {steps}: must be at least 1")
-    if not 1 <= objects_per_scene <= MAX_OBJECTS_PER_SCENE:
-        raise UserError(f"--objects-per-scene {objects_per_scene}: must be 1..{MAX_OBJECTS_PER_SCENE}")
-    get_sensor_model(noise)
-    if out.exists() and not out.is_dir():
-        raise UserError(f"--out {out} exists and is not a directory; give a directory for the captures")
-    object_set = get_object_set(objects, str(object_root) if object_root else None)
-
-    todo, skipped = [], []
-    for i in range(num):
-        name, s = sequence_name(i), sequence_seed(seed, i)
-        state = existing_capture(out / name, capture_arguments(seed=s, objects=objects, steps=steps,
-                                                               objects_per_scene=objects_per_scene, noise=noise))
-        if state == "absent" or overwrite:
-            todo.append((name, s))
-        elif state == "same":
-            skipped.append(name)
-        else:
-            raise UserError(f"{out / name} exists with other arguments; pass --overwrite to replace it or choose "
-                            "another --out")
+    plan = CapturePlan(out=out, num=num, objects=objects, steps=steps, objects_per_scene=objects_per_scene, seed=seed,
+                       noise=noise, object_root=str(object_root) if object_root else None, overwrite=overwrite)
+    jobs = prepare_captures(plan)
     console = Console(stderr=True)
     with Progress(TextColumn("[bold]generate-captures"), BarColumn(), MofNCompleteColumn(),
                   TextColumn("{task.description}"), TimeElapsedColumn(), console=console) as bar:
-        task = bar.add_task("", total=num, completed=len(skipped))
-        for name, s in todo:
-            bar.update(task, description=name)
-            try:
-                generate_capture(out / name, name=name, seed=s, objects=objects, steps=steps,
-                                 objects_per_scene=objects_per_scene, noise=noise,
-                                 object_root=str(object_root) if object_root else None, object_set=object_set,
-                                 overwrite=True)
-            except SceneRejected as exc:
-                raise UserError(f"{exc}; try another --seed or fewer --objects-per-scene") from None
-            bar.update(task, advance=1)
-    console.print(f"{out}: {len(todo)} captures written, {len(skipped)} already present "
+        task = bar.add_task("", total=num, completed=len(jobs.skipped))
+        run(plan, jobs, started=lambda name: bar.update(task, description=name),
+            finished=lambda name: bar.update(task, advance=1))
+    console.print(f"{out}: {len(jobs.todo)} captures written, {len(jobs.skipped)} already present "
                   f"({objects}, {steps} pushes, {objects_per_scene} objects, noise {noise})")
 
 

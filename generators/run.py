@@ -71,6 +71,42 @@ def parse_shard(text: str) -> tuple[int, int]:
     return i, n
 
 
+def plan_from_arguments(*, objects: str | None = None, num_sequences: int | None = None, out: Path | None = None,
+                        split: str | None = None, seed: int | None = None, steps: int | None = None,
+                        objects_per_scene: int | None = None, policy: str | None = None, cameras: str = "front",
+                        workers: int = 1, shard: str = "0/1", object_root: Path | None = None) -> RunPlan:
+    """The run that `dsr-bench generate`'s arguments ask for (None: not given). A named `split` fixes the object
+    set, size, seed, steps, objects per scene and policy (giving any of them too is refused) and --out defaults
+    to data/<split>; without it --objects, --num-sequences and --out are needed and the rest take their defaults
+    (seed 0, DEFAULT_STEPS, DEFAULT_OBJECTS_PER_SCENE, the heuristic policy). `cameras`: 'front' or
+    'front,back'; `shard`: 'i/n'. The plan is not checked yet (`check_plan`, `prepare_run`)."""
+    from dsr_bench.constants import DEFAULT_OBJECTS_PER_SCENE, DEFAULT_STEPS
+    from dsr_bench.dataset.splits import get_split
+
+    if split is not None:
+        spec = get_split(split)
+        given = {"--objects": objects, "--num-sequences": num_sequences, "--seed": seed, "--steps": steps,
+                 "--objects-per-scene": objects_per_scene, "--policy": policy}
+        clash = [flag for flag, value in given.items() if value is not None]
+        if clash:
+            raise UserError(f"--split {split} fixes {', '.join(clash)}; drop them or generate without --split")
+        objects, num_sequences, seed = spec.objects, spec.num_sequences, spec.base_seed
+        steps, objects_per_scene, policy = spec.steps, spec.objects_per_scene, spec.policy
+        out = out or Path("data") / split
+    else:
+        if objects is None or num_sequences is None or out is None:
+            raise UserError("give --objects, --num-sequences and --out (or a named --split)")
+        seed = 0 if seed is None else seed
+        steps = DEFAULT_STEPS if steps is None else steps
+        objects_per_scene = DEFAULT_OBJECTS_PER_SCENE if objects_per_scene is None else objects_per_scene
+        policy = policy or "heuristic"
+    config = EpisodeConfig(objects=objects, steps=steps, objects_per_scene=objects_per_scene, policy=policy,
+                           cameras=tuple(c.strip() for c in cameras.split(",") if c.strip()),
+                           object_root=str(object_root) if object_root else None)
+    return RunPlan(config=config, out=Path(out), num_sequences=num_sequences, seed=seed, split=split or "all",
+                   shard=parse_shard(shard), workers=workers)
+
+
 def check_plan(plan: RunPlan) -> None:
     """Reject bad arguments before anything is written."""
     cfg = plan.config
@@ -122,9 +158,30 @@ def check_writable(out: Path) -> None:
     probe.unlink(missing_ok=True)
 
 
-def _existing_problem(path: Path, expected_args: dict, expected_seed: int) -> str | None:
-    """None if `path` is a complete dsr-bench sequence generated with the same arguments (skip it);
-    else a one-line refusal naming the file and the fix (it is never overwritten)."""
+def needs_writing(path: Path, expected: dict, recorded: Callable[[Path], object], different: str,
+                  overwrite: bool = False) -> bool:
+    """Resumption, one rule for every output of a run (sequence files, capture directories): True when `path`
+    is to be written (absent, or `overwrite`), False when it is complete and was made with the same arguments
+    (skip it). `recorded(path)` reads the arguments an existing output was made with, comparable with
+    `expected`, and raises UserError (one line naming the output and the fix) when it is not one of ours; other
+    arguments raise UserError(`different`): an existing output is never overwritten without `overwrite`."""
+    if overwrite or not (path.exists() or path.is_symlink()):
+        return True
+    if recorded(path) != expected:
+        raise UserError(different)
+    return False
+
+
+def _sequence_arguments(args: dict, seed: int) -> dict:
+    """The arguments that define a generated sequence file, as compared on resumption (`needs_writing`)."""
+    if isinstance(args, dict):  # where the meshes live may differ between machines
+        args = {k: v for k, v in args.items() if k != "object_root"}
+    return {"generator_args": args, "seed": seed}
+
+
+def recorded_sequence_arguments(path: Path) -> dict:
+    """`_sequence_arguments` of an existing sequence file; UserError (naming the file and the fix) when it is not
+    a dsr-bench sequence of this schema made by `dsr-bench generate`."""
     import json
 
     import h5py
@@ -133,31 +190,27 @@ def _existing_problem(path: Path, expected_args: dict, expected_seed: int) -> st
 
     fix = "move it away or use another --out"
     if not path.is_file():
-        return f"{path} exists and is not a file; {fix}"
+        raise UserError(f"{path} exists and is not a file; {fix}")
     try:
         with h5py.File(path, "r") as f:
             attrs = dict(f.attrs)
     except Exception:  # noqa: BLE001 - whatever h5py raises: it is not an HDF5 file we can read
-        return f"{path} is not a dsr-bench sequence (not a readable HDF5 file); {fix}"
+        raise UserError(f"{path} is not a dsr-bench sequence (not a readable HDF5 file); {fix}") from None
     fmt = attrs.get("format")
     if isinstance(fmt, bytes):
         fmt = fmt.decode(errors="replace")
     if fmt != FORMAT_NAME:
-        return f"{path} is not a dsr-bench sequence (format attribute {fmt!r}); {fix}"
+        raise UserError(f"{path} is not a dsr-bench sequence (format attribute {fmt!r}); {fix}")
     if attrs.get("schema_version") != SCHEMA_VERSION:
-        return (f"{path} was written by another dsr-bench version (schema {attrs.get('schema_version')}, this one "
-                f"writes {SCHEMA_VERSION}); {fix}")
+        raise UserError(f"{path} was written by another dsr-bench version (schema {attrs.get('schema_version')}, "
+                        f"this one writes {SCHEMA_VERSION}); {fix}")
     try:
         args = json.loads(attrs["generator_args"])
         seed = int(attrs["seed"])
     except (KeyError, TypeError, ValueError):
-        return f"{path} is a dsr-bench sequence not made by `dsr-bench generate` (no generator arguments); {fix}"
-    if isinstance(args, dict):
-        args.pop("object_root", None)  # where the meshes live may differ between machines
-    expected_args = {k: v for k, v in expected_args.items() if k != "object_root"}
-    if args != expected_args or seed != expected_seed:
-        return f"{path} was generated with different arguments; use another --out or delete the directory"
-    return None
+        raise UserError(f"{path} is a dsr-bench sequence not made by `dsr-bench generate` (no generator "
+                        f"arguments); {fix}") from None
+    return _sequence_arguments(args, seed)
 
 
 def _clean_partials(out: Path) -> None:
@@ -210,13 +263,12 @@ def prepare_run(plan: RunPlan) -> tuple[list[int], list[str]]:
     todo, skipped = [], []
     for index in plan.indices():
         path = plan.out / f"{sequence_name(index)}.h5"
-        if path.exists() or path.is_symlink():
-            problem = _existing_problem(path, plan.generator_args(index), sequence_seed(plan.seed, index))
-            if problem is not None:
-                raise UserError(problem)
+        expected = _sequence_arguments(plan.generator_args(index), sequence_seed(plan.seed, index))
+        if needs_writing(path, expected, recorded_sequence_arguments,
+                         f"{path} was generated with different arguments; use another --out or delete the directory"):
+            todo.append(index)
+        else:
             skipped.append(path.stem)
-            continue
-        todo.append(index)
     try:
         plan.out.mkdir(parents=True, exist_ok=True)
     except OSError as exc:

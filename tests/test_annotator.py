@@ -19,7 +19,7 @@ import pytest
 
 from dsr_bench.constants import VOXEL_SIZE
 from dsr_bench.errors import UserError
-from dsr_bench.geometry import pose_to_matrix
+from dsr_bench.geometry import matrix_to_pose, pose_to_matrix
 
 
 @pytest.fixture(scope="module")
@@ -178,7 +178,7 @@ def test_icp_recovers_a_perturbed_pose_on_clean_data(capture_dir, truth):
         unseen = np.eye(3) - observed.T @ observed
         error = result.transform[:3, 3] - true_m[:3, 3]
         dt = float(np.linalg.norm(observed @ error))
-        dr = _rotation_error(session, i, truth[0, i], align.matrix_to_pose(result.transform))
+        dr = _rotation_error(session, i, truth[0, i], matrix_to_pose(result.transform))
         drift = float(np.linalg.norm(unseen @ (result.transform[:3, 3] - start[:3, 3])))
         assert len(observed) >= 2 and dt < 0.002 and np.rad2deg(dr) < 1.0 and drift < 0.001, (
             i, len(observed), dt, np.rad2deg(dr), drift)

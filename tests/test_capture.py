@@ -291,3 +291,26 @@ def test_stored_mesh_digest_names_the_stored_mesh(captures):
     for i, obj in enumerate(capture.objects):
         assert obj.identity["mesh_sha256"] == mesh_sha256(*capture.mesh(i))
         assert len(obj.identity["source_mesh_sha256"]) == 64  # the generator's float64 mesh, kept for provenance
+
+
+def test_prepare_captures_skips_refuses_overwrites_and_cleans_abandoned_temporaries(captures):
+    import subprocess
+    import sys
+
+    from dsr_bench.atomic import host_name
+    from dsr_bench.errors import UserError
+    from generators.capture import CapturePlan, prepare_captures
+
+    out = captures["realistic"].parent
+    plan = CapturePlan(out=out, num=2, steps=2, objects_per_scene=2, seed=3)
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait()
+    abandoned = out / f".seq_0001.tmp-{host_name()}-{dead.pid}-00aa00aa"  # a killed writer's temporary directory
+    (abandoned / "steps").mkdir(parents=True)
+    jobs = prepare_captures(plan)
+    assert jobs.skipped == ["seq_0000"] and [name for name, _ in jobs.todo] == ["seq_0001"]
+    assert not abandoned.exists()
+    with pytest.raises(UserError, match="seq_0000 exists with other arguments; pass --overwrite"):
+        prepare_captures(CapturePlan(out=out, num=1, steps=2, objects_per_scene=2, seed=4))
+    jobs = prepare_captures(CapturePlan(out=out, num=1, steps=2, objects_per_scene=2, seed=4, overwrite=True))
+    assert jobs.skipped == [] and [name for name, _ in jobs.todo] == ["seq_0000"]

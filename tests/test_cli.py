@@ -22,3 +22,22 @@ def test_usage_errors_exit_2(capsys):
     assert "No such command" in capsys.readouterr().err
     assert main(["generate", "--objects"]) == 2
     assert "requires an argument" in capsys.readouterr().err
+
+
+def test_no_display_only_on_linux_without_x11_or_wayland(monkeypatch):
+    from dsr_bench.display import no_display
+
+    monkeypatch.setattr(sys, "platform", "linux")
+    monkeypatch.delenv("DISPLAY", raising=False)
+    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+    assert no_display()
+    monkeypatch.setenv("DISPLAY", "")
+    assert no_display()
+    monkeypatch.setenv("DISPLAY", ":0")
+    assert not no_display()
+    monkeypatch.delenv("DISPLAY")
+    monkeypatch.setenv("WAYLAND_DISPLAY", "wayland-0")
+    assert not no_display()
+    monkeypatch.delenv("WAYLAND_DISPLAY")
+    monkeypatch.setattr(sys, "platform", "darwin")
+    assert not no_display()

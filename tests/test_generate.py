@@ -272,3 +272,40 @@ def test_existing_directory_from_other_arguments_is_refused(dataset, tmp_path, c
     shutil.copytree(dataset, copy)
     assert main(["generate", "--objects", "procedural", "--steps", "2", "-n", "2", "--out", str(copy)]) == 2
     assert "different arguments" in capsys.readouterr().err
+
+
+def test_plan_from_arguments_fills_a_split_or_the_defaults(tmp_path):
+    from dsr_bench.constants import DEFAULT_OBJECTS_PER_SCENE, DEFAULT_STEPS
+    from dsr_bench.dataset.splits import get_split
+    from dsr_bench.errors import UserError
+    from generators.run import plan_from_arguments
+
+    spec = get_split("procedural-mini")
+    plan = plan_from_arguments(split="procedural-mini", workers=2, shard="1/3", cameras="front, back")
+    assert plan.out == Path("data") / "procedural-mini" and plan.split == "procedural-mini"
+    assert (plan.num_sequences, plan.seed, plan.shard, plan.workers) == (spec.num_sequences, spec.base_seed, (1, 3), 2)
+    assert (plan.config.objects, plan.config.steps, plan.config.objects_per_scene, plan.config.policy) == (
+        spec.objects, spec.steps, spec.objects_per_scene, spec.policy)
+    assert plan.config.cameras == ("front", "back")
+    plan = plan_from_arguments(objects="cube", num_sequences=3, out=tmp_path, object_root=tmp_path)
+    assert (plan.split, plan.seed, plan.shard, plan.config.policy) == ("all", 0, (0, 1), "heuristic")
+    assert (plan.config.steps, plan.config.objects_per_scene) == (DEFAULT_STEPS, DEFAULT_OBJECTS_PER_SCENE)
+    assert plan.config.object_root == str(tmp_path) and plan.config.cameras == ("front",)
+    with pytest.raises(UserError, match="--split procedural-mini fixes --seed, --policy"):
+        plan_from_arguments(split="procedural-mini", seed=1, policy="random")
+    with pytest.raises(UserError, match="give --objects, --num-sequences and --out"):
+        plan_from_arguments(objects="cube", num_sequences=3)
+
+
+def test_needs_writing_skips_same_arguments_and_refuses_others(tmp_path):
+    from dsr_bench.errors import UserError
+    from generators.run import needs_writing
+
+    path = tmp_path / "out"
+    recorded = {"seed": 1}
+    assert needs_writing(path, {"seed": 1}, lambda p: recorded, "different") is True  # absent
+    path.write_text("x")
+    assert needs_writing(path, {"seed": 1}, lambda p: recorded, "different") is False  # same: skip
+    with pytest.raises(UserError, match="^different$"):
+        needs_writing(path, {"seed": 2}, lambda p: recorded, "different")
+    assert needs_writing(path, {"seed": 2}, lambda p: 1 / 0, "different", overwrite=True) is True  # never read

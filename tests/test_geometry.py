@@ -5,8 +5,8 @@ import pytest
 
 from dsr_bench.constants import GRID_BOUNDS, GRID_SHAPE, VOXEL_SIZE
 from dsr_bench.geometry import (
-    direction_vector, make_camera, pixel_to_world, pose_to_matrix, quat_to_matrix, relative_motion,
-    voxel_points, voxel_points_of, voxel_to_world, world_to_pixel, world_to_voxel,
+    direction_vector, make_camera, matrix_to_pose, pixel_to_world, pose_to_matrix, quat_to_matrix, relative_motion,
+    resized_camera, voxel_points, voxel_points_of, voxel_to_world, world_to_pixel, world_to_voxel,
 )
 
 
@@ -83,3 +83,30 @@ def test_backproject_inverts_project():
 def test_unknown_camera():
     with pytest.raises(ValueError, match="unknown camera 'side'"):
         make_camera("side", 10, 10)
+
+
+def test_matrix_to_pose_inverts_pose_to_matrix_with_non_negative_qw():
+    rng = np.random.default_rng(0)
+    for _ in range(20):
+        q = rng.standard_normal(4)
+        q /= np.linalg.norm(q)
+        pose = np.concatenate([rng.uniform(-1, 1, 3), q])
+        back = matrix_to_pose(pose_to_matrix(pose))
+        assert back.shape == (7,) and back.dtype == np.float64 and back[6] >= 0
+        assert np.allclose(back, pose if q[3] >= 0 else np.concatenate([pose[:3], -q]), atol=1e-12)
+        assert np.allclose(pose_to_matrix(back), pose_to_matrix(pose), atol=1e-12)
+
+
+def test_resized_camera_keeps_rays_of_corresponding_pixels():
+    full = make_camera("front", 480, 640)
+    small = resized_camera(full, 240, 320)
+    assert (small.height, small.width, small.name) == (240, 320, "front")
+    assert np.array_equal(small.extrinsics, full.extrinsics)
+    assert np.array_equal(small.intrinsics, make_camera("front", 240, 320).intrinsics)
+    # stored pixel (u', v') looks along the ray of full-resolution pixel (2 u', 2 v'); also for unequal scales
+    assert np.allclose(small.ray_directions_world(), full.ray_directions_world()[::2, ::2], atol=1e-12)
+    odd = resized_camera(full, 120, 320)
+    point = np.array([0.45, 0.05, 0.02])
+    (u, v), z = full.project(point)
+    (u2, v2), z2 = odd.project(point)
+    assert np.allclose([u2, v2, z2], [u / 2, v / 4, z], atol=1e-9)

@@ -160,3 +160,22 @@ def test_resolve_sequence(data):
         resolve_sequence(data, "seq_0042")
     with pytest.raises(UserError, match="give a path"):
         resolve_sequence(None, "seq_0042")
+
+
+def test_completed_entry_and_common_generator_args(data, tmp_path):
+    import shutil
+
+    from dsr_bench.dataset.manifest import FILE_ATTR_KEYS, common_generator_args, completed_entry
+
+    manifest = build_manifest(data)
+    full = manifest["sequences"][0]
+    old = {k: v for k, v in full.items() if k not in FILE_ATTR_KEYS}  # an older manifest's entry
+    assert old != full and completed_entry(data, old) == full  # read back from the file's root attributes
+    assert completed_entry(data, full) == full
+    shutil.copytree(data, tmp_path / "d")
+    (tmp_path / "d" / old["file"]).unlink()
+    assert completed_entry(tmp_path / "d", old) == old  # file missing: unchanged
+    common, varying = common_generator_args([{"generator_args": {"a": 1, "b": 2}}, {"generator_args": {"a": 1, "b": 3}},
+                                             {"generator_args": {"a": 1, "c": 0}}])
+    assert common == {"a": 1} and varying == ["b", "c"]
+    assert common_generator_args([{}, {"generator_args": None}]) == ({}, [])

@@ -1,12 +1,16 @@
 """The official release layout: a fixture built from its published schema, the validated reader, and
 `dsr-bench import-official` round trips every value."""
 
+import os
 import shutil
+import subprocess
+import sys
 
 import h5py
 import numpy as np
 import pytest
 
+from dsr_bench.atomic import host_name
 from dsr_bench.cli import main
 from dsr_bench.errors import UserError
 from dsr_bench.dataset.manifest import load_manifest
@@ -199,16 +203,22 @@ def test_split_resume_parallel_and_foreign_destination(imported, tmp_path, capsy
     assert main(["import-official", str(src), str(only_test), "--split", "test"]) == 0
     assert sorted(p.name for p in only_test.glob("*.h5")) == ["seq_0001.h5"]
     assert sorted(load_manifest(only_test)["splits"]) == ["test"]
-    # resume an interrupted import: two files lost, a partial file left; redo them with 2 workers
+    # resume an interrupted import: two files lost, a killed writer's partial file left (removed: its pid is
+    # gone), a live writer's temporary kept (`dsr_bench.atomic.clean_temporaries`); redo them with 2 workers
     dst = tmp_path / "resumed"
     shutil.copytree(full, dst)
     (dst / "seq_0000.h5").unlink()
-    (dst / "seq_0007.h5").rename(dst / ".seq_0007.h5.tmp-123")
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait()
+    (dst / "seq_0007.h5").rename(dst / f".seq_0007.h5.tmp-{host_name()}-{dead.pid}-00aa00aa")
+    live = dst / f".seq_0009.h5.tmp-{host_name()}-{os.getpid()}-00bb00bb"
+    live.write_bytes(b"being written")
     before = (dst / "seq_0001.h5").stat().st_mtime_ns
     done = []
     assert import_official(src, dst, workers=2, progress=done.append) == ["seq_0000", "seq_0001", "seq_0007"]
     assert sorted(done) == ["seq_0000", "seq_0007"] and (dst / "seq_0001.h5").stat().st_mtime_ns == before
-    assert not list(dst.glob(".*tmp*"))
+    assert list(dst.glob(".*tmp*")) == [live]
+    live.unlink()
     # the resumed import holds exactly the uninterrupted one's content and records; the files' bytes are not
     # compared (a full-suite run once saw seq_0007's bytes differ with identical arrays and attributes)
     def records(manifest):
@@ -342,7 +352,7 @@ def test_official_flow_bound_holds_for_the_rounded_definition():
     than official_flow_bound(angle) per component, for points anywhere in the voxel; the bound is reached
     (within sampling) and a voxel-centre reference (what validate used before) exceeds it."""
     from dsr_bench.geometry import quat_to_matrix
-    from dsr_bench.dataset.validate import official_flow_bound, rotation_angle
+    from dsr_bench.dataset.checks import official_flow_bound, rotation_angle
 
     assert official_flow_bound(0.0) == 1.0
     assert official_flow_bound(np.pi) == pytest.approx(1 + np.sqrt(3))

@@ -318,3 +318,28 @@ def test_foreign_file_named_like_a_sequence_is_refused_not_overwritten(tmp_path,
     assert f"{out / 'seq_0002.h5'} {message}" in err
     assert (out / "seq_0002.h5").read_bytes() == before
     assert sorted(p.name for p in out.iterdir()) == ["seq_0002.h5"]
+
+
+def test_atomic_directory_replaces_removes_on_error_and_is_cleaned_when_abandoned(tmp_path):
+    from dsr_bench.atomic import atomic_directory, write_text
+
+    target = tmp_path / "seq_0000"
+    with atomic_directory(target) as tmp:
+        assert tmp.is_dir() and tmp.name.startswith(".seq_0000.tmp-") and not target.exists()
+        (tmp / "a.txt").write_text("one")
+    assert (target / "a.txt").read_text() == "one"
+    with atomic_directory(target, fsync=True) as tmp:  # replaces the whole directory
+        (tmp / "b.txt").write_text("two")
+    assert sorted(p.name for p in target.iterdir()) == ["b.txt"]
+    with pytest.raises(RuntimeError):
+        with atomic_directory(target) as tmp:
+            (tmp / "c.txt").write_text("three")
+            raise RuntimeError("killed")
+    assert sorted(p.name for p in target.iterdir()) == ["b.txt"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["seq_0000"]  # no temporary, no lock file left
+    # a writer killed mid-way leaves a temporary directory: removed once its pid is gone
+    abandoned = tmp_path / f".seq_0001.tmp-{host_name()}-{_dead_pid()}-00aa00aa"
+    (abandoned / "steps").mkdir(parents=True)
+    assert clean_temporaries(tmp_path, "seq_*") == [abandoned] and not abandoned.exists()
+    assert write_text(tmp_path / "f.json", "{}", fsync=True).read_text() == "{}"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["f.json", "seq_0000"]

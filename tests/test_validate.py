@@ -12,7 +12,8 @@ from dsr_bench.cli import main
 from dsr_bench.dataset.manifest import build_manifest, load_manifest, read_split, resolve_sequence, split_digest
 from dsr_bench.dataset.schema import SEQUENCE_SCHEMA
 from dsr_bench.testing import write_synthetic_dataset
-from dsr_bench.dataset.validate import mask_warp_iou, schema_markdown_table, validate_dataset, validate_sequence
+from dsr_bench.dataset.checks import mask_warp_iou
+from dsr_bench.dataset.validate import schema_markdown_table, validate_dataset, validate_sequence
 
 
 @pytest.fixture(scope="module")

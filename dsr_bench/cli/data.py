@@ -39,36 +39,6 @@ def validate(
     raise typer.Exit(1)
 
 
-def _common_args(seqs: list[dict]) -> tuple[dict, list[str]]:
-    """Generator arguments shared by every sequence, and the names of those that vary."""
-    args = [s.get("generator_args") or {} for s in seqs]
-    keys = sorted({k for a in args for k in a})
-    common = {k: args[0].get(k) for k in keys if all(k in a and a[k] == args[0].get(k) for a in args)}
-    return common, [k for k in keys if k not in common]
-
-
-def _with_file_attrs(data_dir: Path, entry: dict) -> dict:
-    """A manifest entry, completed from its file's root attributes where an older manifest lacks a key."""
-    keys = ("source", "policy", "toolkit_version", "generator_args")
-    if all(k in entry for k in keys) or not (data_dir / entry["file"]).is_file():
-        return entry
-    import json
-
-    import h5py
-
-    try:
-        with h5py.File(data_dir / entry["file"], "r") as f:
-            attrs = {k: f.attrs[k] for k in keys if k in f.attrs}
-    except OSError:
-        return entry
-    if isinstance(attrs.get("generator_args"), str):
-        attrs["generator_args"] = json.loads(attrs["generator_args"])
-    merged = dict(entry)
-    for key, value in attrs.items():
-        merged.setdefault(key, value if key == "generator_args" else str(value))
-    return merged
-
-
 def info(data_dir: Path = typer.Argument(..., help="Dataset directory.")) -> None:
     """Summarise a dataset: sequences, steps, objects, splits and their checksums, size on disk."""
     import json
@@ -77,10 +47,10 @@ def info(data_dir: Path = typer.Argument(..., help="Dataset directory.")) -> Non
     from rich.console import Console
     from rich.table import Table
 
-    from dsr_bench.dataset.manifest import load_manifest
+    from dsr_bench.dataset.manifest import common_generator_args, completed_entry, load_manifest
 
     manifest = load_manifest(data_dir)
-    seqs = [_with_file_attrs(Path(data_dir), s) for s in manifest["sequences"]]
+    seqs = [completed_entry(data_dir, s) for s in manifest["sequences"]]
     console = Console()
     table = Table(title=f"dsr-bench dataset: {data_dir}", show_header=False)
     table.add_column(style="bold")
@@ -105,7 +75,7 @@ def info(data_dir: Path = typer.Argument(..., help="Dataset directory.")) -> Non
                                   f"({size / max(steps, 1):,.0f} bytes) per push")
     for name, split in sorted(manifest.get("splits", {}).items()):
         table.add_row(f"split {name}", f"{split['sequences']} sequences (checksum below)")
-    common, varying = _common_args(seqs)
+    common, varying = common_generator_args(seqs)
     table.add_row("generator args",
                   json.dumps(common, sort_keys=True) + (f"; varying: {', '.join(varying)}" if varying else ""))
     table.add_row("toolkit versions", counts(s.get("toolkit_version", "?") for s in seqs)

@@ -78,10 +78,9 @@ def evaluate(
 ) -> None:
     """Validate a predictions directory strictly, then score it with the benchmark's metrics.
     Each problem is one line `PRED_DIR/FILE: problem` on stderr; any problem means no score (exit 1)."""
-    import os
-
     from rich.console import Console
 
+    from dsr_bench.atomic import write_text
     from dsr_bench.scoring.evaluate import evaluate as run
 
     evaluation = run(pred_dir, data, split, allow_partial=allow_partial, workers=workers)
@@ -97,10 +96,8 @@ def evaluate(
         raise typer.Exit(1)
     _print_results(evaluation.results)
     if out is not None:
-        tmp = out.with_name(f".{out.name}.tmp-{os.getpid()}")
         out.parent.mkdir(parents=True, exist_ok=True)
-        tmp.write_text(json.dumps(evaluation.results, indent=1, sort_keys=True) + "\n")
-        os.replace(tmp, out)
+        write_text(out, json.dumps(evaluation.results, indent=1, sort_keys=True) + "\n")
         console.print(f"results written to {out}")
     if evaluation.problems:
         console.print(f"[yellow]partial[/yellow]: scored {evaluation.results['coverage']['scored']} of "

@@ -18,6 +18,7 @@ def view(
     web_port: Optional[int] = typer.Option(None, "--web-port", help="Port of the web viewer (default 9090)."),
 ) -> None:
     """Open a sequence in the rerun viewer: cameras, TSDF, amodal voxels, meshes, push, flow, predictions."""
+    from dsr_bench.display import no_display
     from dsr_bench.errors import UserError
     from dsr_bench.dataset.manifest import resolve_sequence
 
@@ -26,7 +27,7 @@ def view(
     if save is not None and save.suffix != ".rrd":
         raise UserError(f"--save {save}: the recording file must end in .rrd")
     path = resolve_sequence(data, sequence)
-    if save is None and not web and _headless():
+    if save is None and not web and no_display():
         raise UserError("no display to open the viewer on: write a recording with --save out.rrd, "
                         "or serve it with --web")
     from dsr_bench.viewer import view as run
@@ -40,14 +41,6 @@ def view(
 
         while True:
             time.sleep(3600)
-
-
-def _headless() -> bool:
-    """True on a Linux machine without an X11 or Wayland display (where the native viewer cannot open)."""
-    import os
-    import sys
-
-    return sys.platform.startswith("linux") and not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
 
 
 def register(app: typer.Typer) -> None:

@@ -18,8 +18,6 @@ Everything read from disk is validated on load (`load_capture`); images are deco
 from __future__ import annotations
 
 import json
-import os
-import shutil
 from dataclasses import dataclass, field
 from functools import lru_cache
 from pathlib import Path
@@ -27,6 +25,7 @@ from typing import Any
 
 import numpy as np
 
+from dsr_bench.atomic import atomic_directory
 from dsr_bench.constants import GRID_BOUNDS, NUM_DIRECTIONS
 from dsr_bench.errors import UserError
 from dsr_bench.geometry import Camera
@@ -359,7 +358,8 @@ def write_capture(path: str | Path, *, name: str, cameras: dict[str, CaptureCame
                   pushes_world: np.ndarray, objects: list[tuple[str, np.ndarray, np.ndarray, dict]],
                   truth_poses: np.ndarray | None = None, truth_cameras: dict[str, CaptureCamera] | None = None,
                   source: dict | None = None, overwrite: bool = False) -> Path:
-    """Write a capture directory atomically (a temporary sibling directory renamed into place).
+    """Write a capture directory atomically (`dsr_bench.atomic.atomic_directory`: a temporary sibling directory
+    renamed into place, replacing an existing one only with `overwrite`).
 
     colors / depths: one dict per observation (T + 1) of camera -> (H, W, 3) uint8 / (H, W) z-depth in metres (0 or
     NaN = missing, quantised to each camera's depth_scale); actions (T, 3) [d, row, col]; pushes_world (T, 2, 3) m;
@@ -374,11 +374,7 @@ def write_capture(path: str | Path, *, name: str, cameras: dict[str, CaptureCame
     if path.exists() and not overwrite:
         raise UserError(f"{path} already exists; pass --overwrite to replace it or choose another --out")
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    if tmp.exists():
-        shutil.rmtree(tmp)
-    try:
-        tmp.mkdir()
+    with atomic_directory(path) as tmp:  # a temporary directory renamed into place (dsr_bench.atomic)
         meta = {"format": CAPTURE_FORMAT, "version": CAPTURE_VERSION, "name": name, "num_steps": steps,
                 "cameras": list(cameras), "source": source or {}}
         (tmp / "capture.json").write_text(json.dumps(meta, indent=1))
@@ -410,14 +406,4 @@ def write_capture(path: str | Path, *, name: str, cameras: dict[str, CaptureCame
             if truth_cameras is not None:
                 truth["calibration"] = {n: c.as_json() for n, c in truth_cameras.items()}
             (tmp / "truth.json").write_text(json.dumps(truth))
-        if path.exists():
-            old = path.with_name(f".{path.name}.old-{os.getpid()}")
-            path.rename(old)
-            tmp.rename(path)
-            shutil.rmtree(old)
-        else:
-            tmp.rename(path)
-    finally:
-        if tmp.exists():
-            shutil.rmtree(tmp)
     return path

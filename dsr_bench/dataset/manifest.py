@@ -10,12 +10,12 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
 from collections.abc import Mapping
 from pathlib import Path
 
 import numpy as np
 
+from dsr_bench.atomic import write_text
 from dsr_bench.constants import SCHEMA_VERSION
 from dsr_bench.dataset.digests import GROUND_TRUTH_KEY, OBSERVATIONS_KEY, split_checksum
 from dsr_bench.errors import UserError
@@ -130,16 +130,43 @@ def build_manifest(data_dir: str | Path) -> dict:
 
 
 def write_manifest(data_dir: str | Path, manifest: Mapping) -> Path:
-    """Write DATA_DIR/manifest.json atomically (temporary name in the same directory, then rename)."""
-    path = Path(data_dir) / MANIFEST_NAME
-    tmp = path.with_name(f".{MANIFEST_NAME}.tmp-{os.getpid()}")
+    """Write DATA_DIR/manifest.json atomically (`dsr_bench.atomic`: temporary name in the same directory, then
+    rename)."""
+    return write_text(Path(data_dir) / MANIFEST_NAME, json.dumps(manifest, indent=1, sort_keys=True) + "\n")
+
+
+#: Keys of a manifest entry that older manifests lack and `completed_entry` reads from the file's root attributes.
+FILE_ATTR_KEYS = ("source", "policy", "toolkit_version", "generator_args")
+
+
+def completed_entry(data_dir: str | Path, entry: Mapping) -> dict:
+    """A manifest entry, completed from its file's root attributes (`FILE_ATTR_KEYS`) where an older manifest
+    lacks a key; the entry unchanged when it has them all or its file is missing or unreadable."""
+    import h5py
+
+    data_dir = Path(data_dir)
+    if all(k in entry for k in FILE_ATTR_KEYS) or not (data_dir / entry["file"]).is_file():
+        return dict(entry)
     try:
-        tmp.write_text(json.dumps(manifest, indent=1, sort_keys=True) + "\n")
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
-    return path
+        with h5py.File(data_dir / entry["file"], "r") as f:
+            attrs = {k: f.attrs[k] for k in FILE_ATTR_KEYS if k in f.attrs}
+    except OSError:
+        return dict(entry)
+    if isinstance(attrs.get("generator_args"), str):
+        attrs["generator_args"] = json.loads(attrs["generator_args"])
+    merged = dict(entry)
+    for key, value in attrs.items():
+        merged.setdefault(key, value if key == "generator_args" else str(value))
+    return merged
+
+
+def common_generator_args(entries: list[Mapping]) -> tuple[dict, list[str]]:
+    """The generator arguments shared by every entry (with the same value), and the sorted names of those that
+    vary or are missing from some."""
+    args = [e.get("generator_args") or {} for e in entries]
+    keys = sorted({k for a in args for k in a})
+    common = {k: args[0].get(k) for k in keys if all(k in a and a[k] == args[0].get(k) for a in args)}
+    return common, [k for k in keys if k not in common]
 
 
 _SEQUENCE_KEYS = {"name": str, "file": str, "sha256": str, "content_sha256": str, GROUND_TRUTH_KEY: str,

@@ -366,8 +366,7 @@ def import_official(src: str | Path, dst: str | Path, split: str | None = None, 
     Resumable: files in DST that are complete imports of the same sequences are kept; a DST that
     holds files of another origin is refused. `progress(name)` is called after each sequence.
     """
-    import os
-
+    from dsr_bench.atomic import clean_temporaries, write_text
     from dsr_bench.dataset.manifest import build_manifest, write_manifest
 
     if workers < 1:
@@ -393,8 +392,9 @@ def import_official(src: str | Path, dst: str | Path, split: str | None = None, 
             if status is None or (status is False and path.stem in names):
                 raise UserError(f"{dst} already holds {path.name}, which is not an import of this release's "
                                 f"sequence {names.get(path.stem, path.stem)}; choose an empty DST directory")
-        for stale in dst.glob(".seq_*.h5.tmp-*"):  # an interrupted run's partial file
-            stale.unlink()
+        clean_temporaries(dst, "seq_*.h5")  # an interrupted run's partial files (never a live writer's)
+        if (dst / "splits").is_dir():
+            clean_temporaries(dst / "splits", "*.txt")
     todo = [sequences[i] for name, i in names.items() if not (dst / f"{name}.h5").is_file()]
     dst.mkdir(parents=True, exist_ok=True)
     jobs = [(seq, str(dst)) for seq in todo]
@@ -413,9 +413,6 @@ def import_official(src: str | Path, dst: str | Path, split: str | None = None, 
                 progress(name)
     (dst / "splits").mkdir(exist_ok=True)
     for name, ids in lists.items():
-        target = dst / "splits" / f"{name}.txt"
-        tmp = target.with_name(f".{target.name}.tmp-{os.getpid()}")
-        tmp.write_text("".join(f"{sequence_name(i)}\n" for i in ids))
-        os.replace(tmp, target)
+        write_text(dst / "splits" / f"{name}.txt", "".join(f"{sequence_name(i)}\n" for i in ids))
     write_manifest(dst, build_manifest(dst))
     return sorted(names)

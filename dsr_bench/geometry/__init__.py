@@ -1,5 +1,5 @@
 """Grid, pose and camera geometry shared by the generator, the readers, the metrics and the viewer:
-`transforms` (poses, fixed-order products), `grid` (voxel and workspace grids), `camera` (pinhole
+`transforms` (poses and their matrices, fixed-order products), `grid` (voxel and workspace grids), `camera` (pinhole
 cameras), `tsdf` (projective TSDF) and `groundtruth` (flow from poses).
 
 Conventions (see DATASHEET.md):
@@ -16,13 +16,13 @@ Conventions (see DATASHEET.md):
 """
 
 from dsr_bench.geometry.camera import (
-    Camera, look_at, pinhole_inverse, pinhole_intrinsics, make_camera,
+    Camera, look_at, pinhole_inverse, pinhole_intrinsics, make_camera, resized_camera,
 )
 from dsr_bench.geometry.grid import (
     axis_samples, voxel_points, voxel_points_of, world_to_voxel, voxel_to_world, world_to_pixel, pixel_to_world, direction_vector,
 )
 from dsr_bench.geometry.transforms import (
-    quat_to_matrix, pose_to_matrix, apply_matrix, dot_last, vector_norm, transform_points, rigid_inverse, compose, relative_motion,
+    quat_to_matrix, pose_to_matrix, matrix_to_pose, apply_matrix, dot_last, vector_norm, transform_points, rigid_inverse, compose, relative_motion,
 )
 
-__all__ = ["Camera", "apply_matrix", "axis_samples", "compose", "direction_vector", "dot_last", "look_at", "make_camera", "pinhole_intrinsics", "pinhole_inverse", "pixel_to_world", "pose_to_matrix", "quat_to_matrix", "relative_motion", "rigid_inverse", "transform_points", "vector_norm", "voxel_points", "voxel_points_of", "voxel_to_world", "world_to_pixel", "world_to_voxel"]
+__all__ = ["Camera", "apply_matrix", "axis_samples", "compose", "direction_vector", "dot_last", "look_at", "make_camera", "matrix_to_pose", "pinhole_intrinsics", "pinhole_inverse", "pixel_to_world", "pose_to_matrix", "quat_to_matrix", "relative_motion", "resized_camera", "rigid_inverse", "transform_points", "vector_norm", "voxel_points", "voxel_points_of", "voxel_to_world", "world_to_pixel", "world_to_voxel"]

@@ -67,6 +67,17 @@ def pinhole_intrinsics(height: int, width: int, hfov: float = CAMERA_HFOV) -> np
     return np.array([[f, 0.0, width / 2], [0.0, f, height / 2], [0.0, 0.0, 1.0]])
 
 
+def resized_camera(camera, height: int, width: int) -> Camera:
+    """The same camera at another image size (height, width): fx, skew and cx scale by width / camera.width, fy
+    and cy by height / camera.height, so pixel centres stay at integer coordinates (pixel (u', v') of the new size
+    looks along the ray of (u' W / W', v' H / H') of the old). `camera`: any object with name, height, width,
+    intrinsics and extrinsics (a `Camera`, a capture's camera)."""
+    k = np.asarray(camera.intrinsics, dtype=np.float64).copy()
+    k[0, :] *= width / camera.width
+    k[1, :] *= height / camera.height
+    return Camera(camera.name, height, width, k, np.asarray(camera.extrinsics, dtype=np.float64))
+
+
 def make_camera(name: str, height: int, width: int) -> Camera:
     """One of the benchmark's cameras ('front' or 'back') at a given image size."""
     if name not in CAMERAS:

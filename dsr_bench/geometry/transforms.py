@@ -34,6 +34,17 @@ def pose_to_matrix(pose: np.ndarray) -> np.ndarray:
     return out
 
 
+def matrix_to_pose(transform: np.ndarray) -> np.ndarray:
+    """Pose (7,) = (x, y, z, qx, qy, qz, qw), metres, of a rigid 4x4 transform (qw >= 0); the inverse of
+    `pose_to_matrix` (up to the quaternion's sign)."""
+    from scipy.spatial.transform import Rotation
+
+    q = Rotation.from_matrix(np.asarray(transform)[:3, :3]).as_quat()
+    if q[3] < 0:
+        q = -q
+    return np.concatenate([np.asarray(transform)[:3, 3], q]).astype(np.float64)
+
+
 # Ground truth must be identical on every x86-64 machine: numpy's `@`, `np.dot` and `np.linalg` go
 # through OpenBLAS / LAPACK, whose kernels (chosen per CPU at run time) sum in different orders. The
 # small products below are written as element-wise operations in a fixed order instead (IEEE-exact

@@ -10,10 +10,10 @@ from __future__ import annotations
 
 import html
 import json
-import os
 import re
 from pathlib import Path
 
+from dsr_bench.atomic import write_text
 from dsr_bench.errors import UserError
 
 LOWER_IS_BETTER = {"motion_visible", "motion_full", "motion_2d"}
@@ -21,12 +21,6 @@ TRACKS = {"3D": ("motion_visible", "motion_full", "iou_unordered", "iou_ordered"
 COLUMN_TITLES = {"motion_visible": "flow MSE visible (cm²)", "motion_full": "flow MSE full (cm²)",
                  "iou_unordered": "IoU unordered", "iou_ordered": "IoU ordered", "motion_2d": "2D flow MSE (cm²)",
                  "planning_iou": "planning IoU"}
-
-
-def _write_atomic(path: Path, text: str) -> None:
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    tmp.write_text(text)
-    os.replace(tmp, path)
 
 
 def check_entry(results: dict) -> list[str]:
@@ -71,7 +65,7 @@ def add_entry(results_path: str | Path, root: str | Path = "leaderboard", label:
     entries = Path(root) / "entries"
     entries.mkdir(parents=True, exist_ok=True)
     target = entries / f"{slug}.json"
-    _write_atomic(target, json.dumps(results, indent=1, sort_keys=True) + "\n")
+    write_text(target, json.dumps(results, indent=1, sort_keys=True) + "\n")
     return target
 
 
@@ -156,8 +150,8 @@ def build(root: str | Path = "leaderboard") -> tuple[Path, Path]:
     if not rows:
         md.append("No entries yet.")
     page = _PAGE.replace("{body}", "\n".join(body) or "<p>No entries yet.</p>")
-    _write_atomic(root / "README.md", "\n".join(md) + "\n")
-    _write_atomic(root / "index.html", page)
+    write_text(root / "README.md", "\n".join(md) + "\n")
+    write_text(root / "index.html", page)
     return root / "README.md", root / "index.html"
 
 

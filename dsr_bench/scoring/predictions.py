@@ -34,6 +34,7 @@ import h5py
 import numpy as np
 from h5py import h5d, h5l, h5o, h5z
 
+from dsr_bench.atomic import atomic_path
 from dsr_bench.constants import GRID_SHAPE, IMAGE_SHAPE
 from dsr_bench.errors import UserError
 
@@ -78,20 +79,14 @@ def write_predictions(path: str | Path, mask: np.ndarray, motion: np.ndarray, nu
     if problems:
         raise UserError(f"refusing to write {path.name}: " + "; ".join(problems))
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    try:
-        with h5py.File(tmp, "w") as f:
-            f.attrs["format"] = PREDICTION_FORMAT
-            f.attrs["num_slots"] = int(num_slots)
-            opts = {"compression": "gzip", "compression_opts": 1}
-            f.create_dataset("mask", data=mask, chunks=(1,) + GRID_SHAPE, track_times=False, **opts)
-            f.create_dataset("motion", data=motion, chunks=(1, 3) + GRID_SHAPE, track_times=False, **opts)
-            if motion_2d is not None:
-                f.create_dataset("motion_2d", data=motion_2d, chunks=(1,) + IMAGE_SHAPE + (3,), track_times=False, **opts)
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
+    with atomic_path(path) as tmp, h5py.File(tmp, "w") as f:
+        f.attrs["format"] = PREDICTION_FORMAT
+        f.attrs["num_slots"] = int(num_slots)
+        opts = {"compression": "gzip", "compression_opts": 1}
+        f.create_dataset("mask", data=mask, chunks=(1,) + GRID_SHAPE, track_times=False, **opts)
+        f.create_dataset("motion", data=motion, chunks=(1, 3) + GRID_SHAPE, track_times=False, **opts)
+        if motion_2d is not None:
+            f.create_dataset("motion_2d", data=motion_2d, chunks=(1,) + IMAGE_SHAPE + (3,), track_times=False, **opts)
     return path
 
 

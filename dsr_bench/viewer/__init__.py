@@ -21,11 +21,11 @@ predictions made at t), and `observation` (t on both). World frame: metres, z up
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import numpy as np
 
+from dsr_bench.atomic import atomic_path
 from dsr_bench.constants import VOXEL_SIZE
 from dsr_bench.errors import UserError
 from dsr_bench.geometry import voxel_to_world
@@ -267,6 +267,16 @@ def log_sequence(rec, seq: SequenceReader, predictions: dict | None = None, seed
                     rec.log(f"metrics/{key}", rr.Scalars(float(values[t])))
 
 
+def _log_or_fail(rec, seq, pred, path: Path) -> None:
+    """Log the sequence (and predictions) to `rec` and flush; data that cannot be read is a UserError."""
+    try:
+        log_sequence(rec, seq, pred)
+    except _READ_ERRORS as exc:
+        raise UserError(f"{path}: unreadable data ({type(exc).__name__}: {exc}); "
+                        "run `dsr-bench validate` on it") from None
+    rec.flush()
+
+
 def view(path: str | Path, predictions: str | Path | None = None, save: str | Path | None = None,
          web: bool = False, web_port: int | None = None) -> Path | str | None:
     """Open a sequence file in the rerun viewer, or write a recording to `save` (.rrd, atomically),
@@ -282,36 +292,25 @@ def view(path: str | Path, predictions: str | Path | None = None, save: str | Pa
         pred = load_predictions(Path(predictions), seq) if predictions is not None else None
         rec = rr.RecordingStream(APP_ID, recording_id=seq.name)
         bp = blueprint(list(seq.cameras), pred is not None, "policy/chosen_object" in seq)
-        tmp = None
-        try:
-            if save is not None:
-                save = Path(save)
-                save.parent.mkdir(parents=True, exist_ok=True)
-                tmp = save.with_name(f".{save.name}.tmp-{os.getpid()}")
-                rec.save(tmp, default_blueprint=bp)
-            elif web:
-                from urllib.parse import quote
+        if save is not None:
+            save = Path(save)
+            save.parent.mkdir(parents=True, exist_ok=True)
+            with atomic_path(save) as tmp:  # renamed to `save` once the recording is complete (dsr_bench.atomic)
+                try:
+                    rec.save(tmp, default_blueprint=bp)
+                    _log_or_fail(rec, seq, pred, path)
+                finally:
+                    rec.disconnect()
+            return save
+        if web:
+            from urllib.parse import quote
 
-                uri = rec.serve_grpc(default_blueprint=bp)
-                rr.serve_web_viewer(web_port=web_port, open_browser=False, connect_to=uri)
-                url = f"http://localhost:{web_port or 9090}/?url={quote(uri, safe='')}"
-            else:
-                rec.spawn(default_blueprint=bp)
-            try:
-                log_sequence(rec, seq, pred)
-            except _READ_ERRORS as exc:
-                raise UserError(f"{path}: unreadable data ({type(exc).__name__}: {exc}); "
-                                "run `dsr-bench validate` on it") from None
-            rec.flush()
-            if tmp is not None:
-                rec.disconnect()
-                os.replace(tmp, save)
-                tmp = None
-                return save
-            if web:
-                return url
-        finally:
-            if tmp is not None:
-                rec.disconnect()
-                tmp.unlink(missing_ok=True)
+            uri = rec.serve_grpc(default_blueprint=bp)
+            rr.serve_web_viewer(web_port=web_port, open_browser=False, connect_to=uri)
+            url = f"http://localhost:{web_port or 9090}/?url={quote(uri, safe='')}"
+        else:
+            rec.spawn(default_blueprint=bp)
+        _log_or_fail(rec, seq, pred, path)
+        if web:
+            return url
     return None

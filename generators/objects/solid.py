@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
+from dsr_bench.atomic import atomic_path, clean_temporaries
 from dsr_bench.errors import UserError
 
 #: Bump when the solid-making method changes, so that cached solids are rebuilt.
@@ -174,7 +175,7 @@ def load_solid(mesh_path: Path, binvox: Path | None = None, *, pitch: float | No
     elif mesh.volume < 0:
         mesh.invert()
     cache.parent.mkdir(parents=True, exist_ok=True)
-    tmp = cache.with_name(f".{cache.stem}.{os.getpid()}.tmp.npz")
-    np.savez(tmp, vertices=np.asarray(mesh.vertices, np.float64), faces=np.asarray(mesh.faces, np.int64))
-    os.replace(tmp, cache)
+    clean_temporaries(cache.parent, cache.name)  # a killed run's partial entry (never a live writer's)
+    with atomic_path(cache) as tmp, open(tmp, "wb") as f:  # a file object: np.savez would add .npz to a name
+        np.savez(f, vertices=np.asarray(mesh.vertices, np.float64), faces=np.asarray(mesh.faces, np.int64))
     return tm.Trimesh(np.asarray(mesh.vertices, np.float64), np.asarray(mesh.faces, np.int64), process=False)
