@@ -13,14 +13,19 @@ thousands of sample-steps per model.
 
 Downsampling by --factor (y, x, z): the TSDF is averaged over each block; masks and flow are taken
 at each block's centre voxel (flow divided by the factor: coarse voxels); the action's pixel is
-divided by the factor. Training is `dsr_bench.models.training.trainer.train_step` (matched loss with the matching
-carried from step to step, the state warped between steps, Adam betas (0.9, 0.95)): stage 1 on
+divided by the factor. Training runs the trainer's pieces: the stages' configurations
+(`schedules.stage_for`, with constant learning rates), its optimiser (`setup.make_optimizer`: Adam,
+betas (0.9, 0.95)) and its loop unit (`trainer.train_windows`: `train_step` per window, the matched
+loss with the matching carried from step to step, the state warped between steps): stage 1 on
 single-step windows (--steps-single batches, lr 1e-3), stage 2 on 10-step windows (--steps-multi
 batches, lr 5e-4, from stage 1's weights); SingleStep stays single-step and gets 10x the stage-2
 batches, i.e. the same sample-steps. Every model starts from the same initial weights and sees
-the windows in the same order. Evaluation carries the state over each test sequence with
-BatchNorm in eval mode and scores it with the benchmark's `metrics.sequence_scores` on the coarse
-grid (unordered IoU: matching per step; ordered IoU: one matching per sequence). Printed: the
+the windows in the same order. Not the trainer's `train`: that reads every non-overlapping window
+of a split's files once per epoch and checkpoints to a run directory, while this script draws
+windows at random (any start, with replacement) from sequences held in memory on the coarse grid.
+Evaluation is the predictor's (`ModelPredictor.predict_arrays`: the state carried over each test
+sequence, BatchNorm in eval mode), scored with the benchmark's `metrics.sequence_scores` on the
+coarse grid (unordered IoU: matching per step; ordered IoU: one matching per sequence). Printed: the
 means, the motion MSE of predicting no motion, and the paired per-sequence differences with
 their standard errors. --history-variants
 also evaluates each trained history model with its history changed at test time only (zeroed;
@@ -45,11 +50,14 @@ import torch
 from torch.nn import functional as F
 
 from dsr_bench.dataset.manifest import read_split
-from dsr_bench.scoring.metrics import sequence_scores
-from dsr_bench.models import DSRNet, ModelConfig
 from dsr_bench.dataset.sequence import SequenceReader
+from dsr_bench.models import DSRNet, ModelConfig
 from dsr_bench.models.data import action_map
-from dsr_bench.models.training.trainer import train_step
+from dsr_bench.models.inference import ModelPredictor
+from dsr_bench.models.training.schedules import StageConfig, stage_for
+from dsr_bench.models.training.setup import make_optimizer
+from dsr_bench.models.training.trainer import train_windows, window_record
+from dsr_bench.scoring.metrics import sequence_scores
 
 LR_SINGLE, LR_MULTI = 1e-3, 5e-4
 
@@ -93,46 +101,43 @@ def make_batch(seqs: list[dict], picks: list[tuple[int, int]], window: int, grid
             "scene_flow_3d": torch.from_numpy(np.stack([q["flow"][s] for q, s in sl]))}
 
 
-def train_stage(net, seqs, window: int, batches: int, batch_size: int, lr: float, seed: int, label: str) -> dict:
-    opt = torch.optim.Adam(net.parameters(), lr=lr, betas=(0.9, 0.95))
+def train_stage(net, seqs, stage: StageConfig, batches: int, seed: int, label: str) -> dict:
+    """`batches` windows of the stage's length drawn at random from the in-memory sequences, trained
+    with the trainer's optimiser and loop unit."""
+    opt = make_optimizer(net, stage, torch.device("cpu"))
     rng = np.random.default_rng(seed)
     steps = seqs[0]["tsdf"].shape[0]
     grid = seqs[0]["tsdf"].shape[1:]
+    window, batch_size = stage.window, stage.batch_size
+
+    def draws():
+        for _ in range(batches):
+            picks = [(int(rng.integers(len(seqs))), int(rng.integers(steps - window + 1))) for _ in range(batch_size)]
+            yield make_batch(seqs, picks, window, grid)
+
     net.train()
     start, losses = time.perf_counter(), []
-    for b in range(batches):
-        picks = [(int(rng.integers(len(seqs))), int(rng.integers(steps - window + 1))) for _ in range(batch_size)]
-        terms = train_step(net, make_batch(seqs, picks, window, grid), opt, "cpu")
-        losses.append(np.mean([t["total"] for t in terms]))
+    for b, (_, terms, _) in enumerate(train_windows(net, draws(), opt, "cpu", mask_reduction=stage.mask_reduction)):
+        losses.append(window_record(terms)["loss"])
         if (b + 1) % 50 == 0 or b + 1 == batches:
             print(f"\r{label}: batch {b + 1}/{batches}, loss (last 50) {np.mean(losses[-50:]):.4f}, "
                   f"{time.perf_counter() - start:.0f} s", end="", flush=True)
     print()
-    return {"batches": batches, "window": window, "lr": lr, "sample_steps": batches * batch_size * window,
+    return {"batches": batches, "window": window, "lr": stage.lr, "sample_steps": batches * batch_size * window,
             "seconds": round(time.perf_counter() - start, 1), "loss_first_50": float(np.mean(losses[:50])),
             "loss_last_50": float(np.mean(losses[-50:]))}
 
 
-@torch.no_grad()
 def evaluate(net, seqs: list[dict]) -> dict[str, np.ndarray]:
-    """Per-sequence mean unordered and ordered IoU and motion MSE (coarse voxels^2), state carried."""
-    net.eval()
-    grid = seqs[0]["tsdf"].shape[1:]
-    k = net.config.num_slots
+    """Per-sequence mean unordered and ordered IoU and motion MSE (coarse voxels^2), by the predictor."""
+    predictor = ModelPredictor(net, torch.device("cpu"))  # BatchNorm in eval mode
+    slots = net.config.num_slots - 1
     per_seq = {"iou_unordered": [], "iou_ordered": [], "motion_mse": []}
-    for q in seqs:
-        steps = q["tsdf"].shape[0]
-        state = net.initial_state(1, "cpu")
-        preds, errors = [], []
-        for t in range(steps):
-            out = net(torch.from_numpy(q["tsdf"][t:t + 1]), action_map(q["action"][t:t + 1], grid[:2]), state)
-            labels = out["mask"].argmax(1)[0]
-            preds.append(torch.where(labels == k - 1, 0, labels + 1).numpy().astype(np.uint8))
-            gt_flow = torch.from_numpy(q["flow"][t:t + 1])
-            errors.append(float(((out["motion"] - gt_flow) ** 2).sum(1).mean()))
-            if t + 1 < steps:
-                state = net.next_state(out, gt_flow, torch.from_numpy(q["mask"][t:t + 1]).long())
-        scores = sequence_scores(np.stack(preds), q["mask"], k - 1, q["num_objects"])
+    for i, q in enumerate(seqs):
+        pred = predictor.predict_arrays(q["tsdf"], q["action"], q["flow"], q["mask"], source=f"test sequence {i}")
+        motion, flow = torch.from_numpy(pred["motion"]), torch.from_numpy(q["flow"])
+        errors = [float(((motion[t:t + 1] - flow[t:t + 1]) ** 2).sum(1).mean()) for t in range(len(motion))]
+        scores = sequence_scores(pred["mask"], q["mask"], slots, q["num_objects"])
         per_seq["iou_unordered"].append(float(np.mean(scores["iou_unordered"])))
         per_seq["iou_ordered"].append(float(np.mean(scores["iou_ordered"])))
         per_seq["motion_mse"].append(float(np.mean(errors)))
@@ -172,9 +177,11 @@ def main() -> None:
         torch.manual_seed(args.seed)
         net = DSRNet(ModelConfig.for_model(name, grid=grid))
         history = net.config.history != "none"
-        stage1 = train_stage(net, train, 1, args.steps_single, args.batch_size, LR_SINGLE, args.seed, f"{name} stage 1")
-        window, batches = (10, args.steps_multi) if history else (1, 10 * args.steps_multi)
-        stage2 = train_stage(net, train, window, batches, args.batch_size, LR_MULTI, args.seed + 1, f"{name} stage 2")
+        single = stage_for(name, "cube-single", lr=LR_SINGLE, batch_size=args.batch_size)
+        stage1 = train_stage(net, train, single, args.steps_single, args.seed, f"{name} stage 1")
+        multi = stage_for(name, "cube-multi", lr=LR_MULTI, batch_size=args.batch_size)  # windows of 1 without history
+        batches = args.steps_multi if history else 10 * args.steps_multi
+        stage2 = train_stage(net, train, multi, batches, args.seed + 1, f"{name} stage 2")
         per_seq[name] = evaluate(net, test)
         results[name] = {"stage_single": stage1, "stage_multi": stage2,
                          **{key: float(v.mean()) for key, v in per_seq[name].items()}}

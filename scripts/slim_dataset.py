@@ -3,10 +3,11 @@
     python scripts/slim_dataset.py SRC DST [--level 9]
 
 For shipping a dataset to a remote GPU machine with a small transfer limit: each sequence keeps its
-attributes and `tsdf`, `action`, `mask_3d`, `scene_flow_3d`, `object_poses` and `visible_fraction`
-(gzip at --level; byte shuffle but for the TSDF, where it costs), and drops the camera images. The manifest and split lists are copied unchanged, so
-results still name the split checksum of the full data; `dsr-bench validate` reports the slim
-files as incomplete, by design. Train, predict and evaluate (3D metrics) work on the copy.
+attributes, the arrays training reads (`dsr_bench.models.data.TRAINING_FIELDS`: `tsdf`, `action`,
+`mask_3d`, `scene_flow_3d`) and `object_poses` and `visible_fraction` (gzip at --level; byte shuffle
+but for the TSDF, where it costs), and drops the camera images. The manifest and split lists are
+copied unchanged, so results still name the split checksum of the full data; `dsr-bench validate`
+reports the slim files as incomplete, by design. Train, predict and evaluate (3D metrics) work on the copy.
 """
 
 from __future__ import annotations
@@ -17,7 +18,10 @@ from pathlib import Path
 
 import h5py
 
-KEEP = ("tsdf", "action", "mask_3d", "scene_flow_3d", "object_poses", "visible_fraction")
+from dsr_bench.models.data import TRAINING_FIELDS
+
+#: what training reads, then the object poses and the visible fraction (the occlusion-split scores)
+KEEP = TRAINING_FIELDS + ("object_poses", "visible_fraction")
 
 
 def slim_file(src: Path, dst: Path, level: int) -> None:

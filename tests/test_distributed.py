@@ -12,10 +12,11 @@ import pytest
 torch = pytest.importorskip("torch")
 
 from dsr_bench.models import DSRNet, ModelConfig  # noqa: E402
-from dsr_bench.models.loss import dsr_loss  # noqa: E402
-from dsr_bench.testing import write_synthetic_dataset  # noqa: E402
 from dsr_bench.models.data import SequenceWindowDataset, collate_compact  # noqa: E402
-from dsr_bench.models.training.trainer import WindowSampler, _to  # noqa: E402
+from dsr_bench.models.loss import dsr_loss  # noqa: E402
+from dsr_bench.models.training.loaders import WindowSampler  # noqa: E402
+from dsr_bench.models.training.trainer import _to  # noqa: E402
+from dsr_bench.testing import write_synthetic_dataset  # noqa: E402
 
 
 def test_torchrun_two_processes_average_the_gradients(tmp_path):

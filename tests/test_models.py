@@ -278,8 +278,19 @@ def test_train_step_reports_the_first_non_finite_step():
         train_step(net, batch, opt, "cpu")
 
 
+def test_slot_labels_put_the_background_slot_at_zero():
+    from dsr_bench.models.labels import slot_labels
+
+    probs = torch.zeros(2, 5, 3)  # (B, K, voxels): K - 1 = 4 object slots, background last
+    probs[0, 4, 0] = probs[0, 0, 1] = probs[0, 3, 2] = 1
+    probs[1, 2, :] = 1
+    labels = slot_labels(probs)
+    assert labels.dtype == torch.uint8 and labels.tolist() == [[0, 1, 4], [3, 3, 3]]
+
+
 def test_checkpoint_round_trip(tmp_path):
-    from dsr_bench.models.training.trainer import STAGES, load_checkpoint, save_checkpoint
+    from dsr_bench.models.training.checkpoints import load_checkpoint, save_checkpoint
+    from dsr_bench.models.training.schedules import STAGES
 
     cfg = ModelConfig.for_model("nowarp", grid=TINY)
     net = DSRNet(cfg)
@@ -303,7 +314,7 @@ def test_checkpoint_round_trip(tmp_path):
 
 
 def test_window_sampler_resumes_and_splits_ranks():
-    from dsr_bench.models.training.trainer import WindowSampler
+    from dsr_bench.models.training.loaders import WindowSampler
 
     full = WindowSampler(23, batch_size=4, seed=3)
     full.set_epoch(5)

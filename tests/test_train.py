@@ -63,7 +63,7 @@ def test_predictor_carries_the_state_as_in_training(data, tmp_path):
     from dsr_bench.models.warp import forward_warp
     from dsr_bench.dataset.sequence import SequenceReader
     from dsr_bench.models.data import action_map
-    from dsr_bench.models.training.trainer import save_checkpoint
+    from dsr_bench.models.training.checkpoints import save_checkpoint
     from dsr_bench.models.training.schedules import STAGES
 
     torch.manual_seed(0)
@@ -78,6 +78,9 @@ def test_predictor_carries_the_state_as_in_training(data, tmp_path):
         pred = predictor.predict_sequence(seq)
         tsdf, actions = seq.read("tsdf"), seq.read("action")
         flow, steps = seq.read("scene_flow_3d"), seq.num_steps
+        gt_mask = seq.read("mask_3d")
+    in_memory = predictor.predict_arrays(tsdf[:steps], actions[:steps], flow[:steps], gt_mask[:steps])
+    assert all(np.array_equal(in_memory[key], pred[key]) for key in ("mask", "motion"))  # the same steps, from memory
     assert pred["mask"].shape == (steps, 128, 128, 48) and pred["mask"].dtype == np.uint8
     assert pred["motion"].shape == (steps, 3, 128, 128, 48) and pred["motion"].dtype == np.float32
     net.eval()  # BatchNorm in eval mode at evaluation

@@ -40,6 +40,7 @@ def train(
     """Train a reference model for one stage of the paper's curriculum (torchrun for multi-GPU)."""
     from dsr_bench.errors import UserError
     from dsr_bench.models.config import MODEL_NAMES
+    from dsr_bench.models.training.config import TrainConfig
     from dsr_bench.models.training.trainer import train as run
 
     if model not in MODEL_NAMES:
@@ -52,12 +53,14 @@ def train(
         raise UserError("--workers and --checkpoint-every must be >= 0")
     if resume is not None and init is not None:
         raise UserError("--resume continues a run with its own weights; drop --init")
-    path = run(model, stage, data, out, split=split, val_split=val_split, epochs=epochs, batch_size=batch_size, lr=lr,
-               window=window, max_steps=max_steps, max_seconds=None if max_minutes is None else max_minutes * 60,
-               init=init, resume=resume, device=device, bf16=bf16, compile_model=compile_model,
-               channels_last=channels_last, workers=workers, seed=seed, official_bn=official_bn,
-               deterministic=deterministic, grid=tuple(grid_size) if grid_size else None,
-               checkpoint_every=checkpoint_every, progress=not quiet)
+    config = TrainConfig(model_name=model, stage_name=stage, data=data, out=out, split=split, val_split=val_split,
+                         epochs=epochs, batch_size=batch_size, lr=lr, window=window, max_steps=max_steps,
+                         max_seconds=None if max_minutes is None else max_minutes * 60, init=init, resume=resume,
+                         device=device, bf16=bf16, compile_model=compile_model, channels_last=channels_last,
+                         workers=workers, seed=seed, official_bn=official_bn, deterministic=deterministic,
+                         grid=tuple(grid_size) if grid_size else None, checkpoint_every=checkpoint_every,
+                         progress=not quiet)
+    path = run(config)
     if os.environ.get("RANK", "0") == "0":
         typer.echo(f"checkpoint: {path}")
 

@@ -30,13 +30,15 @@ from dsr_bench.constants import GRID_SHAPE, NUM_DIRECTIONS
 from dsr_bench.errors import UserError
 from dsr_bench.dataset.sequence import read_steps
 
-DEFAULT_FIELDS = ("tsdf", "action", "mask_3d", "scene_flow_3d")
+#: The arrays of a sequence file that training reads (and the window datasets read by default):
+#: `scripts/slim_dataset.py` keeps these.
+TRAINING_FIELDS = ("tsdf", "action", "mask_3d", "scene_flow_3d")
 
 
 def check_actions(actions: np.ndarray, shape: tuple[int, int], source) -> np.ndarray:
     """Actions (L, 3) [direction 0..7, row, col] with the pixel inside the (Y, X) map, as int64;
     UserError naming `source` (a file) otherwise (the checks of `dsr-bench validate`)."""
-    from dsr_bench.dataset.validate import action_problems
+    from dsr_bench.dataset.checks import action_problems
 
     problems = action_problems(actions, shape)
     if problems:
@@ -75,9 +77,9 @@ class _LazyFiles:
 def _check_options(window: int, stride: int, fields: tuple[str, ...]) -> None:
     if window < 1 or stride < 1:
         raise UserError(f"window {window} and stride {stride} must be at least 1")
-    unknown = sorted(set(fields) - set(DEFAULT_FIELDS))
+    unknown = sorted(set(fields) - set(TRAINING_FIELDS))
     if unknown or not fields:
-        raise UserError(f"unknown fields {unknown}; choose one or more of {', '.join(DEFAULT_FIELDS)}")
+        raise UserError(f"unknown fields {unknown}; choose one or more of {', '.join(TRAINING_FIELDS)}")
 
 
 #: our dataset name -> shape of one step
@@ -94,7 +96,7 @@ class SequenceWindowDataset(Dataset):
     """
 
     def __init__(self, data_dir: str | Path, split: str | None = None, window: int = 1,
-                 fields: tuple[str, ...] = DEFAULT_FIELDS, stride: int = 1):
+                 fields: tuple[str, ...] = TRAINING_FIELDS, stride: int = 1):
         from dsr_bench.dataset.manifest import MANIFEST_NAME, load_manifest, read_split
 
         _check_options(window, stride, tuple(fields))
@@ -157,7 +159,7 @@ class OfficialWindowDataset(Dataset):
     (`<seq>_<step>.hdf5` files, `train.txt` / `test.txt`); flow is moved to (3, Y, X, Z) and cast to float32."""
 
     def __init__(self, src: str | Path, split: str = "train", window: int = 1,
-                 fields: tuple[str, ...] = DEFAULT_FIELDS, stride: int = 1):
+                 fields: tuple[str, ...] = TRAINING_FIELDS, stride: int = 1):
         from dsr_bench.dataset.official import find_official_sequences, read_official_split
 
         _check_options(window, stride, tuple(fields))
@@ -244,7 +246,7 @@ def batch_to_device(batch: dict, device) -> dict:
     from pinned memory do not block the host."""
     device = torch.device(device)
     nb = device.type == "cuda"
-    out = {k: batch[k].to(device, non_blocking=nb) for k in DEFAULT_FIELDS if k in batch}
+    out = {k: batch[k].to(device, non_blocking=nb) for k in TRAINING_FIELDS if k in batch}
     if "action_index" in batch:
         index = batch["action_index"].to(device, non_blocking=nb)
         plane = tuple(batch["action_shape"])  # (the DataLoader's pinning turns tuples into lists)

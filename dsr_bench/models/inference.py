@@ -2,15 +2,18 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 import torch
 
+from dsr_bench.dataset.sequence import SequenceReader
 from dsr_bench.errors import UserError
 from dsr_bench.models.config import ModelConfig
 from dsr_bench.models.dsr_net import DSRNet
-from dsr_bench.dataset.sequence import SequenceReader
+from dsr_bench.models.labels import slot_labels
+from dsr_bench.models.training.checkpoints import load_checkpoint, load_weights
 
 _DESCRIPTIONS = {
     "dsr": "DSR-Net: history forward-warped by the predicted motion",
@@ -24,8 +27,8 @@ _DESCRIPTIONS = {
 class ModelPredictor:
     """A trained network run over a sequence's steps with its state carried as in training.
 
-    Prediction t sees observations 0..t and action t. mask: argmax of the K softmax channels,
-    background (last) -> 0, object slot k -> k + 1; motion: fp32 voxels (dy, dx, dz)."""
+    Prediction t sees observations 0..t and action t. mask: `slot_labels` of the K softmax
+    channels (background, the last, -> 0; object slot k -> k + 1); motion: fp32 voxels (dy, dx, dz)."""
 
     def __init__(self, model: DSRNet, device: torch.device, official_bn: bool = False, bf16: bool = False):
         self.model, self.device, self.bf16 = model, device, bf16
@@ -34,38 +37,59 @@ class ModelPredictor:
         self.description = _DESCRIPTIONS.get(self.name, self.name)
         model.train(official_bn)  # BatchNorm in eval mode unless reproducing the official code
 
-    @torch.no_grad()
     def predict_sequence(self, seq: SequenceReader) -> dict[str, np.ndarray]:
-        """{"mask": (T, Y, X, Z) uint8, "motion": (T, 3, Y, X, Z) float32} for one sequence."""
+        """{"mask": (T, Y, X, Z) uint8, "motion": (T, 3, Y, X, Z) float32} for one sequence (read step by step)."""
+        steps = seq.num_steps
+        tsdf_shape = tuple(seq.dataset("tsdf").shape)
+
+        def ground_truth(t: int) -> tuple[np.ndarray, np.ndarray]:
+            return seq.read("scene_flow_3d", t), seq.read("mask_3d", t)
+
+        return self._predict(steps, tsdf_shape, lambda t: seq.read("tsdf", t),
+                             lambda: np.asarray(seq.read("action"))[:steps], ground_truth, seq.path)
+
+    def predict_arrays(self, tsdf: np.ndarray, actions: np.ndarray, flow: np.ndarray | None = None,
+                       mask: np.ndarray | None = None, source: str = "arrays") -> dict[str, np.ndarray]:
+        """The same for a sequence held in memory: tsdf (T, Y, X, Z), actions (T, 3); the ground-truth
+        flow (T, 3, Y, X, Z) and mask (T, Y, X, Z) are read only by the gtwarp oracle."""
+        steps = len(actions)
+        tsdf_shape = tuple(np.shape(tsdf))
+
+        def ground_truth(t: int) -> tuple[np.ndarray, np.ndarray]:
+            return flow[t], mask[t]
+
+        return self._predict(steps, tsdf_shape, lambda t: tsdf[t], lambda: np.asarray(actions), ground_truth, source)
+
+    @torch.no_grad()
+    def _predict(self, steps: int, tsdf_shape: tuple, tsdf_at: Callable[[int], np.ndarray],
+                 read_actions: Callable[[], np.ndarray], ground_truth: Callable[[int], tuple[np.ndarray, np.ndarray]],
+                 source) -> dict[str, np.ndarray]:
+        """The steps in order: tsdf_at(t) and ground_truth(t) (flow, mask) read one step at a time."""
         from dsr_bench.models.data import action_map, check_actions
 
         config = self.model.config
         grid = tuple(config.grid)
-        steps = seq.num_steps
-        tsdf_shape = tuple(seq.dataset("tsdf").shape)
         if tsdf_shape[1:] != grid or tsdf_shape[0] < steps:
-            raise UserError(f"{seq.path}: tsdf {tsdf_shape} does not fit the model's grid {grid}")
-        actions = np.asarray(seq.read("action"))[:steps]
+            raise UserError(f"{source}: tsdf {tsdf_shape} does not fit the model's grid {grid}")
+        actions = read_actions()
         if len(actions) != steps:
-            raise UserError(f"{seq.path}: {len(actions)} actions for {steps} pushes; "
+            raise UserError(f"{source}: {len(actions)} actions for {steps} pushes; "
                             "check it with `dsr-bench validate`")
-        maps = action_map(check_actions(actions, grid[:2], seq.path), grid[:2])
+        maps = action_map(check_actions(actions, grid[:2], source), grid[:2])
         masks = np.zeros((steps,) + grid, dtype=np.uint8)
         motions = np.zeros((steps, 3) + grid, dtype=np.float32)
         state = self.model.initial_state(1, self.device)
-        k = config.num_slots
         for t in range(steps):
-            tsdf = torch.from_numpy(np.asarray(seq.read("tsdf", t), dtype=np.float32)).unsqueeze(0).to(self.device)
+            tsdf = torch.from_numpy(np.asarray(tsdf_at(t), dtype=np.float32)).unsqueeze(0).to(self.device)
             with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=self.bf16):
                 out = self.model(tsdf, maps[t: t + 1].to(self.device), state)
-            labels = out["mask"].argmax(1)[0]
-            masks[t] = torch.where(labels == k - 1, 0, labels + 1).to(torch.uint8).cpu().numpy()
+            masks[t] = slot_labels(out["mask"])[0].cpu().numpy()
             motions[t] = out["motion"][0].float().cpu().numpy()
             gt_flow = gt_mask = None
             if config.history == "gtwarp" and t + 1 < steps:
-                gt_flow = torch.from_numpy(np.asarray(seq.read("scene_flow_3d", t), np.float32)).unsqueeze(0)
-                gt_mask = torch.from_numpy(np.asarray(seq.read("mask_3d", t), np.int64)).unsqueeze(0)
-                gt_flow, gt_mask = gt_flow.to(self.device), gt_mask.to(self.device)
+                flow, mask = ground_truth(t)
+                gt_flow = torch.from_numpy(np.asarray(flow, np.float32)).unsqueeze(0).to(self.device)
+                gt_mask = torch.from_numpy(np.asarray(mask, np.int64)).unsqueeze(0).to(self.device)
             if t + 1 < steps:
                 state = self.model.next_state(out, gt_flow, gt_mask)
         return {"mask": masks, "motion": motions}
@@ -74,8 +98,6 @@ class ModelPredictor:
 def load_predictor(model: str, checkpoint: Path, device: str = "cpu", official_bn: bool = False,
                    bf16: bool = False) -> ModelPredictor:
     """A predictor from a `dsr-bench train` checkpoint (loaded with weights_only=True)."""
-    from dsr_bench.models.training.trainer import load_checkpoint
-
     try:
         dev = torch.device(device)
     except RuntimeError:
@@ -87,9 +109,5 @@ def load_predictor(model: str, checkpoint: Path, device: str = "cpu", official_b
     if config.name != model:
         raise UserError(f"{checkpoint} holds a {config.name!r} model, not {model!r}; pass --model {config.name}")
     net = DSRNet(config).to(dev)
-    try:
-        net.load_state_dict(state["model"])
-    except RuntimeError as exc:
-        raise UserError(f"{checkpoint}: weights do not fit the {model!r} model ({str(exc).splitlines()[0][:160]})"
-                        ) from None
+    load_weights(net, state, checkpoint, model=f"the {model!r} model")
     return ModelPredictor(net, dev, official_bn, bf16)

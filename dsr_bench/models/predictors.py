@@ -13,6 +13,7 @@ from typing import Protocol
 import numpy as np
 
 from dsr_bench.constants import MAX_OBJECTS_PER_SCENE, NUM_MASK_SLOTS
+from dsr_bench.atomic import write_text
 from dsr_bench.errors import UserError
 from dsr_bench.dataset.sequence import SequenceReader
 
@@ -111,7 +112,5 @@ def predict_split(predictor: Predictor, data_dir: str | Path, names: list[str], 
     meta = {"name": predictor.name, "description": (type(predictor).__doc__ or "").strip().splitlines()[0],
             "parameters": {"num_slots": predictor.num_slots}, "seconds_per_step": seconds / max(steps, 1),
             "hardware": f"{os.cpu_count()} CPU cores"}
-    tmp = out / f".meta.json.tmp-{os.getpid()}"
-    tmp.write_text(json.dumps(meta, indent=1) + "\n")
-    os.replace(tmp, out / "meta.json")
+    write_text(out / "meta.json", json.dumps(meta, indent=1) + "\n")
     return written

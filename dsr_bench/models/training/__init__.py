@@ -1,2 +1,4 @@
-"""Training the reference models: the paper's curriculum as data (`schedules`), checkpoints
-(`checkpoints`) and the trainer (`trainer`). Needs torch."""
+"""Training the reference models (needs torch): the paper's curriculum as data (`schedules`), what
+a run is told (`config.TrainConfig`), checkpoints (`checkpoints`), the run's setup (`setup`: model,
+optimiser, scheduler, resume) and data (`loaders`: windows, sampler, DataLoaders), and the loop
+(`trainer`: `train(config)`, `train_step`, `validate`)."""
