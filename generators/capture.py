@@ -341,17 +341,11 @@ def prepare_captures(plan: CapturePlan) -> CaptureJobs:
     made with the same arguments is skipped; one made with other arguments is refused unless `plan.overwrite`
     (`generators.run.needs_writing`). Removes the temporaries of abandoned writers in --out."""
     from dsr_bench.atomic import clean_temporaries
-    from dsr_bench.constants import MAX_OBJECTS_PER_SCENE
     from dsr_bench.dataset.splits import sequence_name, sequence_seed
     from generators.objects import get_object_set
-    from generators.run import needs_writing
+    from generators.run import check_scene_arguments, needs_writing
 
-    if plan.num < 1:
-        raise UserError(f"--num-sequences {plan.num}: must be at least 1")
-    if plan.steps < 1:
-        raise UserError(f"--steps {plan.steps}: must be at least 1")
-    if not 1 <= plan.objects_per_scene <= MAX_OBJECTS_PER_SCENE:
-        raise UserError(f"--objects-per-scene {plan.objects_per_scene}: must be 1..{MAX_OBJECTS_PER_SCENE}")
+    check_scene_arguments(plan.num, plan.steps, plan.objects_per_scene)
     get_sensor_model(plan.noise)
     out = Path(plan.out)
     if out.exists() and not out.is_dir():

@@ -16,6 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from dsr_bench.cache import FrozenCache, camera_key
 from dsr_bench.constants import (
     GRID_BOUNDS,
     GRID_SHAPE,
@@ -87,24 +88,18 @@ def _triangle_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
         return np.where(length[:, None] > 0, n / length[:, None], 0.0)
 
 
-def _camera_key(camera: Camera) -> tuple:
-    return (camera.height, camera.width, np.asarray(camera.intrinsics, np.float64).tobytes(),
-            np.asarray(camera.extrinsics, np.float64).tobytes())
-
-
-#: The table's rendering per camera (rays, depth, colour...), built once per process: a renderer is
-#: made for every scene attempt, and these cost more than rendering a step.
-_TABLE_VIEWS: dict[tuple, tuple[np.ndarray, ...]] = {}
-_MAX_CACHED = 16
+#: The table's rendering per camera (rays, depth, shade) and its TSDF, built once per process: a renderer
+#: is made for every scene attempt, and these cost more than rendering a step.
+_TABLE_VIEWS = FrozenCache(16)
 
 
 def _table_view(camera: Camera) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(rays (H*W, 6) float64 origin + direction with unit camera z, table depth (H*W,) float64 with
     inf where the ray misses the table, table shade (H*W,)): analytic ray-plane intersection."""
-    key = _camera_key(camera)
-    hit = _TABLE_VIEWS.get(key)
-    if hit is not None:
-        return hit
+    return _TABLE_VIEWS.get(camera_key(camera), lambda: _build_table_view(camera))
+
+
+def _build_table_view(camera: Camera) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     dirs = camera.ray_directions_world().reshape(-1, 3)
     origin = np.asarray(camera.extrinsics, np.float64)[:3, 3]
     rays = np.hstack([np.broadcast_to(origin, dirs.shape), dirs])
@@ -115,13 +110,7 @@ def _table_view(camera: Camera) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     on_table = (t > 0) & (np.abs(x - TABLE_CENTRE[0]) <= TABLE_HALF_SIZE) & (np.abs(y - TABLE_CENTRE[1]) <= TABLE_HALF_SIZE)
     depth = np.where(on_table, t, np.inf)
     shade = np.full(len(depth), _shade(np.abs(LIGHT_DIRECTION[2])))
-    out = (rays, depth, shade)
-    for a in out:
-        a.setflags(write=False)
-    if len(_TABLE_VIEWS) >= _MAX_CACHED:
-        _TABLE_VIEWS.pop(next(iter(_TABLE_VIEWS)))
-    _TABLE_VIEWS[key] = out
-    return out
+    return rays, depth, shade
 
 
 def _shade(cos_abs):
@@ -243,15 +232,12 @@ class SceneRenderer:
 
     def _table_tsdf(self) -> np.ndarray:
         """The TSDF of the table alone (cached per process and camera)."""
-        key = ("tsdf",) + _camera_key(self.tsdf_camera)
-        hit = _TABLE_VIEWS.get(key)
-        if hit is None:
+        def build() -> np.ndarray:
             _, table_depth, _ = _table_view(self.tsdf_camera)
             seen = np.where(np.isfinite(table_depth), table_depth, 0.0).astype(np.float32)
-            hit = (self._tsdf.from_pixel_depths(seen[self._tsdf.pixels]),)
-            hit[0].setflags(write=False)
-            _TABLE_VIEWS[key] = hit
-        return hit[0]
+            return self._tsdf.from_pixel_depths(seen[self._tsdf.pixels])
+
+        return _TABLE_VIEWS.get(("tsdf",) + camera_key(self.tsdf_camera), build)
 
     # top-down views --------------------------------------------------------------------------------
     @staticmethod

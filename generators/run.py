@@ -107,15 +107,20 @@ def plan_from_arguments(*, objects: str | None = None, num_sequences: int | None
                    shard=parse_shard(shard), workers=workers)
 
 
+def check_scene_arguments(num_sequences: int, steps: int, objects_per_scene: int) -> None:
+    """Reject a bad --num-sequences, --steps or --objects-per-scene (of sequences and of captures)."""
+    if num_sequences < 1:
+        raise UserError(f"--num-sequences {num_sequences}: must be at least 1")
+    if steps < 1:
+        raise UserError(f"--steps {steps}: must be at least 1")
+    if not 1 <= objects_per_scene <= MAX_OBJECTS_PER_SCENE:
+        raise UserError(f"--objects-per-scene {objects_per_scene}: must be 1..{MAX_OBJECTS_PER_SCENE}")
+
+
 def check_plan(plan: RunPlan) -> None:
     """Reject bad arguments before anything is written."""
     cfg = plan.config
-    if plan.num_sequences < 1:
-        raise UserError(f"--num-sequences {plan.num_sequences}: must be at least 1")
-    if cfg.steps < 1:
-        raise UserError(f"--steps {cfg.steps}: must be at least 1")
-    if not 1 <= cfg.objects_per_scene <= MAX_OBJECTS_PER_SCENE:
-        raise UserError(f"--objects-per-scene {cfg.objects_per_scene}: must be 1..{MAX_OBJECTS_PER_SCENE}")
+    check_scene_arguments(plan.num_sequences, cfg.steps, cfg.objects_per_scene)
     if cfg.policy not in ("heuristic", "random"):
         raise UserError(f"--policy {cfg.policy!r}: choose heuristic or random")
     bad = [c for c in cfg.cameras if c not in ("front", "back")]

@@ -12,13 +12,13 @@ from __future__ import annotations
 
 import numpy as np
 
+from dsr_bench.cache import FrozenCache, camera_key
 from dsr_bench.constants import GRID_SHAPE, TSDF_TRUNCATION
 from dsr_bench.geometry import Camera, rigid_inverse, transform_points, voxel_points
 
 #: Voxel projections per (camera, grid): they depend on nothing else, and computing them costs more
 #: than integrating several depth images, so every ProjectiveTSDF of the same camera shares them.
-_PROJECTIONS: dict[tuple, tuple[np.ndarray, ...]] = {}
-_MAX_CACHED = 8
+_PROJECTIONS = FrozenCache(8)
 
 
 def _projection(camera: Camera, grid_shape: tuple[int, int, int]) -> tuple[np.ndarray, ...]:
@@ -27,11 +27,10 @@ def _projection(camera: Camera, grid_shape: tuple[int, int, int]) -> tuple[np.nd
     ascending), per voxel the index of its pixel among those, the number of voxels of each pixel;
     then the same voxels grouped by pixel (stable): their flat index, z, pixel index and z in
     float32. Cached; the arrays are read-only."""
-    key = (camera.height, camera.width, np.asarray(camera.intrinsics, np.float64).tobytes(),
-           np.asarray(camera.extrinsics, np.float64).tobytes(), tuple(grid_shape))
-    hit = _PROJECTIONS.get(key)
-    if hit is not None:
-        return hit
+    return _PROJECTIONS.get(camera_key(camera) + (tuple(grid_shape),), lambda: _project(camera, grid_shape))
+
+
+def _project(camera: Camera, grid_shape: tuple[int, int, int]) -> tuple[np.ndarray, ...]:
     points = voxel_points(grid_shape).reshape(-1, 3)
     cam = transform_points(rigid_inverse(camera.extrinsics), points)
     z = cam[:, 2]
@@ -50,13 +49,7 @@ def _projection(camera: Camera, grid_shape: tuple[int, int, int]) -> tuple[np.nd
     order = np.argsort(inverse, kind="stable")
     counts = np.bincount(inverse, minlength=len(pixels))
     grouped = (voxels[order], z_in[order], inverse[order], z_in[order].astype(np.float32))
-    out = (voxels, z_in, pixels, inverse, counts) + grouped
-    for a in out:
-        a.setflags(write=False)
-    if len(_PROJECTIONS) >= _MAX_CACHED:
-        _PROJECTIONS.pop(next(iter(_PROJECTIONS)))
-    _PROJECTIONS[key] = out
-    return out
+    return (voxels, z_in, pixels, inverse, counts) + grouped
 
 
 class ProjectiveTSDF:

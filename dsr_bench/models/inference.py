@@ -13,7 +13,7 @@ from dsr_bench.errors import UserError
 from dsr_bench.models.config import ModelConfig
 from dsr_bench.models.dsr_net import DSRNet
 from dsr_bench.models.labels import slot_labels
-from dsr_bench.models.training.checkpoints import load_checkpoint, load_weights
+from dsr_bench.models.training.checkpoints import load_checkpoint, load_weights, torch_device
 
 _DESCRIPTIONS = {
     "dsr": "DSR-Net: history forward-warped by the predicted motion",
@@ -98,12 +98,7 @@ class ModelPredictor:
 def load_predictor(model: str, checkpoint: Path, device: str = "cpu", official_bn: bool = False,
                    bf16: bool = False) -> ModelPredictor:
     """A predictor from a `dsr-bench train` checkpoint (loaded with weights_only=True)."""
-    try:
-        dev = torch.device(device)
-    except RuntimeError:
-        raise UserError(f"--device {device!r}: use cpu, cuda or cuda:N") from None
-    if dev.type == "cuda" and not torch.cuda.is_available():
-        raise UserError("--device cuda but no CUDA device is available; use --device cpu")
+    dev = torch_device(device)
     state = load_checkpoint(Path(checkpoint), map_location=dev)
     config = ModelConfig.from_dict(state["model_config"])
     if config.name != model:

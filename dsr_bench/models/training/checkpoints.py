@@ -1,8 +1,9 @@
 """Checkpoints of `dsr-bench train`: plain dicts (state_dicts, configs as dicts, RNG states as
 tensors, data position, git hash) loadable with torch.load(weights_only=True), written atomically.
 
-Also the pieces every user of a checkpoint shares: `unwrap` (the network inside DDP and
-torch.compile wrappers), `load_weights` and the RNG states that make a resumed run exact.
+Also the pieces every user of a checkpoint shares: `torch_device` (a --device option checked),
+`unwrap` (the network inside DDP and torch.compile wrappers), `load_weights` and the RNG states that
+make a resumed run exact.
 """
 
 from __future__ import annotations
@@ -24,6 +25,18 @@ __all__ = ["CHECKPOINT_FORMAT", "git_hash", "load_checkpoint", "load_weights", "
            "set_rng_state", "unwrap"]
 
 CHECKPOINT_FORMAT = "dsr-bench-checkpoint"
+
+
+def torch_device(device: str) -> torch.device:
+    """The torch device of a --device option (cpu, cuda, cuda:N); UserError if it is not one or no CUDA
+    device is available for it."""
+    try:
+        dev = torch.device(device)
+    except RuntimeError:
+        raise UserError(f"--device {device!r}: use cpu, cuda or cuda:N") from None
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        raise UserError("--device cuda but no CUDA device is available; use --device cpu")
+    return dev
 
 
 def git_hash() -> str:

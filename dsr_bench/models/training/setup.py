@@ -16,7 +16,7 @@ from dsr_bench.errors import UserError
 from dsr_bench.models.config import ModelConfig
 from dsr_bench.models.data import SequenceWindowDataset
 from dsr_bench.models.dsr_net import DSRNet
-from dsr_bench.models.training.checkpoints import load_checkpoint, load_weights, set_rng_state
+from dsr_bench.models.training.checkpoints import load_checkpoint, load_weights, set_rng_state, torch_device
 from dsr_bench.models.training.config import TrainConfig
 from dsr_bench.models.training.loaders import WindowSampler, check_objects, make_loaders, open_windows
 from dsr_bench.models.training.schedules import StageConfig, stage_for
@@ -69,12 +69,7 @@ def start_processes(config: TrainConfig) -> tuple[int, int, torch.device]:
             torch.cuda.set_device(local)
             device = f"cuda:{local}"
         torch.distributed.init_process_group("nccl" if torch.cuda.is_available() else "gloo")
-    try:
-        dev = torch.device(device)
-    except RuntimeError:
-        raise UserError(f"--device {device!r}: use cpu, cuda or cuda:N") from None
-    if dev.type == "cuda" and not torch.cuda.is_available():
-        raise UserError("--device cuda but no CUDA device is available; use --device cpu")
+    dev = torch_device(device)
     if config.compile_model and dev.type != "cuda":
         raise UserError(f"--compile needs --device cuda: torch.compile's CPU backend fails on DSR-Net's backward "
                         f"pass (torch {torch.__version__}); drop --compile")
