@@ -6,6 +6,10 @@ call returns, so killing the process loses nothing; `Session.open` resumes from 
 
 Poses are (7,) = (x, y, z, qx, qy, qz, qw) in the table frame, metres (`dsr_bench.geometry.pose_to_matrix`); unset
 poses read as NaN rows. Step s is observation s (0..T); push s moves the scene from step s to s + 1.
+
+Over 500 lines on purpose: the carry-forward search of `go_to` (about 200 lines: `_carry`, `_search`, `_land`,
+`_search_landed`) reads and commits the session's state at every stage, and split off it would need the session's
+private operations (`_icp`, `_fit`, `_crop`, `_commit`) as an API of their own.
 """
 
 from __future__ import annotations
