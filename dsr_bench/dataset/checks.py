@@ -111,11 +111,7 @@ def _check_flow(seq) -> list[str]:
     if seq.attrs.get("source") == "official-import":
         return _check_official_flow(seq)
     problems = []
-    poses = seq.read("object_poses")
-    for t in range(seq.num_steps):
-        mask = seq.read("mask_3d", t)
-        flow = seq.read("scene_flow_3d", t)
-        problems += _flow_outside_objects(t, mask, flow)
+    for t, poses, mask, flow in _flow_steps(seq, problems):
         err = float(np.abs(flow - rigid_scene_flow_3d(mask, poses[t], poses[t + 1])).max())
         if err > FLOW_TOLERANCE:
             problems.append(f"scene_flow_3d[{t}]: differs from the rigid motion of the stored poses by "
@@ -123,9 +119,17 @@ def _check_flow(seq) -> list[str]:
     return problems
 
 
-def _flow_outside_objects(t: int, mask: np.ndarray, flow: np.ndarray) -> list[str]:
-    outside = np.count_nonzero(np.any(flow[:, mask == 0] != 0, axis=0))
-    return [f"scene_flow_3d[{t}]: {outside} voxels outside every object have non-zero flow"] if outside else []
+def _flow_steps(seq, problems: list[str]):
+    """(t, poses, mask_3d[t], scene_flow_3d[t]) for every push, reporting flow outside every object into
+    `problems` on the way (zero there by every source's definition)."""
+    poses = seq.read("object_poses")
+    for t in range(seq.num_steps):
+        mask = seq.read("mask_3d", t)
+        flow = seq.read("scene_flow_3d", t)
+        outside = np.count_nonzero(np.any(flow[:, mask == 0] != 0, axis=0))
+        if outside:
+            problems.append(f"scene_flow_3d[{t}]: {outside} voxels outside every object have non-zero flow")
+        yield t, poses, mask, flow
 
 
 def official_flow_bound(angle: float) -> float:
@@ -188,11 +192,7 @@ def _check_official_flow(seq) -> list[str]:
 
     names = FLOW_COMPONENTS.split(",")
     problems = []
-    poses = seq.read("object_poses")
-    for t in range(seq.num_steps):
-        mask = seq.read("mask_3d", t)
-        flow = seq.read("scene_flow_3d", t)
-        problems += _flow_outside_objects(t, mask, flow)
+    for t, poses, mask, flow in _flow_steps(seq, problems):
         fractional = flow != np.rint(flow)
         if fractional.any():
             c, y, x, z = np.argwhere(fractional)[0]
