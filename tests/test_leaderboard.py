@@ -49,6 +49,14 @@ def test_entries_are_checked(board, tmp_path):
     assert not (board / "entries").exists()
 
 
+def _add(board, tmp_path, method, label=None, **metrics):
+    results = _results(**metrics)
+    results["method"] = method
+    path = tmp_path / f"{method}.json"
+    path.write_text(json.dumps(results))
+    assert main(["leaderboard", "add", str(path), "--root", str(board), *(["--label", label] if label else [])]) == 0
+
+
 def test_build_tables_keep_paper_rows_apart_and_mark_the_best(board, tmp_path):
     good = tmp_path / "good.json"
     good.write_text(json.dumps(_results()))
@@ -57,6 +65,8 @@ def test_build_tables_keep_paper_rows_apart_and_mark_the_best(board, tmp_path):
     (tmp_path / "other.json").write_text(json.dumps(other))
     assert main(["leaderboard", "add", str(good), "--root", str(board), "--label", "short schedule"]) == 0
     assert main(["leaderboard", "add", str(tmp_path / "other.json"), "--root", str(board)]) == 0
+    _add(board, tmp_path, "static", "reference (no training)", motion_visible=6.0, motion_full=0.07,
+         iou_unordered=0.3, iou_ordered=0.2)
     md = (board / "README.md").read_text()
     assert "## procedural-novel-mini: 3D track (reproduced)" in md
     assert "## ycb-test: 3D track (reported in the paper)" in md and "## real-test: 2D track (reported in the paper)" in md
@@ -64,9 +74,33 @@ def test_build_tables_keep_paper_rows_apart_and_mark_the_best(board, tmp_path):
     theirs = next(line for line in md.splitlines() if line.startswith("| Other"))
     assert "**0.700**" in mine and "**4**" in theirs and "short schedule" in mine
     dsr = next(line for line in md.splitlines() if line.startswith("| DSR-Net |") and "0.772" in line)
-    assert "**5.54**" in dsr  # best among the paper's sim rows
+    assert "**5.54**" in dsr and "**0.772**" in dsr  # best among the paper's sim rows that are not oracles
+    gtwarp = next(line for line in md.splitlines() if line.startswith("| GTWarp (oracle warp)") and "0.807" in line)
+    assert "**" not in gtwarp  # the oracle warp is higher, but an oracle is never the best
     page = (board / "index.html").read_text()
     assert "sortTable" in page and page.count("<table") == md.count("## ")
+
+
+def test_oracles_are_never_best_and_rows_worse_than_no_motion_are_marked(board, tmp_path):
+    _add(board, tmp_path, "oracle", "reference (no training)", motion_visible=0.0, motion_full=0.0, iou_unordered=1.0,
+         iou_ordered=1.0)
+    _add(board, tmp_path, "static", "reference (no training)", motion_visible=40.0, motion_full=0.27,
+         iou_unordered=0.19, iou_ordered=0.13)
+    _add(board, tmp_path, "Trained", motion_visible=43.6, motion_full=0.20, iou_unordered=0.36, iou_ordered=0.33)
+    md = build(board)[0].read_text()
+    rows = {line.split(" | ")[0][2:]: line for line in md.splitlines() if line.startswith("| ")}
+    assert "**" not in rows["oracle"]
+    assert "43.6 \u25bc" in rows["Trained"] and "**0.2**" in rows["Trained"] and "**0.360**" in rows["Trained"]
+    assert "**40**" in rows["static"] and "\u25bc" not in rows["static"]
+    page = (board / "index.html").read_text()
+    assert page.count('class="worse"') == 1 and 'class="best"' in page
+
+
+def test_a_table_without_the_no_motion_row_marks_no_best(board, tmp_path):
+    _add(board, tmp_path, "Trained", motion_visible=43.6)
+    md = build(board)[0].read_text()
+    current = md.split("## procedural-novel-mini: 3D track (reproduced)")[1].split("## ")[0]
+    assert "No no-motion (static) row" in current and "**" not in current
 
 
 def test_real_headless_browser_renders_the_page(board):
@@ -91,6 +125,8 @@ def test_entry_of_an_earlier_pin_is_shown_apart_and_unranked(board, tmp_path):
     good = tmp_path / "good.json"
     good.write_text(json.dumps(_results()))
     assert main(["leaderboard", "add", str(good), "--root", str(board)]) == 0
+    _add(board, tmp_path, "static", "reference (no training)", motion_visible=6.0, motion_full=0.09,
+         iou_unordered=0.3, iou_ordered=0.2)
     old = _results(checksum="0123456789ab" + "f" * 52, iou_ordered=0.9)
     old["method"] = "OldNet"
     (board / "entries" / "oldnet-procedural-novel-mini.json").write_text(json.dumps(old))
@@ -101,3 +137,4 @@ def test_entry_of_an_earlier_pin_is_shown_apart_and_unranked(board, tmp_path):
                          "0123456789ab)")[1].split("## ")[0]
     assert "| MyNet" in current and "OldNet" not in current and "**0.600**" in current
     assert "| OldNet" in earlier and "MyNet" not in earlier
+    assert "No no-motion (static) row" in earlier and "**" not in earlier  # nothing to compare it with there

@@ -105,11 +105,34 @@ def _tables(rows: list[dict]):
             yield split, kind, track, sub[["method", *cols, "label", "date", "checksum"]].reset_index(drop=True), cols
 
 
-def _best(series, column):
-    values = series.dropna()
+_WORSE_MARK = "\u25bc"
+
+#: Rows that bound the benchmark from above: never "best" (ground truth as predictions, or a model
+#: warped with the ground-truth flow).
+def is_oracle(method: str) -> bool:
+    """Whether a row is an oracle (its method is `oracle` or says "oracle", e.g. "GTWarp (oracle warp)")."""
+    return "oracle" in str(method).lower()
+
+
+#: The reference row every trained row must beat: predicting no motion.
+NO_MOTION = "static"
+
+
+def _best(table, column):
+    """The best non-oracle value of a column, or None (no bold) when the table has no no-motion reference row
+    of reproduced results: a best that cannot be compared with predicting no motion is not marked."""
+    values = table[[not is_oracle(m) for m in table["method"]]][column].dropna()
     if values.empty:
         return None
     return values.min() if column in LOWER_IS_BETTER else values.max()
+
+
+def _worse_than_no_motion(table, column, row) -> bool:
+    """Whether a trained row's value is worse than the no-motion reference row's in the same table."""
+    ref = table[table["method"] == NO_MOTION][column].dropna()
+    if ref.empty or row["method"] == NO_MOTION or is_oracle(row["method"]) or row[column] != row[column]:
+        return False
+    return row[column] > ref.iloc[0] if column in LOWER_IS_BETTER else row[column] < ref.iloc[0]
 
 
 def _fmt(value, column) -> str:
@@ -124,28 +147,40 @@ def build(root: str | Path = "leaderboard") -> tuple[Path, Path]:
     rows = load_rows(root)
     md = ["# dsr-bench leaderboard", "",
           "Built by `dsr-bench leaderboard build` from `entries/` (results of `dsr-bench evaluate`) and",
-          "`paper.json` (numbers reported in the paper, never mixed with reproduced rows). Best per column in bold.", ""]
+          "`paper.json` (numbers reported in the paper, never mixed with reproduced rows). In each table of reproduced",
+          "results the reference rows (oracle, static = predicting no motion, push = every object voxel moved along",
+          "the push) sit beside the trained rows of the same version of the split. Bold: the best value that is not an",
+          "oracle's, marked only where the table holds the no-motion row to compare with. " + _WORSE_MARK + ": worse",
+          "than predicting no motion.", ""]
     body = []
     for split, kind, track, table, cols in _tables(rows):
         md += [f"## {split}: {track} track ({kind})", ""]
         header = ["method", *[COLUMN_TITLES[c] for c in cols], "note", "date", "split checksum"]
+        comparable = kind != "reported in the paper" and (table["method"] == NO_MOTION).any()
+        best = {c: _best(table, c) if comparable or kind == "reported in the paper" else None for c in cols}
+        if kind != "reported in the paper" and not comparable:
+            md += ["No no-motion (static) row was scored on this version of the split: these rows cannot be compared "
+                   "with predicting no motion, and none is marked best.", ""]
         md += ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
-        best = {c: _best(table[c], c) for c in cols}
         html_rows = []
         for _, r in table.iterrows():
-            cells = []
+            cells, tds = [], []
             for c in cols:
-                text = _fmt(r[c], c)
-                cells.append(f"**{text}**" if best[c] is not None and r[c] == best[c] else text)
+                text, top = _fmt(r[c], c), best[c] is not None and r[c] == best[c] and not is_oracle(r["method"])
+                worse = _worse_than_no_motion(table, c, r)
+                cells.append((f"**{text}**" if top else text) + (f" {_WORSE_MARK}" if worse else ""))
+                classes = " ".join(k for k, on in (("best", top), ("worse", worse)) if on)
+                tds.append(f'<td data-v="{"" if r[c] != r[c] else r[c]}"{f" class={chr(34)}{classes}{chr(34)}" if classes else ""}>'
+                           f"{html.escape(_fmt(r[c], c))}{f' {_WORSE_MARK}' if worse else ''}</td>")
             md.append("| " + " | ".join([str(r["method"]), *cells, str(r["label"]), str(r["date"]), str(r["checksum"])]) + " |")
-            tds = "".join(
-                f'<td data-v="{"" if r[c] != r[c] else r[c]}"{" class=best" if best[c] is not None and r[c] == best[c] else ""}>'
-                f"{html.escape(_fmt(r[c], c))}</td>" for c in cols)
-            html_rows.append(f"<tr><td>{html.escape(str(r['method']))}</td>{tds}<td>{html.escape(str(r['label']))}</td>"
-                             f"<td>{html.escape(str(r['date']))}</td><td><code>{html.escape(str(r['checksum']))}</code></td></tr>")
+            html_rows.append(f"<tr><td>{html.escape(str(r['method']))}</td>{''.join(tds)}<td>{html.escape(str(r['label']))}"
+                             f"</td><td>{html.escape(str(r['date']))}</td><td><code>{html.escape(str(r['checksum']))}</code>"
+                             "</td></tr>")
         md.append("")
         ths = "".join(f"<th onclick=\"sortTable(this)\">{html.escape(h)}</th>" for h in header)
-        body.append(f"<h2>{html.escape(split)}: {track} track ({html.escape(kind)})</h2>\n"
+        note = ("" if comparable or kind == "reported in the paper" else
+                "<p class=note>No no-motion (static) row on this version of the split: not comparable, none marked best.</p>")
+        body.append(f"<h2>{html.escape(split)}: {track} track ({html.escape(kind)})</h2>\n{note}"
                     f"<table class=board><thead><tr>{ths}</tr></thead><tbody>{''.join(html_rows)}</tbody></table>")
     if not rows:
         md.append("No entries yet.")
@@ -161,10 +196,12 @@ _PAGE = """<!doctype html>
 body{font-family:system-ui,sans-serif;margin:2em;max-width:1100px}
 table{border-collapse:collapse;margin-bottom:2em}th,td{border:1px solid #ccc;padding:4px 8px;text-align:right}
 td:first-child,th:first-child{text-align:left}th{cursor:pointer;background:#f4f4f4}.best{font-weight:bold}
+.worse{color:#a00}.note{color:#555}
 </style></head><body>
 <h1>dsr-bench leaderboard</h1>
 <p>Reproduced results (<code>dsr-bench evaluate</code>) and numbers reported in the paper, in separate tables.
-Click a column to sort. Best per column in bold.</p>
+Reference rows (oracle, static = predicting no motion, push) sit beside the trained rows of the same version of a split.
+Click a column to sort. Bold: the best value that is not an oracle's. &#9660; (red): worse than predicting no motion.</p>
 {body}
 <script>
 function sortTable(th){
