@@ -54,6 +54,31 @@ def test_static_scores_are_pinned(generated_dataset, tmp_path):
     assert results["breakdowns"]["motion_static_objects"] < 1e-3 < results["breakdowns"]["motion_moved_objects"]
 
 
+def test_push_yardstick_moves_every_object_voxel_along_the_push(generated_dataset, tmp_path):
+    """`push`: the static masks, every voxel of them moved PUSH_YARDSTICK_DISTANCE along the action's direction
+    (in voxels, components dy, dx, dz), zero elsewhere; in 2D the same vector (metres) at pixels above the table."""
+    from dsr_bench.constants import VOXEL_SIZE
+    from dsr_bench.dataset.sequence import SequenceReader
+    from dsr_bench.geometry import direction_vector
+    from dsr_bench.models.predictors import PUSH_YARDSTICK_DISTANCE
+
+    static = _predict("static", generated_dataset, tmp_path / "static")
+    push = _predict("push", generated_dataset, tmp_path / "push")
+    with SequenceReader(generated_dataset / "seq_0000.h5") as seq, h5py.File(push / "seq_0000.h5") as p, \
+            h5py.File(static / "seq_0000.h5") as s:
+        assert np.array_equal(p["mask"][()], s["mask"][()]) and not np.any(s["motion"][()])
+        assert not np.any(s["motion_2d"][()])  # no motion in 2D either
+        for t, (d, _, _) in enumerate(seq.read("action")):
+            dx, dy = direction_vector(int(d)) * PUSH_YARDSTICK_DISTANCE / VOXEL_SIZE
+            occupied = p["mask"][t] > 0
+            motion = p["motion"][t].astype(np.float64)
+            assert occupied.any() and not np.any(motion[:, ~occupied])
+            assert np.allclose(motion[:, occupied].T, [dy, dx, 0.0], atol=0.02)  # float16
+            moved_2d = np.abs(p["motion_2d"][t]).sum(-1) > 0
+            above = np.nan_to_num(seq.read("cameras/front/points", t)[..., 2], nan=0.0) > 0.005
+            assert np.array_equal(moved_2d, above) or (dx == 0 and dy == 0)
+
+
 def test_parallel_and_serial_agree(synthetic, tmp_path):
     pred = _predict("static", synthetic, tmp_path / "s")
     a = evaluate(pred, synthetic, workers=1).results

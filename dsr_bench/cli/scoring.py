@@ -12,11 +12,14 @@ leaderboard_app = typer.Typer(help="Build the leaderboard tables or add a result
 
 
 def predict(
-    model: str = typer.Option(..., "--model", help="oracle | static | dsr | single | nowarp | gtwarp | 3dflow"),
+    model: str = typer.Option(..., "--model", help="oracle | static | push | dsr | single | nowarp | gtwarp | 3dflow"),
     data: Path = typer.Option(..., "--data", help="Dataset directory."),
     out: Path = typer.Option(..., "--out", "-o", help="Predictions directory to write."),
     split: Optional[str] = typer.Option(None, "--split", help="Split to predict (default: the only one)."),
     checkpoint: Optional[Path] = typer.Option(None, "--checkpoint", help="Checkpoint of a learned model."),
+    weights: Optional[Path] = typer.Option(None, "--weights", help="The authors' released weights instead "
+                                           "(dsr.pth, dsr_ft.pth, single.pth, nowarp.pth, gtwarp.pth, 3dflow.pth); "
+                                           "BatchNorm then uses batch statistics, as theirs did."),
     device: str = typer.Option("cpu", "--device", help="cpu or cuda (learned models)."),
 ) -> None:
     """Run a model over a split and write the predictions contract (one .h5 per sequence + meta.json)."""
@@ -25,7 +28,7 @@ def predict(
     from dsr_bench.dataset.manifest import read_split
     from dsr_bench.models.predictors import load_predictor, predict_split
 
-    predictor = load_predictor(model, checkpoint, device)
+    predictor = load_predictor(model, checkpoint, device, weights=weights)
     split, names = read_split(data, split)
     with Progress(transient=True) as bar:
         task = bar.add_task(f"predict {model}", total=len(names))

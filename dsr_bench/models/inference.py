@@ -106,3 +106,24 @@ def load_predictor(model: str, checkpoint: Path, device: str = "cpu", official_b
     net = DSRNet(config).to(dev)
     load_weights(net, state, checkpoint, model=f"the {model!r} model")
     return ModelPredictor(net, dev, official_bn, bf16)
+
+
+def load_official_predictor(model: str, weights: Path, device: str = "cpu", official_bn: bool = True,
+                            bf16: bool = False) -> ModelPredictor:
+    """A predictor from the authors' released weights (dsr.pth, dsr_ft.pth, single.pth, nowarp.pth,
+    gtwarp.pth, 3dflow.pth; `dsr_bench.models.official_weights`) on the official 128 x 128 x 48 grid.
+    official_bn=True (the default here): BatchNorm with batch statistics, as the authors trained and ran
+    them. The predictor's `weights` records the file (source, name, sha256, BatchNorm mode)."""
+    from dsr_bench.dataset.manifest import file_sha256
+    from dsr_bench.models.official_weights import check_release_name, convert_official_state, read_official_file
+
+    dev = torch_device(device)
+    weights = Path(weights)
+    state = convert_official_state(read_official_file(weights), model, source=str(weights))
+    check_release_name(weights, model)
+    net = DSRNet(ModelConfig.for_model(model))
+    net.load_state_dict(state)  # strict: the converter returns exactly our keys, shapes checked
+    predictor = ModelPredictor(net.to(dev), dev, official_bn, bf16)
+    predictor.weights = {"source": "official", "file": weights.name, "sha256": file_sha256(weights),
+                         "batchnorm": "batch statistics (official)" if official_bn else "running statistics (eval)"}
+    return predictor

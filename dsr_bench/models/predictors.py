@@ -1,8 +1,11 @@
 """Predictors that write the predictions contract: the registry behind `dsr-bench predict`.
 
-`oracle` (ground truth as predictions: IoU 1 and motion error 0 by construction) and `static`
-(zero motion; masks = connected components of the current observation's TSDF surface band,
-largest first) need no training; the learned models come from `dsr_bench.models.inference`.
+Reference predictors need no training: `oracle` (ground truth as predictions: IoU 1 and motion
+error 0 by construction), `static` (predicting no motion; masks = connected components of the
+current observation's TSDF surface band, largest first; zero 2D flow) and `push` (the yardstick of
+a naive action-conditioned guess: the same masks, and every voxel of them moved along the push by
+PUSH_YARDSTICK_DISTANCE; in 2D every pixel that sees something above the table). The learned
+models come from `dsr_bench.models.inference`.
 """
 
 from __future__ import annotations
@@ -12,13 +15,16 @@ from typing import Protocol
 
 import numpy as np
 
-from dsr_bench.constants import MAX_OBJECTS_PER_SCENE, NUM_MASK_SLOTS
+from dsr_bench.constants import FREE_HEIGHT, MAX_OBJECTS_PER_SCENE, NUM_MASK_SLOTS, VOXEL_SIZE
 from dsr_bench.atomic import write_text
 from dsr_bench.errors import UserError
 from dsr_bench.dataset.sequence import SequenceReader
 
 LEARNED_MODELS = ("dsr", "single", "nowarp", "gtwarp", "3dflow")
-REFERENCE_MODELS = ("oracle", "static")
+REFERENCE_MODELS = ("oracle", "static", "push")
+#: How far the `push` yardstick moves every object voxel along the push (m): about how far the pushed
+#: object moves (10.2-10.7 cm in the authors' and our cube scenes, bench/bench_fidelity.py).
+PUSH_YARDSTICK_DISTANCE = 0.10
 MODEL_NAMES = REFERENCE_MODELS + LEARNED_MODELS
 
 
@@ -67,23 +73,72 @@ class StaticPredictor:
         steps = seq.num_steps
         mask = np.stack([self.components(seq.read("tsdf", t)) for t in range(steps)])
         motion = np.zeros((steps, 3) + mask.shape[1:], dtype=np.float16)
-        return {"mask": mask, "motion": motion}
+        out = {"mask": mask, "motion": motion}
+        if "cameras/front/points" in seq:
+            height, width = seq.read("cameras/front/points", 0).shape[:2]
+            out["motion_2d"] = np.zeros((steps, height, width, 3), dtype=np.float16)
+        return out
 
 
-def load_predictor(model: str, checkpoint: Path | None = None, device: str = "cpu") -> Predictor:
-    """The predictor `model` (a learned model needs its checkpoint)."""
+class PushPredictor(StaticPredictor):
+    """Every object voxel moved along the push: the static masks, each of their voxels moved by
+    PUSH_YARDSTICK_DISTANCE along the push direction (in 2D: every pixel whose world point is more
+    than FREE_HEIGHT above the table)."""
+
+    name = "push"
+
+    def predict_sequence(self, seq: SequenceReader) -> dict[str, np.ndarray]:
+        from dsr_bench.geometry import direction_vector
+
+        out = super().predict_sequence(seq)
+        actions = seq.read("action")
+        for t in range(seq.num_steps):
+            dx, dy = direction_vector(int(actions[t, 0])) * PUSH_YARDSTICK_DISTANCE
+            occupied = out["mask"][t] > 0
+            for c, value in enumerate((dy, dx, 0.0)):  # components (dy, dx, dz), voxels
+                out["motion"][t, c][occupied] = value / VOXEL_SIZE
+            if "motion_2d" in out:
+                points = seq.read("cameras/front/points", t)
+                above = np.nan_to_num(points[..., 2], nan=0.0) > FREE_HEIGHT
+                out["motion_2d"][t][above] = (dy, dx, 0.0)  # metres
+        return out
+
+
+def load_predictor(model: str, checkpoint: Path | None = None, device: str = "cpu", weights: Path | None = None,
+                   official_bn: bool | None = None) -> Predictor:
+    """The predictor `model`: a learned model needs a dsr-bench `checkpoint` or the authors' released
+    `weights` (dsr.pth ... 3dflow.pth). official_bn: BatchNorm with batch statistics (the official
+    code's way) or running statistics (eval); None: batch statistics for the authors' weights, eval
+    mode for a dsr-bench checkpoint."""
+    if model in REFERENCE_MODELS and weights is not None:
+        raise UserError(f"--weights is for the learned models ({', '.join(LEARNED_MODELS)}), not --model {model}")
     if model == "oracle":
         return OraclePredictor()
     if model == "static":
         return StaticPredictor()
+    if model == "push":
+        return PushPredictor()
     if model in LEARNED_MODELS:
+        if checkpoint is not None and weights is not None:
+            raise UserError("pass either --checkpoint (a dsr-bench checkpoint) or --weights (the authors' file), not both")
+        if weights is not None:
+            from dsr_bench.models.inference import load_official_predictor
+
+            return load_official_predictor(model, Path(weights), device, True if official_bn is None else official_bn)
         if checkpoint is None:
-            raise UserError(f"--model {model} needs --checkpoint CKPT (train one with `dsr-bench train`)")
+            raise UserError(f"--model {model} needs --checkpoint CKPT (train one with `dsr-bench train`) "
+                            f"or --weights FILE (the authors' {model}.pth)")
         if not Path(checkpoint).is_file():
             raise UserError(f"checkpoint not found: {checkpoint}")
+        from dsr_bench.dataset.manifest import file_sha256
         from dsr_bench.models.inference import load_predictor as load_learned
 
-        return load_learned(model, Path(checkpoint), device)
+        predictor = (load_learned(model, Path(checkpoint), device) if official_bn is None
+                     else load_learned(model, Path(checkpoint), device, official_bn))
+        predictor.weights = {"source": "dsr-bench", "file": Path(checkpoint).name,
+                             "sha256": file_sha256(checkpoint),
+                             "batchnorm": "batch statistics (official)" if official_bn else "running statistics (eval)"}
+        return predictor
     raise UserError(f"--model {model!r}: choose one of {', '.join(MODEL_NAMES)}")
 
 
@@ -112,5 +167,9 @@ def predict_split(predictor: Predictor, data_dir: str | Path, names: list[str], 
     meta = {"name": predictor.name, "description": (type(predictor).__doc__ or "").strip().splitlines()[0],
             "parameters": {"num_slots": predictor.num_slots}, "seconds_per_step": seconds / max(steps, 1),
             "hardware": f"{os.cpu_count()} CPU cores"}
+    weights = getattr(predictor, "weights", None)
+    if weights:  # where a learned model's weights came from; also under parameters, which results carry
+        meta["weights"] = weights
+        meta["parameters"]["weights"] = weights
     write_text(out / "meta.json", json.dumps(meta, indent=1) + "\n")
     return written
