@@ -16,9 +16,16 @@ Every conv block is conv3 -> BatchNorm -> LeakyReLU (-> x2 trilinear upsampling,
   with additive skips) to per-voxel flow. (The official 3DFlow has no mask head; ours keeps it so
   the baseline also fills the predictions' masks.)
 Motion is in voxels along (D0, D1, D2) = (dy, dx, dz).
+
+`batchnorm_statistics(net, batch)` sets which statistics BatchNorm normalises with outside
+training: the running averages (eval mode) or each batch's own (the official code's evaluation),
+the latter without touching the stored running statistics.
 """
 
 from __future__ import annotations
+
+import contextlib
+from collections.abc import Iterator
 
 import torch
 from torch import nn
@@ -27,6 +34,36 @@ from torch.nn import functional as F
 from dsr_bench.models.config import ModelConfig
 from dsr_bench.models.se3 import blended_motion, euler_to_matrix, soft_centroids
 from dsr_bench.models.warp import forward_warp
+
+
+def batchnorm_layers(net: nn.Module) -> list[nn.modules.batchnorm._BatchNorm]:
+    """Every BatchNorm layer (2D and 3D) of a network, in module order."""
+    return [m for m in net.modules() if isinstance(m, nn.modules.batchnorm._BatchNorm)]
+
+
+@contextlib.contextmanager
+def batchnorm_statistics(net: nn.Module, batch: bool) -> Iterator[nn.Module]:
+    """The network in eval mode for forward passes outside training, BatchNorm normalising with
+    the running statistics (`batch=False`) or with each batch's own statistics (`batch=True`, as the
+    official code evaluates). With batch statistics the stored running_mean, running_var and
+    num_batches_tracked are neither read nor updated (the layers run in train mode with
+    `track_running_stats` off for the duration): predicting never changes the model, and predicting
+    twice gives the same outputs. Every module's mode and flag are restored on exit."""
+    modes = [(m, m.training) for m in net.modules()]
+    layers = batchnorm_layers(net)
+    tracking = [m.track_running_stats for m in layers]
+    net.eval()
+    if batch:
+        for m in layers:
+            m.train()
+            m.track_running_stats = False  # F.batch_norm then gets no running buffers: nothing updated
+    try:
+        yield net
+    finally:
+        for m, flag in zip(layers, tracking):
+            m.track_running_stats = flag
+        for m, mode in modes:
+            m.training = mode
 
 
 class ConvBlock(nn.Module):
