@@ -14,7 +14,8 @@ OBJECT_SETS_HELP = "cube | shapenet | ycb | procedural | procedural-novel"
 def generate(
     objects: Optional[str] = typer.Option(None, "--objects", help=f"Object set: {OBJECT_SETS_HELP}."),
     num_sequences: Optional[int] = typer.Option(None, "--num-sequences", "-n", help="Sequences to generate."),
-    out: Optional[Path] = typer.Option(None, "--out", "-o", help="Dataset directory (default data/<split>)."),
+    out: Optional[Path] = typer.Option(None, "--out", "-o", help="Dataset directory (default data/<split> with "
+                                       "--split; required otherwise)."),
     split: Optional[str] = typer.Option(None, "--split", help="A named benchmark split (sets objects, size, seed)."),
     seed: Optional[int] = typer.Option(None, "--seed", help="Base seed; sequence i uses a seed derived from it and i."),
     steps: Optional[int] = typer.Option(None, "--steps", help="Pushes per sequence (default 10)."),

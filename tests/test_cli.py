@@ -24,6 +24,17 @@ def test_usage_errors_exit_2(capsys):
     assert "requires an argument" in capsys.readouterr().err
 
 
+def test_generate_help_says_when_out_is_required(capsys, monkeypatch):
+    """--out defaults to data/<split> only with --split; without it generate refuses to start, naming --out."""
+    monkeypatch.setenv("COLUMNS", "200")  # one help line per option
+    assert main(["generate", "--help"]) == 0
+    line = next(x for x in capsys.readouterr().out.splitlines() if "--out" in x)
+    assert "Dataset directory (default data/<split> with --split; required otherwise)." in line
+    assert main(["generate", "--objects", "cube", "-n", "1"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: ") and "--out" in err and "--split" in err
+
+
 def test_no_display_only_on_linux_without_x11_or_wayland(monkeypatch):
     from dsr_bench.display import no_display
 

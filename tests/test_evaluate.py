@@ -139,3 +139,76 @@ def test_predict_errors(synthetic, tmp_path, capsys):
     assert main(["predict", "--model", "magic", "--data", str(synthetic), "--out", str(tmp_path / "o")]) == 2
     assert "choose one of" in capsys.readouterr().err
     assert main(["evaluate", str(tmp_path / "none"), "--data", str(synthetic)]) == 2
+
+
+def _error_line(capsys) -> str:
+    """stderr of a command that failed with a user error: exactly one line `error: ...`."""
+    err = capsys.readouterr().err
+    assert err.startswith("error: ") and err.count("\n") == 1, err
+    return err
+
+
+def test_evaluate_infers_data_and_split_from_the_predictions_meta(synthetic, tmp_path, capsys, monkeypatch):
+    """`predict` records the dataset (absolute) and split in meta.json; `evaluate PRED_DIR` without --data scores
+    against them, saying on one line what it inferred; results carry the method's meta, not the machine's path."""
+    monkeypatch.chdir(synthetic.parent)
+    pred = _predict("static", synthetic.name, tmp_path / "s")  # a relative --data: recorded absolute
+    meta = json.loads((pred / "meta.json").read_text())
+    assert meta["data"] == str(synthetic.resolve()) and meta["split"] == "test" and meta["name"] == "static"
+    monkeypatch.chdir(tmp_path)
+    capsys.readouterr()
+    assert main(["evaluate", str(pred), "--out", "inferred.json"]) == 0
+    err = capsys.readouterr().err
+    assert f"data: {synthetic.resolve()}, split: test (from {pred / 'meta.json'})" in err.splitlines()
+    assert main(["evaluate", str(pred), "--data", str(synthetic), "--split", "test", "--out", "given.json"]) == 0
+    assert "(from " not in capsys.readouterr().err  # nothing inferred, nothing said
+    inferred, given = (json.loads((tmp_path / f"{n}.json").read_text()) for n in ("inferred", "given"))
+    assert inferred["metrics"] == given["metrics"] and inferred["split"] == "test"
+    assert "data" not in inferred["meta"] and "split" not in inferred["meta"]
+
+
+def test_evaluate_infers_the_split_of_the_named_dataset_only(tmp_path, capsys):
+    """With two splits, --split would be needed; meta.json's split is taken when --data is the dataset it names."""
+    data = write_synthetic_dataset(tmp_path / "data", num_sequences=2, num_steps=1)
+    (data / "splits" / "first.txt").write_text("seq_0000\n")
+    assert main(["manifest", str(data)]) == 0
+    pred = tmp_path / "pred"
+    assert main(["predict", "--model", "oracle", "--data", str(data), "--split", "first", "--out", str(pred)]) == 0
+    capsys.readouterr()
+    assert main(["evaluate", str(pred), "--data", str(data), "--out", str(tmp_path / "r.json")]) == 0
+    assert f"split: first (from {pred / 'meta.json'})" in capsys.readouterr().err.splitlines()
+    assert json.loads((tmp_path / "r.json").read_text())["coverage"]["expected"] == 1
+    other = tmp_path / "other"
+    shutil.copytree(data, other)
+    assert main(["evaluate", str(pred), "--data", str(other)]) == 2  # another dataset: its split is not inferred
+    assert "choose one with --split" in _error_line(capsys)
+
+
+def test_explicit_data_wins_over_meta(synthetic, tmp_path, capsys):
+    """A given --data is used even when meta.json names another (moved) dataset and split; nothing is inferred."""
+    pred = _predict("oracle", synthetic, tmp_path / "p")
+    meta = json.loads((pred / "meta.json").read_text())
+    (pred / "meta.json").write_text(json.dumps(dict(meta, data=str(tmp_path / "moved"), split="nope")))
+    capsys.readouterr()
+    assert main(["evaluate", str(pred), "--data", str(synthetic)]) == 0
+    assert "(from " not in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("meta, message", [
+    (None, "meta.json not found"),
+    ({"name": "x"}, "meta.json names no dataset directory"),
+    ({"name": "x", "data": ""}, "meta.json names no dataset directory"),
+    ({"name": "x", "data": "/no/such/dataset"},
+     "meta.json names the dataset directory '/no/such/dataset', which does not exist"),
+    ("{not json", "meta.json: not valid JSON"),
+])
+def test_evaluate_without_data_fails_naming_the_missing_thing_and_the_fix(synthetic, tmp_path, capsys, meta, message):
+    pred = _predict("oracle", synthetic, tmp_path / "p")
+    if meta is None:
+        (pred / "meta.json").unlink()
+    else:
+        (pred / "meta.json").write_text(meta if isinstance(meta, str) else json.dumps(meta))
+    capsys.readouterr()
+    assert main(["evaluate", str(pred)]) == 2
+    err = _error_line(capsys)
+    assert message in err and "--data DIR" in err, err

@@ -13,6 +13,7 @@ from dsr_bench.dataset.manifest import (
     build_manifest,
     file_sha256,
     load_manifest,
+    name_ranges,
     read_split,
     resolve_sequence,
     split_digest,
@@ -156,8 +157,11 @@ def test_unreadable_file_and_missing_dir(data, tmp_path):
 def test_resolve_sequence(data):
     assert resolve_sequence(data, "seq_0001") == data / "seq_0001.h5"
     assert resolve_sequence(None, str(data / "seq_0000.h5")) == data / "seq_0000.h5"
-    with pytest.raises(UserError, match="no sequence 'seq_0042'"):
+    with pytest.raises(UserError, match=f"no sequence 'seq_0042' in {data}: it holds seq_0000..seq_0001 "
+                                        r"\(2 sequences\); all names: `dsr-bench info .* --sequences`"):
         resolve_sequence(data, "seq_0042")
+    with pytest.raises(UserError, match="dataset directory not found: .*; give --data the directory"):
+        resolve_sequence(data / "nope", "seq_0042")
     with pytest.raises(UserError, match="give a path"):
         resolve_sequence(None, "seq_0042")
 
@@ -179,3 +183,31 @@ def test_completed_entry_and_common_generator_args(data, tmp_path):
                                              {"generator_args": {"a": 1, "c": 0}}])
     assert common == {"a": 1} and varying == ["b", "c"]
     assert common_generator_args([{}, {"generator_args": None}]) == ({}, [])
+
+
+def test_name_ranges():
+    assert name_ranges([f"seq_{i:04d}" for i in range(400)]) == "seq_0000..seq_0399"
+    assert name_ranges(["seq_0007", "seq_0001", "seq_0000", "seq_0002", "seq_0009", "seq_0010"]) == \
+        "seq_0000..seq_0002, seq_0007, seq_0009..seq_0010"
+    assert name_ranges([f"seq_{i}" for i in range(9998, 10002)]) == "seq_9998..seq_10001"  # natural order
+    assert name_ranges(["seq_a", "seq_0001", "seq_b", "x_0002"]) == "seq_0001, seq_a, seq_b, x_0002"
+    assert name_ranges([f"seq_{i:04d}" for i in range(0, 20, 2)], limit=3) == \
+        "seq_0000, seq_0002, seq_0004, ... (7 more ranges)"
+    assert name_ranges([]) == "-"
+
+
+def test_unknown_sequence_points_at_a_command_that_lists_them(data, capsys):
+    """The error of an unknown name ends with a command; run as written, it prints exactly the sequence names."""
+    import re
+    import shlex
+
+    from dsr_bench.cli import main
+
+    with pytest.raises(UserError) as err:
+        resolve_sequence(data, "seq_0042")
+    command = shlex.split(re.search(r"`(dsr-bench [^`]*)`", str(err.value)).group(1))
+    assert main(command[1:]) == 0
+    assert capsys.readouterr().out.splitlines() == ["seq_0000", "seq_0001"]
+    assert main(["info", str(data)]) == 0
+    out = capsys.readouterr().out
+    assert "seq_0000..seq_0001 (all: --sequences)" in out and "2 sequences: seq_0000..seq_0001" in out

@@ -251,7 +251,11 @@ def _fails(capsys, argv: list[str], message: str) -> None:
 def test_errors(synthetic, tmp_path, capsys):
     data = synthetic["seq"].parent
     out = tmp_path / "out"
-    _fails(capsys, ["view", "seq_0099", "--data", str(data), "--save", str(out / "a.rrd")], "no sequence 'seq_0099'")
+    _fails(capsys, ["view", "seq_0099", "--data", str(data), "--save", str(out / "a.rrd")],
+           f"no sequence 'seq_0099' in {data}: it holds seq_0007 (1 sequence)")  # no manifest: no `info` to point at
+    _fails(capsys, ["view", "seq_0099", "--data", str(tmp_path), "--save", str(out / "a.rrd")],
+           "it holds no seq_*.h5 files; give --data a dataset directory")
+    _fails(capsys, ["view", "seq_0007", "--save", str(out / "a.rrd"), "--grpc-port", "9876"], "add --web")
     broken = tmp_path / "broken.h5"
     broken.write_bytes(b"\x89HDF\r\n garbage")
     _fails(capsys, ["view", str(broken), "--save", str(out / "b.rrd")], "not a readable HDF5 file")
@@ -281,3 +285,56 @@ def test_native_viewer_needs_a_display(synthetic, monkeypatch, capsys):
     monkeypatch.delenv("DISPLAY", raising=False)
     monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
     _fails(capsys, ["view", str(synthetic["seq"])], "--save out.rrd, or serve it with --web")
+
+
+def test_predictions_name_the_dataset(synthetic, tmp_path, capsys):
+    """--predictions without --data: the dataset is the one the predictions' meta.json names, said on one line."""
+    from dsr_bench.scoring.predictions import record_source
+
+    data, pred = synthetic["seq"].parent, tmp_path / "pred"
+    shutil.copytree(synthetic["pred_dir"], pred)
+    _fails(capsys, ["view", "seq_0007", "--predictions", str(pred), "--save", str(tmp_path / "a.rrd")],
+           f"{pred / 'meta.json'} not found, so the dataset of these predictions is unknown; give it with --data DIR")
+    record_source(pred, data, "test")
+    assert main(["view", "seq_0007", "--predictions", str(pred), "--save", str(tmp_path / "b.rrd")]) == 0
+    assert f"data: {data.resolve()} (from {pred / 'meta.json'})" in capsys.readouterr().err.splitlines()
+    assert Recording(tmp_path / "b.rrd").steps("/world/pred/mask", "Points3D:positions")
+
+
+def _free_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _listening(port: int) -> bool:
+    import socket
+
+    with socket.socket() as s:
+        return s.connect_ex(("127.0.0.1", port)) == 0
+
+
+def test_web_viewer_serves_page_and_data_and_says_both_ports(synthetic, monkeypatch, capsys):
+    """`view --web` prints one line with the URL and both ports the browser needs, and keeps serving both (the
+    data's gRPC server stops if its recording stream is dropped) until Ctrl-C."""
+    import gc
+    import time
+
+    page, data = _free_port(), _free_port()
+    sleep = time.sleep
+
+    def interrupt(seconds: float) -> None:  # the command's wait for Ctrl-C: check the servers, then press it
+        if seconds < 3600:
+            return sleep(seconds)
+        gc.collect()
+        assert _listening(page) and _listening(data), (page, data)
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(time, "sleep", interrupt)
+    assert main(["view", str(synthetic["seq"]), "--web", "--web-port", str(page), "--grpc-port", str(data)]) == 130
+    out = capsys.readouterr().out
+    assert out.count("\n") == 1 and out.startswith(f"serving the web viewer at http://localhost:{page}/?url=")
+    assert f"port {page}" in out and f"port {data} (rerun's gRPC server)" in out
+    assert f"ssh -L {page}:localhost:{page} -L {data}:localhost:{data} HOST" in out

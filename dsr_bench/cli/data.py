@@ -39,17 +39,25 @@ def validate(
     raise typer.Exit(1)
 
 
-def info(data_dir: Path = typer.Argument(..., help="Dataset directory.")) -> None:
-    """Summarise a dataset: sequences, steps, objects, splits and their checksums, size on disk."""
+def info(
+    data_dir: Path = typer.Argument(..., help="Dataset directory."),
+    sequences: bool = typer.Option(False, "--sequences", help="Print only the sequence names, one per line."),
+) -> None:
+    """Summarise a dataset: sequences (their names as ranges), steps, objects, splits and their checksums, size
+    on disk; --sequences lists every sequence name."""
     import json
     from collections import Counter
 
     from rich.console import Console
     from rich.table import Table
 
-    from dsr_bench.dataset.manifest import common_generator_args, completed_entry, load_manifest
+    from dsr_bench.dataset.manifest import common_generator_args, completed_entry, load_manifest, name_ranges
 
     manifest = load_manifest(data_dir)
+    if sequences:
+        for entry in manifest["sequences"]:
+            typer.echo(entry["name"])
+        return
     seqs = [completed_entry(data_dir, s) for s in manifest["sequences"]]
     console = Console()
     table = Table(title=f"dsr-bench dataset: {data_dir}", show_header=False)
@@ -64,6 +72,7 @@ def info(data_dir: Path = typer.Argument(..., help="Dataset directory.")) -> Non
         return ", ".join(f"{k}: {v}" for k, v in sorted(Counter(values).items(), key=lambda kv: str(kv[0]))) or "-"
 
     table.add_row("sequences / pushes", f"{len(seqs)} / {steps}" + (f" ({missing} files missing)" if missing else ""))
+    table.add_row("sequence names", f"{name_ranges(s['name'] for s in seqs)} (all: --sequences)")
     table.add_row("pushes per sequence", counts(s["num_steps"] for s in seqs))
     table.add_row("objects per scene", counts(s["num_objects"] for s in seqs))
     table.add_row("object sets", counts(s.get("object_set", "") for s in seqs))
@@ -74,7 +83,8 @@ def info(data_dir: Path = typer.Argument(..., help="Dataset directory.")) -> Non
     table.add_row("size on disk", f"{size / 1e6:.1f} MB, {size / max(steps, 1) / 1e6:.3f} MB "
                                   f"({size / max(steps, 1):,.0f} bytes) per push")
     for name, split in sorted(manifest.get("splits", {}).items()):
-        table.add_row(f"split {name}", f"{split['sequences']} sequences (checksum below)")
+        table.add_row(f"split {name}", f"{split['sequences']} sequences: {name_ranges(map(str, split['names']))} "
+                                       "(checksum below)")
     common, varying = common_generator_args(seqs)
     table.add_row("generator args",
                   json.dumps(common, sort_keys=True) + (f"; varying: {', '.join(varying)}" if varying else ""))

@@ -22,17 +22,20 @@ def predict(
                                            "BatchNorm then uses batch statistics, as theirs did."),
     device: str = typer.Option("cpu", "--device", help="cpu or cuda (learned models)."),
 ) -> None:
-    """Run a model over a split and write the predictions contract (one .h5 per sequence + meta.json)."""
+    """Run a model over a split and write the predictions contract (one .h5 per sequence + meta.json, which
+    names the dataset directory and split for `evaluate` and `view`)."""
     from rich.progress import Progress
 
     from dsr_bench.dataset.manifest import read_split
     from dsr_bench.models.predictors import load_predictor, predict_split
+    from dsr_bench.scoring.predictions import record_source
 
     predictor = load_predictor(model, checkpoint, device, weights=weights)
     split, names = read_split(data, split)
     with Progress(transient=True) as bar:
         task = bar.add_task(f"predict {model}", total=len(names))
         predict_split(predictor, data, names, out, progress=lambda: bar.advance(task))
+    record_source(out, data, split)  # what `evaluate OUT` and `view --predictions OUT` infer --data and --split from
     typer.echo(f"wrote {len(names)} prediction files for split {split} to {out}")
 
 
@@ -73,8 +76,10 @@ def _printable(text: str) -> str:
 
 def evaluate(
     pred_dir: Path = typer.Argument(..., help="Predictions directory (one .h5 per sequence, meta.json)."),
-    data: Path = typer.Option(..., "--data", help="Dataset directory with the ground truth."),
-    split: Optional[str] = typer.Option(None, "--split", help="Split to score (default: the only one)."),
+    data: Optional[Path] = typer.Option(None, "--data", help="Dataset directory with the ground truth (default: the "
+                                        "one PRED_DIR/meta.json names, as `dsr-bench predict` writes it)."),
+    split: Optional[str] = typer.Option(None, "--split", help="Split to score (default: the one meta.json names for "
+                                        "that dataset, else the dataset's only split)."),
     out: Optional[Path] = typer.Option(None, "--out", "-o", help="Write the results JSON here."),
     allow_partial: bool = typer.Option(False, "--allow-partial", help="Score the valid sequences despite problems."),
     workers: int = typer.Option(0, "--workers", "-w", help="Worker processes (0 = all cores)."),
@@ -84,8 +89,15 @@ def evaluate(
     from rich.console import Console
 
     from dsr_bench.atomic import write_text
+    from dsr_bench.errors import UserError
     from dsr_bench.scoring.evaluate import evaluate as run
+    from dsr_bench.scoring.predictions import infer_source
 
+    if not pred_dir.is_dir():
+        raise UserError(f"predictions directory not found: {pred_dir}")
+    data, split, note = infer_source(pred_dir, data, split)
+    if note:
+        typer.echo(_printable(note), err=True)
     evaluation = run(pred_dir, data, split, allow_partial=allow_partial, workers=workers)
     console = Console(stderr=True)
     for warning in evaluation.warnings:

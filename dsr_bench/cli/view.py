@@ -10,14 +10,18 @@ import typer
 
 def view(
     sequence: str = typer.Argument(..., help="A sequence name within --data (seq_0042) or a path to a .h5 file."),
-    data: Optional[Path] = typer.Option(None, "--data", help="Dataset directory holding the sequence."),
+    data: Optional[Path] = typer.Option(None, "--data", help="Dataset directory holding the sequence (with "
+                                        "--predictions, default: the one their meta.json names)."),
     predictions: Optional[Path] = typer.Option(
         None, "--predictions", help="Predictions directory (PRED_DIR/<sequence>.h5) to show beside the ground truth."),
     save: Optional[Path] = typer.Option(None, "--save", help="Write a .rrd recording instead of opening a viewer."),
     web: bool = typer.Option(False, "--web", help="Serve the web viewer instead of spawning the native one."),
-    web_port: Optional[int] = typer.Option(None, "--web-port", help="Port of the web viewer (default 9090)."),
+    web_port: Optional[int] = typer.Option(None, "--web-port", help="Port of the web viewer's page (default 9090)."),
+    grpc_port: Optional[int] = typer.Option(None, "--grpc-port", help="Port the web viewer streams the data from "
+                                            "(rerun's gRPC server, default 9876)."),
 ) -> None:
-    """Open a sequence in the rerun viewer: cameras, TSDF, amodal voxels, meshes, push, flow, predictions."""
+    """Open a sequence in the rerun viewer: cameras, TSDF, amodal voxels, meshes, push, flow, predictions.
+    With --predictions and no --data, the dataset is the one the predictions' meta.json names."""
     from dsr_bench.display import no_display
     from dsr_bench.errors import UserError
     from dsr_bench.dataset.manifest import resolve_sequence
@@ -26,21 +30,48 @@ def view(
         raise UserError("--save and --web exclude each other: choose one")
     if save is not None and save.suffix != ".rrd":
         raise UserError(f"--save {save}: the recording file must end in .rrd")
+    if grpc_port is not None and not web:
+        raise UserError("--grpc-port is a port of the web viewer: add --web, or drop it")
+    if data is None and predictions is not None and not (sequence.endswith(".h5") and Path(sequence).is_file()):
+        data = _data_of(predictions)
     path = resolve_sequence(data, sequence)
     if save is None and not web and no_display():
         raise UserError("no display to open the viewer on: write a recording with --save out.rrd, "
                         "or serve it with --web")
     from dsr_bench.viewer import view as run
 
-    out = run(path, predictions=predictions, save=save, web=web, web_port=web_port)
+    out = run(path, predictions=predictions, save=save, web=web, web_port=web_port, grpc_port=grpc_port)
     if save is not None:
         typer.echo(f"wrote {out} (open it with: rerun {out})")
     elif web:
-        typer.echo(f"serving the web viewer at {out} ; press Ctrl-C to stop")
+        typer.echo(web_message(out))
         import time
 
         while True:
             time.sleep(3600)
+
+
+def _data_of(predictions: Path) -> Path:
+    """The dataset directory that PREDICTIONS/meta.json names, said on stderr (a UserError naming the fix if none)."""
+    from dsr_bench.scoring.predictions import META_NAME, meta_source
+
+    if not predictions.is_dir():
+        from dsr_bench.errors import UserError
+
+        raise UserError(f"predictions directory not found: {predictions}")
+    data, _ = meta_source(predictions)
+    typer.echo(f"data: {data} (from {predictions / META_NAME})", err=True)
+    return data
+
+
+def web_message(url: str) -> str:
+    """The one line `view --web` prints: the URL and both ports the browser needs (page and data)."""
+    from dsr_bench.viewer import web_ports
+
+    page, data = web_ports(url)
+    return (f"serving the web viewer at {url} : the browser loads the page from port {page} and the data from "
+            f"port {data} (rerun's gRPC server), so from another machine forward both, e.g. "
+            f"ssh -L {page}:localhost:{page} -L {data}:localhost:{data} HOST ; press Ctrl-C to stop")
 
 
 def register(app: typer.Typer) -> None:

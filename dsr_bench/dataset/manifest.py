@@ -10,7 +10,8 @@ from __future__ import annotations
 
 import hashlib
 import json
-from collections.abc import Mapping
+import re
+from collections.abc import Iterable, Mapping
 from pathlib import Path
 
 import numpy as np
@@ -229,15 +230,47 @@ def read_split(data_dir: str | Path, split: str | None) -> tuple[str, list[str]]
     return split, splits[split]
 
 
+def name_ranges(names: Iterable[str], limit: int = 6) -> str:
+    """Sequence names compactly, in natural order: consecutive numbers of one prefix as a range
+    (`seq_0000..seq_0399`), ranges separated by commas, the first `limit` shown and the rest counted
+    (`seq_0000..seq_0003, seq_0007, ... (2 more ranges)`); '-' for no names."""
+    def key(name: str) -> tuple:
+        m = re.fullmatch(r"(.*?)(\d+)", name)
+        return (m.group(1), int(m.group(2)), name) if m else (name, -1, name)
+
+    runs: list[list] = []  # [prefix, first number, last number, first name, last name]
+    for name in sorted(set(names), key=key):
+        prefix, number, _ = key(name)
+        if runs and number >= 0 and runs[-1][0] == prefix and runs[-1][2] == number - 1:
+            runs[-1][2], runs[-1][4] = number, name
+        else:
+            runs.append([prefix, number, number, name, name])
+    shown = [first if first == last else f"{first}..{last}" for *_, first, last in runs[:limit]]
+    if len(runs) > limit:
+        shown.append(f"... ({len(runs) - limit} more ranges)")
+    return ", ".join(shown) or "-"
+
+
 def resolve_sequence(data_dir: str | Path | None, name: str) -> Path:
-    """A sequence file from a name within a dataset (`seq_0042`) or a path to a file."""
+    """A sequence file from a name within a dataset (`seq_0042`) or a path to a file. Not found: a UserError
+    that names the sequences the directory holds."""
     candidate = Path(name)
     if candidate.suffix == ".h5" and candidate.is_file():
         return candidate
     if data_dir is not None:
-        path = Path(data_dir) / f"{candidate.stem}.h5"
+        data_dir = Path(data_dir)
+        path = data_dir / f"{candidate.stem}.h5"
         if path.is_file():
             return path
-        raise UserError(f"no sequence {name!r} in {data_dir} (expected {path}); "
-                        f"list them with `dsr-bench info {data_dir}`")
+        if not data_dir.is_dir():
+            raise UserError(f"dataset directory not found: {data_dir}; give --data the directory holding the "
+                            "seq_*.h5 files")
+        held = [p.stem for p in data_dir.glob("seq_*.h5")]
+        if not held:
+            raise UserError(f"no sequence {name!r} in {data_dir}: it holds no seq_*.h5 files; give --data a dataset "
+                            "directory, or a path to a .h5 file")
+        every = (f"; all names: `dsr-bench info {data_dir} --sequences`" if (data_dir / MANIFEST_NAME).is_file()
+                 else "")
+        raise UserError(f"no sequence {name!r} in {data_dir}: it holds {name_ranges(held)} ({len(held)} "
+                        f"sequence{'s' if len(held) > 1 else ''}){every}")
     raise UserError(f"sequence {name!r} not found: give a path to a .h5 file or --data DIR with a sequence name")

@@ -8,7 +8,10 @@ and the root attribute `num_slots` (K - 1, the number of object slots the model 
 integer in 1..254; slot numbers are the model's own, matching is the metric's job).
 PRED_DIR/meta.json optionally describes the method: a JSON object of at most 1 MiB with string
 "name", "description", "code_url", "hardware", an object "parameters" and a number
-"seconds_per_step".
+"seconds_per_step". `dsr-bench predict` also records where the predictions came from, string
+"data" (the dataset directory, absolute) and "split" (`record_source`), from which `evaluate` and
+`view` infer --data and --split (`infer_source`); they describe a machine, not the method, so
+results do not carry them.
 
 What a prediction file must not be, so that a score cannot be borrowed, hang or crash the
 evaluator (`check_prediction_header`, `file_problem`, `read_meta`; nothing is read before these pass):
@@ -34,7 +37,7 @@ import h5py
 import numpy as np
 from h5py import h5d, h5l, h5o, h5z
 
-from dsr_bench.atomic import atomic_path
+from dsr_bench.atomic import atomic_path, write_text
 from dsr_bench.constants import GRID_SHAPE, IMAGE_SHAPE
 from dsr_bench.errors import UserError
 
@@ -254,25 +257,34 @@ def check_prediction_header(f: h5py.File, num_steps: int) -> list[str]:
     return problems
 
 
-def read_meta(pred_dir: Path) -> tuple[dict, list[str]]:
-    """PRED_DIR/meta.json's known keys and its problems ({} and [] when there is none). Checked
-    before reading: a regular file inside the directory, at most META_MAX_BYTES."""
+def _load_meta(pred_dir: Path) -> tuple[dict | None, str | None]:
+    """PRED_DIR/meta.json as a JSON object, or (None, its problem); (None, None) when there is none.
+    Checked before reading: a regular file inside the directory, at most META_MAX_BYTES."""
     path = pred_dir / META_NAME
     if not os.path.lexists(path):
-        return {}, []
+        return None, None
     problem = file_problem(path, pred_dir)
     if problem:
-        return {}, [problem]
+        return None, problem
     size = path.stat().st_size
     if size > META_MAX_BYTES:
-        return {}, [f"{size} bytes, more than the {META_MAX_BYTES} allowed"]
+        return None, f"{size} bytes, more than the {META_MAX_BYTES} allowed"
     try:
         with open(path, "rb") as fh:  # a regular file: opening cannot block
             raw = json.loads(fh.read(META_MAX_BYTES + 1).decode("utf-8"))
     except (OSError, UnicodeDecodeError, ValueError, RecursionError) as exc:
-        return {}, [f"not valid JSON ({type(exc).__name__}: {' '.join(str(exc).split())[:200]})"]
+        return None, f"not valid JSON ({type(exc).__name__}: {' '.join(str(exc).split())[:200]})"
     if not isinstance(raw, dict):
-        return {}, [f"must hold a JSON object, not {type(raw).__name__}"]
+        return None, f"must hold a JSON object, not {type(raw).__name__}"
+    return raw, None
+
+
+def read_meta(pred_dir: Path) -> tuple[dict, list[str]]:
+    """PRED_DIR/meta.json's known keys and its problems ({} and [] when there is none). Checked
+    before reading: a regular file inside the directory, at most META_MAX_BYTES."""
+    raw, problem = _load_meta(pred_dir)
+    if raw is None:
+        return {}, [problem] if problem else []
     problems = []
     for key, (types, words) in META_TYPES.items():
         if key in raw:
@@ -285,3 +297,62 @@ def read_meta(pred_dir: Path) -> tuple[dict, list[str]]:
         problems.append("'name' must not be empty")
     meta = {k: raw[k] for k in META_TYPES if k in raw}
     return ({}, problems) if problems else (meta, [])
+
+
+def record_source(pred_dir: str | Path, data_dir: str | Path, split: str) -> Path:
+    """Add the dataset directory (absolute) and the split that PRED_DIR's predictions were made from to its
+    meta.json (created if absent), atomically; returns the file."""
+    pred_dir = Path(pred_dir)
+    raw, problem = _load_meta(pred_dir)
+    if problem:
+        raise UserError(f"{pred_dir / META_NAME}: {problem}; delete it and predict again")
+    meta = dict(raw or {}, data=str(Path(data_dir).resolve()), split=split)
+    return write_text(pred_dir / META_NAME, json.dumps(meta, indent=1) + "\n")
+
+
+def meta_source(pred_dir: str | Path) -> tuple[Path, str | None]:
+    """The dataset directory and split that PRED_DIR/meta.json names (`record_source`). UserError, naming what
+    is missing and the fix (--data DIR), when it names no dataset directory or one that does not exist."""
+    pred_dir = Path(pred_dir)
+    path = pred_dir / META_NAME
+    raw, problem = _load_meta(pred_dir)
+    if raw is None:
+        found = f"{path}: {problem}" if problem else f"{path} not found"
+        raise UserError(f"{found}, so the dataset of these predictions is unknown; give it with --data DIR")
+    data, split = raw.get("data"), raw.get("split")
+    if not isinstance(data, str) or not data.strip():
+        raise UserError(f"{path} names no dataset directory (its 'data', which `dsr-bench predict` writes); "
+                        "give it with --data DIR")
+    if not Path(data).is_dir():
+        raise UserError(f"{path} names the dataset directory {_show(data)}, which does not exist; "
+                        "give the dataset with --data DIR")
+    if split is not None and (not isinstance(split, str) or not split.strip()):
+        raise UserError(f"{path}: 'split' must be a split name, got {_show(json.dumps(split))}; "
+                        "give the split with --split NAME")
+    return Path(data), split
+
+
+def infer_source(pred_dir: str | Path, data_dir: Path | None, split: str | None
+                 ) -> tuple[Path, str | None, str | None]:
+    """(data directory, split, note) for a command on PRED_DIR: `data_dir` and `split` as given, else inferred
+    from PRED_DIR/meta.json (`meta_source`). The split is inferred only for the dataset that meta.json names
+    (given or inferred); `note` says on one line what was inferred (None: nothing)."""
+    pred_dir = Path(pred_dir)
+    inferred = []
+    if data_dir is None:
+        data_dir, named_split = meta_source(pred_dir)
+        inferred.append(f"data: {data_dir}")
+    elif split is None:
+        try:
+            named_data, named_split = meta_source(pred_dir)
+        except UserError:  # explicit --data: meta.json's problems are the evaluator's to report
+            named_split = None
+        else:
+            named_split = named_split if named_data.resolve() == Path(data_dir).resolve() else None
+    else:
+        named_split = None
+    if split is None and named_split is not None:
+        split = named_split
+        inferred.append(f"split: {split}")
+    note = f"{', '.join(inferred)} (from {pred_dir / META_NAME})" if inferred else None
+    return data_dir, split, note

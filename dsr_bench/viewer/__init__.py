@@ -41,6 +41,8 @@ DISAGREE_COLOR = (255, 0, 0)
 METRIC_NAMES = ("iou_unordered", "iou_ordered", "motion_visible", "motion_full", "motion_moved", "motion_static",
                 "motion_2d")
 _READ_ERRORS = (OSError, KeyError, ValueError, IndexError)
+#: Recordings serving the web viewer's data: a RecordingStream's gRPC server stops when the stream is dropped.
+_SERVING: list = []
 
 
 def object_color(object_id: int) -> tuple[int, int, int]:
@@ -277,11 +279,22 @@ def _log_or_fail(rec, seq, pred, path: Path) -> None:
     rec.flush()
 
 
+def web_ports(url: str) -> tuple[int, int]:
+    """(web viewer port, gRPC port) of a URL that `view` returns when serving: the browser loads the page from
+    the first and then streams the recording from the second, so both must be reachable."""
+    from urllib.parse import parse_qs, urlsplit
+
+    page = urlsplit(url)
+    data = urlsplit(parse_qs(page.query)["url"][0].removeprefix("rerun+"))
+    return page.port, data.port
+
+
 def view(path: str | Path, predictions: str | Path | None = None, save: str | Path | None = None,
-         web: bool = False, web_port: int | None = None) -> Path | str | None:
+         web: bool = False, web_port: int | None = None, grpc_port: int | None = None) -> Path | str | None:
     """Open a sequence file in the rerun viewer, or write a recording to `save` (.rrd, atomically),
-    or serve the web viewer (`web`; the caller keeps the process alive). Returns the written path
-    when saving, the viewer's URL when serving."""
+    or serve the web viewer (`web`: page on `web_port`, default 9090, data over gRPC on `grpc_port`,
+    default 9876; the servers live as long as the process, which the caller keeps alive). Returns the
+    written path when saving, the viewer's URL when serving (`web_ports` gives both ports)."""
     import rerun as rr
 
     path = Path(path)
@@ -305,7 +318,8 @@ def view(path: str | Path, predictions: str | Path | None = None, save: str | Pa
         if web:
             from urllib.parse import quote
 
-            uri = rec.serve_grpc(default_blueprint=bp)
+            uri = rec.serve_grpc(grpc_port=grpc_port, default_blueprint=bp)
+            _SERVING.append(rec)  # dropping the stream would stop its gRPC server: the page would show no data
             rr.serve_web_viewer(web_port=web_port, open_browser=False, connect_to=uri)
             url = f"http://localhost:{web_port or 9090}/?url={quote(uri, safe='')}"
         else:
