@@ -31,30 +31,45 @@ def annotate(
     export: Optional[Path] = typer.Option(None, "--export", help="Write the annotated sequence file (OUT.h5)."),
     allow_unchecked: bool = typer.Option(False, "--allow-unchecked",
                                          help="Export even poses that are not snapped or confirmed."),
+    place: Optional[Path] = typer.Option(None, "--place", help="Place step 0 without the window from a JSON file of "
+                                         "poses or picks (docs/annotator.md), then snap; runs before --auto/--export."),
+    bop: Optional[Path] = typer.Option(None, "--bop", help="Also (or only) export in the BOP format to this directory "
+                                       "(scene_gt.json, scene_camera.json, rgb/, depth/, mask_visib/ per camera)."),
 ) -> None:
     """Annotate object poses in a two-camera capture; without flags, open the annotation window."""
     from annotator.session import Session
     from dsr_bench.errors import UserError
 
-    if allow_unchecked and export is None:
-        raise UserError("--allow-unchecked only applies to --export OUT.h5")
+    if allow_unchecked and export is None and bop is None:
+        raise UserError("--allow-unchecked only applies to --export OUT.h5 or --bop DIR")
     session = Session.open(resolve_capture(capture, captures), work)
+    if place is not None:
+        from annotator.placement import place_step0
+
+        lines = place_step0(session, place)
+        typer.echo(f"placed {len(lines)} objects at step 0 from {place}:")
+        for line in lines:
+            typer.echo(f"  {line}")
     if auto:
         snapped = session.auto()
         moved = sum(len(v) for v in snapped.values())
         typer.echo(f"auto: visited {len(snapped)} steps, snapped {moved} moved objects")
-    if status or auto:
+    if status or auto or place is not None:
         typer.echo(session.progress_table())
     if export is not None:
         path = session.export(export, allow_unchecked=allow_unchecked)
         typer.echo(f"wrote {path}")
-    if status or auto or export is not None:
+    if bop is not None:
+        from annotator.bop import export_bop
+
+        path = export_bop(session, bop, allow_unchecked=allow_unchecked)
+        typer.echo(f"wrote the BOP scenes to {path}")
+    if status or auto or export is not None or place is not None or bop is not None:
         return
     from dsr_bench.display import no_display
 
     if no_display():
-        raise UserError("no display to open the annotation window on: run `xvfb-run -a dsr-bench annotate ...`, or use "
-                        "--status, --auto or --export")
+        raise UserError(NO_DISPLAY)
     try:
         from annotator import window
     except ImportError as exc:
@@ -65,9 +80,13 @@ def annotate(
         raise
     except Exception as exc:  # noqa: BLE001 - GL/display failures surface as various errors
         if _display_error(exc):
-            raise UserError("cannot open a display for the annotation window: run under a desktop session or "
-                            "`xvfb-run -a dsr-bench annotate ...`, or use --status / --auto / --export") from None
+            raise UserError(f"cannot open a display ({NO_DISPLAY.split(': ', 1)[1]})") from None
         raise
+
+
+#: The one line shown when no window can be opened: the headless way, then the virtual display.
+NO_DISPLAY = ("no display for the annotation window: place step 0 without it with --place POSES.json (poses or picks, "
+              "docs/annotator.md), then --auto and --export; or run under `xvfb-run -a dsr-bench annotate ...`")
 
 
 def _display_error(exc: Exception) -> bool:

@@ -38,13 +38,18 @@ def _parts(vertices: np.ndarray, faces: np.ndarray) -> list:
 
 def _renderer(capture, front):
     """A SceneRenderer of the capture's meshes whose 'front' camera is the capture's calibrated front camera."""
+    return renderer_for(capture, {"front": front})
+
+
+def renderer_for(capture, cameras: dict):
+    """A SceneRenderer of the capture's meshes with the given cameras {name: Camera}."""
     from generators.render import SceneRenderer
 
     objects = []
     for i, obj in enumerate(capture.objects):
         color = obj.identity.get("color", (0.6, 0.6, 0.6))
         objects.append(SimpleNamespace(parts=_parts(*capture.mesh(i)), color=tuple(float(c) for c in color)))
-    return SceneRenderer(objects, cameras={"front": front})
+    return SceneRenderer(objects, cameras=dict(cameras))
 
 
 def stored_camera(camera, shape: tuple[int, int]):
@@ -72,6 +77,23 @@ def _identity(capture, i: int) -> dict:
     return ident
 
 
+def check_exportable(session, allow_unchecked: bool) -> list[tuple[int, int, str]]:
+    """The unchecked (step, object, status) of a session; UserError while any pose is unset, or while any is not
+    snapped or confirmed unless `allow_unchecked`."""
+    capture = session.capture
+    bad = session.unchecked()
+    unset = [(s, i) for s, i, st in bad if st == "unset"]
+    if unset:
+        listed = ", ".join(f"step {s} object {i + 1}" for s, i in unset[:6]) + (" ..." if len(unset) > 6 else "")
+        raise UserError(f"cannot export {capture.name}: {len(unset)} objects have no pose ({listed}); annotate them "
+                        "(or run `dsr-bench annotate CAPTURE --auto` once step 0 is placed)")
+    if bad and not allow_unchecked:
+        listed = ", ".join(f"step {s} object {i + 1} ({st})" for s, i, st in bad[:6]) + (" ..." if len(bad) > 6 else "")
+        raise UserError(f"cannot export {capture.name}: {len(bad)} poses are neither snapped nor confirmed ({listed}); "
+                        "snap or confirm them, or pass --allow-unchecked")
+    return bad
+
+
 def export_sequence(session, out: str | Path, allow_unchecked: bool = False) -> Path:
     """Write the session's annotation as a sequence file at `out` (.h5), atomically; returns the path.
 
@@ -90,16 +112,7 @@ def export_sequence(session, out: str | Path, allow_unchecked: bool = False) -> 
     if out.suffix != ".h5":
         raise UserError(f"--export {out}: the sequence file must end in .h5")
     capture = session.capture
-    bad = session.unchecked()
-    unset = [(s, i) for s, i, st in bad if st == "unset"]
-    if unset:
-        listed = ", ".join(f"step {s} object {i}" for s, i in unset[:6]) + (" ..." if len(unset) > 6 else "")
-        raise UserError(f"cannot export {capture.name}: {len(unset)} objects have no pose ({listed}); annotate them "
-                        "(or run `dsr-bench annotate CAPTURE --auto` once step 0 is placed)")
-    if bad and not allow_unchecked:
-        listed = ", ".join(f"step {s} object {i} ({st})" for s, i, st in bad[:6]) + (" ..." if len(bad) > 6 else "")
-        raise UserError(f"cannot export {capture.name}: {len(bad)} poses are neither snapped nor confirmed ({listed}); "
-                        "snap or confirm them, or pass --allow-unchecked")
+    bad = check_exportable(session, allow_unchecked)
 
     steps, n = capture.num_steps, capture.num_objects
     poses = np.stack([session.poses(s) for s in range(steps + 1)]).astype(np.float64)

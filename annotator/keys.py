@@ -115,7 +115,10 @@ def _toggle_coarse(ctl: "Controller") -> None:
 
 def _snap(ctl: "Controller") -> None:
     score = ctl.session.snap(ctl.session.selected)
-    verdict = "snapped" if score.accepted else "snap rejected"
+    if not score.kept:  # nothing changed
+        ctl.view.message = f"snap rejected, pose unchanged: {score.reason}"
+        return
+    verdict = "snapped" if score.accepted else "snap kept (better than before), fit still poor"
     ctl.view.message = f"{verdict}: {format_score(score)[5:]}"
 
 
@@ -145,6 +148,27 @@ def _redo(ctl: "Controller") -> None:
 def _from_previous(ctl: "Controller") -> None:
     ctl.session.init_from_previous(ctl.session.selected)
     ctl.view.message = "pose taken from the previous step"
+
+
+def _recarry(ctl: "Controller") -> None:
+    obj = ctl.session.selected
+    steps = ctl.session.recarry(obj)
+    if steps:
+        ctl.view.message = f"re-carried object {obj + 1} to steps {', '.join(map(str, steps))}"
+    else:
+        ctl.view.message = (f"nothing to re-carry: no later step holds object {obj + 1} carried from a pose that has "
+                            "changed since")
+
+
+def _next_to_check(ctl: "Controller") -> None:
+    found = ctl.session.next_to_check()
+    if found is None:
+        ctl.view.message = "every object at every visited step is checked and fits well (N goes on)"
+        return
+    step, obj, why = found
+    ctl.session.go_to(step)  # a visited step: only the cursor moves
+    ctl.session.select(obj)
+    ctl.view.message = f"step {step}, object {obj + 1} ({object_name(ctl.session, obj)}): {why}"
 
 
 def _pick(ctl: "Controller") -> None:
@@ -194,6 +218,8 @@ def _build_keymap() -> dict[str, Binding]:
     km["Y"] = Binding("redo", "redo", _redo, "undo / redo")
     km["C"] = Binding("pose from the previous step", "init_from_previous", _from_previous,
                       "pose from the previous step")
+    km["X"] = Binding("re-carry to later steps", "recarry", _recarry, "re-carry to later steps")
+    km["B"] = Binding("next object to check", "next_to_check", _next_to_check, "next object to check")
     km["M"] = Binding("pick >= 3 point pairs", "init_from_picks", _pick, "pick >= 3 pairs cloud <-> mesh")
     km["R"] = Binding("depth-residual colours", "residual_colors", _toggle_residual, "depth-residual colours")
     km["F"] = Binding("progress table (terminal)", "progress_table", _progress, "progress table (terminal)")
@@ -276,6 +302,8 @@ class Controller:
         except UserError as exc:
             self.view.message = f"{binding.label}: {exc}"
             self.echo(f"[{binding.label}] {exc}")
+        if binding.method not in (None, "recarry"):
+            self._offer_recarry()
         after = self._snapshot()
         changed = {"panel"}
         if before[:2] != after[:2]:
@@ -285,6 +313,18 @@ class Controller:
             if self.view.residual and before[2] != after[2]:  # the residual colours follow the poses only
                 changed.add("cloud")
         return changed
+
+    def _offer_recarry(self) -> None:
+        """After a change: when later steps hold the selected object carried from a pose that has changed since,
+        say so in the message and name the key that re-carries them."""
+        s = self.session
+        try:
+            stale = s.stale_steps(s.selected)
+        except UserError:
+            return
+        if stale:
+            self.view.message += (f" | steps {', '.join(map(str, stale))} hold object {s.selected + 1} carried from "
+                                  "its old pose: X re-carries them")
 
     def _snapshot(self) -> tuple:
         s = self.session

@@ -9,13 +9,15 @@ poses read as NaN rows. Step s is observation s (0..T); push s moves the scene f
 
 Over 500 lines on purpose: the carry-forward search of `go_to` (about 200 lines: `_carry`, `_search`, `_land`,
 `_search_landed`) reads and commits the session's state at every stage, and split off it would need the session's
-private operations (`_icp`, `_fit`, `_crop`, `_commit`) as an API of their own.
+private operations (`_icp`, `_fit`, `_crop`, `_commit`) as an API of their own; the re-carry after a fix (`recarry`,
+`stale_steps`, `to_check`) reuses that search and the state's carried-from records in the same way.
 """
 
 from __future__ import annotations
 
 import json
 from collections import OrderedDict
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -29,7 +31,7 @@ from dsr_bench.constants import RIG_PUSHER_RADIUS
 from dsr_bench.errors import UserError
 from dsr_bench.geometry import matrix_to_pose, pose_to_matrix
 
-__all__ = ["FitScore", "Session", "STATE_FILE", "WORK_DIRNAME"]
+__all__ = ["FitScore", "Session", "SnapScore", "STATE_FILE", "WORK_DIRNAME"]
 
 WORK_DIRNAME = "annotation"
 STATE_FILE = "state.json"
@@ -69,6 +71,27 @@ DISTANCE_PENALTY = 0.5
 SCREEN_CHUNK = 1000
 #: Clouds kept in memory (steps).
 CLOUD_CACHE = 4
+
+
+def _mm(value: float) -> str:
+    return f"{value * 1000:.1f} mm" if np.isfinite(value) else "-"
+
+
+@dataclass
+class SnapScore(FitScore):
+    """What `Session.snap` returns: the FitScore of the kept result (or, when rejected, of the unchanged start pose)
+    and `kept`: whether the snap changed the pose (False: rejected, nothing changed)."""
+
+    kept: bool = False
+
+    @classmethod
+    def of(cls, score: FitScore, kept: bool) -> SnapScore:
+        return cls(score.rmse, score.coverage, score.fitness, score.accepted, score.reason, score.visible, kept)
+
+    def as_dict(self) -> dict:
+        out = super().as_dict()
+        out.pop("kept", None)
+        return out
 
 
 def _nan_score(d: dict | None) -> FitScore | None:
@@ -202,13 +225,13 @@ class Session:
     def _check_obj(self, obj: int) -> int:
         obj = int(obj)
         if not 0 <= obj < self.num_objects:
-            raise UserError(f"object {obj} out of range: this capture has objects 0..{self.num_objects - 1}")
+            raise UserError(f"object {obj + 1} out of range: this capture has objects 1..{self.num_objects}")
         return obj
 
     def _require_pose(self, obj: int, step: int) -> np.ndarray:
         pose = self.state.pose(step, obj)
         if pose is None:
-            raise UserError(f"object {obj} has no pose at step {step} yet: initialise it first (pick 3+ point pairs, "
+            raise UserError(f"object {obj + 1} has no pose at step {step} yet: initialise it first (pick 3+ point pairs, "
                             "or take the previous step's pose)")
         return pose
 
@@ -260,6 +283,17 @@ class Session:
         self._set_pose("pick", obj, pose, "initialised")
         return pose
 
+    def place(self, obj: int, matrix: np.ndarray) -> np.ndarray:
+        """Place object `obj` at the current step at a given 4x4 pose (object -> table frame, metres; e.g. from a
+        poses file, `annotator.placement`). Returns the pose (7,); status 'initialised'."""
+        obj = self._check_obj(obj)
+        m = np.asarray(matrix, dtype=np.float64)
+        if m.shape != (4, 4) or not np.all(np.isfinite(m)):
+            raise UserError(f"a pose for object {obj + 1} must be a finite 4x4 matrix (object -> table, metres)")
+        pose = matrix_to_pose(m)
+        self._set_pose("place", obj, pose, "initialised")
+        return pose
+
     def _previous_pose(self, obj: int, step: int) -> tuple[int, np.ndarray] | None:
         for s in range(step - 1, -1, -1):
             pose = self.state.pose(s, obj)
@@ -272,7 +306,7 @@ class Session:
         obj, step = self._check_obj(obj), self.state.step
         found = self._previous_pose(obj, step)
         if found is None:
-            raise UserError(f"object {obj} has no pose at any step before {step}: pick 3+ point pairs to place it")
+            raise UserError(f"object {obj + 1} has no pose at any step before {step}: pick 3+ point pairs to place it")
         self._set_pose("previous", obj, found[1], "initialised")
 
     def nudge(self, obj: int, translation=(0.0, 0.0, 0.0), rotation=(0.0, 0.0, 0.0), frame: str = "table") -> None:
@@ -297,20 +331,36 @@ class Session:
         out[:3, 3] = centre - new_rot @ self.samples(obj).centre + dt
         self._set_pose("nudge", obj, matrix_to_pose(out), "initialised")
 
-    def snap(self, obj: int) -> FitScore:
-        """ICP-align object `obj` at the current step to a crop of the fused cloud around it. A large jump or too
-        few correspondences rejects the result (pose unchanged, `accepted` False, `reason` says why). A kept result
-        becomes 'snapped' when its fit is good, else stays 'initialised' (check it and confirm)."""
+    def snap(self, obj: int) -> SnapScore:
+        """ICP-align object `obj` at the current step to a crop of the fused cloud around it.
+
+        The decision: a result whose fit is good (`accepted`) is kept as 'snapped'; a result whose fit is still
+        poor is kept as 'initialised' only when it fits better than the start pose (`FitScore.quality`), so that a
+        snap never makes a pose worse; anything else is rejected: ICP's own rejections (a jump beyond its limits,
+        too few correspondences) and results that fit worse than the start (e.g. a can tilted into the table).
+        A rejected snap changes nothing: pose, status, score, undo / redo history and the state file stay exactly
+        as they were (the snap is counted in memory; the count is written with the next change). Returns the
+        score of the kept result, or for a rejection the start pose's score with `accepted` False and the reason;
+        `kept` says which (see `SnapScore`)."""
         obj, step = self._check_obj(obj), self.state.step
         pose = self._require_pose(obj, step)
-        result = self._icp(obj, step, pose_to_matrix(pose))
+        start = pose_to_matrix(pose)
+        result = self._icp(obj, step, start)
+        if result.applied and not result.score.accepted:
+            before = self._fit(obj, step, pose)
+            if not result.score.quality() > before.quality():
+                before.accepted = False
+                before.reason = (f"the ICP result fits worse than the start (coverage {before.coverage:.0%} -> "
+                                 f"{result.score.coverage:.0%}, rmse {_mm(before.rmse)} -> {_mm(result.score.rmse)}); "
+                                 "nudge the object onto its points and snap again")
+                self.state.count("snap")
+                return SnapScore.of(before, kept=False)
         if not result.applied:
             self.state.count("snap")
-            self._save()
-            return result.score
+            return SnapScore.of(result.score, kept=False)
         status = "snapped" if result.score.accepted else "initialised"
         self._set_pose("snap", obj, matrix_to_pose(result.transform), status, result.score)
-        return result.score
+        return SnapScore.of(result.score, kept=True)
 
     def _icp(self, obj: int, step: int, start: np.ndarray, extra_crop: float = 0.0, **kwargs) -> align.IcpResult:
         samples = self.samples(obj)
@@ -356,25 +406,135 @@ class Session:
                 self._save()
             return []
         source = max(s for s in range(step) if self.state.visited[s])
+        carries = {obj: (source, pose, None, None) for obj in range(self.num_objects)
+                   if (pose := self.state.pose(source, obj)) is not None}
+        changes, snapped = self._carry_objects(step, carries)
+        self._commit("step", changes, cursor=step, visit=[step])
+        return snapped
+
+    def _carry_objects(self, step: int, carries: dict) -> tuple[dict, list[int]]:
+        """Carry objects to `step`: carries {obj: (source step, source pose, source score or None, source status or
+        None)} (None: the state's). Returns the changes {(step, obj): (pose, status, score dict, (source, source
+        pose))} and the objects whose pose the snapping changed. Objects not carried keep their pose at `step`."""
         changes, snapped = {}, []
-        for obj in range(self.num_objects):
-            pose = self.state.pose(source, obj)
-            if pose is None:
-                continue
-            new_pose, status, score, moved = self._carry(obj, source, step, pose)
-            changes[(step, obj)] = (new_pose, status, score.as_dict())
+        for obj, (source, pose, before, src_status) in carries.items():
+            new_pose, status, score, moved = self._carry(obj, source, step, pose, before, src_status)
+            changes[(step, obj)] = (new_pose, status, score.as_dict(), (source, pose))
             if moved:
                 snapped.append(obj)
         # second pass, once every object near its push has its new pose: an object that left its place and was not
         # found near the push is looked for where the cloud shows surface that no other object explains
-        for obj in [k for (_, k), (_, status, _) in changes.items() if status != "snapped"]:
-            others = [(k, p) for (_, k), (p, _, _) in changes.items() if k != obj]
-            landed = self._land(obj, source, step, self.state.pose(source, obj), others)
+        for obj in [k for (_, k), change in changes.items() if change[1] != "snapped"]:
+            others = [(k, change[0]) for (_, k), change in changes.items() if k != obj]
+            others += [(k, p) for k in range(self.num_objects)
+                       if k not in carries and (p := self.state.pose(step, k)) is not None]
+            source, pose, before, _ = carries[obj]
+            landed = self._land(obj, source, step, pose, others, before)
             if landed is not None:
-                changes[(step, obj)] = (landed[0], "snapped", landed[1].as_dict())
+                changes[(step, obj)] = (landed[0], "snapped", landed[1].as_dict(), (source, pose))
                 snapped = sorted(set(snapped) | {obj})
-        self._commit("step", changes, cursor=step, visit=[step])
-        return snapped
+        return changes, snapped
+
+    # re-carrying after a fix, and what is left to check -------------------------------------------------------------
+    def carried_from(self, obj: int, step: int | None = None) -> tuple[int, np.ndarray] | None:
+        """(source step, source pose (7,)) that object `obj`'s pose at a step was carried from, or None when the
+        pose was set by hand (pick, place, previous, nudge, snap, confirm) or is unset."""
+        rec = self.state.carried[self._step(step)][self._check_obj(obj)]
+        return None if rec is None else (int(rec["step"]), np.asarray(rec["pose"], dtype=np.float64))
+
+    def is_stale(self, obj: int, step: int | None = None) -> bool:
+        """Whether object `obj`'s pose at a step was carried from a pose that has changed since (its source step
+        now holds another pose: a fix there, or a re-carry of it)."""
+        found = self.carried_from(obj, step)
+        if found is None:
+            return False
+        now = self.state.pose(found[0], obj)
+        return now is not None and not np.array_equal(now, found[1])
+
+    def _recarry_plan(self, obj: int, step: int) -> list[tuple[int, int]]:
+        """(step, source) to re-carry, in step order: see `stale_steps`."""
+        if self.is_stale(obj, step):
+            step = self.carried_from(obj, step)[0]
+        chain, affected, plan = {step}, set(), []
+        for t in range(step + 1, self.num_steps + 1):
+            rec = self.carried_from(obj, t)
+            if rec is None or rec[0] not in chain:
+                continue  # set by hand (or carried from elsewhere): its pose is the user's, it stops the chain
+            chain.add(t)
+            if rec[0] in affected or self.is_stale(obj, t):
+                affected.add(t)
+                plan.append((t, rec[0]))
+        return plan
+
+    def stale_steps(self, obj: int, step: int | None = None) -> list[int]:
+        """The steps `recarry(obj, step)` would re-carry: the later steps whose pose of object `obj` was carried
+        (directly or through other carried steps) from `step` (default the current one) and not set by hand since,
+        where the pose it was carried from has changed (or a step before it in the chain is re-carried). When the
+        pose at `step` is itself such a stale carried pose, the chain starts at its source and includes `step`."""
+        return [t for t, _ in self._recarry_plan(self._check_obj(obj), self._step(step))]
+
+    def recarry(self, obj: int, step: int | None = None) -> list[int]:
+        """Carry object `obj` again, from its fixed pose, to the steps `stale_steps` lists, exactly as visiting
+        each step did (keep it when the fit holds, else snap, search along the push, search the unexplained cloud),
+        in step order, each from its (re-carried) source. One undoable action; the other objects and every pose
+        set by hand stay as they are. Returns the re-carried steps ([] when nothing is stale)."""
+        obj = self._check_obj(obj)
+        plan = self._recarry_plan(obj, self._step(step))
+        if not plan:
+            return []
+        redone: dict[int, tuple] = {}
+        changes = {}
+        for t, source in plan:
+            if source in redone:
+                pose, status, score = redone[source]
+            else:
+                pose, status, score = self.state.pose(source, obj), str(self.state.status[source, obj]), None
+            done, _ = self._carry_objects(t, {obj: (source, pose, score, status)})
+            changes.update(done)
+            new_pose, new_status, new_score = done[(t, obj)][:3]
+            redone[t] = (np.asarray(new_pose, dtype=np.float64), new_status, _nan_score(new_score))
+        self._commit("recarry", changes)
+        return [t for t, _ in plan]
+
+    def to_check(self) -> list[tuple[int, int, str]]:
+        """(step, object, why) of every object at a visited step that needs a look, in step then object order:
+        'unset', 'unchecked' (initialised), 'poor fit' (its last score failed the fit checks; confirmed poses are
+        the user's call and are left out) or 'carried from a changed pose' (`is_stale`, or carried from such a
+        step)."""
+        out = []
+        stale = [self._stale_all(i) for i in range(self.num_objects)]
+        for t in range(self.num_steps + 1):
+            if not self.state.visited[t]:
+                continue
+            for i in range(self.num_objects):
+                status, score = str(self.state.status[t, i]), self.state.scores[t][i]
+                if status == "unset":
+                    out.append((t, i, "unset"))
+                elif status == "initialised":
+                    out.append((t, i, "unchecked"))
+                elif status != "confirmed" and score is not None and not score.get("accepted", True):
+                    out.append((t, i, "poor fit"))
+                elif status != "confirmed" and t in stale[i]:
+                    out.append((t, i, "carried from a changed pose"))
+        return out
+
+    def _stale_all(self, obj: int) -> set[int]:
+        """Steps whose pose of object `obj` is stale or carried (through carried steps) from a stale one."""
+        affected: set[int] = set()
+        for t in range(1, self.num_steps + 1):
+            rec = self.carried_from(obj, t)
+            if rec is not None and (rec[0] in affected or self.is_stale(obj, t)):
+                affected.add(t)
+        return affected
+
+    def next_to_check(self) -> tuple[int, int, str] | None:
+        """The first entry of `to_check` after the current step and selected object (wrapping around; the
+        selected object itself comes last), or None when nothing at a visited step needs a look."""
+        todo = self.to_check()
+        if not todo:
+            return None
+        here = (self.state.step, self.state.selected)
+        return next((e for e in todo if (e[0], e[1]) > here), todo[0])
 
     def _near_push(self, obj: int, pose: np.ndarray, source: int, step: int) -> bool:
         """Whether the pusher passed within its radius + PUSH_CONTACT_MARGIN of the object (xy) between steps."""
@@ -388,11 +548,13 @@ class Session:
                 return True
         return False
 
-    def _carry(self, obj: int, source: int, step: int, pose: np.ndarray) -> tuple[np.ndarray, str, FitScore, bool]:
-        """(pose, status, score, moved) of an object carried from `source` to `step`."""
-        before = self.stored_score(obj, source) or self._fit(obj, source, pose)
+    def _carry(self, obj: int, source: int, step: int, pose: np.ndarray, before: FitScore | None = None,
+               src_status: str | None = None) -> tuple[np.ndarray, str, FitScore, bool]:
+        """(pose, status, score, moved) of an object carried from `source` to `step`; `before` / `src_status`: the
+        source's score and status (default: the state's)."""
+        before = before or self.stored_score(obj, source) or self._fit(obj, source, pose)
         carried = self._fit(obj, step, pose)
-        src_status = str(self.state.status[source, obj])
+        src_status = str(self.state.status[source, obj]) if src_status is None else src_status
         checked = src_status in ("snapped", "confirmed")
         rmse_before = before.rmse if np.isfinite(before.rmse) else 0.0
         dropped = (not carried.accepted or carried.coverage < before.coverage - MOVED_COVERAGE_DROP
@@ -467,12 +629,13 @@ class Session:
                 best, best_rank = result, rank
         return best
 
-    def _land(self, obj: int, source: int, step: int, pose: np.ndarray,
-              others: list[tuple[int, np.ndarray]]) -> tuple[np.ndarray, FitScore] | None:
+    def _land(self, obj: int, source: int, step: int, pose: np.ndarray, others: list[tuple[int, np.ndarray]],
+              before: FitScore | None = None) -> tuple[np.ndarray, FitScore] | None:
         """(pose, score) of an object that left its place (its carried pose lost MOVED_COVERAGE_DROP of its
         coverage) found by `_search_landed` with a good fit (accepted, about as well covered as at `source`), or
-        None. `others`: (object, pose) of the other objects at `step`."""
-        before = self.stored_score(obj, source) or self._fit(obj, source, pose)
+        None. `others`: (object, pose) of the other objects at `step`; `before`: the source's score (default the
+        state's)."""
+        before = before or self.stored_score(obj, source) or self._fit(obj, source, pose)
         carried = self._fit(obj, step, pose)
         if carried.coverage >= before.coverage - MOVED_COVERAGE_DROP:
             return None  # still (partly) where it was: not free to go looking elsewhere
@@ -574,7 +737,7 @@ class Session:
         p = self.progress()
         head = (f"capture {p['capture']}: {p['num_steps'] + 1} steps x {p['num_objects']} objects, "
                 f"{p['steps_done']}/{p['num_steps'] + 1} steps done, current step {p['current_step']}")
-        names = [o.name for o in self.capture.objects]
+        names = [f"{i + 1} {o.name}" for i, o in enumerate(self.capture.objects)]  # numbered from 1, as the panel
         width = 24
         lines = [head, "step  " + "".join(f"{n[:width - 2]:<{width}}" for n in names)]
         for s in p["steps"]:
@@ -603,8 +766,8 @@ class Session:
         snapped per newly visited step. Step 0 must be initialised (every object posed)."""
         missing = [i for i in range(self.num_objects) if self.state.pose(0, i) is None]
         if missing:
-            raise UserError(f"step 0 has objects without a pose ({', '.join(map(str, missing))}): place them first "
-                            "(open the window: pick 3+ point pairs per object), then run --auto")
+            raise UserError(f"step 0 has objects without a pose ({', '.join(str(i + 1) for i in missing)}): place them "
+                            "first (--place POSES.json, or pick 3+ point pairs per object in the window), then --auto")
         out = {}
         for s in range(1, self.num_steps + 1):
             if not self.state.visited[s]:

@@ -1,8 +1,9 @@
 """The annotation state of one capture, and its undoable operations (pure Python + numpy, no I/O).
 
 State: the pose (7,) = (x, y, z, qx, qy, qz, qw) in metres of every object at every step (NaN rows where unset), a
-status per step and object ("unset" | "initialised" | "snapped" | "confirmed"), the last fit score of each, which
-steps were visited, the current step and selected object, undo / redo stacks and user action counts.
+status per step and object ("unset" | "initialised" | "snapped" | "confirmed"), the last fit score of each, where
+each pose was carried from (`carried`: {"step": s, "pose": the source pose it was carried from}, or None for a pose
+set by hand), which steps were visited, the current step and selected object, undo / redo stacks and user action counts.
 
 Every mutation is an `Operation` holding, for each (step, object) it touches, the entry before and after, plus the
 cursor (current step) and visited flags before and after; undo applies the "before" side, redo the "after" side,
@@ -21,7 +22,8 @@ STATE_FORMAT = "dsr-bench-annotation"
 STATE_VERSION = 1
 STATUSES: tuple[str, ...] = ("unset", "initialised", "snapped", "confirmed")
 #: User action kinds counted by the session.
-ACTION_KINDS: tuple[str, ...] = ("pick", "previous", "nudge", "snap", "confirm", "step", "undo", "redo")
+ACTION_KINDS: tuple[str, ...] = ("pick", "place", "previous", "nudge", "snap", "confirm", "step", "recarry", "undo",
+                                 "redo")
 #: Undo history kept (oldest operations are dropped beyond this).
 MAX_HISTORY = 2000
 
@@ -32,18 +34,24 @@ class StateError(ValueError):
 
 @dataclass
 class Entry:
-    """One (step, object) cell: pose (7,) or None when unset, status, last fit score (dict) or None."""
+    """One (step, object) cell: pose (7,) or None when unset, status, last fit score (dict) or None, and where the
+    pose was carried from ({"step": s, "pose": [7 floats]}) or None when it was set by hand (or is unset)."""
 
     pose: list[float] | None
     status: str
     score: dict | None
+    carried: dict | None = None
 
     def as_json(self) -> dict:
-        return {"pose": self.pose, "status": self.status, "score": self.score}
+        out = {"pose": self.pose, "status": self.status, "score": self.score}
+        if self.carried is not None:  # absent for hand-set poses (and in states written before it existed)
+            out["carried"] = self.carried
+        return out
 
     @classmethod
     def from_json(cls, d: dict) -> Entry:
-        return cls(None if d["pose"] is None else [float(x) for x in d["pose"]], str(d["status"]), d.get("score"))
+        return cls(None if d["pose"] is None else [float(x) for x in d["pose"]], str(d["status"]), d.get("score"),
+                   _clean_carried(d.get("carried")))
 
 
 @dataclass
@@ -67,6 +75,16 @@ class Operation:
                    (int(d["cursor"][0]), int(d["cursor"][1])), [(int(s), bool(b), bool(a)) for s, b, a in d["visited"]])
 
 
+def _clean_carried(carried) -> dict | None:
+    """A carried-from record {"step": int, "pose": [7 floats]} (None stays None)."""
+    if carried is None:
+        return None
+    pose = [float(x) for x in carried["pose"]]
+    if len(pose) != 7 or not all(math.isfinite(x) for x in pose):
+        raise StateError("a carried-from record's pose must be 7 finite numbers")
+    return {"step": int(carried["step"]), "pose": pose}
+
+
 def _clean_score(score: dict | None) -> dict | None:
     """A score dict with NaN floats as None (JSON has no NaN)."""
     if score is None:
@@ -85,6 +103,7 @@ class AnnotationState:
         self.poses = np.full(shape + (7,), np.nan)
         self.status = np.full(shape, "unset", dtype=object)
         self.scores: list[list[dict | None]] = [[None] * self.num_objects for _ in range(self.num_steps + 1)]
+        self.carried: list[list[dict | None]] = [[None] * self.num_objects for _ in range(self.num_steps + 1)]
         self.visited = [False] * (self.num_steps + 1)
         self.visited[0] = True
         self.step = 0
@@ -96,13 +115,16 @@ class AnnotationState:
     # cells --------------------------------------------------------------------------------------------------
     def entry(self, step: int, obj: int) -> Entry:
         pose = self.poses[step, obj]
+        carried = self.carried[step][obj]
         return Entry(None if np.isnan(pose).any() else [float(x) for x in pose], str(self.status[step, obj]),
-                     None if self.scores[step][obj] is None else dict(self.scores[step][obj]))
+                     None if self.scores[step][obj] is None else dict(self.scores[step][obj]),
+                     None if carried is None else {"step": carried["step"], "pose": list(carried["pose"])})
 
     def _set(self, step: int, obj: int, entry: Entry) -> None:
         self.poses[step, obj] = np.nan if entry.pose is None else np.asarray(entry.pose, dtype=np.float64)
         self.status[step, obj] = entry.status
         self.scores[step][obj] = None if entry.score is None else dict(entry.score)
+        self.carried[step][obj] = None if entry.carried is None else dict(entry.carried)
 
     def pose(self, step: int, obj: int) -> np.ndarray | None:
         """Pose (7,) of an object at a step, or None while unset."""
@@ -110,16 +132,22 @@ class AnnotationState:
         return None if np.isnan(p).any() else p.copy()
 
     # operations -----------------------------------------------------------------------------------------------
-    def operation(self, kind: str, changes: dict[tuple[int, int], tuple[np.ndarray | None, str, dict | None]],
-                  cursor: int | None = None, visit: list[int] | None = None) -> Operation:
-        """Build (without applying) an operation that sets cells {(step, obj): (pose, status, score)}, moves the
-        cursor to `cursor` (default: stays) and marks the steps in `visit` as visited."""
+    def operation(self, kind: str, changes: dict[tuple[int, int], tuple], cursor: int | None = None,
+                  visit: list[int] | None = None) -> Operation:
+        """Build (without applying) an operation that sets cells {(step, obj): (pose, status, score[, carried])},
+        moves the cursor to `cursor` (default: stays) and marks the steps in `visit` as visited. `carried`: the
+        carried-from record (step, source pose) of a pose carried forward; left out (None) for a pose set by hand."""
         cells = []
-        for (step, obj), (pose, status, score) in sorted(changes.items()):
+        for (step, obj), change in sorted(changes.items()):
+            pose, status, score = change[:3]
+            carried = change[3] if len(change) > 3 else None
             if status not in STATUSES:
                 raise ValueError(f"unknown status {status!r}")
+            if carried is not None:
+                carried = _clean_carried({"step": carried[0], "pose": np.asarray(carried[1], dtype=np.float64)}
+                                         if isinstance(carried, tuple) else carried)
             after = Entry(None if pose is None else [float(x) for x in np.asarray(pose, dtype=np.float64)], status,
-                          _clean_score(score))
+                          _clean_score(score), carried)
             cells.append((step, obj, self.entry(step, obj), after))
         visited = [(s, self.visited[s], True) for s in (visit or [])]
         return Operation(kind, cells, (self.step, self.step if cursor is None else int(cursor)), visited)
@@ -170,6 +198,7 @@ class AnnotationState:
             "poses": [[None if np.isnan(p).any() else [float(x) for x in p] for p in row] for row in self.poses],
             "status": [[str(s) for s in row] for row in self.status],
             "scores": [[_clean_score(s) for s in row] for row in self.scores],
+            "carried": [[None if c is None else dict(c) for c in row] for row in self.carried],
             "visited": list(self.visited), "step": self.step, "selected": self.selected,
             "counts": dict(self.counts),
             "undo": [op.as_json() for op in self.undo_stack], "redo": [op.as_json() for op in self.redo_stack],
@@ -192,19 +221,22 @@ class AnnotationState:
                 for i in range(n):
                     pose, status = d["poses"][s][i], d["status"][s][i]
                     if status not in STATUSES:
-                        raise StateError(f"step {s} object {i}: unknown status {status!r}")
+                        raise StateError(f"step {s} object {i + 1}: unknown status {status!r}")
                     if pose is not None:
                         pose = np.asarray(pose, dtype=np.float64)
                         if pose.shape != (7,) or not np.all(np.isfinite(pose)):
-                            raise StateError(f"step {s} object {i}: pose must be 7 finite numbers or null")
+                            raise StateError(f"step {s} object {i + 1}: pose must be 7 finite numbers or null")
                         state.poses[s, i] = pose
                     state.status[s, i] = status
                     state.scores[s][i] = d["scores"][s][i]
+                    # absent in states written before carried-from records: every pose then counts as set by hand
+                    carried = d.get("carried")
+                    state.carried[s][i] = None if carried is None else _clean_carried(carried[s][i])
             state.visited = [bool(v) for v in d["visited"]]
             state.step = int(d["step"])
             state.selected = int(d["selected"])
             if not (0 <= state.step < t1 and 0 <= state.selected < n):
-                raise StateError(f"current step {state.step} or selected object {state.selected} out of range")
+                raise StateError(f"current step {state.step} or selected object {state.selected + 1} out of range")
             state.counts.update({str(k): int(v) for k, v in d.get("counts", {}).items()})
             state.undo_stack = [Operation.from_json(o) for o in d.get("undo", [])]
             state.redo_stack = [Operation.from_json(o) for o in d.get("redo", [])]

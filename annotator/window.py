@@ -42,8 +42,8 @@ GIZMO_MIN_SIZE = 0.04
 TABLE_AXES_SIZE = 0.1
 #: Where unset objects' meshes are collapsed to (the workspace centre on the table, m).
 HIDDEN_POINT = np.array([0.5, 0.0, 0.0])
-NO_DISPLAY_HINT = ("run it where a display is (e.g. ssh -X), under a virtual one for scripted use "
-                   "(`xvfb-run -a dsr-bench annotate ...`), or use the CLI's --status / --auto / --export")
+NO_DISPLAY_HINT = ("place step 0 without the window with --place POSES.json (poses or picks, docs/annotator.md), "
+                   "then --auto and --export; or run where a display is (ssh -X) or under `xvfb-run -a`")
 
 
 def display_problem() -> str | None:

@@ -447,7 +447,7 @@ def test_export_refuses_unset_and_unchecked_poses(capture_dir, truth, tmp_path):
 
     work = tmp_path / "work"
     session = Session.open(capture_dir, work)
-    with pytest.raises(UserError, match="have no pose .*step 0 object 0"):
+    with pytest.raises(UserError, match="have no pose .*step 0 object 1"):
         session.export(tmp_path / "a.h5")
     _place_from_truth(session, truth, snap=False)
     for t in range(1, session.num_steps + 1):

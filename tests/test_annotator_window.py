@@ -26,11 +26,12 @@ from dsr_bench.geometry import make_camera, pose_to_matrix  # noqa: E402
 
 #: The Session methods the window calls (annotator/session.py, see the annotator docs) ...
 SESSION_METHODS = {"poses", "status", "cloud", "go_to", "select", "init_from_picks", "init_from_previous", "nudge",
-                   "snap", "confirm", "undo", "redo", "score", "residual_colors", "progress_table"}
+                   "snap", "confirm", "undo", "redo", "score", "residual_colors", "progress_table", "recarry",
+                   "next_to_check"}
 #: ... and the properties it reads.
 SESSION_PROPERTIES = {"step", "selected", "num_steps", "num_objects", "undo_depth", "redo_depth"}
 #: The calls that change the annotation.
-MUTATING = {"go_to", "init_from_picks", "init_from_previous", "nudge", "snap", "confirm", "undo", "redo"}
+MUTATING = {"go_to", "init_from_picks", "init_from_previous", "nudge", "snap", "confirm", "undo", "redo", "recarry"}
 
 
 # --- a tiny capture and sessions on it ----------------------------------------------------------------
@@ -649,6 +650,10 @@ def test_keys_drive_a_real_session(capture_dir, tmp_path):
     assert session.undo_depth > 0
     ctl.press("P")
     assert session.step == 0
+    ctl.press("X")  # step 1's object 2 was set by hand (C): nothing carried from step 0 is stale
+    assert ctl.view.message.startswith("nothing to re-carry")
+    ctl.press("B")  # object 1 at step 0 (picked, unchecked) is the next to look at after object 2, wrapping around
+    assert ctl.view.message.startswith("step ") and "object " in ctl.view.message
     ctl.press("Esc")
     assert ctl.view.quit
     assert set(rec.calls) >= {b.method for b in keys.KEYMAP.values()} - {None}
