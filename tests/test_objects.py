@@ -102,6 +102,48 @@ def test_cube_sizes_are_the_official_boxes():
         np.testing.assert_allclose(obj.extent(), np.array([60.0, 60.0, 70.0]) / s, atol=1e-12)
 
 
+#: mesh_sha256 (first 16 hex digits) of each official cube, as trimesh built them before the numpy boxes: the
+#: cube splits' meshes and ground truth depend on these bits (the centre of mass is subtracted from every vertex).
+CUBE_MESH_SHA256 = {700: "e2b889d7b40e5eff", 750: "59a589f679256649", 800: "fd956aa2a73eb1e4",
+                    850: "5799c5616f30594e", 900: "8945b603bf658148", 1000: "b7c7c8b3713ab722",
+                    1100: "c30fbf7157421d07", 1200: "98908750b45053c4", 1400: "7ac718afa19e33c4"}
+
+
+def test_cube_meshes_keep_their_bits():
+    seen = {}
+    for obj in get_object_set("cube").sample(np.random.default_rng(0), 200):
+        seen[int(obj.model_id.removeprefix("cube_s"))] = obj.mesh_sha256()[:16]
+    assert seen == CUBE_MESH_SHA256
+
+
+def test_numpy_boxes_are_trimesh_boxes_bit_for_bit():
+    """`box_solid` has trimesh's vertices, faces, volume and centre of mass to the last bit, for the official
+    cubes, the random boxes and arbitrary sizes and centres; so do the specs made from them."""
+    from generators.objects.box import box_solid
+    from generators.objects.builtin import CUBE_HALF_EXTENTS
+    from generators.objects.spec import make_spec
+
+    rng = np.random.default_rng(5)
+    cases = [(2 * np.array(CUBE_HALF_EXTENTS) / s, [0, 0, CUBE_HALF_EXTENTS[2] / s]) for s in CUBE_DIVISORS]
+    for voxels in (SMALL_BOX_VOXELS, LARGE_BOX_VOXELS):
+        for _ in range(20):
+            size = np.array([rng.choice(r) for r in voxels], np.float64) * 0.002
+            cases.append((size, [0, 0, size[2] / 2]))
+    cases += [(rng.uniform(0.001, 0.3, 3), rng.uniform(-0.5, 0.5, 3)) for _ in range(50)]
+    for size, centre in cases:
+        ours = box_solid(size, centre)
+        theirs = trimesh.creation.box(extents=size, transform=trimesh.transformations.translation_matrix(centre))
+        assert theirs.is_watertight and ours.is_watertight
+        assert np.asarray(theirs.vertices).tobytes() == ours.vertices.tobytes()
+        assert np.asarray(theirs.faces, np.int64).tobytes() == ours.faces.tobytes()
+        assert np.float64(theirs.volume).tobytes() == np.float64(ours.volume).tobytes()
+        assert np.asarray(theirs.center_mass).tobytes() == ours.center_mass.tobytes()
+        a, b = (make_spec("cube", "cube", "c", 1.0, [m], (1.0, 0.0, 0.0), False) for m in (ours, theirs))
+        assert a.mesh_sha256() == b.mesh_sha256()
+    with pytest.raises(ValueError, match="three positive edge lengths"):
+        box_solid([0.1, 0.0, 0.1])
+
+
 def test_official_scene_mix():
     """Large object with p 0.9; a non-large object is a small box with p 0.3, the large one a large box
     with p 0.12; otherwise a uniform category with 'can' forced at p 0.3."""

@@ -19,6 +19,7 @@ from collections.abc import Callable
 import numpy as np
 
 from dsr_bench.geometry import vector_norm
+from generators.objects.box import box_solid
 from generators.objects.spec import ObjectSpec, make_spec, random_color
 
 CUBE_DIVISORS = (700, 750, 800, 850, 900, 1000, 1100, 1200, 1400)
@@ -55,6 +56,7 @@ def _trimesh():
 
 
 def _box(size, centre=(0, 0, 0)):
+    """A trimesh box, for parts that trimesh goes on to combine or scale (a box object alone: `box_solid`)."""
     tm = _trimesh()
     return tm.creation.box(extents=np.asarray(size, float), transform=tm.transformations.translation_matrix(centre))
 
@@ -135,7 +137,8 @@ def random_box(rng: np.random.Generator, set_name: str, large: bool, is_large: b
     voxels = [int(rng.choice(r)) for r in ranges]
     size = np.array(voxels, dtype=np.float64) * BOX_VOXEL
     model_id = f"box_{'large' if large else 'small'}_{voxels[0]}x{voxels[1]}x{voxels[2]}vox"
-    return make_spec(set_name, "box", model_id, 1.0, [_box(size, [0, 0, size[2] / 2])], random_color(rng), is_large)
+    return make_spec(set_name, "box", model_id, 1.0, [box_solid(size, [0, 0, size[2] / 2])], random_color(rng),
+                     is_large)
 
 
 def choose_large(rng: np.random.Generator, count: int) -> int:
@@ -174,7 +177,8 @@ def category_scale(rng: np.random.Generator, category: str, is_large: bool) -> f
 
 
 class CubeSet:
-    """The paper's boxes (official half extents), random colours; no large object."""
+    """The paper's boxes (official half extents), random colours; no large object. Built with numpy alone
+    (`generators.objects.box`): a cube run imports no mesh library."""
 
     name = "cube"
 
@@ -183,7 +187,7 @@ class CubeSet:
         for _ in range(count):
             s = int(rng.choice(CUBE_DIVISORS))
             half = np.array(CUBE_HALF_EXTENTS) / s
-            out.append(make_spec(self.name, "cube", f"cube_s{s}", 1.0 / s, [_box(2 * half, [0, 0, half[2]])],
+            out.append(make_spec(self.name, "cube", f"cube_s{s}", 1.0 / s, [box_solid(2 * half, [0, 0, half[2]])],
                                  random_color(rng), False))
         return out
 
