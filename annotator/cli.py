@@ -94,6 +94,35 @@ def _display_error(exc: Exception) -> bool:
     return any(w in text for w in ("display", "glfw", "opengl", "x11", "window", "glx"))
 
 
+def import_capture(
+    src: Path = typer.Argument(..., help="Folder of <camera>_color_<N>.png / <camera>_depth_<N>.png (cameras front, "
+                                         "back) with rig.json (docs/annotator.md, 'Real captures in')."),
+    out: Path = typer.Option(..., "--out", "-o", help="Capture directory to write (e.g. captures/seq_0000)."),
+    rig: Optional[Path] = typer.Option(None, "--rig", help="The rig file: intrinsics, distortion, depth scale, "
+                                       "extrinsics or ChArUco board, objects (default SRC/rig.json)."),
+    pushes: Optional[Path] = typer.Option(None, "--pushes", help="The robot's push log, start [x, y] m and direction "
+                                          "per push, table frame (default SRC/pushes.json)."),
+    name: Optional[str] = typer.Option(None, "--name", help="Capture name (default the rig file's, else OUT's name)."),
+    overwrite: bool = typer.Option(False, "--overwrite", help="Replace OUT if it exists."),
+) -> None:
+    """Import a real rig's colour and depth PNGs as a capture: undistort, calibrate to the table (ChArUco board or
+    given extrinsics), map the logged pushes to benchmark actions."""
+    from annotator.importer import import_png_folder
+
+    path, report = import_png_folder(src, out, rig=rig, pushes=pushes, name=name, overwrite=overwrite)
+    for cam, how in report["extrinsics"].items():
+        r = report.get("cameras", {}).get(cam)
+        detail = "" if r is None else (f": {r['corners']} corners, reprojection {r['reprojection_px']:.2f} px, "
+                                       f"{r['board_mm']:.2f} mm on the board"
+                                       + ("" if r["depth_mm"] is None else f", depth {r['depth_mm']:+.1f} mm"))
+        typer.echo(f"{cam}: extrinsics from the {how}{detail}")
+    if report.get("between_cameras_mm") is not None:
+        typer.echo(f"between the cameras: {report['between_cameras_mm']:.2f} mm on the board "
+                   f"({report['shared_corners']} shared corners)")
+    typer.echo(f"wrote {path}")
+
+
 def register(app: typer.Typer) -> None:
-    """Add `annotate` to the `dsr-bench` CLI (the `dsr_bench.commands` entry point)."""
+    """Add `annotate` and `import-capture` to the `dsr-bench` CLI (the `dsr_bench.commands` entry point)."""
     app.command("annotate")(annotate)
+    app.command("import-capture")(import_capture)

@@ -113,7 +113,10 @@ def parse_camera(path: Path, name: str, spec: Any) -> CaptureCamera:
         raise _fail(path, f"camera {name!r}: depth_scale {scale} must be metres per unit, e.g. 0.001 (1 mm)")
     k = _matrix(path, f"camera {name!r} intrinsics", spec["intrinsics"], (3, 3))
     if k[0, 0] <= 0 or k[1, 1] <= 0 or not np.allclose(k[2], [0, 0, 1]) or k[1, 0] != 0:
-        raise _fail(path, f"camera {name!r}: intrinsics must be [[fx,s,cx],[0,fy,cy],[0,0,1]] with fx, fy > 0")
+        raise _fail(path, f"camera {name!r}: intrinsics must be [[fx,0,cx],[0,fy,cy],[0,0,1]] with fx, fy > 0")
+    if k[0, 1] != 0:
+        raise _fail(path, f"camera {name!r}: intrinsics skew {k[0, 1]} must be 0 (pixels are projected with fx, fy, "
+                          "cx, cy alone; fx != fy is fine): rectify the images or write [[fx,0,cx],[0,fy,cy],[0,0,1]]")
     e = _matrix(path, f"camera {name!r} extrinsics", spec["extrinsics"], (4, 4))
     r = e[:3, :3]
     if not np.allclose(e[3], [0, 0, 0, 1]) or not np.allclose(r @ r.T, np.eye(3), atol=1e-4) \

@@ -1,0 +1,272 @@
+"""`dsr-bench import-capture`: a folder of a real rig's PNGs -> a capture directory (`dsr_bench.dataset.capture`).
+
+The folder (docs/annotator.md, "Real captures in"):
+
+    SRC/rig.json                 cameras (intrinsics, distortion, depth scale, optional extrinsics), board, objects
+    SRC/front_color_<N>.png      (H, W, 3) 8-bit RGB, one per step N (any integers, any zero padding: 0, 000017, ...)
+    SRC/front_depth_<N>.png      (H, W) 16-bit depth in depth units, aligned to the colour image (same pixels, same
+    SRC/back_color_<N>.png       intrinsics: the RealSense's "align depth to colour"), 0 = no depth
+    SRC/back_depth_<N>.png
+    SRC/pushes.json              the robot's log of the T pushes (annotator.pushes), or --pushes
+
+Steps are the numbers N sorted numerically and renumbered 0..T; every camera needs colour and depth at the same
+N. Images with distortion coefficients are undistorted (colour bilinear, depth nearest: a depth is never mixed
+with its neighbours) onto the same fx, fy, cx, cy. Extrinsics come from the rig file or from the ChArUco board
+(`annotator.calibrate`); the front camera must see the whole grid. Everything is checked before anything is
+written, and the capture is written atomically (`write_capture`).
+"""
+
+from __future__ import annotations
+
+import json
+import re
+from pathlib import Path
+
+import numpy as np
+
+from dsr_bench.dataset.capture import CaptureCamera, parse_camera, write_capture
+from dsr_bench.errors import UserError
+
+#: Camera names a rig may use: `front` (the view models see) and `back` (for annotation only).
+CAMERA_NAMES = ("front", "back")
+#: File names of the step images: <camera>_<color|depth>_<N>.png.
+IMAGE_PATTERN = re.compile(r"^(?P<camera>[A-Za-z0-9]+)_(?P<kind>color|depth)_(?P<step>\d+)\.png$")
+RIG_FILE = "rig.json"
+PUSHES_FILE = "pushes.json"
+
+
+def _rig_error(path: Path, message: str) -> UserError:
+    return UserError(f"{path}: {message}; see docs/annotator.md, 'Real captures in'")
+
+
+def _number(path: Path, where: str, spec: dict, key: str, positive: bool = True) -> float:
+    try:
+        value = float(spec[key])
+    except KeyError:
+        raise _rig_error(path, f"{where} lacks {key!r}") from None
+    except (TypeError, ValueError):
+        raise _rig_error(path, f"{where} {key!r} must be a number") from None
+    if not np.isfinite(value) or (positive and value <= 0):
+        raise _rig_error(path, f"{where} {key!r} must be a finite{' positive' if positive else ''} number")
+    return value
+
+
+def read_camera(path: Path, name: str, spec) -> tuple[CaptureCamera, np.ndarray | None, bool]:
+    """(camera, distortion (5,) k1 k2 p1 p2 k3 or None, whether its extrinsics were given) of one rig camera. A
+    camera without extrinsics gets the identity until the board calibrates it."""
+    where = f"camera {name!r}"
+    if not isinstance(spec, dict):
+        raise _rig_error(path, f"{where} must be an object with fx, fy, cx, cy, width, height, depth_scale")
+    fx, fy = _number(path, where, spec, "fx"), _number(path, where, spec, "fy")
+    cx, cy = _number(path, where, spec, "cx", False), _number(path, where, spec, "cy", False)
+    width, height = _number(path, where, spec, "width"), _number(path, where, spec, "height")
+    scale = _number(path, where, spec, "depth_scale")
+    if width != int(width) or height != int(height):
+        raise _rig_error(path, f"{where} width and height must be whole pixels")
+    dist = None
+    if spec.get("distortion") is not None:
+        try:
+            dist = np.asarray(spec["distortion"], np.float64)
+        except (TypeError, ValueError):
+            dist = np.zeros(0)
+        if dist.shape != (5,) or not np.all(np.isfinite(dist)):
+            raise _rig_error(path, f"{where} distortion must be OpenCV's 5 coefficients [k1, k2, p1, p2, k3]")
+        dist = None if not dist.any() else dist
+    given = spec.get("extrinsics") is not None
+    full = {"height": int(height), "width": int(width), "intrinsics": [[fx, 0, cx], [0, fy, cy], [0, 0, 1]],
+            "extrinsics": spec["extrinsics"] if given else np.eye(4).tolist(), "depth_scale": scale}
+    try:
+        camera = parse_camera(path, name, full)
+    except UserError as exc:
+        raise _rig_error(path, str(exc).split(": ", 1)[-1] + " (extrinsics: camera-to-table, metres, row-major)") \
+            from None
+    return camera, dist, given
+
+
+def find_steps(src: Path, cameras: list[str]) -> tuple[list[int], dict[tuple[str, str, int], Path]]:
+    """The step numbers N (sorted) of SRC's `<camera>_<color|depth>_<N>.png` files and each file by (camera, kind,
+    N); UserError naming SRC when a camera or kind lacks a step another has, when fewer than 2 steps are found, or
+    when a file names a camera the rig file does not list."""
+    found: dict[tuple[str, str], set[int]] = {(c, k): set() for c in cameras for k in ("color", "depth")}
+    files: dict[tuple[str, str, int], Path] = {}
+    for entry in sorted(src.iterdir()):
+        m = IMAGE_PATTERN.match(entry.name)
+        if m is None:
+            continue
+        key = (m["camera"], m["kind"])
+        if key not in found:
+            raise UserError(f"{src}: {entry.name} names camera {m['camera']!r}, which the rig file does not list; name "
+                            f"the images {' or '.join(CAMERA_NAMES)}_<color|depth>_<N>.png as the rig's cameras")
+        step = int(m["step"])
+        if (*key, step) in files:
+            raise UserError(f"{src}: {files[(*key, step)].name} and {entry.name} are both step {step}; keep one")
+        found[key].add(step)
+        files[(*key, step)] = entry
+    steps = sorted(set().union(*found.values()))
+    if len(steps) < 2:
+        raise UserError(f"{src}: found {len(steps)} steps of <camera>_color_<N>.png / <camera>_depth_<N>.png images "
+                        "(e.g. front_color_000.png); a capture needs at least 2 (one push)")
+    for (cam, kind), have in found.items():
+        missing = sorted(set(steps) - have)
+        if missing:
+            listed = ", ".join(f"{cam}_{kind}_{n}.png" for n in missing[:3]) + (" ..." if len(missing) > 3 else "")
+            raise UserError(f"{src}: no {listed} (step number{'s' if len(missing) > 1 else ''} "
+                            f"{', '.join(map(str, missing[:3]))} exist{'' if len(missing) > 1 else 's'} for another "
+                            "camera or kind): every camera needs colour and depth at every step")
+    return steps, files
+
+
+def read_image(path: Path, camera: CaptureCamera, kind: str) -> np.ndarray:
+    """A step image checked against the camera: colour (H, W, 3) uint8 RGB, depth (H, W) uint16 units."""
+    from PIL import Image
+
+    try:
+        with Image.open(path) as im:
+            array = np.asarray(im)
+    except (OSError, ValueError) as exc:
+        raise UserError(f"{path}: unreadable image ({exc}); re-export it as PNG") from None
+    if kind == "color" and array.ndim == 3 and array.shape[2] == 4:
+        array = array[..., :3]
+    shape = (camera.height, camera.width, 3) if kind == "color" else (camera.height, camera.width)
+    ok = array.shape == shape and (array.dtype == np.uint8 if kind == "color" else array.dtype == np.uint16)
+    if not ok:
+        what = "an 8-bit RGB" if kind == "color" else "a 16-bit single-channel depth (uint16 units of depth_scale)"
+        raise UserError(f"{path}: expected {what} PNG of {camera.width}x{camera.height} (the rig file's "
+                        f"{camera.name!r} width x height), got shape {array.shape} {array.dtype}")
+    return array
+
+
+def undistort_maps(camera: CaptureCamera, distortion: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """OpenCV remap tables (H, W) float32 x, y: for each undistorted pixel (same intrinsics, no distortion), where
+    it lies in the distorted image."""
+    import cv2
+
+    k = np.asarray(camera.intrinsics, np.float64)
+    return cv2.initUndistortRectifyMap(k, distortion, None, k, (camera.width, camera.height), cv2.CV_32FC1)
+
+
+def undistort(image: np.ndarray, maps: tuple[np.ndarray, np.ndarray], nearest: bool) -> np.ndarray:
+    """An image resampled through `undistort_maps` (bilinear, or nearest for depth); pixels from outside the image
+    become 0 (black, no depth)."""
+    import cv2
+
+    flags = cv2.INTER_NEAREST if nearest else cv2.INTER_LINEAR
+    return cv2.remap(image, maps[0], maps[1], flags, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+
+
+def read_objects(path: Path, src: Path, entries) -> list[tuple[str, np.ndarray, np.ndarray, dict]]:
+    """(name, vertices (V, 3) m, faces (F, 3), identity) of the rig file's "objects" (meshes relative to SRC)."""
+    import trimesh
+
+    if not isinstance(entries, list) or not entries:
+        raise _rig_error(path, 'needs "objects": [{"name": ..., "mesh": "meshes/can.ply"}, ...] (meshes in metres, '
+                               "relative to the folder)")
+    out = []
+    for i, entry in enumerate(entries):
+        if not isinstance(entry, dict) or not isinstance(entry.get("mesh"), str):
+            raise _rig_error(path, f"object {i + 1} needs a 'mesh' path relative to {src}")
+        mesh_path = src / entry["mesh"]
+        if not mesh_path.is_file():
+            raise _rig_error(path, f"object {i + 1} mesh {entry['mesh']!r} not found under {src}")
+        try:
+            mesh = trimesh.load(mesh_path, force="mesh", process=False)
+            vertices, faces = np.asarray(mesh.vertices, np.float64), np.asarray(mesh.faces, np.int64)
+        except Exception as exc:  # trimesh raises many types for corrupt files
+            raise _rig_error(path, f"object {i + 1} mesh {entry['mesh']!r} is unreadable ({exc})") from None
+        size = float(np.linalg.norm(vertices.max(0) - vertices.min(0))) if len(vertices) else 0.0
+        if len(faces) < 4 or not 0.005 < size < 1.0:
+            raise _rig_error(path, f"object {i + 1} mesh {entry['mesh']!r} is not an object in metres (diagonal "
+                                   f"{size:.4g}, {len(faces)} triangles); rescale it to metres")
+        identity = dict(entry.get("identity", {}))
+        out.append((str(entry.get("name", mesh_path.stem)), vertices, faces, identity))
+    return out
+
+
+def import_png_folder(src: str | Path, out: str | Path, *, rig: str | Path | None = None,
+                      pushes: str | Path | None = None, name: str | None = None, overwrite: bool = False
+                      ) -> tuple[Path, dict]:
+    """Import SRC (module docstring) into the capture directory `out`; returns (out, calibration report).
+
+    Everything is read and checked first (one-line UserErrors naming the input and the fix), then written at once.
+    """
+    from annotator.calibrate import (board_view, calibration_residuals, check_grid_visible, check_residuals,
+                                     parse_board)
+    from annotator.pushes import read_pushes
+
+    src, out = Path(src), Path(out)
+    if not src.is_dir():
+        raise UserError(f"{src}: no such folder; give the folder of <camera>_color_<N>.png / _depth_<N>.png images")
+    if out.exists() and not overwrite:
+        raise UserError(f"{out} already exists; pass --overwrite to replace it or choose another --out")
+    rig_path = Path(rig) if rig is not None else src / RIG_FILE
+    if not rig_path.is_file():
+        raise UserError(f"{rig_path}: no rig file; write one (cameras, board or extrinsics, objects: docs/annotator.md, "
+                        "'Real captures in') or give it with --rig")
+    try:
+        spec = json.loads(rig_path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise _rig_error(rig_path, f"unreadable JSON ({exc})") from None
+    if not isinstance(spec, dict) or not isinstance(spec.get("cameras"), dict):
+        raise _rig_error(rig_path, 'expected {"cameras": {"front": {...}, "back": {...}}, "objects": [...], ...}')
+    names = list(spec["cameras"])
+    bad = [n for n in names if n not in CAMERA_NAMES]
+    if bad or "front" not in names:
+        raise _rig_error(rig_path, f"camera names {names} must be 'front' (the view models see; required) and "
+                                   f"'back': rename {', '.join(map(repr, bad)) or 'one of them'}")
+    names = [n for n in CAMERA_NAMES if n in names]
+    cameras, distortion, given = {}, {}, {}
+    for n in names:
+        cameras[n], distortion[n], given[n] = read_camera(rig_path, n, spec["cameras"][n])
+    objects = read_objects(rig_path, src, spec.get("objects"))
+    steps, files = find_steps(src, names)
+    actions, pushes_world = read_pushes(Path(pushes) if pushes is not None else src / PUSHES_FILE, len(steps) - 1)
+
+    maps = {n: undistort_maps(cameras[n], distortion[n]) for n in names if distortion[n] is not None}
+
+    def load(camera: str, kind: str, path: Path) -> np.ndarray:
+        image = read_image(path, cameras[camera], kind)
+        return undistort(image, maps[camera], kind == "depth") if camera in maps else image
+
+    colors = [{n: load(n, "color", files[(n, "color", s)]) for n in names} for s in steps]
+    depths = [{n: load(n, "depth", files[(n, "depth", s)]).astype(np.float64) * cameras[n].depth_scale
+               for n in names} for s in steps]
+
+    report: dict = {"extrinsics": {n: "rig file" if given[n] else "board" for n in names}}
+    need_board = [n for n in names if not given[n]]
+    if need_board:
+        if "board" not in spec:
+            raise _rig_error(rig_path, f"camera(s) {', '.join(need_board)} have no 'extrinsics' (4x4 camera-to-table, "
+                                       "m) and there is no 'board' to calibrate them from: give either")
+        board = parse_board(str(rig_path), spec["board"])
+        images = spec["board"].get("images", {}) or {}
+        views, calib_depth = {}, {}
+        for n in need_board:
+            if n in images:
+                files = images[n] if isinstance(images[n], dict) else {"color": images[n]}
+                for kind, rel in files.items():
+                    if kind not in ("color", "depth") or not (src / str(rel)).is_file():
+                        raise _rig_error(rig_path, f"board image {kind!r}: {rel!r} of camera {n!r} is not a file "
+                                                   f"under {src}; give {{\"color\": PATH, \"depth\": PATH}} (depth "
+                                                   "optional) or a colour image PATH")
+                path = src / str(files["color"])
+                image = load(n, "color", path)
+                calib_depth[n] = (load(n, "depth", src / str(files["depth"])).astype(np.float64)
+                                  * cameras[n].depth_scale if "depth" in files
+                                  else np.zeros((cameras[n].height, cameras[n].width)))
+            else:
+                path, image, calib_depth[n] = files[(n, "color", steps[0])], colors[0][n], depths[0][n]
+            views[n] = board_view(image, cameras[n].intrinsics, board, f"{path} ({rig_path} board)")
+            cameras[n] = CaptureCamera(n, cameras[n].height, cameras[n].width, cameras[n].intrinsics,
+                                       views[n].extrinsics, cameras[n].depth_scale)
+        report.update(calibration_residuals({n: cameras[n].camera for n in need_board}, views, calib_depth, board))
+        report["board"] = dict(spec["board"])
+        check_residuals(f"{rig_path} board", report)
+    check_grid_visible(f"{rig_path} camera 'front'", cameras["front"].camera)
+
+    source = {"kind": "real", "importer": "annotator.importer", "format": "png-folder", "src": str(src),
+              "rig": spec, "step_numbers": steps, "undistorted": sorted(maps), "calibration": report,
+              "policy": "recorded"}
+    written = write_capture(out, name=name or str(spec.get("name") or out.name), cameras=cameras, colors=colors,
+                            depths=depths, actions=actions, pushes_world=pushes_world, objects=objects,
+                            source=source, overwrite=overwrite)
+    return written, report
