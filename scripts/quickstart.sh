@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # The main job end to end on built-in objects, on a fresh machine:
-# install -> generate a named split -> validate -> reference predictions -> evaluate -> viewer recording.
+# install -> generate a named split -> validate -> reference and learned predictions -> evaluate -> viewer recording.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/setup.sh
@@ -12,7 +12,7 @@ mkdir -p "$OUT"
 $B generate --split "$SPLIT" --out "$DATA" --workers 2
 $B validate "$DATA"
 $B info "$DATA"
-for model in oracle static; do
+for model in oracle static dsr; do  # dsr: the CPU track's DSR-Net, whose weights ship with dsr-bench
   $B predict --model $model --data "$DATA" --split "$SPLIT" --out "$OUT/predictions-$model"
   $B evaluate "$OUT/predictions-$model" --data "$DATA" --split "$SPLIT" --out "$OUT/results-$model.json"
 done

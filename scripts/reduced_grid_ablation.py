@@ -3,7 +3,7 @@
     python scripts/reduced_grid_ablation.py --train-data DIR --test-data DIR [--test-split S]
         [--train-sequences 240] [--test-sequences 100] [--factor 4 4 3] [--batch-size 8]
         [--steps-single 1500] [--steps-multi 300] [--models dsr nowarp single] [--seed 0]
-        [--history-variants] [--out OUT.json]
+        [--history-variants] [--bn-recalibration N] [--out OUT.json]
 
 Why: the benchmark's short schedule (scripts/short_schedule.py) needs a GPU and, at the budget
 one session has, sees too few 10-step windows for a recurrent state to pay off. The network's
@@ -31,6 +31,15 @@ their standard errors. --history-variants
 also evaluates each trained history model with its history changed at test time only (zeroed;
 for DSR-Net also unwarped): whether the trained network uses what its state carries.
 
+Per step, the motion MSE is printed under both BatchNorm modes: eval mode (the predictor's) and
+batch statistics (the official code's evaluation; the test sequences in batches of --batch-size,
+since at this grid a single sample leaves one value per channel in the SE(3) head), the model's
+running statistics untouched; with, per step and mode, the RMS of the state fed in and the first
+BatchNorm's input variance over its running variance. --bn-recalibration N also evaluates each
+model after re-estimating its BatchNorm statistics (`trainer.recalibrate_batchnorm`, precise BN)
+on N batches of whole training sequences with the state carried. --steps-multi 0 skips stage 2 (a history model whose
+statistics never saw a state: docs/models.md, BatchNorm).
+
 Not a leaderboard entry: the benchmark is defined on the 128 x 128 x 48 grid.
 """
 
@@ -53,10 +62,11 @@ from dsr_bench.dataset.manifest import read_split
 from dsr_bench.dataset.sequence import SequenceReader
 from dsr_bench.models import DSRNet, ModelConfig
 from dsr_bench.models.data import action_map
+from dsr_bench.models.dsr_net import batchnorm_statistics
 from dsr_bench.models.inference import ModelPredictor
 from dsr_bench.models.training.schedules import StageConfig, stage_for
 from dsr_bench.models.training.setup import make_optimizer
-from dsr_bench.models.training.trainer import train_windows, window_record
+from dsr_bench.models.training.trainer import recalibrate_batchnorm, train_windows, window_record
 from dsr_bench.scoring.metrics import sequence_scores
 
 LR_SINGLE, LR_MULTI = 1e-3, 5e-4
@@ -101,23 +111,25 @@ def make_batch(seqs: list[dict], picks: list[tuple[int, int]], window: int, grid
             "scene_flow_3d": torch.from_numpy(np.stack([q["flow"][s] for q, s in sl]))}
 
 
+def draw_windows(seqs: list[dict], batches: int, window: int, batch_size: int, seed: int):
+    """`batches` window batches drawn at random (any start, with replacement) from the in-memory sequences."""
+    rng = np.random.default_rng(seed)
+    steps = seqs[0]["tsdf"].shape[0]
+    grid = seqs[0]["tsdf"].shape[1:]
+    for _ in range(batches):
+        picks = [(int(rng.integers(len(seqs))), int(rng.integers(steps - window + 1))) for _ in range(batch_size)]
+        yield make_batch(seqs, picks, window, grid)
+
+
 def train_stage(net, seqs, stage: StageConfig, batches: int, seed: int, label: str) -> dict:
     """`batches` windows of the stage's length drawn at random from the in-memory sequences, trained
     with the trainer's optimiser and loop unit."""
     opt = make_optimizer(net, stage, torch.device("cpu"))
-    rng = np.random.default_rng(seed)
-    steps = seqs[0]["tsdf"].shape[0]
-    grid = seqs[0]["tsdf"].shape[1:]
     window, batch_size = stage.window, stage.batch_size
-
-    def draws():
-        for _ in range(batches):
-            picks = [(int(rng.integers(len(seqs))), int(rng.integers(steps - window + 1))) for _ in range(batch_size)]
-            yield make_batch(seqs, picks, window, grid)
-
+    draws = draw_windows(seqs, batches, window, batch_size, seed)
     net.train()
     start, losses = time.perf_counter(), []
-    for b, (_, terms, _) in enumerate(train_windows(net, draws(), opt, "cpu", mask_reduction=stage.mask_reduction)):
+    for b, (_, terms, _) in enumerate(train_windows(net, draws, opt, "cpu", mask_reduction=stage.mask_reduction)):
         losses.append(window_record(terms)["loss"])
         if (b + 1) % 50 == 0 or b + 1 == batches:
             print(f"\r{label}: batch {b + 1}/{batches}, loss (last 50) {np.mean(losses[-50:]):.4f}, "
@@ -129,10 +141,11 @@ def train_stage(net, seqs, stage: StageConfig, batches: int, seed: int, label: s
 
 
 def evaluate(net, seqs: list[dict]) -> dict[str, np.ndarray]:
-    """Per-sequence mean unordered and ordered IoU and motion MSE (coarse voxels^2), by the predictor."""
+    """Per-sequence mean unordered and ordered IoU and motion MSE (coarse voxels^2), by the predictor
+    (BatchNorm in eval mode), and the motion MSE of every step (`motion_mse_steps`, (sequences, T))."""
     predictor = ModelPredictor(net, torch.device("cpu"))  # BatchNorm in eval mode
     slots = net.config.num_slots - 1
-    per_seq = {"iou_unordered": [], "iou_ordered": [], "motion_mse": []}
+    per_seq = {"iou_unordered": [], "iou_ordered": [], "motion_mse": [], "motion_mse_steps": []}
     for i, q in enumerate(seqs):
         pred = predictor.predict_arrays(q["tsdf"], q["action"], q["flow"], q["mask"], source=f"test sequence {i}")
         motion, flow = torch.from_numpy(pred["motion"]), torch.from_numpy(q["flow"])
@@ -141,7 +154,68 @@ def evaluate(net, seqs: list[dict]) -> dict[str, np.ndarray]:
         per_seq["iou_unordered"].append(float(np.mean(scores["iou_unordered"])))
         per_seq["iou_ordered"].append(float(np.mean(scores["iou_ordered"])))
         per_seq["motion_mse"].append(float(np.mean(errors)))
+        per_seq["motion_mse_steps"].append(errors)
     return {key: np.array(v) for key, v in per_seq.items()}
+
+
+@torch.no_grad()
+def rollout(net, seqs: list[dict], batch_size: int, batch_statistics: bool) -> dict[str, np.ndarray]:
+    """The test sequences `batch_size` at a time, the state carried as the predictor carries it, BatchNorm
+    in eval mode or normalising by each batch's statistics (the running statistics untouched).
+    Returns per step: the motion MSE (sequences, T), the state's RMS (T) and the mean over channels
+    of the first BatchNorm's input variance over its running variance (T): how far the statistics
+    eval mode normalises by are from what the layer sees. Needs sequences of equal length."""
+    grid = tuple(net.config.grid)
+    first_norm = net.encoder.level0.norm
+    errors, rms, ratios = [], [], []
+    hook = first_norm.register_forward_hook(lambda m, inp, out: ratios[-1].append(
+        (inp[0].float().var((0, 2, 3, 4), unbiased=False) / m.running_var).mean().item()))
+    try:
+        with batchnorm_statistics(net, batch=batch_statistics):
+            for first in range(0, len(seqs), batch_size):
+                group = seqs[first:first + batch_size]
+                tsdf = torch.from_numpy(np.stack([q["tsdf"][:len(q["action"])] for q in group]))
+                flow = torch.from_numpy(np.stack([q["flow"] for q in group]))
+                maps = torch.stack([action_map(q["action"], grid[:2]) for q in group])
+                state = net.initial_state(len(group), torch.device("cpu"))
+                steps, norms = [], []
+                ratios.append([])
+                for t in range(tsdf.shape[1]):
+                    out = net(tsdf[:, t], maps[:, t], state)
+                    steps.append(((out["motion"] - flow[:, t]) ** 2).sum(1).flatten(1).mean(1).numpy())
+                    norms.append(state.pow(2).mean().item() * len(group))
+                    if t + 1 < tsdf.shape[1]:
+                        mask = torch.from_numpy(np.stack([q["mask"][t] for q in group]))
+                        state = net.next_state(out, flow[:, t], mask)
+                errors.append(np.stack(steps, 1))
+                rms.append(norms)
+    finally:
+        hook.remove()
+    return {"motion_mse": np.concatenate(errors), "state_rms": np.sqrt(np.sum(rms, 0) / len(seqs)),
+            "variance_ratio": np.mean(ratios, 0)}
+
+
+def evaluate_both(net, seqs: list[dict], batch_size: int, label: str) -> tuple[dict[str, np.ndarray], dict]:
+    """`evaluate` (eval mode, the predictor) and the per-step motion MSE with batch statistics; prints
+    both per step, and the state's RMS and the first BatchNorm's variance ratio under each mode
+    (returned as the second item)."""
+    per_seq = evaluate(net, seqs)
+    eval_mode = rollout(net, seqs, batch_size, batch_statistics=False)
+    batch_mode = rollout(net, seqs, batch_size, batch_statistics=True)
+    per_seq["motion_mse_steps_batch_statistics"] = batch_mode["motion_mse"]
+    diagnostics = {f"{key}_{mode}": run[key] for mode, run in (("eval", eval_mode), ("batch_statistics", batch_mode))
+                   for key in ("state_rms", "variance_ratio")}
+    for key, mode in (("motion_mse_steps", "eval mode"), ("motion_mse_steps_batch_statistics", "batch statistics")):
+        print(f"{label}: motion MSE per step, BatchNorm {mode}: "
+              + " ".join(f"{e:.3g}" for e in per_seq[key].mean(0)), flush=True)
+    for key, values in diagnostics.items():
+        print(f"{label}: {key}: " + " ".join(f"{e:.3g}" for e in values), flush=True)
+    return per_seq, {key: np.round(v, 6).tolist() for key, v in diagnostics.items()}
+
+
+def summary_of(per_seq: dict[str, np.ndarray]) -> dict:
+    """Means over the sequences (per step for the per-step errors)."""
+    return {key: (v.mean(0).round(6).tolist() if v.ndim == 2 else float(v.mean())) for key, v in per_seq.items()}
 
 
 def main() -> None:
@@ -160,6 +234,9 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--history-variants", action="store_true",
                         help="Also evaluate history models with the history zeroed (and DSR-Net unwarped) at test time.")
+    parser.add_argument("--bn-recalibration", type=int, default=0, metavar="N",
+                        help="Also evaluate each model after re-estimating its BatchNorm statistics on N batches of "
+                             "10-step training windows, the state carried (precise BN).")
     parser.add_argument("--out", type=Path)
     args = parser.parse_args()
     factor = tuple(args.factor)
@@ -181,20 +258,26 @@ def main() -> None:
         stage1 = train_stage(net, train, single, args.steps_single, args.seed, f"{name} stage 1")
         multi = stage_for(name, "cube-multi", lr=LR_MULTI, batch_size=args.batch_size)  # windows of 1 without history
         batches = args.steps_multi if history else 10 * args.steps_multi
-        stage2 = train_stage(net, train, multi, batches, args.seed + 1, f"{name} stage 2")
-        per_seq[name] = evaluate(net, test)
-        results[name] = {"stage_single": stage1, "stage_multi": stage2,
-                         **{key: float(v.mean()) for key, v in per_seq[name].items()}}
+        stage2 = train_stage(net, train, multi, batches, args.seed + 1, f"{name} stage 2") if batches else None
+        per_seq[name], diagnostics = evaluate_both(net, test, args.batch_size, name)
+        results[name] = {"stage_single": stage1, "stage_multi": stage2, **summary_of(per_seq[name]), **diagnostics}
         variants = [] if not (args.history_variants and history) else \
             ["none"] + (["nowarp"] if net.config.history == "warp" else [])
-        trained = net.config
+        trained, labels = net.config, [name]
         for variant in variants:  # the same weights, the history changed at test time only
             net.config = dataclasses.replace(trained, history=variant)
-            label = f"{name}/test-history-{variant}"
-            per_seq[label] = evaluate(net, test)
-            results[label] = {key: float(v.mean()) for key, v in per_seq[label].items()}
+            labels.append(f"{name}/test-history-{variant}")
+            per_seq[labels[-1]], diagnostics = evaluate_both(net, test, args.batch_size, labels[-1])
+            results[labels[-1]] = {**summary_of(per_seq[labels[-1]]), **diagnostics}
         net.config = trained
-        for label in [name] + [f"{name}/test-history-{v}" for v in variants]:
+        if args.bn_recalibration:  # the same weights, BatchNorm's statistics re-estimated on whole sequences
+            windows = draw_windows(train, args.bn_recalibration, len(train[0]["action"]), args.batch_size,
+                                   args.seed + 2)
+            passes = recalibrate_batchnorm(net, windows, "cpu")
+            labels.append(f"{name}/bn-recalibrated")
+            per_seq[labels[-1]], diagnostics = evaluate_both(net, test, args.batch_size, labels[-1])
+            results[labels[-1]] = {"forward_passes": passes, **summary_of(per_seq[labels[-1]]), **diagnostics}
+        for label in labels:
             r = results[label]
             print(f"{label}: ordered IoU {r['iou_ordered']:.4f}, unordered {r['iou_unordered']:.4f}, "
                   f"motion MSE {r['motion_mse']:.3f}", flush=True)

@@ -38,9 +38,11 @@ def test_train_resume_exactly_predict_evaluate(data, tmp_path):
         assert torch.equal(value, b["model"][key]), key
     log = [json.loads(line) for line in (resumed / "metrics.jsonl").read_text().splitlines()]
     assert [r["step"] for r in log if "loss" in r] == [1, 2]
-    assert all(r["lr"] == 1e-5 and r["loss"] > 0 and r["samples_per_s"] > 0 for r in log)  # official warm-up lr
+    assert all(r["lr"] == 1e-5 and r["loss"] > 0 and r["samples_per_s"] > 0 for r in log if "loss" in r)  # warm-up lr
+    # the CLI recalibrates by default, at every end of the stage: at step 1, and after resuming at step 2
+    assert [(r["step"], r["bn_recalibration"]["window"]) for r in log if "bn_recalibration" in r] == [(1, 2), (2, 2)]
     straight_log = [json.loads(line) for line in (straight / "metrics.jsonl").read_text().splitlines()]
-    assert [r["loss"] for r in straight_log] == [r["loss"] for r in log]
+    assert [r["loss"] for r in straight_log if "loss" in r] == [r["loss"] for r in log if "loss" in r]
     config = json.loads((resumed / "config.json").read_text())
     assert config["stage"]["betas"] == [0.9, 0.95] and config["stage"]["window"] == 1 and config["git"]
     pred = tmp_path / "pred"
@@ -55,6 +57,23 @@ def test_max_minutes_ends_the_stage_with_a_resumable_checkpoint(data, tmp_path):
     assert _train(data, tmp_path / "timed", "--max-minutes", "1e-9") == 0  # the budget is checked after each batch
     ckpt = torch.load(tmp_path / "timed" / "last.pt", weights_only=True)
     assert ckpt["step"] == 1 and ckpt["batch_index"] == 1
+
+
+def test_the_stage_end_recalibrates_batchnorm_on_whole_sequences(data, tmp_path):
+    """bn_recalibration = N: when the stage ends (here at max_steps), the running statistics are
+    re-estimated on N batches of whole sequences with the state carried, then saved."""
+    from dsr_bench.models.training.config import TrainConfig
+    from dsr_bench.models.training.trainer import train
+
+    out = tmp_path / "recalibrated"
+    ckpt = train(TrainConfig(model_name="dsr", stage_name="cube-single", data=data, out=out, batch_size=1,
+                             max_steps=1, workers=0, progress=False, bn_recalibration=2))
+    state = torch.load(ckpt, weights_only=True)
+    # 2 batches of one 2-push sequence: 4 forward passes, each counted once (a cumulative average)
+    counts = {int(v) for k, v in state["model"].items() if k.endswith("num_batches_tracked")}
+    assert counts == {4}
+    log = [json.loads(line) for line in (out / "metrics.jsonl").read_text().splitlines()]
+    assert log[-1] == {"step": 1, "bn_recalibration": {"window": 2, "batch_size": 1, "forward_passes": 4}}
 
 
 def test_predictor_carries_the_state_as_in_training(data, tmp_path):

@@ -16,7 +16,8 @@ def predict(
     data: Path = typer.Option(..., "--data", help="Dataset directory."),
     out: Path = typer.Option(..., "--out", "-o", help="Predictions directory to write."),
     split: Optional[str] = typer.Option(None, "--split", help="Split to predict (default: the only one)."),
-    checkpoint: Optional[Path] = typer.Option(None, "--checkpoint", help="Checkpoint of a learned model."),
+    checkpoint: Optional[Path] = typer.Option(None, "--checkpoint", help="Checkpoint of a learned model (default: "
+                                              "the CPU-track weights shipped with dsr-bench, docs/models.md)."),
     weights: Optional[Path] = typer.Option(None, "--weights", help="The authors' released weights instead "
                                            "(dsr.pth, dsr_ft.pth, single.pth, nowarp.pth, gtwarp.pth, 3dflow.pth); "
                                            "BatchNorm then uses batch statistics, as theirs did."),

@@ -11,16 +11,23 @@ import typer
 
 def train(
     model: str = typer.Option("dsr", "--model", help="dsr | single | nowarp | gtwarp | 3dflow"),
-    stage: str = typer.Option(..., "--stage", help="cube-single | cube-multi | shapenet-multi (any data set)"),
+    stage: Optional[str] = typer.Option(None, "--stage", help="cube-single | cube-multi | shapenet-multi (any data "
+                                        "set); not with --track cpu, whose recipe has its own two stages"),
     data: Path = typer.Option(..., "--data", help="Dataset directory (e.g. generated with --split cube-train)."),
-    out: Path = typer.Option(..., "--out", "-o", help="Run directory: last.pt, config.json, metrics.jsonl."),
+    out: Path = typer.Option(..., "--out", "-o", help="Run directory: last.pt, config.json, metrics.jsonl "
+                             "(--track cpu: the weights file to write, e.g. dsr.pt)."),
+    track: str = typer.Option("full", "--track", help="full (the benchmark's 128 x 128 x 48 grid, one curriculum "
+                              "stage) or cpu (the CPU track: 32 x 32 x 16, both stages, docs/models.md)."),
     split: Optional[str] = typer.Option(None, "--split", help="Training split (default: the only one)."),
     val_split: Optional[str] = typer.Option(None, "--val-split", help="Validation split (IoU after each epoch)."),
-    init: Optional[Path] = typer.Option(None, "--init", help="Start from this checkpoint's weights (next stage)."),
+    init: Optional[Path] = typer.Option(None, "--init", help="Start from this checkpoint's weights (next stage; "
+                                         "--track cpu: another run's .stage1.pt, stage 1 skipped)."),
     resume: Optional[Path] = typer.Option(None, "--resume", help="Resume a run exactly (optimizer, schedule, RNG, data)."),
     epochs: Optional[int] = typer.Option(None, "--epochs", help="Override the stage's epochs."),
     batch_size: Optional[int] = typer.Option(None, "--batch-size", help="Per process (default 12)."),
     lr: Optional[float] = typer.Option(None, "--lr", help="Constant learning rate instead of the official schedule."),
+    schedule: str = typer.Option("official", "--schedule", help="official (the release's per-epoch tables) or paper "
+                                 "(1e-3 halved every 5 epochs; fine-tuning 1e-4 halved every 3)."),
     window: Optional[int] = typer.Option(None, "--window", help="Override the stage's window (pushes per sample)."),
     max_steps: Optional[int] = typer.Option(None, "--max-steps", help="Stop after this many windows (batches)."),
     max_minutes: Optional[float] = typer.Option(None, "--max-minutes", help="Stop after this much training time."),
@@ -35,6 +42,12 @@ def train(
     workers: int = typer.Option(4, "--workers", help="DataLoader worker processes per GPU."),
     checkpoint_every: int = typer.Option(0, "--checkpoint-every", help="Also save last.pt every N steps (0: per epoch)."),
     seed: int = typer.Option(0, "--seed", help="Seed of initialisation and data order."),
+    bn_recalibration: int = typer.Option(16, "--bn-recalibration", help="At the stage's end, re-estimate BatchNorm's "
+                                         "running statistics on N batches of whole sequences, the state carried "
+                                         "(0: keep the moving averages; docs/models.md, BatchNorm)."),
+    single_batches: int = typer.Option(3000, "--single-batches", help="--track cpu: stage 1 single-step batches."),
+    multi_batches: int = typer.Option(300, "--multi-batches", help="--track cpu: stage 2 batches of --window "
+                                      "steps (models without history: x window single-step batches)."),
     quiet: bool = typer.Option(False, "--quiet", help="No progress bar."),
 ) -> None:
     """Train a reference model for one stage of the paper's curriculum (torchrun for multi-GPU)."""
@@ -45,6 +58,16 @@ def train(
 
     if model not in MODEL_NAMES:
         raise UserError(f"--model {model!r}: choose one of {', '.join(MODEL_NAMES)}")
+    if bn_recalibration < 0:
+        raise UserError(f"--bn-recalibration {bn_recalibration}: must be >= 0")
+    if track == "cpu":
+        _train_cpu(model, stage, data, out, split, batch_size, lr, window, seed, workers, bn_recalibration,
+                   single_batches, multi_batches, init, quiet)
+        return
+    if track != "full":
+        raise UserError(f"--track {track!r}: choose full or cpu")
+    if stage is None:
+        raise UserError("--stage is needed on the full track: cube-single, cube-multi or shapenet-multi")
     if max_steps is not None and max_steps < 1:
         raise UserError(f"--max-steps {max_steps}: must be at least 1")
     if max_minutes is not None and max_minutes <= 0:
@@ -59,10 +82,30 @@ def train(
                          device=device, bf16=bf16, compile_model=compile_model, channels_last=channels_last,
                          workers=workers, seed=seed, official_bn=official_bn, deterministic=deterministic,
                          grid=tuple(grid_size) if grid_size else None, checkpoint_every=checkpoint_every,
-                         progress=not quiet)
+                         progress=not quiet, bn_recalibration=bn_recalibration, schedule=schedule)
     path = run(config)
     if os.environ.get("RANK", "0") == "0":
         typer.echo(f"checkpoint: {path}")
+
+
+def _train_cpu(model: str, stage: str | None, data: Path, out: Path, split: str | None, batch_size: int | None,
+               lr: float | None, window: int | None, seed: int, workers: int, bn_recalibration: int,
+               single_batches: int, multi_batches: int, init: Path | None, quiet: bool) -> None:
+    """`--track cpu`: the CPU track's recipe (`models.training.cpu_track`), one weights file (and its
+    stage-1 weights beside it); --init: stage 2 from another run's stage-1 weights."""
+    from dsr_bench.errors import UserError
+    from dsr_bench.models.training.cpu_track import CpuRecipe, train_cpu
+
+    if stage is not None:
+        raise UserError(f"--stage {stage}: the CPU track's recipe runs both its stages; drop --stage")
+    if out.is_dir():
+        raise UserError(f"--out {out} is a directory; --track cpu writes one weights file (e.g. {out / (model + '.pt')})")
+    overrides = {k: v for k, v in {"batch_size": batch_size, "lr": lr, "window": window}.items() if v is not None}
+    recipe = CpuRecipe(model, single_batches=single_batches, multi_batches=multi_batches, seed=seed,
+                       bn_recalibration=bn_recalibration, init=None if init is None else str(init), **overrides)
+    path = train_cpu(recipe, data, split, out, workers=max(1, workers),
+                     report=(lambda line: None) if quiet else (lambda line: typer.echo(line, err=True)))
+    typer.echo(f"weights: {path}")
 
 
 def register(app: typer.Typer) -> None:

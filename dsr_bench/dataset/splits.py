@@ -54,6 +54,13 @@ SPLITS: dict[str, Split] = {
         Split("procedural-mini", "procedural", 8, 60_000, "train", "Eight procedural sequences for a first look"),
         Split("procedural-novel-mini", "procedural-novel", 8, 61_000, "test",
               "Eight novel-object sequences for a first look and the quick-start evaluation"),
+        # The CPU track (docs/models.md, "The CPU track"): models that work on a 32 x 32 x 16 grid, trained and
+        # scored on 2 CPU cores. Its splits are prefixes of the benchmark's (the same base seeds: sequence i
+        # is the same file), scored on the benchmark's full grid like every other entry.
+        Split("cpu-train", "procedural", 400, 40_000, "train",
+              "CPU track training set: the first 400 sequences of procedural-train"),
+        Split("cpu-novel-test", "procedural-novel", 100, 50_000, "test",
+              "CPU track test set: the first 100 sequences of procedural-novel-test (novel objects)"),
     )
 }
 SPLIT_NAMES: tuple[str, ...] = tuple(SPLITS)

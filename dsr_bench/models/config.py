@@ -25,6 +25,12 @@ class ModelConfig:
     active ones. gtwarp_weight: splat weights of GTWarp, "predicted" foreground probability
     (official) or the ground-truth "gt" foreground. init: "official" (Kaiming-normal convs, Xavier
     MLP) or "zero-motion" (the same, with the last MLP layer zeroed: identity motions at the start).
+    width: the official channel counts divided by this (1: official; the CPU track's models use 2).
+    voxel_factor: benchmark voxels per model voxel along each axis: 1 (the model works on the
+    benchmark's 128 x 128 x 48 grid) or the CPU track's 4 (16 mm voxels, `models.coarse`: the model
+    sees the volumes pooled to `coarse.coarse_grid(4)` = 32 x 32 x 16, its motions are in its own
+    voxels, and its predictions are brought back to the benchmark's grid; the motion loss is taken
+    in benchmark voxels, so it weighs against the mask term as at full size).
     """
 
     name: str = "dsr"
@@ -40,6 +46,8 @@ class ModelConfig:
     warp_eps: float = 1e-3
     gtwarp_weight: str = "predicted"
     init: str = "official"
+    width: int = 1
+    voxel_factor: int = 1
 
     def __post_init__(self):
         choices = {"history": ("warp", "none", "nowarp", "gtwarp"), "motion": ("se3", "flow"),
@@ -51,6 +59,14 @@ class ModelConfig:
         if len(self.grid) != 3 or any(int(g) <= 0 or int(g) % 16 for g in self.grid):
             raise ValueError(f"grid {tuple(self.grid)}: every side must be a positive multiple of 16 "
                              "(four 2x downsamplings)")
+        if self.width not in (1, 2, 4):
+            raise ValueError(f"width {self.width}: 1 (official), 2 or 4")
+        if self.voxel_factor != 1:
+            from dsr_bench.models.coarse import coarse_grid
+
+            if tuple(self.grid) != coarse_grid(self.voxel_factor):
+                raise ValueError(f"voxel_factor {self.voxel_factor} needs the grid {coarse_grid(self.voxel_factor)}, "
+                                 f"not {tuple(self.grid)}")
         if self.num_slots < 2 or self.mlp_layers < 1 or self.state_channels < 1:
             raise ValueError("num_slots must be >= 2, mlp_layers and state_channels >= 1")
 

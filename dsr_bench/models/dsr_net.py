@@ -99,16 +99,22 @@ class ResBlock(nn.Module):
         return self.act(self.bn2(self.conv2(out)) + x)
 
 
-class VolumeEncoder(nn.Module):
-    """(B, cin, G) -> bottleneck (B, 128, G/16) and skips at 1/8 (64 ch), 1/4 (32), 1/2 (16)."""
+def _narrowed(width: int):
+    """Channel counts of the official network divided by `width` (ModelConfig.width; 1: official)."""
+    return lambda n: n // width
 
-    def __init__(self, cin: int, slope: float):
+
+class VolumeEncoder(nn.Module):
+    """(B, cin, G) -> bottleneck (B, 128, G/16) and skips at 1/8 (64 ch), 1/4 (32), 1/2 (16)
+    (channel counts divided by `width`)."""
+
+    def __init__(self, cin: int, slope: float, width: int = 1):
         super().__init__()
-        s = slope
-        self.level0 = ConvBlock(cin, 16, s, 2)
-        self.level1 = nn.Sequential(ConvBlock(16, 32, s, 2), *(ConvBlock(32, 32, s) for _ in range(3)))
-        self.level2 = nn.Sequential(ConvBlock(32, 64, s, 2), *(ConvBlock(64, 64, s) for _ in range(3)))
-        self.level3 = nn.Sequential(ConvBlock(64, 128, s, 2), ResBlock(128, s), ResBlock(128, s))
+        s, w = slope, _narrowed(width)
+        self.level0 = ConvBlock(cin, w(16), s, 2)
+        self.level1 = nn.Sequential(ConvBlock(w(16), w(32), s, 2), *(ConvBlock(w(32), w(32), s) for _ in range(3)))
+        self.level2 = nn.Sequential(ConvBlock(w(32), w(64), s, 2), *(ConvBlock(w(64), w(64), s) for _ in range(3)))
+        self.level3 = nn.Sequential(ConvBlock(w(64), w(128), s, 2), ResBlock(w(128), s), ResBlock(w(128), s))
 
     def forward(self, x: torch.Tensor):
         x0 = self.level0(x)
@@ -120,13 +126,13 @@ class VolumeEncoder(nn.Module):
 class FeatureDecoder(nn.Module):
     """Bottleneck and skips -> representation (B, cout, G); the last block keeps BN + LeakyReLU."""
 
-    def __init__(self, cout: int, slope: float):
+    def __init__(self, cout: int, slope: float, width: int = 1):
         super().__init__()
-        s = slope
-        self.up0 = nn.Sequential(ConvBlock(128, 64, s, up=True), ConvBlock(64, 64, s))
-        self.up1 = nn.Sequential(ConvBlock(64 + 64, 32, s, up=True), ConvBlock(32, 32, s))
-        self.up2 = nn.Sequential(ConvBlock(32 + 32, 16, s, up=True), ConvBlock(16, 16, s))
-        self.up3 = nn.Sequential(ConvBlock(16 + 16, 8, s, up=True), ConvBlock(8, cout, s))
+        s, w = slope, _narrowed(width)
+        self.up0 = nn.Sequential(ConvBlock(w(128), w(64), s, up=True), ConvBlock(w(64), w(64), s))
+        self.up1 = nn.Sequential(ConvBlock(w(64) + w(64), w(32), s, up=True), ConvBlock(w(32), w(32), s))
+        self.up2 = nn.Sequential(ConvBlock(w(32) + w(32), w(16), s, up=True), ConvBlock(w(16), w(16), s))
+        self.up3 = nn.Sequential(ConvBlock(w(16) + w(16), 8, s, up=True), ConvBlock(8, cout, s))
 
     def forward(self, x: torch.Tensor, skips) -> torch.Tensor:
         s2, s1, s0 = skips
@@ -139,13 +145,15 @@ class FeatureDecoder(nn.Module):
 class ActionEncoder(nn.Module):
     """(B, 8, D0, D1) one-hot action map -> embeddings (B, 8, D0/2, D1/2) and (B, 16, D0/4, D1/4)."""
 
-    def __init__(self, slope: float):
+    def __init__(self, slope: float, width: int = 1):
         super().__init__()
-        s = slope
-        self.trunk1 = nn.Sequential(ConvBlock(8, 64, s, 2, dims=2), *(ConvBlock(64, 64, s, dims=2) for _ in range(3)))
-        self.emb1 = ConvBlock(64, 8, s, dims=2)
-        self.trunk2 = nn.Sequential(ConvBlock(64, 128, s, 2, dims=2), *(ConvBlock(128, 128, s, dims=2) for _ in range(3)))
-        self.emb2 = ConvBlock(128, 16, s, dims=2)
+        s, w = slope, _narrowed(width)
+        self.trunk1 = nn.Sequential(ConvBlock(8, w(64), s, 2, dims=2),
+                                    *(ConvBlock(w(64), w(64), s, dims=2) for _ in range(3)))
+        self.emb1 = ConvBlock(w(64), 8, s, dims=2)
+        self.trunk2 = nn.Sequential(ConvBlock(w(64), w(128), s, 2, dims=2),
+                                    *(ConvBlock(w(128), w(128), s, dims=2) for _ in range(3)))
+        self.emb2 = ConvBlock(w(128), 16, s, dims=2)
 
     def forward(self, action: torch.Tensor):
         h1 = self.trunk1(action)
@@ -168,16 +176,17 @@ class SE3Head(nn.Module):
 
     def __init__(self, config: ModelConfig):
         super().__init__()
-        s, c = config.leaky_slope, config.state_channels
-        self.action = ActionEncoder(s)
+        s, c, w = config.leaky_slope, config.state_channels, _narrowed(config.width)
+        self.action = ActionEncoder(s, config.width)
         self.conv0 = ConvBlock(c + 8, 8, s, 2)
         self.conv1 = ConvBlock(8 + 8, 16, s, 2)
-        self.conv2 = nn.Sequential(ConvBlock(16 + 16, 32, s, 2), ConvBlock(32, 32, s), ConvBlock(32, 32, s),
-                                   ConvBlock(32, 64, s), ConvBlock(64, 128, s, 2), ConvBlock(128, 128, s, 2))
+        self.conv2 = nn.Sequential(ConvBlock(16 + 16, w(32), s, 2), ConvBlock(w(32), w(32), s),
+                                   ConvBlock(w(32), w(32), s), ConvBlock(w(32), w(64), s),
+                                   ConvBlock(w(64), w(128), s, 2), ConvBlock(w(128), w(128), s, 2))
         remaining = tuple(_halved(int(g), 5) for g in config.grid)  # (4, 4, 2) on the 128 x 128 x 48 grid
-        self.to_vector = nn.Conv3d(128, 128, remaining)
+        self.to_vector = nn.Conv3d(w(128), w(128), remaining)
         layers: list[nn.Module] = []
-        prev = 128
+        prev = w(128)
         for _ in range(config.mlp_layers - 1):
             layers += [nn.Linear(prev, config.mlp_hidden), nn.LeakyReLU(s)]
             prev = config.mlp_hidden
@@ -199,7 +208,7 @@ class FlowHead(nn.Module):
     def __init__(self, config: ModelConfig):
         super().__init__()
         s, c = config.leaky_slope, config.state_channels
-        self.action = ActionEncoder(s)
+        self.action = ActionEncoder(s, config.width)
         self.down0 = ConvBlock(c + 8, 8, s, 2)
         self.down1 = ConvBlock(8 + 8, 16, s, 2)
         self.down2 = ConvBlock(16 + 16, 32, s, 2)
@@ -226,8 +235,8 @@ class DSRNet(nn.Module):
         self.channels_last = False  # feed the encoder channels_last_3d inputs (set with the weights' format)
         self._warp = forward_warp  # compile_warp() swaps in a compiled one
         c = config.state_channels
-        self.encoder = VolumeEncoder(1 + 3 + c, config.leaky_slope)
-        self.decoder = FeatureDecoder(c, config.leaky_slope)
+        self.encoder = VolumeEncoder(1 + 3 + c, config.leaky_slope, config.width)
+        self.decoder = FeatureDecoder(c, config.leaky_slope, config.width)
         self.mask_head = nn.Conv3d(c, config.num_slots, 1)
         self.motion_head = SE3Head(config) if config.motion == "se3" else FlowHead(config)
         grid = torch.stack(torch.meshgrid(*(torch.arange(g, dtype=torch.float32) for g in config.grid), indexing="ij"))

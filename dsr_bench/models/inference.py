@@ -9,9 +9,10 @@ import numpy as np
 import torch
 
 from dsr_bench.dataset.sequence import SequenceReader
+from dsr_bench.constants import GRID_SHAPE
 from dsr_bench.errors import UserError
 from dsr_bench.models.config import ModelConfig
-from dsr_bench.models.dsr_net import DSRNet
+from dsr_bench.models.dsr_net import DSRNet, batchnorm_statistics
 from dsr_bench.models.labels import slot_labels
 from dsr_bench.models.training.checkpoints import load_checkpoint, load_weights, torch_device
 
@@ -28,14 +29,22 @@ class ModelPredictor:
     """A trained network run over a sequence's steps with its state carried as in training.
 
     Prediction t sees observations 0..t and action t. mask: `slot_labels` of the K softmax
-    channels (background, the last, -> 0; object slot k -> k + 1); motion: fp32 voxels (dy, dx, dz)."""
+    channels (background, the last, -> 0; object slot k -> k + 1); motion: fp32 voxels (dy, dx, dz).
+
+    BatchNorm normalises with its running statistics (eval mode), or with `official_bn` with each
+    step's own statistics (batch 1: the sample's), as the official code evaluates; either way the
+    model's running statistics are left as they are (`dsr_net.batchnorm_statistics`)."""
 
     def __init__(self, model: DSRNet, device: torch.device, official_bn: bool = False, bf16: bool = False):
-        self.model, self.device, self.bf16 = model, device, bf16
-        self.name = model.config.name
-        self.num_slots = model.config.num_slots - 1
-        self.description = _DESCRIPTIONS.get(self.name, self.name)
-        model.train(official_bn)  # BatchNorm in eval mode unless reproducing the official code
+        self.model, self.device, self.bf16, self.official_bn = model, device, bf16, official_bn
+        config = model.config
+        self.name = config.name if config.voxel_factor == 1 else f"{config.name}-cpu"
+        self.num_slots = config.num_slots - 1
+        self.description = _DESCRIPTIONS.get(config.name, config.name) + (
+            "" if config.voxel_factor == 1 else f" (CPU track: a {'x'.join(map(str, config.grid))} grid)")
+        #: the grid the network works on (y, x, z), recorded in the predictions' meta.json
+        self.grid = tuple(config.grid)
+        model.eval()  # the statistics BatchNorm uses are chosen for each sequence (_predict)
 
     def predict_sequence(self, seq: SequenceReader) -> dict[str, np.ndarray]:
         """{"mask": (T, Y, X, Z) uint8, "motion": (T, 3, Y, X, Z) float32} for one sequence (read step by step)."""
@@ -64,30 +73,48 @@ class ModelPredictor:
     def _predict(self, steps: int, tsdf_shape: tuple, tsdf_at: Callable[[int], np.ndarray],
                  read_actions: Callable[[], np.ndarray], ground_truth: Callable[[int], tuple[np.ndarray, np.ndarray]],
                  source) -> dict[str, np.ndarray]:
-        """The steps in order: tsdf_at(t) and ground_truth(t) (flow, mask) read one step at a time."""
+        """The steps in order: tsdf_at(t) and ground_truth(t) (flow, mask) read one step at a time.
+        A CPU-track model (`voxel_factor` > 1) sees them pooled (`models.coarse`) and its predictions are
+        brought back to the benchmark's grid."""
+        from dsr_bench.models import coarse
         from dsr_bench.models.data import action_map, check_actions
 
         config = self.model.config
-        grid = tuple(config.grid)
-        if tsdf_shape[1:] != grid or tsdf_shape[0] < steps:
-            raise UserError(f"{source}: tsdf {tsdf_shape} does not fit the model's grid {grid}")
+        grid, factor = tuple(config.grid), config.voxel_factor
+        data_grid = grid if factor == 1 else GRID_SHAPE
+        if tsdf_shape[1:] != data_grid or tsdf_shape[0] < steps:
+            raise UserError(f"{source}: tsdf {tsdf_shape} does not fit the model's grid {data_grid}")
         actions = read_actions()
         if len(actions) != steps:
             raise UserError(f"{source}: {len(actions)} actions for {steps} pushes; "
                             "check it with `dsr-bench validate`")
-        maps = action_map(check_actions(actions, grid[:2], source), grid[:2])
-        masks = np.zeros((steps,) + grid, dtype=np.uint8)
-        motions = np.zeros((steps, 3) + grid, dtype=np.float32)
+        actions = check_actions(actions, data_grid[:2], source)
+        maps = action_map(actions if factor == 1 else coarse.coarse_action(actions, factor), grid[:2])
+        masks = np.zeros((steps,) + data_grid, dtype=np.uint8)
+        motions = np.zeros((steps, 3) + data_grid, dtype=np.float32)
         state = self.model.initial_state(1, self.device)
         for t in range(steps):
-            tsdf = torch.from_numpy(np.asarray(tsdf_at(t), dtype=np.float32)).unsqueeze(0).to(self.device)
-            with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=self.bf16):
-                out = self.model(tsdf, maps[t: t + 1].to(self.device), state)
-            masks[t] = slot_labels(out["mask"])[0].cpu().numpy()
-            motions[t] = out["motion"][0].float().cpu().numpy()
+            volume = np.asarray(tsdf_at(t), dtype=np.float32)
+            volume = volume if factor == 1 else coarse.pool_tsdf(volume, factor)
+            tsdf = torch.from_numpy(volume).unsqueeze(0).to(self.device)
+            with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=self.bf16), \
+                    batchnorm_statistics(self.model, batch=self.official_bn):
+                try:
+                    out = self.model(tsdf, maps[t: t + 1].to(self.device), state)
+                except ValueError as exc:  # batch statistics of a single value (a small grid at batch 1)
+                    if self.official_bn and "more than 1 value per channel" in str(exc):
+                        raise UserError(f"official BatchNorm (batch statistics) at batch 1 needs more than one "
+                                        f"value per channel, and the grid {grid} leaves one voxel in the SE(3) "
+                                        "head; predict with BatchNorm in eval mode") from None
+                    raise
+            mask, motion = slot_labels(out["mask"])[0].cpu().numpy(), out["motion"][0].float().cpu().numpy()
+            masks[t] = mask if factor == 1 else coarse.unpool_mask(mask, factor)
+            motions[t] = motion if factor == 1 else coarse.unpool_motion(motion, factor)
             gt_flow = gt_mask = None
             if config.history == "gtwarp" and t + 1 < steps:
                 flow, mask = ground_truth(t)
+                if factor != 1:
+                    flow, mask = coarse.pool_flow(flow, mask, factor), coarse.pool_labels(mask, factor)
                 gt_flow = torch.from_numpy(np.asarray(flow, np.float32)).unsqueeze(0).to(self.device)
                 gt_mask = torch.from_numpy(np.asarray(mask, np.int64)).unsqueeze(0).to(self.device)
             if t + 1 < steps:

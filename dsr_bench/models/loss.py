@@ -110,14 +110,17 @@ def check_ids(gt_mask: torch.Tensor, num_slots: int) -> None:
 
 
 def dsr_loss(outputs: dict, gt_mask: torch.Tensor, gt_flow: torch.Tensor, matching=None,
-             reduction: str = "sum", check: bool = True) -> tuple[torch.Tensor, dict, torch.Tensor]:
+             reduction: str = "sum", check: bool = True,
+             voxel_factor: int = 1) -> tuple[torch.Tensor, dict, torch.Tensor]:
     """(total loss, terms, best matching of this prediction).
 
     outputs: mask_logits (B, K, ...), motion (B, 3, ...) voxels; gt_mask (B, ...) ids; gt_flow
     (B, 3, ...) voxels. `matching`: the previous step's best matching, (B, K-1) (None at step 0:
     this prediction's own). reduction of the mask term over the batch: "sum" (official) or "mean".
     terms: "total", "motion", "mask" as detached 0-dim fp32/fp64 tensors (float() them to log).
-    `check=False` skips the id check, which reads the mask (callers that checked the ids on the CPU)."""
+    `check=False` skips the id check, which reads the mask (callers that checked the ids on the CPU).
+    `voxel_factor`: benchmark voxels per model voxel (`ModelConfig.voxel_factor`): the motion term is
+    taken in benchmark voxels (x factor^2), so it weighs against the mask term as at full size."""
     if reduction not in ("sum", "mean"):
         raise ValueError(f"reduction {reduction!r}: sum or mean")
     logits = outputs["mask_logits"]
@@ -132,6 +135,6 @@ def dsr_loss(outputs: dict, gt_mask: torch.Tensor, gt_flow: torch.Tensor, matchi
     mask_loss = per_sample.sum() if reduction == "sum" else per_sample.mean()
     motion = outputs["motion"]
     motion = motion if motion.dtype == torch.float64 else motion.float()
-    motion_loss = F.mse_loss(motion, gt_flow.to(motion.dtype))
+    motion_loss = F.mse_loss(motion, gt_flow.to(motion.dtype)) * voxel_factor ** 2
     total = MOTION_WEIGHT * motion_loss + MASK_WEIGHT * mask_loss
     return total, {"total": total.detach(), "motion": motion_loss.detach(), "mask": mask_loss.detach()}, best

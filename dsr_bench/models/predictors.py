@@ -15,7 +15,7 @@ from typing import Protocol
 
 import numpy as np
 
-from dsr_bench.constants import FREE_HEIGHT, MAX_OBJECTS_PER_SCENE, NUM_MASK_SLOTS, VOXEL_SIZE
+from dsr_bench.constants import FREE_HEIGHT, GRID_SHAPE, MAX_OBJECTS_PER_SCENE, NUM_MASK_SLOTS, VOXEL_SIZE
 from dsr_bench.atomic import write_text
 from dsr_bench.errors import UserError
 from dsr_bench.dataset.sequence import SequenceReader
@@ -104,6 +104,17 @@ class PushPredictor(StaticPredictor):
         return out
 
 
+#: The CPU track's trained weights that ship with the toolkit (`dsr-bench train --track cpu`, docs/models.md):
+#: what `dsr-bench predict --model M` uses when no --checkpoint or --weights is given.
+SHIPPED_WEIGHTS = Path(__file__).resolve().parent / "weights" / "cpu-track"
+
+
+def shipped_weights(model: str) -> Path | None:
+    """The shipped CPU-track weights file of a learned model, or None if there is none."""
+    path = SHIPPED_WEIGHTS / f"{model}.pt"
+    return path if path.is_file() else None
+
+
 def load_predictor(model: str, checkpoint: Path | None = None, device: str = "cpu", weights: Path | None = None,
                    official_bn: bool | None = None) -> Predictor:
     """The predictor `model`: a learned model needs a dsr-bench `checkpoint` or the authors' released
@@ -125,9 +136,12 @@ def load_predictor(model: str, checkpoint: Path | None = None, device: str = "cp
             from dsr_bench.models.inference import load_official_predictor
 
             return load_official_predictor(model, Path(weights), device, True if official_bn is None else official_bn)
-        if checkpoint is None:
-            raise UserError(f"--model {model} needs --checkpoint CKPT (train one with `dsr-bench train`) "
-                            f"or --weights FILE (the authors' {model}.pth)")
+        shipped = checkpoint is None
+        if shipped:
+            checkpoint = shipped_weights(model)
+            if checkpoint is None:
+                raise UserError(f"--model {model} needs --checkpoint CKPT (train one with `dsr-bench train`) "
+                                f"or --weights FILE (the authors' {model}.pth)")
         if not Path(checkpoint).is_file():
             raise UserError(f"checkpoint not found: {checkpoint}")
         from dsr_bench.dataset.manifest import file_sha256
@@ -135,7 +149,8 @@ def load_predictor(model: str, checkpoint: Path | None = None, device: str = "cp
 
         predictor = (load_learned(model, Path(checkpoint), device) if official_bn is None
                      else load_learned(model, Path(checkpoint), device, official_bn))
-        predictor.weights = {"source": "dsr-bench", "file": Path(checkpoint).name,
+        predictor.weights = {"source": "dsr-bench, shipped CPU-track weights" if shipped else "dsr-bench",
+                             "file": Path(checkpoint).name,
                              "sha256": file_sha256(checkpoint),
                              "batchnorm": "batch statistics (official)" if official_bn else "running statistics (eval)"}
         return predictor
@@ -164,8 +179,10 @@ def predict_split(predictor: Predictor, data_dir: str | Path, names: list[str], 
                                          pred.get("motion_2d")))
         if progress:
             progress()
-    meta = {"name": predictor.name, "description": (type(predictor).__doc__ or "").strip().splitlines()[0],
-            "parameters": {"num_slots": predictor.num_slots}, "seconds_per_step": seconds / max(steps, 1),
+    meta = {"name": predictor.name,
+            "description": getattr(predictor, "description", None) or (type(predictor).__doc__ or "").strip().splitlines()[0],
+            "parameters": {"num_slots": predictor.num_slots, "grid": list(getattr(predictor, "grid", GRID_SHAPE))},
+            "seconds_per_step": seconds / max(steps, 1),
             "hardware": f"{os.cpu_count()} CPU cores"}
     weights = getattr(predictor, "weights", None)
     if weights:  # where a learned model's weights came from; also under parameters, which results carry

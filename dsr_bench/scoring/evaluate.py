@@ -197,7 +197,10 @@ def aggregate(per_sequence: dict[str, dict]) -> dict:
         "motion_moved_objects": _mean(per_step["motion_moved"]),
         "motion_static_objects": _mean(per_step["motion_static"]),
     }
-    return {"metrics": metrics, "per_step": per_step, "breakdowns": breakdowns}
+    headline = HEADLINE + (("motion_2d",) if "motion_2d" in metrics else ())
+    with np.errstate(all="ignore"):  # each sequence's mean over its steps: what paired comparisons need
+        per_sequence_means = {name: {k: _mean(s[k]) for k in headline} for name, s in sorted(per_sequence.items())}
+    return {"metrics": metrics, "per_step": per_step, "breakdowns": breakdowns, "per_sequence": per_sequence_means}
 
 
 def predictions_checksum(pred_dir: Path, names: list[str]) -> str:

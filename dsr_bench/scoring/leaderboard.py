@@ -14,6 +14,7 @@ import re
 from pathlib import Path
 
 from dsr_bench.atomic import write_text
+from dsr_bench.constants import GRID_SHAPE
 from dsr_bench.errors import UserError
 
 LOWER_IS_BETTER = {"motion_visible", "motion_full", "motion_2d"}
@@ -81,13 +82,16 @@ def load_rows(root: str | Path = "leaderboard") -> list[dict]:
         checksum = r.get("split_checksum", "")
         # an entry scored on an earlier pin of its split stays visible, in its own table, unranked against the rest
         kind = "reproduced" if checksum == expected else f"reproduced on an earlier version of the split, {checksum[:12]}"
+        grid = ((r.get("meta") or {}).get("parameters") or {}).get("grid") or list(GRID_SHAPE)
         rows.append({"method": r["method"], "split": r["split"], "kind": kind, "label": r.get("label", ""),
+                     "grid": "x".join(str(int(g)) for g in grid),
                      "date": r.get("date", "")[:10], "checksum": r.get("split_checksum", "")[:12],
                      **{k: v for k, v in r["metrics"].items()}})
     paper = root / "paper.json"
     if paper.exists():
         for r in json.loads(paper.read_text())["rows"]:
             rows.append({"method": r["method"], "split": r["split"], "kind": "reported in the paper",
+                         "grid": "x".join(map(str, GRID_SHAPE)),
                          "label": r.get("source", ""), "date": "2020", "checksum": "", **r["metrics"]})
     return rows
 
@@ -102,7 +106,7 @@ def _tables(rows: list[dict]):
             sub = group.dropna(subset=[c for c in cols if c in group], how="all")
             if sub.empty or not cols:
                 continue
-            yield split, kind, track, sub[["method", *cols, "label", "date", "checksum"]].reset_index(drop=True), cols
+            yield split, kind, track, sub[["method", "grid", *cols, "label", "date", "checksum"]].reset_index(drop=True), cols
 
 
 _WORSE_MARK = "\u25bc"
@@ -143,6 +147,8 @@ def _fmt(value, column) -> str:
 
 def build(root: str | Path = "leaderboard") -> tuple[Path, Path]:
     """Write README.md and index.html of the leaderboard from its entries and paper rows."""
+    from dsr_bench.dataset.splits import SPLITS
+
     root = Path(root)
     rows = load_rows(root)
     md = ["# dsr-bench leaderboard", "",
@@ -155,7 +161,9 @@ def build(root: str | Path = "leaderboard") -> tuple[Path, Path]:
     body = []
     for split, kind, track, table, cols in _tables(rows):
         md += [f"## {split}: {track} track ({kind})", ""]
-        header = ["method", *[COLUMN_TITLES[c] for c in cols], "note", "date", "split checksum"]
+        if split in SPLITS:
+            md += [f"{SPLITS[split].description}.", ""]
+        header = ["method", "model grid", *[COLUMN_TITLES[c] for c in cols], "note", "date", "split checksum"]
         comparable = kind != "reported in the paper" and (table["method"] == NO_MOTION).any()
         best = {c: _best(table, c) if comparable or kind == "reported in the paper" else None for c in cols}
         if kind != "reported in the paper" and not comparable:
@@ -172,15 +180,16 @@ def build(root: str | Path = "leaderboard") -> tuple[Path, Path]:
                 classes = " ".join(k for k, on in (("best", top), ("worse", worse)) if on)
                 tds.append(f'<td data-v="{"" if r[c] != r[c] else r[c]}"{f" class={chr(34)}{classes}{chr(34)}" if classes else ""}>'
                            f"{html.escape(_fmt(r[c], c))}{f' {_WORSE_MARK}' if worse else ''}</td>")
-            md.append("| " + " | ".join([str(r["method"]), *cells, str(r["label"]), str(r["date"]), str(r["checksum"])]) + " |")
-            html_rows.append(f"<tr><td>{html.escape(str(r['method']))}</td>{''.join(tds)}<td>{html.escape(str(r['label']))}"
+            md.append("| " + " | ".join([str(r["method"]), str(r["grid"]), *cells, str(r["label"]), str(r["date"]), str(r["checksum"])]) + " |")
+            html_rows.append(f"<tr><td>{html.escape(str(r['method']))}</td><td>{html.escape(str(r['grid']))}</td>{''.join(tds)}<td>{html.escape(str(r['label']))}"
                              f"</td><td>{html.escape(str(r['date']))}</td><td><code>{html.escape(str(r['checksum']))}</code>"
                              "</td></tr>")
         md.append("")
         ths = "".join(f"<th onclick=\"sortTable(this)\">{html.escape(h)}</th>" for h in header)
         note = ("" if comparable or kind == "reported in the paper" else
                 "<p class=note>No no-motion (static) row on this version of the split: not comparable, none marked best.</p>")
-        body.append(f"<h2>{html.escape(split)}: {track} track ({html.escape(kind)})</h2>\n{note}"
+        about = f"<p>{html.escape(SPLITS[split].description)}.</p>" if split in SPLITS else ""
+        body.append(f"<h2>{html.escape(split)}: {track} track ({html.escape(kind)})</h2>\n{about}{note}"
                     f"<table class=board><thead><tr>{ths}</tr></thead><tbody>{''.join(html_rows)}</tbody></table>")
     if not rows:
         md.append("No entries yet.")

@@ -57,6 +57,12 @@ class TrainConfig:
     seed: int = 0
     #: validate with BatchNorm in train mode, as the official code
     official_bn: bool = False
+    #: when the stage ends, re-estimate BatchNorm's running statistics on this many batches of whole
+    #: sequences of the training split, the state carried (precise BN; 0: keep the training's moving
+    #: averages, which after single-step windows never saw a state: docs/models.md, BatchNorm)
+    bn_recalibration: int = 0
+    #: learning rates: the official per-epoch tables ("official") or the paper's halving ("paper")
+    schedule: str = "official"
     #: deterministic algorithms and warp
     deterministic: bool = False
     #: expected grid (Y, X, Z) in voxels (None: the data's)

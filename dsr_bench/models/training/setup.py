@@ -81,7 +81,7 @@ def resolve_stage(config: TrainConfig) -> tuple[StageConfig, dict | None]:
     stage (and model), but for `config.epochs`."""
     if config.resume is None:
         return stage_for(config.model_name, config.stage_name, epochs=config.epochs, batch_size=config.batch_size,
-                         lr=config.lr, window=config.window), None
+                         lr=config.lr, window=config.window, schedule=config.schedule), None
     checkpoint = load_checkpoint(config.resume)
     saved, stage_name = ModelConfig.from_dict(checkpoint["model_config"]), checkpoint.get("stage", {}).get("name")
     if saved.name != config.model_name or stage_name != config.stage_name:

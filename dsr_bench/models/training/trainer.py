@@ -6,6 +6,9 @@ windows, a checkpoint when max_steps or the time budget ends the stage (and ever
 `checkpoint_every` batches, and after each epoch), validation after each epoch. Within a window
 the state starts at zero, is detached between steps, and the optimiser steps at every time step
 (official); step t's mask loss uses the best slot matching of step t-1 (`train_step`).
+
+`recalibrate_batchnorm` re-estimates BatchNorm's running statistics on whole windows with the state
+carried (precise BN); `train` runs it when the stage ends if `bn_recalibration` asks.
 """
 
 from __future__ import annotations
@@ -21,13 +24,15 @@ import torch
 
 from dsr_bench.atomic import write_text
 from dsr_bench.errors import UserError
+from dsr_bench.models.dsr_net import batchnorm_layers, batchnorm_statistics
 from dsr_bench.models.labels import slot_labels
 from dsr_bench.models.loss import MaskIdError, check_ids, dsr_loss
 from dsr_bench.models.training.checkpoints import git_hash, save_checkpoint, unwrap
 from dsr_bench.models.training.config import TrainConfig
 from dsr_bench.models.training.setup import Run, prepare
 
-__all__ = ["TrainConfig", "WindowError", "train", "train_step", "train_windows", "validate", "window_record"]
+__all__ = ["TrainConfig", "WindowError", "recalibrate_batchnorm", "train", "train_step", "train_windows", "validate",
+           "window_record"]
 
 
 def _to(batch: dict, device, num_slots: int | None = None) -> tuple[torch.Tensor, ...]:
@@ -60,7 +65,8 @@ def train_step(model, batch: dict, optimizer, device, bf16: bool = False, determ
         with torch.autocast(device.type, dtype=torch.bfloat16, enabled=bf16):
             outputs = model(tsdf[:, t], action[:, t], state)
         loss, step_terms, matching = dsr_loss(outputs, gt_mask[:, t], gt_flow[:, t], matching,
-                                              reduction=mask_reduction, check=False)
+                                              reduction=mask_reduction, check=False,
+                                              voxel_factor=net.config.voxel_factor)
         loss.backward()
         optimizer.step()
         terms.append(torch.stack([step_terms["total"], step_terms["motion"], step_terms["mask"]]))
@@ -106,19 +112,60 @@ def window_record(terms: list[dict]) -> dict:
 
 
 @torch.no_grad()
+def recalibrate_batchnorm(model, batches: Iterable[dict], device, bf16: bool = False,
+                          deterministic: bool = False) -> int:
+    """Precise BatchNorm: replace every BatchNorm layer's running statistics with their average over
+    the forward passes of `batches` (windows (B, L, ...) as the loaders give them), each window run as
+    prediction runs a sequence: the state starts at zero and is carried (warped) from step to step.
+
+    Why: the running statistics are a moving average (momentum 0.1) over the last training forward
+    passes, made with the weights of the time. After single-step windows they describe inputs whose
+    state is always zero, while prediction feeds the state back at every step: in eval mode the
+    first convolution (whose state weights a single-step stage never trains) is then normalised
+    with a variance that leaves the state out, and the mismatch grows through the warped state from
+    step to step (docs/models.md, BatchNorm). Here the forward passes normalise with each batch's
+    own statistics (as in training, the state hence as training produces it) and every pass counts
+    equally (momentum None: a cumulative average), with the final weights; no gradients, the
+    weights and the momentum are left as they were. Returns the number of forward passes."""
+    device = torch.device(device)
+    net = unwrap(model)
+    layers = batchnorm_layers(net)
+    momenta = [m.momentum for m in layers]
+    for m in layers:
+        m.reset_running_stats()
+        m.momentum = None
+    was_training = net.training
+    net.train()
+    passes = 0
+    try:
+        for batch in batches:
+            tsdf, action, gt_mask, gt_flow = _to(batch, device)
+            state = net.initial_state(tsdf.shape[0], device)
+            for t in range(tsdf.shape[1]):
+                with torch.autocast(device.type, dtype=torch.bfloat16, enabled=bf16):
+                    out = net(tsdf[:, t], action[:, t], state)
+                passes += 1
+                if t + 1 < tsdf.shape[1]:
+                    state = net.next_state(out, gt_flow[:, t], gt_mask[:, t], deterministic)
+    finally:
+        for m, momentum in zip(layers, momenta):
+            m.momentum = momentum
+        net.train(was_training)
+    return passes
+
+
+@torch.no_grad()
 def validate(model, loader, device, official_bn: bool = False, bf16: bool = False,
              max_batches: int | None = None) -> dict:
     """Mean per-step unordered mask IoU (the benchmark's matching) and loss on a loader, state carried
     across each window's steps. BatchNorm in eval mode unless `official_bn` (the official code
-    never switches it)."""
+    never switches it: batch statistics, the running statistics left untouched)."""
     from dsr_bench.scoring.metrics import assignment, matched_iou, overlap
 
     device = torch.device(device)
     net = unwrap(model)
-    was_training = net.training
-    net.train(official_bn)
     ious, losses = [], []
-    try:
+    with batchnorm_statistics(net, batch=official_bn):
         for i, batch in enumerate(loader):
             if max_batches is not None and i >= max_batches:
                 break
@@ -129,7 +176,7 @@ def validate(model, loader, device, official_bn: bool = False, bf16: bool = Fals
                 with torch.autocast(device.type, dtype=torch.bfloat16, enabled=bf16):
                     out = net(tsdf[:, t], action[:, t], state)
                 _, terms, matching = dsr_loss(out, gt_mask[:, t], gt_flow[:, t], matching, reduction="mean",
-                                              check=False)
+                                              check=False, voxel_factor=net.config.voxel_factor)
                 losses.append(float(terms["total"]))
                 slots = out["mask"].shape[1] - 1
                 for pred, gt in zip(slot_labels(out["mask"]).cpu().numpy(), gt_mask[:, t].cpu().numpy()):
@@ -137,8 +184,6 @@ def validate(model, loader, device, official_bn: bool = False, bf16: bool = Fals
                     ious.append(matched_iou(ov, *assignment(ov.iou))[0])
                 if t + 1 < tsdf.shape[1]:
                     state = net.next_state(out, gt_flow[:, t], gt_mask[:, t])
-    finally:
-        net.train(was_training)
     return {"val_iou": float(np.mean(ious)) if ious else float("nan"),
             "val_loss": float(np.mean(losses)) if losses else float("nan")}
 
@@ -241,6 +286,7 @@ def _train_epoch(run: Run, log: RunLog | None, budget: TimeBudget, epoch: int, f
                 log.window(record)
                 bar.set_postfix(loss=f"{record['loss']:.4f}")
             if (config.max_steps is not None and run.step >= config.max_steps) or budget.spent():
+                _recalibrate(run, log)
                 _save(run, epoch, batch_index)
                 return True
             if config.checkpoint_every and run.step % config.checkpoint_every == 0:
@@ -251,9 +297,41 @@ def _train_epoch(run: Run, log: RunLog | None, budget: TimeBudget, epoch: int, f
     return False
 
 
+def _recalibrate(run: Run, log: RunLog | None) -> None:
+    """The stage is over: with `bn_recalibration` = N, rank 0 re-estimates BatchNorm's running
+    statistics (`recalibrate_batchnorm`) on N batches of the training split's whole sequences (windows
+    of its shortest sequence's pushes, drawn in the order of the seed's first epoch, workers seeded
+    from their own generator: the global RNG states the checkpoint saves are not drawn from)."""
+    config = run.config
+    if not config.bn_recalibration or run.rank != 0:
+        return
+    from itertools import islice
+
+    from torch.utils.data import DataLoader
+
+    from dsr_bench.models.data import SequenceWindowDataset, collate_compact
+    from dsr_bench.models.training.loaders import WindowSampler
+
+    pushes = SequenceWindowDataset(config.data, config.split, window=1, fields=("tsdf",))
+    window = min(np.unique([name for _, name, _ in pushes.items], return_counts=True)[1])
+    windows = SequenceWindowDataset(config.data, config.split, window=int(window), stride=int(window))
+    batch = min(run.stage.batch_size, len(windows))
+    loader = DataLoader(windows, batch_size=batch, sampler=WindowSampler(len(windows), batch, config.seed),
+                        num_workers=config.workers, collate_fn=collate_compact,
+                        generator=torch.Generator().manual_seed(config.seed), pin_memory=run.device.type == "cuda")
+    passes = recalibrate_batchnorm(run.model, islice(loader, config.bn_recalibration), run.device, config.bf16,
+                                   config.deterministic)
+    if log is not None:
+        log._write({"step": run.step, "bn_recalibration": {"window": int(window), "batch_size": batch,
+                                                           "forward_passes": passes}})
+
+
 def _end_epoch(run: Run, log: RunLog | None, epoch: int) -> None:
-    """Step the schedule; on rank 0 validate and log the epoch; save the checkpoint of the next epoch."""
+    """Step the schedule; on rank 0 validate and log the epoch (after the stage's last epoch, with the
+    recalibrated BatchNorm statistics if asked); save the checkpoint of the next epoch."""
     run.scheduler.step()
+    if epoch + 1 == run.stage.epochs:
+        _recalibrate(run, log)
     if run.rank == 0:
         record = {"epoch": epoch + 1, "step": run.step, "lr_next": run.optimizer.param_groups[0]["lr"]}
         if run.val_loader is not None:

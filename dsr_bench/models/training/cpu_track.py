@@ -1,0 +1,273 @@
+"""The CPU track's training recipe: a reference model on 16 mm voxels, trained on 2 CPU cores.
+
+The model (`ModelConfig.voxel_factor` = 4: a 32 x 32 x 16 grid, channel counts halved: `width` 2) sees
+the split's sequences pooled once (`models.coarse`; kept in memory and cached on disk, see
+`pooled_split`). Training is the trainer's loop unit (`train_windows`: the matched loss, the matching
+carried from step to step, the state warped between steps) on windows drawn at random (any sequence,
+any start, with replacement, from the recipe's seed):
+
+1. stage 1, single-step windows (`single_batches`), learning rate `lr`;
+2. stage 2, whole windows of `window` steps with the state carried (`multi_batches`) at `multi_lr`;
+   a model without history (single, 3dflow) gets `window` x as many single-step windows instead: the
+   same sample-steps;
+
+each stage's rate halved at 50% and again at 75% of its batches (the paper's step decay, in batches).
+Stage 1 is the same computation for dsr, nowarp, gtwarp and single (a single-step window has no
+history, the initial weights and the windows come from the same seed), so its weights are saved beside
+the result (`<out>.stage1.pt`) and `init` starts another of these models from them, skipping stage 1.
+Then precise BatchNorm (`trainer.recalibrate_batchnorm`): the running statistics are re-estimated on
+`bn_recalibration` batches of whole windows with the state carried, as prediction runs, so that eval
+mode does not diverge along a sequence (docs/models.md, BatchNorm). The result is a weights-only file
+(fp16 weights, `model_config`, the recipe and the data it saw), loaded with `weights_only=True` by
+`dsr-bench predict --checkpoint` like any checkpoint.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import os
+import time
+from collections.abc import Callable, Iterator
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from dsr_bench.atomic import atomic_path
+from dsr_bench.errors import UserError
+from dsr_bench.models import coarse
+from dsr_bench.models.config import ModelConfig
+from dsr_bench.models.training.checkpoints import git_hash
+
+CPU_CHECKPOINT_FORMAT = "dsr-bench-cpu-weights"
+
+
+@dataclass(frozen=True)
+class CpuRecipe:
+    """Everything that defines a CPU-track training run (saved in its weights file)."""
+
+    model_name: str
+    single_batches: int = 3000
+    multi_batches: int = 300
+    window: int = 10
+    batch_size: int = 8
+    lr: float = 1e-3
+    multi_lr: float = 5e-4
+    width: int = 2
+    bn_recalibration: int = 16
+    seed: int = 0
+    #: a stage-1 weights file (`<out>.stage1.pt` of an earlier run) to start stage 2 from; None: run stage 1
+    init: str | None = None
+
+    def __post_init__(self):
+        if min(self.single_batches, self.batch_size, self.window) < 1 or self.multi_batches < 0:
+            raise UserError("--single-batches, --batch-size and --window must be at least 1, --multi-batches >= 0")
+        if self.batch_size < 2:
+            raise UserError(f"--batch-size {self.batch_size}: the CPU track needs at least 2 (on its grid BatchNorm in the "
+                            "SE(3) head sees one voxel per sample, so training statistics need two samples)")
+        if self.init is not None and not self.multi_batches:
+            raise UserError("--init starts stage 2 from stage-1 weights; give --multi-batches >= 1")
+
+    def model_config(self) -> ModelConfig:
+        factor = coarse.CPU_TRACK_FACTOR
+        return ModelConfig.for_model(self.model_name, grid=coarse.coarse_grid(factor), voxel_factor=factor,
+                                     width=self.width, init="zero-motion")
+
+
+# --- data -------------------------------------------------------------------------------------------
+def _pool_sequence(path: Path, factor: int) -> dict[str, np.ndarray]:
+    """One sequence pooled: tsdf and mask at the T observations before each push, flow, actions."""
+    from dsr_bench.dataset.sequence import SequenceReader
+
+    with SequenceReader(path) as seq:
+        steps = seq.num_steps
+        tsdf, mask = seq.read("tsdf")[:steps], seq.read("mask_3d")[:steps]
+        flow, action = seq.read("scene_flow_3d")[:steps], np.asarray(seq.read("action"))[:steps]
+    return {"tsdf": coarse.pool_tsdf(tsdf, factor).astype(np.float16), "mask": coarse.pool_labels(mask, factor),
+            "flow": coarse.pool_flow(flow, mask, factor).astype(np.float16),
+            "action": coarse.coarse_action(action, factor).astype(np.int16)}
+
+
+def cache_dir() -> Path:
+    """Where pooled splits are cached: $DSR_BENCH_CACHE, else ~/.cache/dsr-bench."""
+    return Path(os.environ.get("DSR_BENCH_CACHE") or Path.home() / ".cache" / "dsr-bench")
+
+
+def pooled_split(data_dir: Path, split: str | None, factor: int = coarse.CPU_TRACK_FACTOR, workers: int = 1,
+                 progress: Callable[[int, int], None] | None = None) -> dict[str, np.ndarray]:
+    """A split's sequences pooled to the CPU track's grid, stacked: tsdf (N, T, y, x, z) float16, mask
+    (N, T, ...) uint8, flow (N, T, 3, ...) float16 in model voxels, action (N, T, 3) int16, names (N,).
+    Cached in `cache_dir()` under a key of the files' paths, sizes and modification times (a changed or
+    regenerated file is pooled again)."""
+    from dsr_bench.dataset.manifest import read_split
+
+    data_dir = Path(data_dir).resolve()
+    _, names = read_split(data_dir, split)
+    paths = [data_dir / f"{name}.h5" for name in names]
+    missing = [p.name for p in paths if not p.is_file()]
+    if missing:
+        raise UserError(f"{data_dir}: {len(missing)} sequences of the split are missing ({missing[0]}, ...); "
+                        "generate them again")
+    stamp = [(str(p), p.stat().st_size, p.stat().st_mtime_ns) for p in paths]
+    key = hashlib.sha256(json.dumps([factor, coarse.MIN_BLOCK_FRACTION, stamp]).encode()).hexdigest()[:20]
+    cached = cache_dir() / f"pooled-f{factor}-{key}.npz"
+    if cached.is_file():
+        with np.load(cached) as arrays:
+            return {k: arrays[k] for k in arrays.files}
+    pooled: list[dict] = []
+    with ProcessPoolExecutor(workers) if workers > 1 else _Inline() as pool:
+        for i, item in enumerate(pool.map(_pool_sequence, paths, [factor] * len(paths))):
+            pooled.append(item)
+            if progress:
+                progress(i + 1, len(paths))
+    lengths = {len(p["action"]) for p in pooled}
+    if len(lengths) != 1:
+        raise UserError(f"{data_dir}: sequences of {sorted(lengths)} pushes; the CPU track needs one length")
+    out = {k: np.stack([p[k] for p in pooled]) for k in pooled[0]}
+    out["names"] = np.array(names)
+    cached.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_path(cached) as tmp, open(tmp, "wb") as fh:
+        np.savez(fh, **out)
+    return out
+
+
+class _Inline:
+    """A one-process stand-in for an executor (map in order)."""
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        return False
+
+    @staticmethod
+    def map(fn, *iterables):
+        return map(fn, *iterables)
+
+
+def draw_windows(data: dict[str, np.ndarray], batches: int, window: int, batch_size: int, seed: int,
+                 grid: tuple[int, int, int]) -> Iterator[dict]:
+    """`batches` window batches (B, L, ...) in the loaders' layout, each window a random sequence and start."""
+    from dsr_bench.models.data import action_map
+
+    rng = np.random.default_rng(seed)
+    count, steps = data["action"].shape[:2]
+    for _ in range(batches):
+        seqs = rng.integers(count, size=batch_size)
+        starts = rng.integers(steps - window + 1, size=batch_size)
+        idx = (seqs[:, None], starts[:, None] + np.arange(window))
+        yield {"tsdf": torch.from_numpy(data["tsdf"][idx].astype(np.float32)),
+               "action": torch.stack([action_map(a, grid[:2]) for a in data["action"][idx].astype(np.int64)]),
+               "mask_3d": torch.from_numpy(data["mask"][idx]),
+               "scene_flow_3d": torch.from_numpy(data["flow"][idx].astype(np.float32)),
+               "sequence": [str(data["names"][s]) for s in seqs]}
+
+
+# --- training -----------------------------------------------------------------------------------------
+def _stage(net, data, batches: int, window: int, recipe: CpuRecipe, lr: float, seed: int, label: str,
+           report: Callable[[str], None]) -> dict:
+    """Train `batches` windows of `window` steps; returns the mean loss terms of the first and last tenth."""
+    from dsr_bench.models.training.trainer import train_windows
+
+    optimizer = torch.optim.Adam(net.parameters(), lr=lr, betas=(0.9, 0.95))
+    halve = {int(batches * 0.5), int(batches * 0.75)}
+    windows = draw_windows(data, batches, window, recipe.batch_size, seed, tuple(net.config.grid))
+    net.train()
+    start, records = time.perf_counter(), []
+    for b, (_, terms, _) in enumerate(train_windows(net, windows, optimizer, "cpu")):
+        records.append([np.mean([t[k] for t in terms]) for k in ("total", "motion", "mask")])
+        if b + 1 in halve:
+            for group in optimizer.param_groups:
+                group["lr"] /= 2
+        if (b + 1) % 100 == 0 or b + 1 == batches:
+            recent = np.mean(records[-100:], 0)
+            report(f"{label}: batch {b + 1}/{batches}, loss {recent[0]:.4f} (motion {recent[1]:.4f}, mask "
+                   f"{recent[2]:.4f}), {time.perf_counter() - start:.0f} s")
+    tenth = max(1, batches // 10)
+    first, last = np.mean(records[:tenth], 0), np.mean(records[-tenth:], 0)
+    return {"batches": batches, "window": window, "lr": lr, "seconds": round(time.perf_counter() - start, 1),
+            "loss_first_tenth": [round(float(v), 5) for v in first],
+            "loss_last_tenth": [round(float(v), 5) for v in last]}
+
+
+def stage1_path(out: Path) -> Path:
+    """Where a run writing `out` keeps its stage-1 weights."""
+    return Path(out).with_suffix(".stage1.pt")
+
+
+def _load_stage1(net, path: Path, recipe: CpuRecipe) -> dict:
+    """Load stage-1 weights into `net` (a model of the same architecture, by the same stage-1 recipe);
+    returns that run's stage-1 record, marked with where it came from."""
+    from dsr_bench.models.training.checkpoints import load_weights
+
+    if not path.is_file():
+        raise UserError(f"--init {path}: not found; it is the .stage1.pt file a CPU-track run writes beside its weights")
+    state = torch.load(path, map_location="cpu", weights_only=True)
+    if not isinstance(state, dict) or state.get("format") != CPU_CHECKPOINT_FORMAT + "-stage1":
+        raise UserError(f"--init {path}: not the stage-1 weights of a CPU-track run (a .stage1.pt file)")
+    theirs = {k: v for k, v in state["recipe"].items() if k not in ("model_name", "multi_batches", "multi_lr", "init",
+                                                                     "bn_recalibration", "window")}
+    ours = {k: v for k, v in dataclasses.asdict(recipe).items() if k in theirs}
+    if theirs != ours:
+        differ = sorted(k for k in theirs if theirs[k] != ours[k])
+        raise UserError(f"--init {path}: stage 1 ran with other settings ({', '.join(differ)}); use the same ones")
+    saved = ModelConfig.from_dict(state["model_config"])
+    if (saved.grid, saved.width, saved.motion, saved.voxel_factor) != (net.config.grid, net.config.width,
+                                                                       net.config.motion, net.config.voxel_factor):
+        raise UserError(f"--init {path}: a {saved.name!r} network of another architecture than {net.config.name!r}")
+    load_weights(net, state, path, model=f"the {net.config.name!r} model")
+    return {**state["stages"]["single"], "from": path.name, "model": saved.name}
+
+
+def train_cpu(recipe: CpuRecipe, data_dir: Path, split: str | None, out: Path, workers: int = 1,
+              report: Callable[[str], None] = print) -> Path:
+    """Train one CPU-track model by `recipe` on DATA_DIR's split and write its weights file to `out`."""
+    from dsr_bench.models.dsr_net import DSRNet
+    from dsr_bench.models.training.trainer import recalibrate_batchnorm
+
+    config = recipe.model_config()
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    data = pooled_split(data_dir, split, config.voxel_factor, workers,
+                        lambda i, n: report(f"pooling {i}/{n}") if i % 50 == 0 or i == n else None)
+    count, steps = data["action"].shape[:2]
+    if recipe.window > steps:
+        raise UserError(f"--window {recipe.window}: the sequences have {steps} pushes")
+    torch.manual_seed(recipe.seed)
+    net = DSRNet(config)
+    history = config.history != "none"
+    if recipe.init is None:
+        stages = {"single": _stage(net, data, recipe.single_batches, 1, recipe, recipe.lr, recipe.seed,
+                                   f"{config.name} stage 1", report)}
+        stage1 = {"format": CPU_CHECKPOINT_FORMAT + "-stage1", "model_config": config.as_dict(),
+                  "model": net.state_dict(), "recipe": dataclasses.asdict(recipe), "stages": dict(stages)}
+        with atomic_path(stage1_path(out)) as tmp:
+            torch.save(stage1, tmp)
+    else:
+        stages = {"single": _load_stage1(net, Path(recipe.init), recipe)}
+    if recipe.multi_batches:
+        batches, window = ((recipe.multi_batches, recipe.window) if history
+                           else (recipe.multi_batches * recipe.window, 1))
+        stages["multi"] = _stage(net, data, batches, window, recipe, recipe.multi_lr, recipe.seed + 1,
+                                 f"{config.name} stage 2", report)
+    passes = 0
+    moving = {k: v.clone() for k, v in net.state_dict().items() if "running_" in k or "num_batches" in k}
+    if recipe.bn_recalibration:
+        windows = draw_windows(data, recipe.bn_recalibration, steps, recipe.batch_size, recipe.seed + 2,
+                               tuple(config.grid))
+        passes = recalibrate_batchnorm(net, windows, "cpu")
+    net.eval()
+    payload = {"format": CPU_CHECKPOINT_FORMAT, "model_config": config.as_dict(),
+               "model": {k: (v.half() if v.is_floating_point() else v) for k, v in net.state_dict().items()},
+               "recipe": dataclasses.asdict(recipe), "stages": stages, "bn_recalibration_passes": passes,
+               # the training's moving averages, which recalibration replaced (scripts/batchnorm_modes.py)
+               "bn_moving_averages": {k: (v.half() if v.is_floating_point() else v) for k, v in moving.items()},
+               "data": {"dir": str(Path(data_dir).resolve()), "split": split, "sequences": int(count)},
+               "git": git_hash(), "torch_version": str(torch.__version__)}
+    with atomic_path(out) as tmp:
+        torch.save(payload, tmp)
+    return out

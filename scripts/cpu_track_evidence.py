@@ -1,0 +1,99 @@
+"""The CPU track's evidence: every reference model against the yardsticks on held-out novel objects.
+
+    python scripts/cpu_track_evidence.py --data DATA/cpu-novel-test --weights DIR [--work DIR]
+        [--models dsr nowarp single gtwarp 3dflow] [--out docs/evidence/cpu-track.json] [--leaderboard leaderboard]
+
+For the yardsticks (static: no motion; push: every object voxel moved 10 cm along the push; oracle) and for
+each model's weights DIR/<model>.pt, runs exactly what a user runs:
+
+    dsr-bench predict --model M [--checkpoint DIR/M.pt] --data DATA --out WORK/M
+    dsr-bench evaluate WORK/M --data DATA --out WORK/M.json
+
+then compares the models sequence by sequence (`per_sequence` of the results): the mean of each metric, and
+for each model the paired difference to static and to push with its standard error (the standard
+deviation of the per-sequence differences / sqrt(n)); and DSR-Net vs NoWarp vs SingleStep on IoU. With
+--leaderboard, each results file joins the leaderboard (`dsr-bench leaderboard add`) and the tables are
+rebuilt. Predictions already in WORK are reused (delete them to predict again).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+
+METRICS = ("motion_visible", "motion_full", "iou_unordered", "iou_ordered")
+REFERENCES = ("static", "push", "oracle")
+PAIRS = (("dsr", "nowarp"), ("dsr", "single"), ("nowarp", "single"), ("gtwarp", "dsr"))
+
+
+def run(*args: str) -> None:
+    print("$", " ".join(args), flush=True)
+    subprocess.run(args, check=True)
+
+
+def paired(a: dict, b: dict, metric: str) -> dict:
+    """Mean of a - b over the sequences both scored, its standard error and n."""
+    names = sorted(set(a) & set(b))
+    d = np.array([a[n][metric] - b[n][metric] for n in names], dtype=np.float64)
+    d = d[np.isfinite(d)]
+    return {"mean": float(d.mean()), "se": float(d.std(ddof=1) / np.sqrt(len(d))), "n": int(len(d))}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--data", type=Path, required=True)
+    parser.add_argument("--weights", type=Path, required=True)
+    parser.add_argument("--work", type=Path, default=Path("cpu-track-evidence"))
+    parser.add_argument("--models", nargs="+", default=["dsr", "nowarp", "single", "gtwarp", "3dflow"])
+    parser.add_argument("--out", type=Path)
+    parser.add_argument("--leaderboard", type=Path)
+    args = parser.parse_args()
+
+    cli = [sys.executable, "-m", "dsr_bench"]
+    results = {}
+    for name in (*REFERENCES, *args.models):
+        pred, scored = args.work / name, args.work / f"{name}.json"
+        if not scored.is_file():
+            extra = [] if name in REFERENCES else ["--checkpoint", str(args.weights / f"{name}.pt")]
+            if not (pred / "meta.json").is_file():
+                run(*cli, "predict", "--model", name, *extra, "--data", str(args.data), "--out", str(pred))
+            run(*cli, "evaluate", str(pred), "--data", str(args.data), "--out", str(scored))
+        results[name] = json.loads(scored.read_text())
+        if args.leaderboard:
+            run(*cli, "leaderboard", "add", str(scored), "--root", str(args.leaderboard))
+    if args.leaderboard:
+        run(*cli, "leaderboard", "build", "--root", str(args.leaderboard))
+
+    per_seq = {name: r["per_sequence"] for name, r in results.items()}
+    summary = {"data": str(args.data), "split": results["static"]["split"],
+               "split_checksum": results["static"]["split_checksum"], "sequences": len(per_seq["static"]),
+               "means": {name: {m: r["metrics"][m] for m in METRICS} for name, r in results.items()},
+               "grid": {name: r["meta"].get("parameters", {}).get("grid") for name, r in results.items()},
+               "vs_static": {}, "vs_push": {}, "pairs": {}}
+    for name in args.models:
+        summary["vs_static"][name] = {m: paired(per_seq[name], per_seq["static"], m) for m in METRICS}
+        summary["vs_push"][name] = {m: paired(per_seq[name], per_seq["push"], m) for m in METRICS[:2]}
+    for a, b in PAIRS:
+        if a in per_seq and b in per_seq:
+            summary["pairs"][f"{a} - {b}"] = {m: paired(per_seq[a], per_seq[b], m) for m in METRICS}
+
+    print(f"\n{summary['split']} ({summary['sequences']} sequences), means:")
+    print(f"{'':>8} " + " ".join(f"{m:>15}" for m in METRICS))
+    for name, row in summary["means"].items():
+        print(f"{name:>8} " + " ".join(f"{row[m]:15.4f}" for m in METRICS))
+    for key in ("vs_static", "vs_push", "pairs"):
+        print(f"\npaired differences ({key}), mean +- standard error:")
+        for name, row in summary[key].items():
+            print(f"{name:>16} " + " ".join(f"{m} {v['mean']:+.4f} +- {v['se']:.4f}" for m, v in row.items()))
+    if args.out:
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        args.out.write_text(json.dumps(summary, indent=1) + "\n")
+
+
+if __name__ == "__main__":
+    main()

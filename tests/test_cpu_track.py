@@ -1,0 +1,251 @@
+"""The CPU track: pooling to 16 mm voxels and back, the model that works on them (loss weighting,
+predictions on the benchmark's grid), its recipe from the CLI, the pooled-split cache, its named splits."""
+
+import json
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+
+from dsr_bench.cli import main  # noqa: E402
+from dsr_bench.constants import GRID_SHAPE  # noqa: E402
+from dsr_bench.models import DSRNet, ModelConfig, coarse  # noqa: E402
+from dsr_bench.testing import write_synthetic_dataset  # noqa: E402
+
+CPU = dict(grid=(32, 32, 16), voxel_factor=4, width=2)
+
+
+def _box(y0=8, x0=16, z0=0, size=(8, 12, 8), oid=1):
+    mask = np.zeros(GRID_SHAPE, np.uint8)
+    mask[y0:y0 + size[0], x0:x0 + size[1], z0:z0 + size[2]] = oid
+    return mask
+
+
+def test_coarse_grid_and_config():
+    assert coarse.coarse_grid(4) == (32, 32, 16)
+    assert coarse.coarse_grid(2) == (64, 64, 32)
+    ModelConfig.for_model("dsr", **CPU)
+    with pytest.raises(ValueError, match="needs the grid"):
+        ModelConfig.for_model("dsr", grid=(32, 32, 32), voxel_factor=4)
+    with pytest.raises(ValueError, match="width 3"):
+        ModelConfig.for_model("dsr", width=3)
+
+
+def test_a_block_aligned_box_pools_and_comes_back_exactly():
+    mask = _box()
+    flow = np.zeros((3,) + GRID_SHAPE, np.float32)
+    flow[:, mask > 0] = np.array([2.0, -4.0, 0.5], np.float32)[:, None]  # benchmark voxels
+    labels = coarse.pool_labels(mask)
+    assert labels.shape == (32, 32, 16) and labels.dtype == np.uint8
+    assert (labels == 1).sum() == 2 * 3 * 2 and labels[2:4, 4:7, 0:2].all() and not labels[..., 12:].any()
+    pooled = coarse.pool_flow(flow, mask)
+    assert np.allclose(pooled[:, labels == 1], np.array([0.5, -1.0, 0.125])[:, None])  # model voxels: / 4
+    assert not pooled[:, labels == 0].any()
+    assert np.array_equal(coarse.unpool_mask(labels), mask)
+    assert np.array_equal(coarse.unpool_motion(pooled), flow)  # back in benchmark voxels
+
+
+def test_a_block_belongs_to_an_object_from_three_eighths():
+    mask = np.zeros(GRID_SHAPE, np.uint8)
+    mask[0:4, 0:4, 0:1] = 1          # 16 of 64: below 3/8
+    mask[0:4, 4:8, 0:2] = 2          # 32 of 64
+    mask[4:8, 0:4, 0:1] = 3
+    mask[4:8, 0:4, 1:2] = 2          # 16 + 16: a tie between 3 and 2, neither reaches 24
+    mask[8:12, 0:4, 0:2] = 4
+    mask[8:12, 0:2, 2:4] = 1         # 32 of id 4 + 16 of id 1: the most frequent, 4
+    labels = coarse.pool_labels(mask)
+    assert labels[0, 0, 0] == 0 and labels[0, 1, 0] == 2 and labels[1, 0, 0] == 0 and labels[2, 0, 0] == 4
+    assert coarse.MIN_BLOCK_FRACTION * 64 == 24
+
+
+def test_pool_tsdf_means_blocks_and_is_empty_above_the_volume():
+    tsdf = np.ones((2,) + GRID_SHAPE, np.float32)
+    tsdf[1, :4, :4, :4] = -1.0
+    tsdf[1, 4:8, :4, :2] = 0.0
+    pooled = coarse.pool_tsdf(tsdf)
+    assert pooled.shape == (2, 32, 32, 16) and pooled.dtype == np.float32
+    assert pooled[1, 0, 0, 0] == -1.0 and pooled[1, 1, 0, 0] == 0.5 and (pooled[0] == 1).all()
+    assert (pooled[:, :, :, 12:] == 1).all()
+    with pytest.raises(ValueError, match="expected"):
+        coarse.pool_tsdf(np.ones((64, 64, 24)))
+
+
+def test_coarse_action_floors_the_pixel():
+    assert coarse.coarse_action(np.array([[3, 127, 5], [0, 4, 3]])).tolist() == [[3, 31, 1], [0, 1, 0]]
+
+
+def test_the_motion_term_is_taken_in_benchmark_voxels():
+    from dsr_bench.models.loss import dsr_loss
+
+    g = torch.Generator().manual_seed(0)
+    outputs = {"mask_logits": torch.randn(2, 5, 32, 32, 16, generator=g),
+               "motion": torch.randn(2, 3, 32, 32, 16, generator=g)}
+    gt_mask = torch.randint(0, 3, (2, 32, 32, 16), generator=g)
+    gt_flow = torch.randn(2, 3, 32, 32, 16, generator=g)
+    _, plain, _ = dsr_loss(outputs, gt_mask, gt_flow)
+    _, scaled, _ = dsr_loss(outputs, gt_mask, gt_flow, voxel_factor=4)
+    assert torch.allclose(scaled["motion"], 16 * plain["motion"]) and torch.equal(scaled["mask"], plain["mask"])
+
+
+@pytest.mark.parametrize("name", ["dsr", "gtwarp"])
+def test_a_cpu_track_model_predicts_on_the_benchmark_grid(name):
+    from dsr_bench.models.data import action_map
+    from dsr_bench.models.inference import ModelPredictor
+    from dsr_bench.models.labels import slot_labels
+
+    torch.manual_seed(0)
+    net = DSRNet(ModelConfig.for_model(name, **CPU)).eval()
+    rng = np.random.default_rng(0)
+    tsdf = rng.uniform(-1, 1, (2,) + GRID_SHAPE).astype(np.float32)
+    actions = np.array([[1, 64, 70], [5, 10, 127]])
+    mask = np.stack([_box(), _box(x0=20)])
+    flow = np.zeros((2, 3) + GRID_SHAPE, np.float32)
+    pred = ModelPredictor(net, torch.device("cpu")).predict_arrays(tsdf, actions, flow, mask)
+    assert pred["mask"].shape == (2,) + GRID_SHAPE and pred["motion"].shape == (2, 3) + GRID_SHAPE
+    with torch.no_grad():  # step 0 by hand: pooled input, coarse action, outputs brought back
+        out = net(torch.from_numpy(coarse.pool_tsdf(tsdf[0]))[None],
+                  action_map(coarse.coarse_action(actions[:1]), (32, 32))[:1], net.initial_state(1, "cpu"))
+    assert np.array_equal(pred["mask"][0], coarse.unpool_mask(slot_labels(out["mask"])[0].numpy()))
+    assert np.allclose(pred["motion"][0], coarse.unpool_motion(out["motion"][0].numpy()), atol=1e-6)
+
+
+def test_the_pooled_split_is_cached_and_refreshed_when_a_file_changes(tmp_path, monkeypatch):
+    from dsr_bench.models.training import cpu_track
+
+    monkeypatch.setenv("DSR_BENCH_CACHE", str(tmp_path / "cache"))
+    data = write_synthetic_dataset(tmp_path / "data", num_sequences=2, num_steps=2, split="train")
+    first = cpu_track.pooled_split(data, None)
+    assert first["tsdf"].shape == (2, 2, 32, 32, 16) and first["flow"].shape == (2, 2, 3, 32, 32, 16)
+    assert first["names"].tolist() == ["seq_0000", "seq_0001"] and len(list((tmp_path / "cache").iterdir())) == 1
+
+    def fail(*args):
+        raise AssertionError("pooled again")
+
+    monkeypatch.setattr(cpu_track, "_pool_sequence", fail)
+    again = cpu_track.pooled_split(data, None)
+    assert all(np.array_equal(first[k], again[k]) for k in first)
+    (data / "seq_0001.h5").touch()
+    with pytest.raises(AssertionError, match="pooled again"):
+        cpu_track.pooled_split(data, None)
+
+
+def test_train_track_cpu_from_the_cli_then_predict_and_evaluate(tmp_path, monkeypatch):
+    monkeypatch.setenv("DSR_BENCH_CACHE", str(tmp_path / "cache"))
+    data = write_synthetic_dataset(tmp_path / "data", num_sequences=2, num_steps=3, split="train")
+    weights = tmp_path / "dsr.pt"
+    args = ["train", "--track", "cpu", "--model", "dsr", "--data", str(data), "--out", str(weights),
+            "--single-batches", "2", "--multi-batches", "1", "--window", "2", "--batch-size", "2",
+            "--bn-recalibration", "1", "--quiet"]
+    assert main(args) == 0
+    state = torch.load(weights, weights_only=True)
+    assert state["model_config"]["voxel_factor"] == 4 and state["model_config"]["width"] == 2
+    assert state["model_config"]["grid"] == [32, 32, 16] and state["model_config"]["init"] == "zero-motion"
+    assert all(v.dtype == torch.float16 for v in state["model"].values() if v.is_floating_point())
+    assert state["recipe"]["single_batches"] == 2 and state["stages"]["multi"]["window"] == 2
+    assert state["bn_recalibration_passes"] == 3  # one batch of whole 3-push windows
+    assert state["data"]["sequences"] == 2
+    counts = {int(v) for k, v in state["model"].items() if k.endswith("num_batches_tracked")}
+    assert counts == {3}  # the recalibrated statistics were saved
+    preds = tmp_path / "preds"
+    assert main(["predict", "--model", "dsr", "--checkpoint", str(weights), "--data", str(data),
+                 "--out", str(preds)]) == 0
+    meta = json.loads((preds / "meta.json").read_text())
+    assert meta["name"] == "dsr-cpu" and meta["parameters"]["grid"] == [32, 32, 16]
+    results = tmp_path / "results.json"
+    assert main(["evaluate", str(preds), "--data", str(data), "--out", str(results)]) == 0
+    scored = json.loads(results.read_text())
+    assert scored["meta"]["parameters"]["grid"] == [32, 32, 16] and np.isfinite(scored["metrics"]["motion_full"])
+    # each sequence's means, for paired comparisons; with sequences of equal length they average to the headline
+    assert sorted(scored["per_sequence"]) == ["seq_0000", "seq_0001"]
+    for metric in ("motion_full", "motion_visible", "iou_unordered", "iou_ordered"):
+        mean = np.mean([scored["per_sequence"][n][metric] for n in scored["per_sequence"]])
+        assert np.isclose(mean, scored["metrics"][metric], rtol=1e-12), metric
+
+
+@pytest.mark.parametrize("extra, message", [
+    (["--stage", "cube-single"], "drop --stage"),
+    (["--single-batches", "0"], "at least 1"),
+    (["--track", "gpu"], "choose full or cpu"),
+    (["--batch-size", "1"], "needs at least 2"),
+])
+def test_train_track_cpu_errors(tmp_path, capsys, extra, message):
+    data = write_synthetic_dataset(tmp_path / "data", num_sequences=1, num_steps=2, split="train")
+    args = ["train", "--track", "cpu", "--model", "dsr", "--data", str(data), "--out", str(tmp_path / "w.pt"), *extra]
+    assert main(args) == 2
+    err = capsys.readouterr().err
+    assert message in err and len(err.strip().splitlines()) == 1
+    assert not (tmp_path / "w.pt").exists()
+
+
+def test_the_full_track_still_needs_a_stage(tmp_path, capsys):
+    data = write_synthetic_dataset(tmp_path / "data", num_sequences=1, num_steps=2, split="train")
+    assert main(["train", "--model", "dsr", "--data", str(data), "--out", str(tmp_path / "run")]) == 2
+    assert "--stage is needed" in capsys.readouterr().err
+
+
+def test_the_papers_schedule_is_offered_beside_the_official_tables():
+    from dsr_bench.models.training.schedules import stage_for
+
+    scratch = stage_for("dsr", "cube-single", schedule="paper")
+    assert [scratch.lr_at(e) for e in (0, 4, 5, 9, 10, 29)] == [1e-3, 1e-3, 5e-4, 5e-4, 2.5e-4, 1e-3 / 32]
+    finetune = stage_for("dsr", "cube-multi", schedule="paper")
+    assert [finetune.lr_at(e) for e in (0, 2, 3, 6, 19)] == [1e-4, 1e-4, 5e-5, 2.5e-5, 1e-4 / 64]
+    assert stage_for("dsr", "cube-single").lr_at(0) == 1e-5  # official: the warm-up epochs
+    with pytest.raises(Exception, match="official or paper"):
+        stage_for("dsr", "cube-single", schedule="cosine")
+
+
+def test_the_cpu_splits_are_prefixes_of_the_benchmarks():
+    from dsr_bench.dataset.splits import SPLITS, pinned_digests
+
+    for cpu, parent in (("cpu-train", "procedural-train"), ("cpu-novel-test", "procedural-novel-test")):
+        a, b = SPLITS[cpu], SPLITS[parent]
+        assert (a.objects, a.base_seed, a.steps, a.objects_per_scene) == (b.objects, b.base_seed, b.steps,
+                                                                         b.objects_per_scene)
+        assert a.num_sequences < b.num_sequences
+    pins = pinned_digests()
+    test, parent = pins["cpu-novel-test"]["sequences"], pins["procedural-novel-test"]["sequences"]
+    assert len(test) == 100 and all(test[name] == parent[name] for name in test)  # the same files
+
+
+def test_stage_one_is_shared_by_the_history_variants_and_init_skips_it(tmp_path, monkeypatch):
+    """Stage 1 (single-step windows) is the same computation for dsr, single, nowarp and gtwarp: their
+    stage-1 weights are bit-identical, so nowarp may start stage 2 from dsr's (--init)."""
+    monkeypatch.setenv("DSR_BENCH_CACHE", str(tmp_path / "cache"))
+    data = write_synthetic_dataset(tmp_path / "data", num_sequences=2, num_steps=2, split="train")
+    common = ["--data", str(data), "--single-batches", "2", "--multi-batches", "1", "--window", "2",
+              "--batch-size", "2", "--bn-recalibration", "1", "--quiet", "--track", "cpu"]
+    assert main(["train", "--model", "dsr", "--out", str(tmp_path / "dsr.pt"), *common]) == 0
+    assert main(["train", "--model", "single", "--out", str(tmp_path / "single.pt"), *common]) == 0
+    a = torch.load(tmp_path / "dsr.stage1.pt", weights_only=True)
+    b = torch.load(tmp_path / "single.stage1.pt", weights_only=True)
+    assert all(torch.equal(v, b["model"][k]) for k, v in a["model"].items())
+    assert main(["train", "--model", "nowarp", "--out", str(tmp_path / "nowarp.pt"), "--init",
+                 str(tmp_path / "dsr.stage1.pt"), *common]) == 0
+    nowarp = torch.load(tmp_path / "nowarp.pt", weights_only=True)
+    assert nowarp["stages"]["single"]["from"] == "dsr.stage1.pt" and nowarp["stages"]["multi"]["batches"] == 1
+    assert not (tmp_path / "nowarp.stage1.pt").exists()
+
+
+@pytest.mark.parametrize("extra, message", [
+    (["--init", "missing.stage1.pt"], "not found"),
+    (["--init", "dsr.pt"], "not the stage-1 weights"),
+    (["--init", "dsr.stage1.pt", "--lr", "0.01"], "other settings (lr)"),
+    (["--init", "dsr.stage1.pt", "--multi-batches", "0"], "give --multi-batches"),
+])
+def test_init_errors(tmp_path, monkeypatch, capsys, extra, message):
+    monkeypatch.setenv("DSR_BENCH_CACHE", str(tmp_path / "cache"))
+    monkeypatch.chdir(tmp_path)
+    data = write_synthetic_dataset(tmp_path / "data", num_sequences=1, num_steps=2, split="train")
+    common = ["--data", str(data), "--single-batches", "1", "--window", "2", "--batch-size", "2",
+              "--bn-recalibration", "0", "--quiet", "--track", "cpu"]
+    assert main(["train", "--model", "dsr", "--out", "dsr.pt", "--multi-batches", "1", *common]) == 0
+    capsys.readouterr()
+    args = ["train", "--model", "nowarp", "--out", "nowarp.pt", *common, *extra]
+    if "--multi-batches" not in extra:
+        args += ["--multi-batches", "1"]
+    assert main(args) == 2
+    err = capsys.readouterr().err
+    assert message in err and len(err.strip().splitlines()) == 1
+    assert not (tmp_path / "nowarp.pt").exists()
