@@ -31,7 +31,8 @@ import time
 from pathlib import Path
 
 #: Libraries that `dsr-bench --help` must not import (tests/test_startup.py): 0.1 to 1 s each to import.
-HEAVY: tuple[str, ...] = ("torch", "open3d", "trimesh", "plotly", "dash", "pybullet", "rerun", "scipy")
+HEAVY: tuple[str, ...] = ("torch", "open3d", "trimesh", "plotly", "dash", "pybullet", "rerun", "scipy",
+                          "matplotlib")
 #: Also reported, not asserted anywhere.
 NOTABLE: tuple[str, ...] = ("pandas", "skimage", "PIL", "networkx", "h5py", "numpy", "isal")
 #: A one-sequence, one-push cube run (add --out DIR).

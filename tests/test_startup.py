@@ -23,6 +23,7 @@ def test_help_of_every_command_imports_no_heavy_library():
     # the library's commands and those of the entry points (generators, annotator) are all asked
     assert {"generate", "generate-captures", "annotate", "validate", "info", "predict", "evaluate", "view",
             "train"} <= commands
+    assert "matplotlib" in bench_startup.HEAVY  # the plots of `evaluate --out` and the leaderboard import it lazily
     report = bench_startup.probe(helps, bench_startup.HEAVY, cwd=REPO)
     assert [r["argv"] for r in report[:-1]] == helps
     for entry in report[:-1]:  # sys.modules only grows: the first argv that names a library imported it

@@ -13,14 +13,17 @@ def validate(
     no_gt: bool = typer.Option(False, "--no-gt", help="Skip the ground-truth consistency checks (faster)."),
     workers: int = typer.Option(1, "--workers", "-w", help="Parallel worker processes."),
 ) -> None:
-    """Check schema, shapes, ranges, checksums and ground-truth consistency; report every problem."""
+    """Check schema, shapes, ranges, checksums and ground-truth consistency; report every problem.
+    A progress bar (per sequence) shows on stderr when it is a terminal."""
     from rich.console import Console
     from rich.table import Table
 
+    from dsr_bench.cli.progress import progress_bar
     from dsr_bench.dataset.validate import summary_line, validate_dataset
 
     console = Console()
-    found, count = validate_dataset(data_dir, check_gt=not no_gt, workers=workers)
+    with progress_bar("validate") as progress:
+        found, count = validate_dataset(data_dir, check_gt=not no_gt, workers=workers, progress=progress)
     problems = [p for p in found if not p.note]
     for note in found:
         if note.note:

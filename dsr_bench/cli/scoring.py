@@ -81,15 +81,18 @@ def evaluate(
                                         "one PRED_DIR/meta.json names, as `dsr-bench predict` writes it)."),
     split: Optional[str] = typer.Option(None, "--split", help="Split to score (default: the one meta.json names for "
                                         "that dataset, else the dataset's only split)."),
-    out: Optional[Path] = typer.Option(None, "--out", "-o", help="Write the results JSON here."),
+    out: Optional[Path] = typer.Option(None, "--out", "-o", help="Write the results JSON here, and its per-step "
+                                       "plots beside it (results.json -> results-steps.png)."),
     allow_partial: bool = typer.Option(False, "--allow-partial", help="Score the valid sequences despite problems."),
     workers: int = typer.Option(0, "--workers", "-w", help="Worker processes (0 = all cores)."),
 ) -> None:
     """Validate a predictions directory strictly, then score it with the benchmark's metrics.
-    Each problem is one line `PRED_DIR/FILE: problem` on stderr; any problem means no score (exit 1)."""
+    Each problem is one line `PRED_DIR/FILE: problem` on stderr; any problem means no score (exit 1).
+    A progress bar (per sequence) shows on stderr when it is a terminal."""
     from rich.console import Console
 
     from dsr_bench.atomic import write_text
+    from dsr_bench.cli.progress import progress_bar
     from dsr_bench.errors import UserError
     from dsr_bench.scoring.evaluate import evaluate as run
     from dsr_bench.scoring.predictions import infer_source
@@ -99,7 +102,8 @@ def evaluate(
     data, split, note = infer_source(pred_dir, data, split)
     if note:
         typer.echo(_printable(note), err=True)
-    evaluation = run(pred_dir, data, split, allow_partial=allow_partial, workers=workers)
+    with progress_bar("evaluate") as progress:
+        evaluation = run(pred_dir, data, split, allow_partial=allow_partial, workers=workers, progress=progress)
     console = Console(stderr=True)
     for warning in evaluation.warnings:
         typer.echo(f"warning: {_printable(warning)}", err=True)
@@ -115,6 +119,11 @@ def evaluate(
         out.parent.mkdir(parents=True, exist_ok=True)
         write_text(out, json.dumps(evaluation.results, indent=1, sort_keys=True) + "\n")
         console.print(f"results written to {out}")
+        from dsr_bench.scoring.plots import steps_plot_path, write_steps_plot
+
+        plot, why = write_steps_plot(evaluation.results, steps_plot_path(out))
+        typer.echo(f"per-step plots written to {_printable(str(plot))}" if plot else f"no per-step plots: {why}",
+                   err=True)  # unwrapped: a path to copy
     if evaluation.problems:
         console.print(f"[yellow]partial[/yellow]: scored {evaluation.results['coverage']['scored']} of "
                       f"{evaluation.results['coverage']['expected']} sequences")

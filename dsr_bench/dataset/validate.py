@@ -10,6 +10,7 @@ file is a problem, never a crash.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -210,8 +211,10 @@ def _check_pinned(data_dir: Path, manifest: dict, fingerprints: dict[str, dict])
     return problems
 
 
-def validate_dataset(data_dir: str | Path, check_gt: bool = True, workers: int = 1) -> tuple[list[Problem], int]:
-    """(every problem found, number of sequence files checked) for a dataset directory."""
+def validate_dataset(data_dir: str | Path, check_gt: bool = True, workers: int = 1,
+                     progress: Callable[[int, int], None] | None = None) -> tuple[list[Problem], int]:
+    """(every problem found, number of sequence files checked) for a dataset directory. `progress(done, total)`:
+    called once per sequence file checked, as each finishes."""
     from dsr_bench.errors import UserError
     from dsr_bench.dataset.manifest import MANIFEST_NAME, load_manifest
 
@@ -232,20 +235,16 @@ def validate_dataset(data_dir: str | Path, check_gt: bool = True, workers: int =
         found, digests = _check_manifest(data_dir, manifest, files)
         problems += found
     jobs = [(str(p), check_gt, digests.get(name)) for name, p in files.items()]
-    if workers > 1 and len(jobs) > 1:
-        import multiprocessing as mp
-        from concurrent.futures import ProcessPoolExecutor
+    import multiprocessing as mp
+    from concurrent.futures.process import BrokenProcessPool
 
-        from concurrent.futures.process import BrokenProcessPool
+    from dsr_bench.parallel import run_in_order
 
-        try:
-            with ProcessPoolExecutor(min(workers, len(jobs)), mp_context=mp.get_context("spawn")) as pool:
-                results = list(pool.map(_validate_one, jobs))
-        except BrokenProcessPool:
-            raise UserError(f"--workers {workers}: a worker process died while checking {data_dir} (out of "
-                            "memory?); run again with fewer workers") from None
-    else:
-        results = [_validate_one(j) for j in jobs]
+    try:
+        results = run_in_order(_validate_one, jobs, workers, progress, mp_context=mp.get_context("spawn"))
+    except BrokenProcessPool:
+        raise UserError(f"--workers {workers}: a worker process died while checking {data_dir} (out of "
+                        "memory?); run again with fewer workers") from None
     fingerprints = {}
     for name, found, prints in results:
         problems += [Problem(name, m) for m in found]

@@ -15,6 +15,7 @@ import datetime as dt
 import hashlib
 import os
 import stat
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -22,6 +23,7 @@ import h5py
 import numpy as np
 
 from dsr_bench.errors import UserError
+from dsr_bench.parallel import run_in_order
 from dsr_bench.scoring.predictions import META_TYPES
 
 RESULTS_FORMAT = "dsr-bench-results"
@@ -222,8 +224,9 @@ def _pinned(manifest: dict, split: str) -> bool:
 
 
 def evaluate(pred_dir: str | Path, data_dir: str | Path, split: str | None = None, allow_partial: bool = False,
-             workers: int = 0) -> Evaluation:
-    """Check and score a predictions directory against a split of a dataset."""
+             workers: int = 0, progress: Callable[[int, int], None] | None = None) -> Evaluation:
+    """Check and score a predictions directory against a split of a dataset. `progress(done, total)`: called once
+    per sequence scored, as each finishes (the sequences that pass the structural checks)."""
     from dsr_bench import __version__
     from dsr_bench.dataset.manifest import load_manifest, read_split, split_digest
     from dsr_bench.scoring.predictions import read_meta
@@ -237,13 +240,7 @@ def evaluate(pred_dir: str | Path, data_dir: str | Path, split: str | None = Non
     valid, problems = check_structure(pred_dir, data_dir, names)
     jobs = [(name, str(path), str(data_dir / f"{name}.h5")) for name, path in valid.items()]
     workers = workers or min(len(jobs), os.cpu_count() or 1)
-    if workers > 1 and len(jobs) > 1:
-        from concurrent.futures import ProcessPoolExecutor
-
-        with ProcessPoolExecutor(workers) as pool:
-            outcomes = list(pool.map(score_sequence, jobs))
-    else:
-        outcomes = [score_sequence(j) for j in jobs]
+    outcomes = run_in_order(score_sequence, jobs, workers, progress)  # in the order of jobs: results bit-identical
     scored = {}
     for name, found, values in outcomes:
         problems += [(f"{name}.h5", p) for p in found]

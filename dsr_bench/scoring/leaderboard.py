@@ -3,7 +3,9 @@
 leaderboard/entries/*.json are results files written by `dsr-bench evaluate` (plus an optional
 "label"); leaderboard/paper.json holds the paper's published numbers, always shown apart and
 marked "reported in the paper". `build` writes leaderboard/README.md (a table per split and track,
-best per column in bold) and a static, sortable leaderboard/index.html.
+best per column in bold), a static, sortable leaderboard/index.html and, for each table of reproduced rows
+whose entries hold per-step values, leaderboard/plots/<split>-3d.png (-2d.png for the 2D track; an earlier
+version of a split: <split>-<checksum>-3d.png) comparing the rows step by step, shown under the table.
 """
 
 from __future__ import annotations
@@ -70,18 +72,31 @@ def add_entry(results_path: str | Path, root: str | Path = "leaderboard", label:
     return target
 
 
-def load_rows(root: str | Path = "leaderboard") -> list[dict]:
-    """Flat rows (method, split, kind, metrics, date, checksum, label) of every entry and paper row."""
+def _kind(results: dict) -> str:
+    """The table an entry belongs to, beside its split: the split's current pin, or an earlier version of it."""
     from dsr_bench.dataset.splits import SPLITS
 
+    expected = SPLITS[results["split"]].expected_digest if results["split"] in SPLITS else None
+    checksum = results.get("split_checksum", "")
+    # an entry scored on an earlier pin of its split stays visible, in its own table, unranked against the rest
+    return "reproduced" if checksum == expected else f"reproduced on an earlier version of the split, {checksum[:12]}"
+
+
+def load_entries(root: str | Path = "leaderboard") -> list[dict]:
+    """Every entry's results (entries/*.json, sorted by file name), each with its table's "kind" added."""
+    entries = []
+    for path in sorted((Path(root) / "entries").glob("*.json")):
+        r = json.loads(path.read_text())
+        entries.append({**r, "kind": _kind(r)})
+    return entries
+
+
+def load_rows(root: str | Path = "leaderboard") -> list[dict]:
+    """Flat rows (method, split, kind, metrics, date, checksum, label) of every entry and paper row."""
     root = Path(root)
     rows = []
-    for path in sorted((root / "entries").glob("*.json")):
-        r = json.loads(path.read_text())
-        expected = SPLITS[r["split"]].expected_digest if r["split"] in SPLITS else None
-        checksum = r.get("split_checksum", "")
-        # an entry scored on an earlier pin of its split stays visible, in its own table, unranked against the rest
-        kind = "reproduced" if checksum == expected else f"reproduced on an earlier version of the split, {checksum[:12]}"
+    for r in load_entries(root):
+        kind = r["kind"]
         grid = ((r.get("meta") or {}).get("parameters") or {}).get("grid") or list(GRID_SHAPE)
         rows.append({"method": r["method"], "split": r["split"], "kind": kind, "label": r.get("label", ""),
                      "grid": "x".join(str(int(g)) for g in grid),
@@ -151,6 +166,8 @@ def build(root: str | Path = "leaderboard") -> tuple[Path, Path]:
 
     root = Path(root)
     rows = load_rows(root)
+    entries = load_entries(root)
+    plotted: set[Path] = set()
     md = ["# dsr-bench leaderboard", "",
           "Built by `dsr-bench leaderboard build` from `entries/` (results of `dsr-bench evaluate`) and",
           "`paper.json` (numbers reported in the paper, never mixed with reproduced rows). In each table of reproduced",
@@ -185,18 +202,60 @@ def build(root: str | Path = "leaderboard") -> tuple[Path, Path]:
                              f"</td><td>{html.escape(str(r['date']))}</td><td><code>{html.escape(str(r['checksum']))}</code>"
                              "</td></tr>")
         md.append("")
+        plot = _table_plot(root, entries, split, kind, track)
+        if plot is not None:
+            plotted.add(plot)
+            rel = plot.relative_to(root).as_posix()
+            md += ["Per step (one line per row; dashed: reference rows):", "",
+                   f"![{split}, {track} track: per-step curves]({rel})", ""]
         ths = "".join(f"<th onclick=\"sortTable(this)\">{html.escape(h)}</th>" for h in header)
         note = ("" if comparable or kind == "reported in the paper" else
                 "<p class=note>No no-motion (static) row on this version of the split: not comparable, none marked best.</p>")
         about = f"<p>{html.escape(SPLITS[split].description)}.</p>" if split in SPLITS else ""
+        figure = ("" if plot is None else
+                  f'<figure><a href="{html.escape(rel)}"><img src="{html.escape(rel)}" alt="{html.escape(split)}, '
+                  f'{track} track: per-step curves" width="860"></a><figcaption>Per step, one line per row '
+                  "(dashed: reference rows).</figcaption></figure>")
         body.append(f"<h2>{html.escape(split)}: {track} track ({html.escape(kind)})</h2>\n{about}{note}"
-                    f"<table class=board><thead><tr>{ths}</tr></thead><tbody>{''.join(html_rows)}</tbody></table>")
+                    f"<table class=board><thead><tr>{ths}</tr></thead><tbody>{''.join(html_rows)}</tbody></table>"
+                    f"{figure}")
     if not rows:
         md.append("No entries yet.")
     page = _PAGE.replace("{body}", "\n".join(body) or "<p>No entries yet.</p>")
     write_text(root / "README.md", "\n".join(md) + "\n")
     write_text(root / "index.html", page)
+    for stale in sorted((root / PLOTS_DIR).glob("*-[23]d.png")):  # a plot of a table that no longer exists
+        if stale not in plotted:
+            stale.unlink(missing_ok=True)
     return root / "README.md", root / "index.html"
+
+
+#: Where `build` writes the per-step plots, under the leaderboard's root.
+PLOTS_DIR = "plots"
+
+
+def plot_name(split: str, kind: str, track: str) -> str:
+    """The file name of a table's per-step plot: <split>-3d.png, or <split>-<checksum>-3d.png for an earlier
+    version of the split."""
+    version = "" if kind == "reproduced" else "-" + kind.rsplit(", ", 1)[-1]
+    return re.sub(r"[^A-Za-z0-9._-]+", "-", f"{split}{version}") + f"-{track.lower()}.png"
+
+
+def _table_plot(root: Path, entries: list[dict], split: str, kind: str, track: str) -> Path | None:
+    """Write the per-step plot of one table of reproduced rows (None: paper rows, or no entry has per-step
+    values for the track)."""
+    from dsr_bench.scoring.plots import MISSING_MATPLOTLIB, leaderboard_series, matplotlib_missing, \
+        write_leaderboard_plot
+
+    if not kind.startswith("reproduced"):
+        return None
+    panels = leaderboard_series([e for e in entries if e["split"] == split and e["kind"] == kind], track)
+    if not panels:
+        return None
+    if matplotlib_missing():
+        raise UserError(f"cannot draw {root / PLOTS_DIR}: {MISSING_MATPLOTLIB}")
+    title = f"{split}: {track} track" + ("" if kind == "reproduced" else f" ({kind})")
+    return write_leaderboard_plot(panels, title, root / PLOTS_DIR / plot_name(split, kind, track))
 
 
 _PAGE = """<!doctype html>
@@ -205,7 +264,7 @@ _PAGE = """<!doctype html>
 body{font-family:system-ui,sans-serif;margin:2em;max-width:1100px}
 table{border-collapse:collapse;margin-bottom:2em}th,td{border:1px solid #ccc;padding:4px 8px;text-align:right}
 td:first-child,th:first-child{text-align:left}th{cursor:pointer;background:#f4f4f4}.best{font-weight:bold}
-.worse{color:#a00}.note{color:#555}
+.worse{color:#a00}.note{color:#555}figure{margin:0 0 2em 0}img{max-width:100%}
 </style></head><body>
 <h1>dsr-bench leaderboard</h1>
 <p>Reproduced results (<code>dsr-bench evaluate</code>) and numbers reported in the paper, in separate tables.

@@ -1,0 +1,183 @@
+"""Per-step plots: the series are the results' own values, `evaluate --out` writes a valid PNG beside the results,
+a results file without per-step values is skipped with a note, and the leaderboard writes and shows one plot per
+table of reproduced rows."""
+
+import json
+import math
+import shutil
+from pathlib import Path
+
+import pytest
+from PIL import Image
+
+from dsr_bench.cli import main
+from dsr_bench.dataset.splits import SPLITS, Split
+from dsr_bench.scoring.leaderboard import build
+from dsr_bench.scoring.plots import (leaderboard_series, step_series, steps_plot_path, write_leaderboard_plot,
+                                     write_steps_plot)
+from dsr_bench.testing import write_synthetic_dataset
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _results(method="MyNet", per_step=True, **extra):
+    results = {"format": "dsr-bench-results", "version": 1, "method": method, "split": "procedural-novel-mini",
+               "split_checksum": "c" * 64, "date": "2026-11-24T00:00:00Z",
+               "coverage": {"scored": 8, "expected": 8, "partial": False},
+               "metrics": {"motion_visible": 5.0, "motion_full": 0.08, "iou_unordered": 0.7, "iou_ordered": 0.6},
+               "breakdowns": {"iou_occluded_objects": 0.25, "occluded_object_steps": 7, "iou_visible_objects": 0.5,
+                              "visible_object_steps": 40, "motion_moved_objects": 9.0, "motion_static_objects": 0.1}}
+    if per_step:
+        results["per_step"] = {"iou_unordered": [0.7, 0.8, 0.6], "iou_ordered": [0.6, 0.7, None],
+                               "motion_visible": [5.0, 6.0, 4.0], "motion_full": [0.08, 0.09, 0.07],
+                               "motion_moved": [1.0, 2.0, 3.0], "motion_static": [0.0, 0.0, 0.0]}
+    return {**results, **extra}
+
+
+def _png(path: Path) -> tuple[int, int]:
+    with Image.open(path) as image:
+        assert image.format == "PNG"
+        image.load()  # the whole file decodes
+        return image.size
+
+
+def _same(a: list[float], b: list) -> bool:
+    return len(a) == len(b) and all((x != x and y is None) or x == y for x, y in zip(a, b))
+
+
+def test_step_series_is_what_the_results_hold():
+    results = _results()
+    series, why = step_series(results)
+    assert why is None and series["title"] == "MyNet on procedural-novel-mini (8/8 sequences)"
+    panels = {p["title"]: p for p in series["panels"]}
+    assert list(panels) == ["mask IoU", "flow MSE, visible surface", "flow MSE, full volume"]
+    assert all(p["steps"] == [0, 1, 2] for p in panels.values())
+    iou = panels["mask IoU"]["lines"]
+    assert _same(iou["unordered"], results["per_step"]["iou_unordered"])
+    assert _same(iou["ordered"], results["per_step"]["iou_ordered"]) and math.isnan(iou["ordered"][2])  # null: NaN
+    assert panels["flow MSE, visible surface"]["lines"] == {"visible surface (3D)": [5.0, 6.0, 4.0]}  # no 2D scored
+    assert panels["flow MSE, full volume"]["lines"] == {"full volume": [0.08, 0.09, 0.07]}
+    # occluded vs visible: results hold one value each over all steps, drawn as bars with their counts
+    assert series["objects"] == {"per_step": False, "bars": {"mostly occluded": 0.25, "visible": 0.5},
+                                 "counts": {"mostly occluded": 7, "visible": 40}}
+
+
+def test_step_series_draws_2d_flow_and_per_step_object_ious_when_the_results_have_them():
+    results = _results()
+    results["per_step"].update(motion_2d=[3.0, 2.0, 1.0], iou_occluded_objects=[0.1, 0.2, 0.3],
+                               iou_visible_objects=[0.4, 0.5, 0.6])
+    series, _ = step_series(results)
+    assert series["panels"][1]["lines"]["front camera (2D)"] == [3.0, 2.0, 1.0]
+    assert series["objects"] == {"per_step": True, "lines": {"mostly occluded": [0.1, 0.2, 0.3],
+                                                             "visible": [0.4, 0.5, 0.6]}}
+
+
+def test_results_without_per_step_values_are_skipped_with_a_note(tmp_path):
+    for results in (_results(per_step=False), _results(per_step=False) | {"per_step": {}},
+                    {"method": "x"}, _results(per_step=False) | {"per_step": "garbage"}):
+        series, why = step_series(results)
+        assert series is None and "no per-step values" in why
+        assert write_steps_plot(results, tmp_path / "r-steps.png") == (None, why)
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_steps_plot_is_a_valid_png_written_atomically(tmp_path):
+    path, why = write_steps_plot(_results(), tmp_path / "deep" / "results-steps.png")
+    assert why is None and path == tmp_path / "deep" / "results-steps.png"
+    width, height = _png(path)
+    assert 600 <= width <= 2000 and 400 <= height <= 1500
+    assert sorted(p.name for p in path.parent.iterdir()) == ["results-steps.png"]  # no temporary or lock left
+    assert steps_plot_path(tmp_path / "results.json") == tmp_path / "results-steps.png"
+    assert steps_plot_path("out/static.json") == Path("out/static-steps.png")
+
+
+def test_evaluate_writes_the_steps_plot_beside_the_results(tmp_path, capsys):
+    data = write_synthetic_dataset(tmp_path / "data", num_sequences=2, num_steps=3)
+    assert main(["predict", "--model", "static", "--data", str(data), "--out", str(tmp_path / "pred")]) == 0
+    out = tmp_path / "res" / "results.json"
+    assert main(["evaluate", str(tmp_path / "pred"), "--out", str(out)]) == 0
+    assert f"per-step plots written to {tmp_path / 'res' / 'results-steps.png'}" in capsys.readouterr().err
+    assert sorted(p.name for p in out.parent.iterdir()) == ["results-steps.png", "results.json"]
+    width, height = _png(out.parent / "results-steps.png")
+    assert width >= 600 and height >= 400
+    results = json.loads(out.read_text())
+    series, _ = step_series(results)
+    lines = {k: v for p in series["panels"] for k, v in p["lines"].items()}
+    assert lines["unordered"] == results["per_step"]["iou_unordered"]
+    assert lines["ordered"] == results["per_step"]["iou_ordered"]
+    assert lines["visible surface (3D)"] == results["per_step"]["motion_visible"]
+    assert lines["full volume"] == results["per_step"]["motion_full"]
+    assert lines["front camera (2D)"] == results["per_step"]["motion_2d"]  # static writes motion_2d
+
+
+@pytest.fixture
+def board(tmp_path, monkeypatch):
+    root = tmp_path / "leaderboard"
+    root.mkdir()
+    shutil.copy(ROOT / "leaderboard" / "paper.json", root / "paper.json")
+    spec = SPLITS["procedural-novel-mini"]
+    monkeypatch.setitem(SPLITS, spec.name, Split(**{**spec.__dict__, "expected_digest": "c" * 64}))
+    return root
+
+
+def _entry(board: Path, results: dict, name: str) -> None:
+    (board / "entries").mkdir(exist_ok=True)
+    (board / "entries" / f"{name}.json").write_text(json.dumps(results))
+
+
+def test_leaderboard_series_are_the_entries_per_step_values():
+    a, b, c = _results("static"), _results("MyNet"), _results("NoSteps", per_step=False)
+    b["per_step"]["iou_ordered"] = [0.1, 0.2, 0.3]
+    panels = leaderboard_series([a, b, c], "3D")
+    assert [p["key"] for p in panels] == ["iou_ordered", "motion_full"]
+    assert panels[0]["lines"].keys() == {"static", "MyNet"}  # an entry without per-step values is left out
+    assert panels[0]["lines"]["MyNet"] == [0.1, 0.2, 0.3] and panels[1]["lines"]["static"] == [0.08, 0.09, 0.07]
+    assert leaderboard_series([a, b], "2D") == []  # nobody has 2D per-step values: no plot
+    twice = leaderboard_series([a, _results("static", label="long schedule")], "3D")[0]["lines"]
+    assert list(twice) == ["static", "static (long schedule)"]
+
+
+def test_leaderboard_build_writes_and_shows_one_plot_per_table(board, tmp_path):
+    _entry(board, _results("static"), "static")
+    _entry(board, _results("MyNet"), "mynet")
+    old = _results("OldNet", split_checksum="0123456789ab" + "f" * 52)
+    _entry(board, old, "oldnet")
+    (board / "plots").mkdir()
+    (board / "plots" / "gone-3d.png").write_bytes(b"stale")  # a table that no longer exists
+    md, page = build(board)
+    plots = sorted(p.name for p in (board / "plots").iterdir())
+    assert plots == ["procedural-novel-mini-0123456789ab-3d.png", "procedural-novel-mini-3d.png"]
+    for name in plots:
+        width, height = _png(board / "plots" / name)
+        assert width >= 500 and height >= 300
+    text, html = md.read_text(), page.read_text()
+    current = text.split("## procedural-novel-mini: 3D track (reproduced)")[1].split("## ")[0]
+    assert "](plots/procedural-novel-mini-3d.png)" in current
+    earlier = text.split("0123456789ab)")[1].split("## ")[0]
+    assert "](plots/procedural-novel-mini-0123456789ab-3d.png)" in earlier
+    assert '<img src="plots/procedural-novel-mini-3d.png"' in html
+    assert '<img src="plots/procedural-novel-mini-0123456789ab-3d.png"' in html
+    paper = text.split("(reported in the paper)")[1]
+    assert "plots/" not in paper  # paper rows have no per-step values
+
+
+def test_leaderboard_entries_without_per_step_values_get_no_plot(board):
+    _entry(board, _results("MyNet", per_step=False), "mynet")
+    md, page = build(board)
+    assert not (board / "plots").exists() or not list((board / "plots").iterdir())
+    assert "plots/" not in md.read_text() and "<img" not in page.read_text()
+
+
+def test_leaderboard_plot_is_a_valid_png(tmp_path):
+    panels = leaderboard_series([_results("static"), _results("oracle"), _results("MyNet")], "3D")
+    path = write_leaderboard_plot(panels, "procedural-novel-mini: 3D track", tmp_path / "p" / "x-3d.png")
+    width, height = _png(path)
+    assert 500 <= width <= 2000 and 300 <= height <= 1500
+
+
+def test_without_matplotlib_the_plot_is_skipped_with_the_fix(tmp_path, monkeypatch):
+    import dsr_bench.scoring.plots as plots
+
+    monkeypatch.setattr(plots, "matplotlib_missing", lambda: True)
+    assert write_steps_plot(_results(), tmp_path / "r-steps.png") == (None, plots.MISSING_MATPLOTLIB)
+    assert "pip install" in plots.MISSING_MATPLOTLIB and not (tmp_path / "r-steps.png").exists()
