@@ -31,6 +31,21 @@ if command -v dpkg >/dev/null 2>&1; then
 elif ! command -v xvfb-run >/dev/null 2>&1; then
   echo "warning: no apt here; install Xvfb and Mesa OpenGL for the annotator window's test (it skips otherwise)" >&2
 fi
+# The leaderboard page's browser test (tests/test_leaderboard.py) renders a built index.html in headless Chromium
+# and looks at it (tables, bold, links, plots, sorting by a click); it skips when no Chromium binary is found.
+have_chromium=""
+for browser in chromium chromium-browser chromium-headless-shell google-chrome google-chrome-stable; do
+  if command -v "$browser" >/dev/null 2>&1; then have_chromium=1; fi
+done
+if [ -z "$have_chromium" ]; then
+  if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then
+    (apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends chromium \
+      >/dev/null 2>&1) \
+      || echo "warning: could not install chromium; the leaderboard page's browser test skips" >&2
+  else
+    echo "note: no Chromium; for the leaderboard page's browser test run: sudo apt-get install -y chromium" >&2
+  fi
+fi
 PY=${PYTHON:-python3}
 if [ ! -x .venv/bin/python ]; then
   "$PY" -m venv .venv

@@ -1,11 +1,21 @@
-"""The leaderboard: strict entries, paper rows kept apart, tables and a sortable page."""
+"""The leaderboard: strict entries, paper rows kept apart, tables and a sortable page (seen in headless Chromium)."""
 
+import base64
+import fcntl
+import io
 import json
+import os
+import select
 import shutil
 import subprocess
+import sys
 from pathlib import Path
+from urllib.parse import urlparse
+from urllib.request import url2pathname
 
+import numpy as np
 import pytest
+from PIL import Image
 
 from dsr_bench.cli import main
 from dsr_bench.errors import UserError
@@ -103,14 +113,228 @@ def test_a_table_without_the_no_motion_row_marks_no_best(board, tmp_path):
     assert "No no-motion (static) row" in current and "**" not in current
 
 
-def test_real_headless_browser_renders_the_page(board):
-    browser = shutil.which("chromium") or shutil.which("chromium-browser") or shutil.which("google-chrome")
-    if browser is None:
-        pytest.skip("no headless Chromium installed (apt-get install chromium)")
-    _, page = build(board)
-    dom = subprocess.run([browser, "--headless", "--no-sandbox", "--disable-gpu", "--dump-dom", page.as_uri()],
-                         capture_output=True, text=True, timeout=60).stdout
-    assert "DSR-Net" in dom and "<table" in dom
+_BROWSERS = ("chromium", "chromium-browser", "chromium-headless-shell", "google-chrome", "google-chrome-stable")
+
+
+class _Chromium:
+    """Headless Chromium driven over its DevTools pipe (--remote-debugging-pipe: JSON messages ending in NUL on
+    fds 3 and 4), with nothing but the standard library: load a page, evaluate script in it, click with the mouse,
+    take a screenshot."""
+
+    def __init__(self, binary: str, profile: Path, width: int = 1200, height: int = 1600):
+        to_browser, self._to_browser = os.pipe()
+        self._from_browser, from_browser = os.pipe()
+        # the browser's ends go to fds 3 and 4 through a tiny exec wrapper (no preexec_fn in a threaded test process);
+        # high copies first, so that neither end clobbers the other on the way
+        ends = [fcntl.fcntl(fd, fcntl.F_DUPFD, 100) for fd in (to_browser, from_browser)]
+        for fd in (to_browser, from_browser):
+            os.close(fd)
+        wrapper = ("import os, sys; os.dup2(int(sys.argv[1]), 3); os.dup2(int(sys.argv[2]), 4); "
+                   "os.execv(sys.argv[3], sys.argv[3:])")
+        self.proc = subprocess.Popen(
+            [sys.executable, "-c", wrapper, *map(str, ends), binary, "--headless", "--no-sandbox", "--disable-gpu",
+             "--hide-scrollbars", "--remote-debugging-pipe", f"--user-data-dir={profile}", "about:blank"],
+            pass_fds=ends, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        for fd in ends:
+            os.close(fd)
+        self._buffer, self._id, self._events = b"", 0, []
+        try:
+            target = self.send("Target.createTarget", url="about:blank")["targetId"]
+            self.session = self.send("Target.attachToTarget", targetId=target, flatten=True)["sessionId"]
+            self.send("Emulation.setDeviceMetricsOverride", width=width, height=height, deviceScaleFactor=1,
+                      mobile=False, session=True)
+            self.send("Page.enable", session=True)
+        except BaseException:
+            self.close()
+            raise
+
+    def send(self, method: str, session: bool = False, **params):
+        self._id += 1
+        message = {"id": self._id, "method": method, "params": params}
+        if session:
+            message["sessionId"] = self.session
+        os.write(self._to_browser, json.dumps(message).encode() + b"\0")
+        while True:
+            answer = self._read()
+            if answer.get("id") == self._id:
+                assert "error" not in answer, f"{method}: {answer['error']}"
+                return answer["result"]
+            self._events.append(answer)
+
+    def _read(self) -> dict:
+        while b"\0" not in self._buffer:
+            # a guard against a hung browser (the test fails instead of hanging), not a measure of speed
+            if not select.select([self._from_browser], [], [], 120)[0]:
+                raise RuntimeError("headless Chromium did not answer in 120 s")
+            chunk = os.read(self._from_browser, 1 << 20)
+            if not chunk:
+                raise RuntimeError(f"headless Chromium closed its DevTools pipe (exit status {self.proc.poll()})")
+            self._buffer += chunk
+        message, self._buffer = self._buffer.split(b"\0", 1)
+        return json.loads(message)
+
+    def load(self, url: str):
+        """Navigate to `url` and wait for its load event (scripts ran, images decoded)."""
+        self.send("Page.navigate", url=url, session=True)
+        while True:
+            event = self._events.pop(0) if self._events else self._read()
+            if event.get("method") == "Page.loadEventFired" and event.get("sessionId") == self.session:
+                return
+
+    def js(self, expression: str):
+        result = self.send("Runtime.evaluate", expression=expression, returnByValue=True, session=True)
+        assert "exceptionDetails" not in result, result["exceptionDetails"]
+        return result["result"].get("value")
+
+    def click(self, selector: str):
+        """A real left click with the mouse at the middle of the element, scrolled into view first."""
+        x, y = self.js(f"(() => {{const e = document.querySelector({json.dumps(selector)}); e.scrollIntoView();"
+                       "const r = e.getBoundingClientRect(); return [r.x + r.width / 2, r.y + r.height / 2];})()")
+        for kind in ("mousePressed", "mouseReleased"):
+            self.send("Input.dispatchMouseEvent", type=kind, x=x, y=y, button="left", clickCount=1, session=True)
+
+    def screenshot(self) -> Image.Image:
+        png = base64.b64decode(self.send("Page.captureScreenshot", format="png", session=True)["data"])
+        image = Image.open(io.BytesIO(png))
+        assert image.format == "PNG"
+        image.load()
+        return image.convert("RGB")
+
+    def close(self):
+        try:
+            self.send("Browser.close")
+            self.proc.wait(60)
+        except Exception:  # noqa: BLE001 - whatever went wrong, the browser started here is ended here
+            self.proc.kill()
+            self.proc.wait()
+        finally:
+            os.close(self._to_browser)
+            os.close(self._from_browser)
+
+
+@pytest.fixture
+def chromium(tmp_path):
+    binary = next(filter(None, map(shutil.which, _BROWSERS)), None)
+    if binary is None:
+        pytest.skip("no headless Chromium binary found (" + ", ".join(_BROWSERS) + "): apt-get install chromium, "
+                    "or run scripts/setup.sh as root")
+    browser = _Chromium(binary, tmp_path / "chromium-profile")
+    yield browser
+    browser.close()
+
+
+#: What the page shows, read from the rendered DOM: per table, its heading, whether it is drawn, its header cells
+#: and rows; per cell its text, whether it is drawn bold (computed font weight), in red (worse than static).
+_SEEN = """[...document.querySelectorAll('table')].map(t => {
+  let h = t.previousElementSibling; while (h.tagName !== 'H2') h = h.previousElementSibling;
+  const box = t.getBoundingClientRect();
+  const shown = box.width > 0 && box.height > 0 && getComputedStyle(t).visibility === 'visible';
+  return {heading: h.textContent, shown, header: [...t.tHead.rows[0].cells].map(c => c.textContent),
+    rows: [...t.tBodies[0].rows].map(r => [...r.cells].map(c => {const s = getComputedStyle(c);
+      return {text: c.textContent, bold: parseInt(s.fontWeight) >= 600, red: s.color === 'rgb(170, 0, 0)',
+              best: c.classList.contains('best'), worse: c.classList.contains('worse')};}))};})"""
+
+
+def _markdown_tables(md: str) -> dict[str, list[list[str]]]:
+    """README.md's tables by heading: the header line's cells, then each row's cells."""
+    tables, heading = {}, None
+    for line in md.splitlines():
+        if line.startswith("## "):
+            heading = line[3:]
+        elif line.startswith("| ") and heading is not None:
+            tables.setdefault(heading, []).append([c.strip() for c in line.strip("|").split(" | ")])
+    return tables
+
+
+def _entry(board, tmp_path, method, metrics, per_step, label=None):
+    results = {**_results(**metrics), "method": method, "per_step": per_step}
+    path = tmp_path / f"{method}.json"
+    path.write_text(json.dumps(results))
+    add_entry(path, board, label)
+
+
+def test_real_headless_browser_shows_the_tables_marks_plots_links_and_sorts(board, tmp_path, chromium):
+    step = {"motion_visible": [5.0, 6.0], "motion_full": [0.08, 0.09], "iou_unordered": [0.7, 0.8],
+            "iou_ordered": [0.6, 0.7]}
+    _entry(board, tmp_path, "MyNet", {"motion_visible": 5.0, "motion_full": 0.08}, step, "short schedule")
+    _entry(board, tmp_path, "Other", {"motion_visible": 4.0, "motion_full": 0.09, "iou_unordered": 0.5,
+                                      "iou_ordered": 0.4}, {k: [v[1], v[0]] for k, v in step.items()})
+    _entry(board, tmp_path, "static", {"motion_visible": 6.0, "motion_full": 0.07, "iou_unordered": 0.3,
+                                       "iou_ordered": 0.2}, {k: [v[0]] * 2 for k, v in step.items()})
+    _entry(board, tmp_path, "oracle", {"motion_visible": 0.0, "motion_full": 0.0, "iou_unordered": 1.0,
+                                       "iou_ordered": 1.0}, {k: [0.0, 0.0] for k in step})
+    md, page = build(board)
+    chromium.load(page.as_uri())
+    seen = {t["heading"]: t for t in chromium.js(_SEEN)}
+
+    # every table of README.md is on the page with the same header cells, rows, bold cells and ▼ marks, as drawn
+    expected = _markdown_tables(md.read_text())
+    assert list(seen) == list(expected) and len(seen) == 5
+    assert next(iter(seen)) == "procedural-novel-mini: 3D track (reproduced)"  # the first table, sorted below
+    for heading, (header, *rows) in expected.items():
+        table = seen[heading]
+        assert table["shown"] and table["header"] == header
+        assert len(table["rows"]) == len(rows)
+        for md_row, row in zip(rows, table["rows"]):
+            for md_cell, cell in zip(md_row, row):
+                assert cell["text"] == md_cell.replace("**", "")
+                assert cell["bold"] == cell["best"] == md_cell.startswith("**")
+                assert cell["red"] == cell["worse"] == ("\u25bc" in md_cell)
+
+    # the reproduced table: the best non-oracle value of each column in bold, ▼ where worse than predicting no motion
+    current = seen["procedural-novel-mini: 3D track (reproduced)"]
+    columns = current["header"]
+    marked = {(row[0]["text"], columns[i], "best" if c["bold"] else "worse") for row in current["rows"]
+              for i, c in enumerate(row) if c["bold"] or c["red"]}
+    assert marked == {("Other", "flow MSE visible (cm²)", "best"), ("static", "flow MSE full (cm²)", "best"),
+                      ("MyNet", "IoU unordered", "best"), ("MyNet", "IoU ordered", "best"),
+                      ("MyNet", "flow MSE full (cm²)", "worse"), ("Other", "flow MSE full (cm²)", "worse")}
+    paper = seen["ycb-test: 3D track (reported in the paper)"]
+    dsr = next(row for row in paper["rows"] if row[0]["text"] == "DSR-Net")
+    assert [c["text"] for c in dsr if c["bold"]] == ["5.54", "0.082", "0.772", "0.767", "0.720"]  # GTWarp: an oracle
+
+    # the plot: one image, under the reproduced table, a file of the build that the browser decoded and drew
+    images = chromium.js("[...document.images].map(i => ({src: i.src, w: i.naturalWidth, h: i.naturalHeight,"
+                         "shown: i.getBoundingClientRect().width,"
+                         "under: document.querySelector('table').nextElementSibling === i.closest('figure')}))")
+    plot_file = board / "plots" / "procedural-novel-mini-3d.png"
+    assert [Path(url2pathname(urlparse(i["src"]).path)) for i in images] == [plot_file]
+    with Image.open(plot_file) as plot:
+        assert (images[0]["w"], images[0]["h"]) == plot.size and images[0]["shown"] > 0 and images[0]["under"]
+    # every link of the page leads to a file of the build
+    links = chromium.js("[...document.links].map(a => a.href)")
+    assert links and all(urlparse(u).scheme == "file" and Path(url2pathname(urlparse(u).path)).is_file() for u in links)
+
+    # the rendering: a screenshot of the plot's place shows a drawn plot (coloured lines on white), not a blank
+    chromium.js("document.images[0].scrollIntoView()")
+    box = chromium.js("(() => {const r = document.images[0].getBoundingClientRect(); return [r.left, r.top, r.right,"
+                      "Math.min(r.bottom, innerHeight)];})()")
+    shot = chromium.screenshot()
+    assert shot.size == (1200, 1600)
+    drawn = np.asarray(shot.crop(tuple(round(v) for v in box))).astype(int)
+    assert (drawn != 255).any(axis=2).mean() > 0.02  # not blank
+    assert ((drawn.max(axis=2) - drawn.min(axis=2)) > 80).sum() > 100  # coloured lines, not only black text on white
+    assert len(np.unique(np.asarray(shot).reshape(-1, 3), axis=0)) > 20  # the page around it: text, borders, shading
+    chromium.js("scrollTo(0, 0)")
+    title = chromium.js("(() => {const r = document.querySelector('h1').getBoundingClientRect();"
+                        "return [r.left, r.top, r.right, r.bottom];})()")
+    heading = np.asarray(chromium.screenshot().crop(tuple(round(v) for v in title)))
+    assert (heading.max(axis=2) < 100).sum() > 100  # the page's title is drawn in dark text: fonts render
+
+    # sorting: a real mouse click on a header sorts the rows by it, ascending then descending; rows move whole
+    def order():
+        rows = chromium.js(_SEEN)[0]["rows"]
+        return [r[0]["text"] for r in rows], {(r[0]["text"], i) for r in rows for i, c in enumerate(r) if c["bold"]}
+
+    _, bold = order()
+    header = "table th:nth-child(6)"
+    assert chromium.js(f"document.querySelector({json.dumps(header)}).textContent") == "IoU ordered"
+    chromium.click(header)
+    assert order() == (["static", "Other", "MyNet", "oracle"], bold)
+    chromium.click(header)
+    assert order() == (["oracle", "MyNet", "Other", "static"], bold)
+    chromium.click("table th:nth-child(1)")
+    assert order() == (["MyNet", "Other", "oracle", "static"], bold)
 
 
 def test_repository_leaderboard_builds(tmp_path):
