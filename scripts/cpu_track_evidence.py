@@ -2,6 +2,7 @@
 
     python scripts/cpu_track_evidence.py --data DATA/cpu-novel-test --weights DIR [--work DIR]
         [--models dsr nowarp single gtwarp 3dflow] [--out docs/evidence/cpu-track.json] [--leaderboard leaderboard]
+        [--history-variants] [--controls single-same-windows]
 
 For the yardsticks (static: no motion; push: every object voxel moved 10 cm along the push; oracle) and for
 each model's weights DIR/<model>.pt, runs exactly what a user runs:
@@ -14,6 +15,11 @@ for each model the paired difference to static and to push with its standard err
 deviation of the per-sequence differences / sqrt(n)); and DSR-Net vs NoWarp vs SingleStep on IoU. With
 --leaderboard, each results file joins the leaderboard (`dsr-bench leaderboard add`) and the tables are
 rebuilt. Predictions already in WORK are reused (delete them to predict again).
+
+--history-variants also scores DSR-Net and NoWarp with their history zeroed at test time (the same
+weights; `dsr-history-none`), and DSR-Net with its state not warped (`dsr-history-nowarp`): whether the
+trained networks use what their state carries. --controls NAME... scores further weights files
+DIR/NAME.pt (e.g. single-same-windows: SingleStep trained with `--same-windows`), never on the leaderboard.
 """
 
 from __future__ import annotations
@@ -44,6 +50,28 @@ def paired(a: dict, b: dict, metric: str) -> dict:
     return {"mean": float(d.mean()), "se": float(d.std(ddof=1) / np.sqrt(len(d))), "n": int(len(d))}
 
 
+def torch_config(path: Path) -> dict:
+    """The model_config of a weights file."""
+    import torch
+
+    return torch.load(path, map_location="cpu", weights_only=True)["model_config"]
+
+
+def predict_with_history(weights: Path, model: str, history: str, data: Path, out: Path) -> None:
+    """Predict the split with `model`'s weights, its history replaced at test time by `history`."""
+    import dataclasses
+
+    from dsr_bench.dataset.manifest import read_split
+    from dsr_bench.models.predictors import load_predictor, predict_split
+
+    print(f"# {model} with its history '{history}' at test time: {weights}", flush=True)
+    predictor = load_predictor(model, weights)
+    predictor.model.config = dataclasses.replace(predictor.model.config, history=history)
+    predictor.name = f"{predictor.name}-history-{history}"
+    _, names = read_split(data, None)
+    predict_split(predictor, data, names, out)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--data", type=Path, required=True)
@@ -52,6 +80,8 @@ def main() -> None:
     parser.add_argument("--models", nargs="+", default=["dsr", "nowarp", "single", "gtwarp", "3dflow"])
     parser.add_argument("--out", type=Path)
     parser.add_argument("--leaderboard", type=Path)
+    parser.add_argument("--history-variants", action="store_true")
+    parser.add_argument("--controls", nargs="*", default=[])
     args = parser.parse_args()
 
     cli = [sys.executable, "-m", "dsr_bench"]
@@ -69,16 +99,40 @@ def main() -> None:
     if args.leaderboard:
         run(*cli, "leaderboard", "build", "--root", str(args.leaderboard))
 
+    variants = [("dsr", "none"), ("dsr", "nowarp"), ("nowarp", "none")] if args.history_variants else []
+    for name, history in variants:
+        label = f"{name}-history-{history}"
+        pred, scored = args.work / label, args.work / f"{label}.json"
+        if not scored.is_file():
+            if not (pred / "meta.json").is_file():
+                predict_with_history(args.weights / f"{name}.pt", name, history, args.data, pred)
+            run(*cli, "evaluate", str(pred), "--data", str(args.data), "--out", str(scored))
+        results[label] = json.loads(scored.read_text())
+    for label in args.controls:
+        pred, scored = args.work / label, args.work / f"{label}.json"
+        if not scored.is_file():
+            model = torch_config(args.weights / f"{label}.pt")["name"]
+            if not (pred / "meta.json").is_file():
+                run(*cli, "predict", "--model", model, "--checkpoint", str(args.weights / f"{label}.pt"),
+                    "--data", str(args.data), "--out", str(pred))
+            run(*cli, "evaluate", str(pred), "--data", str(args.data), "--out", str(scored))
+        results[label] = json.loads(scored.read_text())
+
     per_seq = {name: r["per_sequence"] for name, r in results.items()}
     summary = {"data": str(args.data), "split": results["static"]["split"],
                "split_checksum": results["static"]["split_checksum"], "sequences": len(per_seq["static"]),
                "means": {name: {m: r["metrics"][m] for m in METRICS} for name, r in results.items()},
                "grid": {name: r["meta"].get("parameters", {}).get("grid") for name, r in results.items()},
+               "per_step": {name: {m: [round(v, 4) for v in r["per_step"][m]] for m in ("iou_ordered", "motion_full")}
+                            for name, r in results.items()},
+               "breakdowns": {name: r["breakdowns"] for name, r in results.items()},
                "vs_static": {}, "vs_push": {}, "pairs": {}}
     for name in args.models:
         summary["vs_static"][name] = {m: paired(per_seq[name], per_seq["static"], m) for m in METRICS}
         summary["vs_push"][name] = {m: paired(per_seq[name], per_seq["push"], m) for m in METRICS[:2]}
-    for a, b in PAIRS:
+    pairs = list(PAIRS) + [(f"{n}-history-{h}", n) for n, h in variants] + \
+        [(c, "single") for c in args.controls] + [("dsr", c) for c in args.controls]
+    for a, b in pairs:
         if a in per_seq and b in per_seq:
             summary["pairs"][f"{a} - {b}"] = {m: paired(per_seq[a], per_seq[b], m) for m in METRICS}
 
@@ -86,6 +140,12 @@ def main() -> None:
     print(f"{'':>8} " + " ".join(f"{m:>15}" for m in METRICS))
     for name, row in summary["means"].items():
         print(f"{name:>8} " + " ".join(f"{row[m]:15.4f}" for m in METRICS))
+    print("\nordered IoU per step, and IoU of mostly occluded / visible objects:")
+    for name in summary["per_step"]:
+        b = summary["breakdowns"][name]
+        print(f"{name:>8} " + " ".join(f"{v:.3f}" for v in summary["per_step"][name]["iou_ordered"])
+              + f" | occluded {b['iou_occluded_objects'] or 0:.3f} ({b['occluded_object_steps']}), "
+              f"visible {b['iou_visible_objects'] or 0:.3f}")
     for key in ("vs_static", "vs_push", "pairs"):
         print(f"\npaired differences ({key}), mean +- standard error:")
         for name, row in summary[key].items():

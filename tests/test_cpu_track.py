@@ -249,3 +249,32 @@ def test_init_errors(tmp_path, monkeypatch, capsys, extra, message):
     err = capsys.readouterr().err
     assert message in err and len(err.strip().splitlines()) == 1
     assert not (tmp_path / "nowarp.pt").exists()
+
+
+@pytest.mark.parametrize("name", ["dsr", "single", "nowarp", "gtwarp", "3dflow"])
+def test_the_shipped_weights_are_small_cpu_track_models_loaded_weights_only(name):
+    from dsr_bench.models.inference import load_predictor
+    from dsr_bench.models.predictors import shipped_weights
+
+    path = shipped_weights(name)
+    assert path is not None and path.stat().st_size < 5_000_000, path
+    state = torch.load(path, weights_only=True)
+    config = ModelConfig.from_dict(state["model_config"])
+    assert (config.name, config.voxel_factor, config.width, config.grid) == (name, 4, 2, (32, 32, 16))
+    assert state["data"]["split"] == "cpu-train" or state["data"]["dir"] == "cpu-train"
+    assert "/" not in state["data"]["dir"]  # provenance without a local path
+    assert state["bn_recalibration_passes"] > 0  # eval-mode statistics re-estimated on whole sequences
+    predictor = load_predictor(name, path)
+    assert predictor.name == f"{name}-cpu" and not predictor.model.training
+
+
+def test_predict_uses_the_shipped_weights_without_a_checkpoint(tmp_path):
+    from dsr_bench.dataset.manifest import file_sha256
+    from dsr_bench.models.predictors import shipped_weights
+
+    data = write_synthetic_dataset(tmp_path / "data", num_sequences=1, num_steps=2)
+    out = tmp_path / "preds"
+    assert main(["predict", "--model", "dsr", "--data", str(data), "--out", str(out)]) == 0
+    meta = json.loads((out / "meta.json").read_text())
+    assert meta["weights"]["source"] == "dsr-bench, shipped CPU-track weights"
+    assert meta["weights"]["sha256"] == file_sha256(shipped_weights("dsr")) and meta["name"] == "dsr-cpu"

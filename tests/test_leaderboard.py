@@ -97,9 +97,11 @@ def test_oracles_are_never_best_and_rows_worse_than_no_motion_are_marked(board, 
     _add(board, tmp_path, "static", "reference (no training)", motion_visible=40.0, motion_full=0.27,
          iou_unordered=0.19, iou_ordered=0.13)
     _add(board, tmp_path, "Trained", motion_visible=43.6, motion_full=0.20, iou_unordered=0.36, iou_ordered=0.33)
+    _add(board, tmp_path, "gtwarp-cpu", motion_visible=39.0, motion_full=0.25, iou_unordered=0.30, iou_ordered=0.40)
     md = build(board)[0].read_text()
     rows = {line.split(" | ")[0][2:]: line for line in md.splitlines() if line.startswith("| ")}
     assert "**" not in rows["oracle"]
+    assert "**" not in rows["gtwarp-cpu"] and "**0.330**" in rows["Trained"]  # GTWarp warps by the true flow: an oracle
     assert "43.6 \u25bc" in rows["Trained"] and "**0.2**" in rows["Trained"] and "**0.360**" in rows["Trained"]
     assert "**40**" in rows["static"] and "\u25bc" not in rows["static"]
     page = (board / "index.html").read_text()

@@ -48,6 +48,8 @@ def train(
     single_batches: int = typer.Option(3000, "--single-batches", help="--track cpu: stage 1 single-step batches."),
     multi_batches: int = typer.Option(300, "--multi-batches", help="--track cpu: stage 2 batches of --window "
                                       "steps (models without history: x window single-step batches)."),
+    same_windows: bool = typer.Option(False, "--same-windows", help="--track cpu, single and 3dflow: stage 2 on the "
+                                      "history models' --window-step windows (zero state) instead of single steps."),
     quiet: bool = typer.Option(False, "--quiet", help="No progress bar."),
 ) -> None:
     """Train a reference model for one stage of the paper's curriculum (torchrun for multi-GPU)."""
@@ -62,7 +64,7 @@ def train(
         raise UserError(f"--bn-recalibration {bn_recalibration}: must be >= 0")
     if track == "cpu":
         _train_cpu(model, stage, data, out, split, batch_size, lr, window, seed, workers, bn_recalibration,
-                   single_batches, multi_batches, init, quiet)
+                   single_batches, multi_batches, init, same_windows, quiet)
         return
     if track != "full":
         raise UserError(f"--track {track!r}: choose full or cpu")
@@ -90,7 +92,7 @@ def train(
 
 def _train_cpu(model: str, stage: str | None, data: Path, out: Path, split: str | None, batch_size: int | None,
                lr: float | None, window: int | None, seed: int, workers: int, bn_recalibration: int,
-               single_batches: int, multi_batches: int, init: Path | None, quiet: bool) -> None:
+               single_batches: int, multi_batches: int, init: Path | None, same_windows: bool, quiet: bool) -> None:
     """`--track cpu`: the CPU track's recipe (`models.training.cpu_track`), one weights file (and its
     stage-1 weights beside it); --init: stage 2 from another run's stage-1 weights."""
     from dsr_bench.errors import UserError
@@ -102,7 +104,8 @@ def _train_cpu(model: str, stage: str | None, data: Path, out: Path, split: str 
         raise UserError(f"--out {out} is a directory; --track cpu writes one weights file (e.g. {out / (model + '.pt')})")
     overrides = {k: v for k, v in {"batch_size": batch_size, "lr": lr, "window": window}.items() if v is not None}
     recipe = CpuRecipe(model, single_batches=single_batches, multi_batches=multi_batches, seed=seed,
-                       bn_recalibration=bn_recalibration, init=None if init is None else str(init), **overrides)
+                       bn_recalibration=bn_recalibration, init=None if init is None else str(init),
+                       same_windows=same_windows, **overrides)
     path = train_cpu(recipe, data, split, out, workers=max(1, workers),
                      report=(lambda line: None) if quiet else (lambda line: typer.echo(line, err=True)))
     typer.echo(f"weights: {path}")

@@ -129,8 +129,10 @@ _WORSE_MARK = "\u25bc"
 #: Rows that bound the benchmark from above: never "best" (ground truth as predictions, or a model
 #: warped with the ground-truth flow).
 def is_oracle(method: str) -> bool:
-    """Whether a row is an oracle (its method is `oracle` or says "oracle", e.g. "GTWarp (oracle warp)")."""
-    return "oracle" in str(method).lower()
+    """Whether a row is an oracle: its method is `oracle` or says "oracle" (e.g. "GTWarp (oracle warp)"), or it is
+    GTWarp (`gtwarp`, `gtwarp-cpu`: its history is warped by the ground-truth flow)."""
+    name = str(method).lower()
+    return "oracle" in name or name.startswith("gtwarp")
 
 
 #: The reference row every trained row must beat: predicting no motion.

@@ -9,7 +9,7 @@ any start, with replacement, from the recipe's seed):
 1. stage 1, single-step windows (`single_batches`), learning rate `lr`;
 2. stage 2, whole windows of `window` steps with the state carried (`multi_batches`) at `multi_lr`;
    a model without history (single, 3dflow) gets `window` x as many single-step windows instead: the
-   same sample-steps;
+   same sample-steps (`same_windows`: the same windows of `window` steps instead, a control);
 
 each stage's rate halved at 50% and again at 75% of its batches (the paper's step decay, in batches).
 Stage 1 is the same computation for dsr, nowarp, gtwarp and single (a single-step window has no
@@ -62,6 +62,10 @@ class CpuRecipe:
     seed: int = 0
     #: a stage-1 weights file (`<out>.stage1.pt` of an earlier run) to start stage 2 from; None: run stage 1
     init: str | None = None
+    #: a model without history trains stage 2 on the history models' windows of `window` steps (a zero state,
+    #: step t's loss under step t-1's matching, an optimiser step per step): the history models' protocol
+    #: without the history, a control for what the state itself adds
+    same_windows: bool = False
 
     def __post_init__(self):
         if min(self.single_batches, self.batch_size, self.window) < 1 or self.multi_batches < 0:
@@ -194,6 +198,17 @@ def _stage(net, data, batches: int, window: int, recipe: CpuRecipe, lr: float, s
             "loss_last_tenth": [round(float(v), 5) for v in last]}
 
 
+def _split_checksum(data_dir: Path, split: str | None) -> str:
+    """The ground-truth checksum of the split trained on (what `dsr-bench info` shows), "" if unknown."""
+    from dsr_bench.dataset.manifest import load_manifest, read_split, split_digest
+
+    try:
+        name, _ = read_split(data_dir, split)
+        return split_digest(load_manifest(data_dir), name)
+    except (UserError, KeyError, ValueError):
+        return ""
+
+
 def stage1_path(out: Path) -> Path:
     """Where a run writing `out` keeps its stage-1 weights."""
     return Path(out).with_suffix(".stage1.pt")
@@ -210,7 +225,7 @@ def _load_stage1(net, path: Path, recipe: CpuRecipe) -> dict:
     if not isinstance(state, dict) or state.get("format") != CPU_CHECKPOINT_FORMAT + "-stage1":
         raise UserError(f"--init {path}: not the stage-1 weights of a CPU-track run (a .stage1.pt file)")
     theirs = {k: v for k, v in state["recipe"].items() if k not in ("model_name", "multi_batches", "multi_lr", "init",
-                                                                     "bn_recalibration", "window")}
+                                                                     "bn_recalibration", "window", "same_windows")}
     ours = {k: v for k, v in dataclasses.asdict(recipe).items() if k in theirs}
     if theirs != ours:
         differ = sorted(k for k in theirs if theirs[k] != ours[k])
@@ -250,7 +265,7 @@ def train_cpu(recipe: CpuRecipe, data_dir: Path, split: str | None, out: Path, w
     else:
         stages = {"single": _load_stage1(net, Path(recipe.init), recipe)}
     if recipe.multi_batches:
-        batches, window = ((recipe.multi_batches, recipe.window) if history
+        batches, window = ((recipe.multi_batches, recipe.window) if history or recipe.same_windows
                            else (recipe.multi_batches * recipe.window, 1))
         stages["multi"] = _stage(net, data, batches, window, recipe, recipe.multi_lr, recipe.seed + 1,
                                  f"{config.name} stage 2", report)
@@ -266,7 +281,8 @@ def train_cpu(recipe: CpuRecipe, data_dir: Path, split: str | None, out: Path, w
                "recipe": dataclasses.asdict(recipe), "stages": stages, "bn_recalibration_passes": passes,
                # the training's moving averages, which recalibration replaced (scripts/batchnorm_modes.py)
                "bn_moving_averages": {k: (v.half() if v.is_floating_point() else v) for k, v in moving.items()},
-               "data": {"dir": str(Path(data_dir).resolve()), "split": split, "sequences": int(count)},
+               "data": {"dir": Path(data_dir).resolve().name, "split": split, "sequences": int(count),
+                        "split_checksum": _split_checksum(Path(data_dir), split)},
                "git": git_hash(), "torch_version": str(torch.__version__)}
     with atomic_path(out) as tmp:
         torch.save(payload, tmp)
