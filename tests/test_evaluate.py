@@ -133,9 +133,13 @@ def test_write_predictions_refuses_bad_arrays(tmp_path):
     assert not list(tmp_path.iterdir())
 
 
-def test_predict_errors(synthetic, tmp_path, capsys):
-    assert main(["predict", "--model", "dsr", "--data", str(synthetic), "--out", str(tmp_path / "o")]) == 2
-    assert "--checkpoint" in capsys.readouterr().err
+def test_predict_errors(synthetic, tmp_path, capsys, monkeypatch):
+    from dsr_bench.models import predictors
+
+    # without shipped weights (an installation that lacks them), a learned model needs --checkpoint or --weights
+    monkeypatch.setattr(predictors, "SHIPPED_WEIGHTS", tmp_path / "none")
+    assert main(["predict", "--model", "gtwarp", "--data", str(synthetic), "--out", str(tmp_path / "o")]) == 2
+    assert "--checkpoint" in capsys.readouterr().err and not (tmp_path / "o").exists()
     assert main(["predict", "--model", "magic", "--data", str(synthetic), "--out", str(tmp_path / "o")]) == 2
     assert "choose one of" in capsys.readouterr().err
     assert main(["evaluate", str(tmp_path / "none"), "--data", str(synthetic)]) == 2
