@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import json
 import shutil
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -20,24 +19,6 @@ import pytest
 from dsr_bench.constants import VOXEL_SIZE
 from dsr_bench.errors import UserError
 from dsr_bench.geometry import matrix_to_pose, pose_to_matrix
-
-
-@pytest.fixture(scope="module")
-def capture_dir(tmp_path_factory) -> Path:
-    pytest.importorskip("pybullet")
-    pytest.importorskip("open3d")
-    from generators.capture import generate_capture
-
-    out = tmp_path_factory.mktemp("captures") / "seq_000"
-    return generate_capture(out, name="seq_000", seed=1, steps=3, objects_per_scene=3, noise="none",
-                            image_shape=(240, 320))
-
-
-@pytest.fixture(scope="module")
-def truth(capture_dir) -> np.ndarray:
-    from dsr_bench.dataset.capture import load_capture
-
-    return load_capture(capture_dir).truth_poses()
 
 
 def _errors(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:

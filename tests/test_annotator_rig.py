@@ -18,24 +18,6 @@ from dsr_bench.errors import UserError
 from dsr_bench.geometry import pose_to_matrix
 
 
-@pytest.fixture(scope="module")
-def capture_dir(tmp_path_factory) -> Path:
-    pytest.importorskip("pybullet")
-    pytest.importorskip("open3d")
-    from generators.capture import generate_capture
-
-    out = tmp_path_factory.mktemp("captures") / "seq_000"
-    return generate_capture(out, name="seq_000", seed=1, steps=3, objects_per_scene=3, noise="none",
-                            image_shape=(240, 320))
-
-
-@pytest.fixture(scope="module")
-def truth(capture_dir) -> np.ndarray:
-    from dsr_bench.dataset.capture import load_capture
-
-    return load_capture(capture_dir).truth_poses()
-
-
 def _place_from_truth(session, truth, step: int = 0, snap: bool = True) -> None:
     """Every object at `step` from 4 picked pairs on its true pose (as a user's picks would), then snapped."""
     for i in range(session.num_objects):

@@ -20,7 +20,6 @@ from PIL import Image
 from dsr_bench.cli import main
 from dsr_bench.errors import UserError
 from dsr_bench.scoring.leaderboard import add_entry, build, check_entry
-from dsr_bench.dataset.splits import SPLITS, Split
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -30,16 +29,6 @@ def _results(split="procedural-novel-mini", checksum="c" * 64, **metrics):
     return {"format": "dsr-bench-results", "version": 1, "method": "MyNet", "split": split,
             "split_checksum": checksum, "date": "2026-11-22T00:00:00Z",
             "coverage": {"scored": 8, "expected": 8, "partial": False}, "metrics": {**base, **metrics}}
-
-
-@pytest.fixture
-def board(tmp_path, monkeypatch):
-    root = tmp_path / "leaderboard"
-    root.mkdir()
-    shutil.copy(ROOT / "leaderboard" / "paper.json", root / "paper.json")
-    spec = SPLITS["procedural-novel-mini"]
-    monkeypatch.setitem(SPLITS, spec.name, Split(**{**spec.__dict__, "expected_digest": "c" * 64}))
-    return root
 
 
 def test_entries_are_checked(board, tmp_path):

@@ -4,14 +4,11 @@ table of reproduced rows."""
 
 import json
 import math
-import shutil
 from pathlib import Path
 
-import pytest
 from PIL import Image
 
 from dsr_bench.cli import main
-from dsr_bench.dataset.splits import SPLITS, Split
 from dsr_bench.scoring.leaderboard import build
 from dsr_bench.scoring.plots import (leaderboard_series, step_series, steps_plot_path, write_leaderboard_plot,
                                      write_steps_plot)
@@ -108,16 +105,6 @@ def test_evaluate_writes_the_steps_plot_beside_the_results(tmp_path, capsys):
     assert lines["visible surface (3D)"] == results["per_step"]["motion_visible"]
     assert lines["full volume"] == results["per_step"]["motion_full"]
     assert lines["front camera (2D)"] == results["per_step"]["motion_2d"]  # static writes motion_2d
-
-
-@pytest.fixture
-def board(tmp_path, monkeypatch):
-    root = tmp_path / "leaderboard"
-    root.mkdir()
-    shutil.copy(ROOT / "leaderboard" / "paper.json", root / "paper.json")
-    spec = SPLITS["procedural-novel-mini"]
-    monkeypatch.setitem(SPLITS, spec.name, Split(**{**spec.__dict__, "expected_digest": "c" * 64}))
-    return root
 
 
 def _entry(board: Path, results: dict, name: str) -> None:
