@@ -19,6 +19,7 @@ import pytest
 from dsr_bench.constants import VOXEL_SIZE
 from dsr_bench.errors import UserError
 from dsr_bench.geometry import matrix_to_pose, pose_to_matrix
+from helpers import place_from_truth as _place_from_truth
 
 
 def _errors(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
@@ -76,17 +77,6 @@ def _observed_directions(session, obj: int, step: int, pose: np.ndarray, min_sha
     n = nrm[j[np.isfinite(d)]]
     share, vectors = np.linalg.eigh(n.T @ n / len(n))
     return vectors[:, share >= min_share].T
-
-
-def _place_from_truth(session, truth, step: int = 0, snap: bool = True) -> None:
-    """Initialise every object at `step` from 4 picked pairs on the true pose (as a user's picks would)."""
-    for i in range(session.num_objects):
-        v, _ = session.capture.mesh(i)
-        idx = np.linspace(0, len(v) - 1, 4).astype(int)
-        m = pose_to_matrix(truth[step, i])
-        session.init_from_picks(i, v[idx], v[idx] @ m[:3, :3].T + m[:3, 3])
-        if snap:
-            session.snap(i)
 
 
 def _moved(session, truth, t: int) -> list[int]:

@@ -16,17 +16,7 @@ import pytest
 
 from dsr_bench.errors import UserError
 from dsr_bench.geometry import pose_to_matrix
-
-
-def _place_from_truth(session, truth, step: int = 0, snap: bool = True) -> None:
-    """Every object at `step` from 4 picked pairs on its true pose (as a user's picks would), then snapped."""
-    for i in range(session.num_objects):
-        v, _ = session.capture.mesh(i)
-        idx = np.linspace(0, len(v) - 1, 4).astype(int)
-        m = pose_to_matrix(truth[step, i])
-        session.init_from_picks(i, v[idx], v[idx] @ m[:3, :3].T + m[:3, 3])
-        if snap:
-            session.snap(i)
+from helpers import place_from_truth as _place_from_truth
 
 
 def _worse_snap(session, obj: int = 0) -> tuple[float, float, float]:
