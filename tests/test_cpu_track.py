@@ -119,7 +119,7 @@ def test_the_pooled_split_is_cached_and_refreshed_when_a_file_changes(tmp_path, 
     assert first["tsdf"].shape == (2, 2, 32, 32, 16) and first["flow"].shape == (2, 2, 3, 32, 32, 16)
     assert first["names"].tolist() == ["seq_0000", "seq_0001"] and len(list((tmp_path / "cache").iterdir())) == 1
 
-    def fail(*args):
+    def fail(*args, **kwargs):
         raise AssertionError("pooled again")
 
     monkeypatch.setattr(cpu_track, "_pool_sequence", fail)

@@ -30,8 +30,8 @@ import json
 import os
 import time
 from collections.abc import Callable, Iterator
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -42,6 +42,7 @@ from dsr_bench.errors import UserError
 from dsr_bench.models import coarse
 from dsr_bench.models.config import ModelConfig
 from dsr_bench.models.training.checkpoints import git_hash
+from dsr_bench.parallel import run_in_order
 
 CPU_CHECKPOINT_FORMAT = "dsr-bench-cpu-weights"
 
@@ -122,12 +123,7 @@ def pooled_split(data_dir: Path, split: str | None, factor: int = coarse.CPU_TRA
     if cached.is_file():
         with np.load(cached) as arrays:
             return {k: arrays[k] for k in arrays.files}
-    pooled: list[dict] = []
-    with ProcessPoolExecutor(workers) if workers > 1 else _Inline() as pool:
-        for i, item in enumerate(pool.map(_pool_sequence, paths, [factor] * len(paths))):
-            pooled.append(item)
-            if progress:
-                progress(i + 1, len(paths))
+    pooled = run_in_order(partial(_pool_sequence, factor=factor), paths, workers, progress)
     lengths = {len(p["action"]) for p in pooled}
     if len(lengths) != 1:
         raise UserError(f"{data_dir}: sequences of {sorted(lengths)} pushes; the CPU track needs one length")
@@ -137,20 +133,6 @@ def pooled_split(data_dir: Path, split: str | None, factor: int = coarse.CPU_TRA
     with atomic_path(cached) as tmp, open(tmp, "wb") as fh:
         np.savez(fh, **out)
     return out
-
-
-class _Inline:
-    """A one-process stand-in for an executor (map in order)."""
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc):
-        return False
-
-    @staticmethod
-    def map(fn, *iterables):
-        return map(fn, *iterables)
 
 
 def draw_windows(data: dict[str, np.ndarray], batches: int, window: int, batch_size: int, seed: int,
