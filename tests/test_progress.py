@@ -8,9 +8,9 @@ import io
 import pytest
 from rich.console import Console
 
-import dsr_bench.cli.progress as progress_module
+import dsr_bench.progress as progress_module
 from dsr_bench.cli import main
-from dsr_bench.cli.progress import progress_bar
+from dsr_bench.progress import progress_bar
 from dsr_bench.dataset.validate import validate_dataset
 from dsr_bench.parallel import run_in_order
 from dsr_bench.scoring.evaluate import evaluate

@@ -18,7 +18,7 @@ def validate(
     from rich.console import Console
     from rich.table import Table
 
-    from dsr_bench.cli.progress import progress_bar
+    from dsr_bench.progress import progress_bar
     from dsr_bench.dataset.validate import summary_line, validate_dataset
 
     console = Console()

@@ -92,7 +92,7 @@ def evaluate(
     from rich.console import Console
 
     from dsr_bench.atomic import write_text
-    from dsr_bench.cli.progress import progress_bar
+    from dsr_bench.progress import progress_bar
     from dsr_bench.errors import UserError
     from dsr_bench.scoring.evaluate import evaluate as run
     from dsr_bench.scoring.predictions import infer_source

@@ -265,35 +265,48 @@ def _save(run: Run, epoch: int, batch_index: int) -> None:
 def _train_epoch(run: Run, log: RunLog | None, budget: TimeBudget, epoch: int, first: int) -> bool:
     """One epoch from its batch `first`; True when max_steps or the time budget ended the stage
     (its checkpoint saved)."""
-    from tqdm import tqdm
+    from contextlib import nullcontext
+
+    from dsr_bench.progress import no_progress, progress_bar
 
     config, stage = run.config, run.stage
     run.sampler.set_epoch(epoch, first)
-    bar = tqdm(run.loader, desc=f"{config.model_name} {stage.name} epoch {epoch + 1}/{stage.epochs}",
-               disable=run.rank != 0 or not config.progress, leave=False, initial=first, total=run.sampler.batches)
-    windows = train_windows(run.train_model, bar, run.optimizer, run.device, bf16=config.bf16,
+    windows = train_windows(run.train_model, run.loader, run.optimizer, run.device, bf16=config.bf16,
                             deterministic=config.deterministic, mask_reduction=stage.mask_reduction, start=first)
     batch_index = first
+    shown = run.rank == 0 and config.progress
+    bar = progress_bar(f"{config.model_name} {stage.name} epoch {epoch + 1}/{stage.epochs}") if shown \
+        else nullcontext(no_progress)
     try:
-        for batch, terms, seconds in windows:
-            run.step += 1
-            batch_index += 1
-            if log is not None:
-                samples = batch["tsdf"].shape[0] * batch["tsdf"].shape[1] * run.world
-                record = {"step": run.step, "epoch": epoch, "batch": batch_index,
-                          "lr": run.optimizer.param_groups[0]["lr"], **window_record(terms),
-                          "samples_per_s": samples / seconds}
-                log.window(record)
-                bar.set_postfix(loss=f"{record['loss']:.4f}")
-            if (config.max_steps is not None and run.step >= config.max_steps) or budget.spent():
-                _recalibrate(run, log)
-                _save(run, epoch, batch_index)
-                return True
-            if config.checkpoint_every and run.step % config.checkpoint_every == 0:
-                _save(run, epoch, batch_index)
+        with bar as progress:
+            return _train_batches(run, log, budget, epoch, windows, batch_index, progress)
     except WindowError as exc:
         raise UserError(f"batch {exc.index} of epoch {epoch + 1} "
                         f"({', '.join(sorted(set(exc.sequences)))}): {exc.cause}") from None
+
+
+def _train_batches(run: Run, log: RunLog | None, budget: TimeBudget, epoch: int, windows, batch_index: int,
+                   progress) -> bool:
+    """The loop of `_train_epoch` over its windows; `progress(done, total, note)` moves the bar."""
+    config = run.config
+    for batch, terms, seconds in windows:
+        run.step += 1
+        batch_index += 1
+        note = ""
+        if log is not None:
+            samples = batch["tsdf"].shape[0] * batch["tsdf"].shape[1] * run.world
+            record = {"step": run.step, "epoch": epoch, "batch": batch_index,
+                      "lr": run.optimizer.param_groups[0]["lr"], **window_record(terms),
+                      "samples_per_s": samples / seconds}
+            log.window(record)
+            note = f"loss {record['loss']:.4f}"
+        progress(batch_index, run.sampler.batches, note)
+        if (config.max_steps is not None and run.step >= config.max_steps) or budget.spent():
+            _recalibrate(run, log)
+            _save(run, epoch, batch_index)
+            return True
+        if config.checkpoint_every and run.step % config.checkpoint_every == 0:
+            _save(run, epoch, batch_index)
     return False
 
 
