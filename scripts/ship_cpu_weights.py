@@ -30,7 +30,7 @@ def main() -> None:
     parser.add_argument("--models", nargs="+", default=["dsr", "single", "nowarp", "gtwarp", "3dflow"])
     parser.add_argument("--data", type=Path, help="The training data, to record its split checksum if missing.")
     args = parser.parse_args()
-    from dsr_bench.models.training.cpu_track import _split_checksum
+    from dsr_bench.models.training.cpu_track import trained_split_checksum
 
     SHIPPED_WEIGHTS.mkdir(parents=True, exist_ok=True)
     for model in args.models:
@@ -43,7 +43,7 @@ def main() -> None:
         data = payload.get("data", {})
         data["dir"] = Path(str(data.get("dir", ""))).name  # a directory name, not a path of this machine
         if not data.get("split_checksum") and args.data:
-            data["split_checksum"] = _split_checksum(args.data, data.get("split"))
+            data["split_checksum"] = trained_split_checksum(args.data, data.get("split"))
         payload["data"] = data
         buffer = io.BytesIO()
         torch.save(payload, buffer)

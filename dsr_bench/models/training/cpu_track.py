@@ -180,7 +180,7 @@ def _stage(net, data, batches: int, window: int, recipe: CpuRecipe, lr: float, s
             "loss_last_tenth": [round(float(v), 5) for v in last]}
 
 
-def _split_checksum(data_dir: Path, split: str | None) -> str:
+def trained_split_checksum(data_dir: Path, split: str | None) -> str:
     """The ground-truth checksum of the split trained on (what `dsr-bench info` shows), "" if unknown."""
     from dsr_bench.dataset.manifest import load_manifest, read_split, split_digest
 
@@ -264,7 +264,7 @@ def train_cpu(recipe: CpuRecipe, data_dir: Path, split: str | None, out: Path, w
                # the training's moving averages, which recalibration replaced (scripts/batchnorm_modes.py)
                "bn_moving_averages": {k: (v.half() if v.is_floating_point() else v) for k, v in moving.items()},
                "data": {"dir": Path(data_dir).resolve().name, "split": split, "sequences": int(count),
-                        "split_checksum": _split_checksum(Path(data_dir), split)},
+                        "split_checksum": trained_split_checksum(Path(data_dir), split)},
                "git": git_hash(), "torch_version": str(torch.__version__)}
     with atomic_path(out) as tmp:
         torch.save(payload, tmp)
