@@ -216,3 +216,103 @@ def test_evaluate_without_data_fails_naming_the_missing_thing_and_the_fix(synthe
     assert main(["evaluate", str(pred)]) == 2
     err = _error_line(capsys)
     assert message in err and "--data DIR" in err, err
+
+
+# -- a 2D-only submission (motion_2d alone): the 2D track of image-space models --
+
+def _as_2d_only(src, dst, offset: float = 0.0):
+    """Copy of a predictions directory with every file rewritten as motion_2d alone (+ `offset` metres in dx)."""
+    shutil.copytree(src, dst)
+    for path in sorted(dst.glob("*.h5")):
+        with h5py.File(path, "r") as f:
+            flow = f["motion_2d"][()].astype(np.float32)
+        flow[..., 1] += offset
+        path.unlink()
+        write_predictions(path, motion_2d=flow)
+    return dst
+
+
+def test_write_predictions_2d_only_and_its_refusals(tmp_path):
+    flow = np.zeros((2, 240, 320, 3), np.float16)
+    path = write_predictions(tmp_path / "a.h5", motion_2d=flow, num_slots=4)  # num_slots: unused without mask
+    with h5py.File(path, "r") as f:
+        assert sorted(f) == ["motion_2d"] and "num_slots" not in f.attrs and f["motion_2d"].shape == flow.shape
+    mask, motion = np.zeros((2, 128, 128, 48), np.uint8), np.zeros((2, 3, 128, 128, 48), np.float16)
+    with h5py.File(write_predictions(tmp_path / "b.h5", mask, motion, 4, flow), "r") as f:  # positional, as before
+        assert sorted(f) == ["mask", "motion", "motion_2d"] and f.attrs["num_slots"] == 4
+    for kwargs, message in [({"mask": mask, "motion_2d": flow}, "mask without motion; mask and motion come together"),
+                            ({"motion": motion, "num_slots": 4}, "motion without mask"),
+                            ({}, "no arrays"),
+                            ({"mask": mask, "motion": motion}, "num_slots is required with mask"),
+                            ({"motion_2d": flow[..., :2]}, r"motion_2d must be \(T, 240, 320, 3\)"),
+                            ({"mask": mask, "motion": motion, "num_slots": 4, "motion_2d": flow[:1]}, "T as in mask"),
+                            ({"motion_2d": np.full((1, 240, 320, 3), np.nan, np.float32)}, "motion_2d has NaN")]:
+        with pytest.raises(UserError, match=message):
+            write_predictions(tmp_path / "x.h5", **kwargs)
+    assert not (tmp_path / "x.h5").exists()
+
+
+def test_2d_only_submission_is_scored_on_the_2d_flow_alone(synthetic, tmp_path, capsys):
+    """motion_2d alone: the same 2D scores as the full submission it came from, nothing 3D in the results, the
+    terminal table and the per-step plot; an offset of 1 cm in dx costs exactly 1 cm² on every object pixel."""
+    from dsr_bench.scoring.plots import TWO_D_TITLE, step_series
+
+    full = _predict("push", synthetic, tmp_path / "push")
+    assert main(["evaluate", str(full), "--out", str(tmp_path / "full.json")]) == 0
+    only = _as_2d_only(full, tmp_path / "only")
+    capsys.readouterr()
+    assert main(["evaluate", str(only), "--out", str(tmp_path / "only.json")]) == 0
+    out = capsys.readouterr().out
+    assert "2D flow MSE" in out and "2D-only" in out and "mask IoU" not in out and "motion_visible" not in out
+    a, b = (json.loads((tmp_path / f"{n}.json").read_text()) for n in ("full", "only"))
+    assert b["metrics"] == {"motion_2d": a["metrics"]["motion_2d"]} and a["metrics"]["motion_2d"] > 0
+    assert b["per_step"] == {"motion_2d": a["per_step"]["motion_2d"]} and b["breakdowns"] == {}
+    assert all(v == {"motion_2d": a["per_sequence"][k]["motion_2d"]} for k, v in b["per_sequence"].items())
+    assert b["coverage"] == a["coverage"] and b["meta"]["name"] == "push"
+    assert (tmp_path / "only-steps.png").stat().st_size > 0
+    series, _ = step_series(b)
+    assert [p["title"] for p in series["panels"]] == [TWO_D_TITLE] and series["objects"] is None
+    oracle = _as_2d_only(_predict("oracle", synthetic, tmp_path / "oracle"), tmp_path / "o0")
+    assert evaluate(oracle, synthetic, workers=1).results["metrics"] == {"motion_2d": 0.0}
+    shifted = evaluate(_as_2d_only(tmp_path / "oracle", tmp_path / "o1", offset=0.01), synthetic, workers=1).results
+    assert shifted["metrics"]["motion_2d"] == pytest.approx(1.0, rel=1e-5)
+
+
+def test_mixed_3d_and_2d_only_submission_is_refused_naming_one_of_each(synthetic, tmp_path, capsys):
+    from dsr_bench.scoring.evaluate import aggregate, score_sequence
+
+    pred = _predict("oracle", synthetic, tmp_path / "p")
+    with h5py.File(pred / "seq_0001.h5", "r") as f:
+        flow = f["motion_2d"][()]
+    (pred / "seq_0001.h5").unlink()
+    write_predictions(pred / "seq_0001.h5", motion_2d=flow)
+    for partial in ([], ["--allow-partial"]):
+        assert main(["evaluate", str(pred), "--out", str(tmp_path / "r.json"), *partial]) == 1
+        err = capsys.readouterr().err
+        line = next(line for line in err.splitlines() if "mixed submission" in line)
+        assert line.strip().startswith(f"{pred}: ") and "seq_0000.h5 holds mask and motion" in line
+        assert "seq_0001.h5 holds motion_2d alone" in line and "no score" in err
+    assert not (tmp_path / "r.json").exists()
+    scored = {n: score_sequence((n, str(pred / f"{n}.h5"), str(synthetic / f"{n}.h5")))[2] for n in ("seq_0000", "seq_0001")}
+    with pytest.raises(UserError, match="seq_0000.h5 holds mask and motion .* but seq_0001.h5 holds motion_2d alone"):
+        aggregate(scored)
+
+
+def test_2d_only_submission_needs_the_2d_ground_truth(synthetic, tmp_path, capsys):
+    from dsr_bench.scoring.evaluate import score_sequence
+
+    data = tmp_path / "data"
+    shutil.copytree(synthetic, data)
+    for path in data.glob("seq_*.h5"):
+        with h5py.File(path, "r+") as f:
+            del f["cameras/front/scene_flow_2d"]
+    only = _as_2d_only(_predict("oracle", synthetic, tmp_path / "oracle"), tmp_path / "only")
+    assert main(["evaluate", str(only), "--data", str(data)]) == 1
+    err = capsys.readouterr().err
+    assert f"seq_0000.h5: a 2D-only prediction (motion_2d without mask and motion), but its ground truth {data}" in err
+    assert "has no cameras/front/scene_flow_2d" in err and "no score" in err
+    _, problems, values = score_sequence(("seq_0000", str(only / "seq_0000.h5"), str(data / "seq_0000.h5")))
+    assert values is None and "has no cameras/front/scene_flow_2d" in problems[0]
+    full = _predict("oracle", synthetic, tmp_path / "full")  # a 3D submission is still scored there, without 2D
+    results = evaluate(full, data, workers=1).results
+    assert "motion_2d" not in results["metrics"] and results["metrics"]["iou_ordered"] == 1.0

@@ -353,3 +353,43 @@ def test_entry_of_an_earlier_pin_is_shown_apart_and_unranked(board, tmp_path):
     assert "| MyNet" in current and "OldNet" not in current and "**0.600**" in current
     assert "| OldNet" in earlier and "MyNet" not in earlier
     assert "No no-motion (static) row" in earlier and "**" not in earlier  # nothing to compare it with there
+
+
+def _results_2d(method, motion_2d, per_step=None):
+    results = {**_results(), "method": method, "metrics": {"motion_2d": motion_2d}, "breakdowns": {}}
+    if per_step is not None:
+        results["per_step"] = {"motion_2d": per_step}
+    return results
+
+
+def test_a_2d_only_entry_joins_the_2d_track_only(board, tmp_path):
+    """Results holding motion_2d alone (a 2D-only submission) are a valid entry, a row of the 2D track's table
+    (its grid the image's) and never an empty row of the 3D track's; a 3D entry with motion_2d sits in both."""
+    assert check_entry(_results_2d("Flow2D", 3.0)) == []
+    assert check_entry({**_results_2d("Flow2D", 3.0), "metrics": {}}) == \
+        ["metrics missing: motion_visible, motion_full, iou_unordered, iou_ordered"]
+    assert check_entry({**_results_2d("Flow2D", 3.0), "metrics": {"motion_2d": None}}) == \
+        ["metrics missing: motion_2d (a 2D-only submission's metric)"]
+    assert any("iou_ordered" in p for p in check_entry({**_results(), "metrics": {"motion_visible": 1.0,
+                                                                                  "motion_2d": 2.0}}))
+    for method, value in (("Flow2D", 3.0), ("SE3Net", 5.0)):
+        path = tmp_path / f"{method}.json"
+        results = _results_2d(method, value, [value, value + 1])
+        if method == "SE3Net":  # the image the model works on, as `predict` records it for an image-space model
+            results["meta"] = {"parameters": {"image": [120, 160]}}
+        path.write_text(json.dumps(results))
+        assert main(["leaderboard", "add", str(path), "--root", str(board)]) == 0
+    tables = _markdown_tables((board / "README.md").read_text())
+    assert "procedural-novel-mini: 3D track (reproduced)" not in tables  # only 2D-only entries: no 3D table
+    two_d = tables["procedural-novel-mini: 2D track (reproduced)"]
+    assert two_d[0][:3] == ["method", "model grid", "2D flow MSE (cm²)"]
+    assert [row[:3] for row in two_d[1:]] == [["Flow2D", "240x320", "3"], ["SE3Net", "120x160", "5"]]
+    assert (board / "plots" / "procedural-novel-mini-2d.png").exists()
+    assert not (board / "plots" / "procedural-novel-mini-3d.png").exists()
+    _add(board, tmp_path, "static", "reference (no training)", motion_visible=6.0, motion_full=0.07,
+         iou_unordered=0.3, iou_ordered=0.2, motion_2d=4.0)
+    tables = _markdown_tables((board / "README.md").read_text())
+    three_d = tables["procedural-novel-mini: 3D track (reproduced)"]
+    assert [row[0] for row in three_d[1:]] == ["static"]  # the 2D-only rows are not in it, not even empty
+    two_d = tables["procedural-novel-mini: 2D track (reproduced)"]
+    assert [(row[0], row[2]) for row in two_d[1:]] == [("Flow2D", "**3**"), ("SE3Net", "5 \u25bc"), ("static", "4")]

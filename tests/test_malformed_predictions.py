@@ -395,3 +395,77 @@ def test_results_record_whether_pinned(pinned_data, tmp_path, monkeypatch, capsy
     assert evaluation.results["pinned"] is True and evaluation.warnings == []
     _pin(monkeypatch, None)
     assert evaluate(pred, pinned_data, workers=1).results["pinned"] is False
+
+
+# -- 2D-only submissions (motion_2d alone): mask and motion come together, the same integrity checks --
+
+@pytest.mark.parametrize("keep", ["mask", "motion"])
+def test_mask_and_motion_come_together(pred, data, capsys, keep):
+    other = "motion" if keep == "mask" else "mask"
+    _rewrite(pred / TARGET, lambda f, a: f.create_dataset(keep, data=a[keep]))
+    _refused(pred, data, capsys, TARGET, f"'{keep}' without '{other}': mask and motion come together")
+
+
+def test_no_dataset_at_all(pred, data, capsys):
+    _rewrite(pred / TARGET, lambda f, a: None)
+    _refused(pred, data, capsys, TARGET, "missing datasets: 'mask' and 'motion' (3D), or 'motion_2d' alone (2D-only)")
+
+
+def _only_2d(pred: Path, build) -> None:
+    """Every file of `pred` rewritten as a valid 2D-only prediction, TARGET by `build(f, motion_2d)` instead."""
+    for path in sorted(pred.glob("*.h5")):
+        with h5py.File(path, "r") as f:
+            flow = f["motion_2d"][()]
+        path.unlink()
+        with h5py.File(path, "w") as f:
+            (build if path.name == TARGET else lambda f, m: f.create_dataset("motion_2d", data=m))(f, flow)
+
+
+def test_2d_only_submission_passes_the_same_checks(pred, data, capsys, tmp_path):
+    _only_2d(pred, lambda f, m: f.create_dataset("motion_2d", data=m))
+    out = tmp_path / "ok.json"
+    assert main(["evaluate", str(pred), "--data", str(data), "--out", str(out), "--workers", "1"]) == 0
+    assert json.loads(out.read_text())["metrics"] == {"motion_2d": 0.0}
+
+
+@pytest.mark.parametrize("case, texts", [
+    ("shape", ("motion_2d: shape (2, 240, 320, 2), expected (2, 240, 320, 3)",)),
+    ("dtype", ("motion_2d: dtype float64",)),
+    ("nan", ("motion_2d[1]: NaN or inf",)),
+    ("num_slots", ("attribute num_slots must be a scalar integer in 1..254, got 0",)),
+    ("extra", ("unexpected root member(s) 'extra'",)),
+    ("soft-link", ("'motion_2d' is a soft link",)),
+])
+def test_malformed_2d_only_file(pred, data, capsys, case, texts):
+    def build(f, m):
+        if case == "shape":
+            f.create_dataset("motion_2d", data=m[..., :2])
+        elif case == "dtype":
+            f.create_dataset("motion_2d", data=m.astype(np.float64))
+        elif case == "nan":
+            m = m.copy()
+            m[1, 5, 5, 0] = np.nan
+            f.create_dataset("motion_2d", data=m)
+        elif case == "soft-link":
+            f.create_dataset("flow", data=m)
+            f["motion_2d"] = h5py.SoftLink("/flow")
+        else:
+            f.create_dataset("motion_2d", data=m)
+            if case == "num_slots":  # not needed without mask, but checked when present
+                f.attrs["num_slots"] = 0
+            else:
+                f["extra"] = np.zeros(3)
+    _only_2d(pred, build)
+    _refused(pred, data, capsys, TARGET, *texts)
+
+
+def test_2d_only_file_cannot_borrow_the_ground_truth_through_a_virtual_dataset(pred, data, capsys):
+    """motion_2d read from the sequence's own cameras/front/scene_flow_2d would score 0: refused before reading."""
+    source = str(data / TARGET)
+
+    def build(f, m):
+        layout = h5py.VirtualLayout(shape=m.shape, dtype=np.float32)
+        layout[...] = h5py.VirtualSource(source, "cameras/front/scene_flow_2d", shape=m.shape)
+        f.create_virtual_dataset("motion_2d", layout, fillvalue=0)
+    _only_2d(pred, build)
+    _refused(pred, data, capsys, TARGET, "motion_2d: a virtual dataset", TARGET)

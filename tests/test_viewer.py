@@ -338,3 +338,38 @@ def test_web_viewer_serves_page_and_data_and_says_both_ports(synthetic, monkeypa
     assert out.count("\n") == 1 and out.startswith(f"serving the web viewer at http://localhost:{page}/?url=")
     assert f"port {page}" in out and f"port {data} (rerun's gRPC server)" in out
     assert f"ssh -L {page}:localhost:{page} -L {data}:localhost:{data} HOST" in out
+
+
+def test_2d_only_predictions_show_the_2d_flow_and_its_metric(synthetic, tmp_path):
+    """A 2D-only prediction (motion_2d alone): no 3D prediction entities, its flow as arrows from the front
+    camera's points (components (dy, dx, dz) -> world (x, y, z)), its per-step 2D metric as evaluate computes it."""
+    from dsr_bench.scoring.evaluate import score_sequence
+
+    with SequenceReader(synthetic["seq"]) as seq:
+        flow = seq.read("cameras/front/scene_flow_2d").astype(np.float32)
+        points = seq.read("cameras/front/points", slice(0, STEPS))
+    flow[..., 0] += 0.01  # +1 cm in dy everywhere: every pixel with a point gets an arrow
+    pred = tmp_path / "pred"
+    write_predictions(pred / "seq_0007.h5", motion_2d=flow)
+    rrd = tmp_path / "two_d.rrd"
+    assert main(["view", "seq_0007", "--data", str(synthetic["seq"].parent), "--predictions", str(pred),
+                 "--save", str(rrd)]) == 0
+    rec = Recording(rrd)
+    assert not rec.steps("/world/pred/mask", "Points3D:positions") and not rec.steps("/world/pred/flow",
+                                                                                        "Arrows3D:vectors")
+    assert rec.steps("/world/pred/flow_2d", "Arrows3D:vectors") == [1, 3, 5]
+    origins = rec.values("/world/pred/flow_2d", "Arrows3D:origins", 3)
+    vectors = rec.values("/world/pred/flow_2d", "Arrows3D:vectors", 3)
+    for t in range(STEPS):
+        finite = np.all(np.isfinite(points[t]), -1)
+        assert len(origins[t]) == min(MAX_ARROWS, int(finite.sum()))
+        # each arrow starts at a pixel's world point and carries that pixel's flow, reordered to (x, y, z)
+        keys = {tuple(np.round(p, 5)): f for p, f in zip(points[t][finite], flow[t][finite])}
+        for o, v in zip(origins[t][:50], vectors[t][:50]):
+            np.testing.assert_allclose(v, keys[tuple(np.round(o, 5))][[1, 0, 2]], atol=1e-6)
+    _, problems, expected = score_sequence(("seq_0007", str(pred / "seq_0007.h5"), str(synthetic["seq"])))
+    assert not problems and expected["has_3d"] is False
+    logged = np.concatenate(rec.values("/metrics/motion_2d", "Scalars:scalars"))
+    np.testing.assert_allclose(logged, expected["motion_2d"], rtol=1e-9)
+    np.testing.assert_allclose(logged, 1.0, rtol=1e-4)  # 1 cm off on every object pixel: 1 cm²
+    assert not rec.steps("/metrics/iou_ordered", "Scalars:scalars")

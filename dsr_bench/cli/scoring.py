@@ -12,7 +12,8 @@ leaderboard_app = typer.Typer(help="Build the leaderboard tables or add a result
 
 
 def predict(
-    model: str = typer.Option(..., "--model", help="oracle | static | push | dsr | single | nowarp | gtwarp | 3dflow"),
+    model: str = typer.Option(..., "--model", help="oracle | static | push | dsr | single | nowarp | gtwarp | 3dflow | 2dflow | se3net | "
+                                "se3posenet"),
     data: Path = typer.Option(..., "--data", help="Dataset directory."),
     out: Path = typer.Option(..., "--out", "-o", help="Predictions directory to write."),
     split: Optional[str] = typer.Option(None, "--split", help="Split to predict (default: the only one)."),
@@ -44,29 +45,31 @@ def _print_results(results: dict) -> None:
     from rich.console import Console
     from rich.table import Table
 
-    m, b = results["metrics"], results["breakdowns"]
+    m, b = results["metrics"], results.get("breakdowns") or {}
     table = Table(title=f"{results['method']} on {results['split']} ({results['coverage']['scored']}/"
-                        f"{results['coverage']['expected']} sequences)")
+                        f"{results['coverage']['expected']} sequences{'' if 'motion_visible' in m else ', 2D-only'})")
     table.add_column("metric")
     table.add_column("value", justify="right")
-    rows = [("flow MSE, visible surface (cm²)", m["motion_visible"]), ("flow MSE, full volume (cm²)", m["motion_full"]),
-            ("mask IoU, unordered", m["iou_unordered"]), ("mask IoU, ordered", m["iou_ordered"])]
-    if "motion_2d" in m:
-        rows.append(("2D flow MSE, visible (cm²)", m["motion_2d"]))
-    rows += [(f"IoU of mostly occluded objects ({b['occluded_object_steps']})", b["iou_occluded_objects"]),
-             (f"IoU of visible objects ({b['visible_object_steps']})", b["iou_visible_objects"]),
-             ("flow MSE of moved objects (cm²)", b["motion_moved_objects"]),
-             ("flow MSE of static objects (cm²)", b["motion_static_objects"])]
+    titles = (("motion_visible", "flow MSE, visible surface (cm²)"), ("motion_full", "flow MSE, full volume (cm²)"),
+              ("iou_unordered", "mask IoU, unordered"), ("iou_ordered", "mask IoU, ordered"),
+              ("motion_2d", "2D flow MSE, visible (cm²)"))
+    rows = [(title, m[key]) for key, title in titles if key in m]
+    if b:
+        rows += [(f"IoU of mostly occluded objects ({b['occluded_object_steps']})", b["iou_occluded_objects"]),
+                 (f"IoU of visible objects ({b['visible_object_steps']})", b["iou_visible_objects"]),
+                 ("flow MSE of moved objects (cm²)", b["motion_moved_objects"]),
+                 ("flow MSE of static objects (cm²)", b["motion_static_objects"])]
     for name, value in rows:
         table.add_row(name, "-" if value is None or value != value else f"{value:.4f}")
     Console().print(table)
     steps = results["per_step"]
+    keys = [k for k in ("iou_unordered", "iou_ordered", "motion_visible", "motion_full", "motion_2d") if k in steps]
     per = Table(title="per step index")
     per.add_column("step")
-    for key in ("iou_unordered", "iou_ordered", "motion_visible", "motion_full"):
+    for key in keys:
         per.add_column(key, justify="right")
-    for t in range(len(steps["iou_unordered"])):
-        per.add_row(str(t), *[f"{steps[k][t]:.4f}" for k in ("iou_unordered", "iou_ordered", "motion_visible", "motion_full")])
+    for t in range(max(len(steps[k]) for k in keys)):
+        per.add_row(str(t), *[f"{steps[k][t]:.4f}" for k in keys])
     Console().print(per)
 
 

@@ -1,6 +1,7 @@
 """Grid, pose and camera geometry shared by the generator, the readers, the metrics and the viewer:
 `transforms` (poses and their matrices, fixed-order products), `grid` (voxel and workspace grids), `camera` (pinhole
-cameras), `tsdf` (projective TSDF) and `groundtruth` (flow from poses).
+cameras), `tsdf` (projective TSDF), `groundtruth` (flow from poses) and `projection` (a volume's flow read at
+world points: 3D predictions on the 2D track).
 
 Conventions (see DATASHEET.md):
 - World frame: table plane z = 0, metres. Quaternions are (x, y, z, w), as in pybullet and the
@@ -21,8 +22,9 @@ from dsr_bench.geometry.camera import (
 from dsr_bench.geometry.grid import (
     axis_samples, voxel_points, voxel_points_of, world_to_voxel, voxel_to_world, world_to_pixel, pixel_to_world, direction_vector,
 )
+from dsr_bench.geometry.projection import flow_at_points
 from dsr_bench.geometry.transforms import (
     quat_to_matrix, pose_to_matrix, matrix_to_pose, apply_matrix, dot_last, vector_norm, transform_points, rigid_inverse, compose, relative_motion,
 )
 
-__all__ = ["Camera", "apply_matrix", "axis_samples", "compose", "direction_vector", "dot_last", "look_at", "make_camera", "matrix_to_pose", "pinhole_intrinsics", "pinhole_inverse", "pixel_to_world", "pose_to_matrix", "quat_to_matrix", "relative_motion", "resized_camera", "rigid_inverse", "transform_points", "vector_norm", "voxel_points", "voxel_points_of", "voxel_to_world", "world_to_pixel", "world_to_voxel"]
+__all__ = ["Camera", "apply_matrix", "axis_samples", "compose", "direction_vector", "dot_last", "flow_at_points", "look_at", "make_camera", "matrix_to_pose", "pinhole_intrinsics", "pinhole_inverse", "pixel_to_world", "pose_to_matrix", "quat_to_matrix", "relative_motion", "resized_camera", "rigid_inverse", "transform_points", "vector_norm", "voxel_points", "voxel_points_of", "voxel_to_world", "world_to_pixel", "world_to_voxel"]

@@ -47,15 +47,24 @@ class ModelPredictor:
         model.eval()  # the statistics BatchNorm uses are chosen for each sequence (_predict)
 
     def predict_sequence(self, seq: SequenceReader) -> dict[str, np.ndarray]:
-        """{"mask": (T, Y, X, Z) uint8, "motion": (T, 3, Y, X, Z) float32} for one sequence (read step by step)."""
+        """{"mask": (T, Y, X, Z) uint8, "motion": (T, 3, Y, X, Z) float32} for one sequence (read step by step),
+        and "motion_2d" (T, H, W, 3) float32 metres (dy, dx, dz) when it has `cameras/front/points` and the
+        predictions are on the benchmark's grid: the predicted flow read at each pixel's world point over the
+        predicted object voxels (`geometry.projection.flow_at_points`), as the paper scores DSR-Net in 2D."""
+        from dsr_bench.geometry.projection import flow_at_points
+
         steps = seq.num_steps
         tsdf_shape = tuple(seq.dataset("tsdf").shape)
 
         def ground_truth(t: int) -> tuple[np.ndarray, np.ndarray]:
             return seq.read("scene_flow_3d", t), seq.read("mask_3d", t)
 
-        return self._predict(steps, tsdf_shape, lambda t: seq.read("tsdf", t),
-                             lambda: np.asarray(seq.read("action"))[:steps], ground_truth, seq.path)
+        out = self._predict(steps, tsdf_shape, lambda t: seq.read("tsdf", t),
+                            lambda: np.asarray(seq.read("action"))[:steps], ground_truth, seq.path)
+        if "cameras/front/points" in seq and out["mask"].shape[1:] == GRID_SHAPE:
+            out["motion_2d"] = np.stack([flow_at_points(out["motion"][t], out["mask"][t],
+                                                        seq.read("cameras/front/points", t)) for t in range(steps)])
+        return out
 
     def predict_arrays(self, tsdf: np.ndarray, actions: np.ndarray, flow: np.ndarray | None = None,
                        mask: np.ndarray | None = None, source: str = "arrays") -> dict[str, np.ndarray]:

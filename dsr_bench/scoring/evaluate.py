@@ -7,6 +7,9 @@ NaN/inf, slot ids out of range) happen in the same streaming pass that scores, o
 worker at a time. Any problem means no score, unless `allow_partial`, which scores the valid
 sequences and states the coverage. A named split whose checksum differs from the toolkit's pin
 is scored with a warning (`pin_warning`) and `"pinned": false` in the results.
+A 2D-only submission (every file motion_2d alone, the 2D track) is scored on the front camera's 2D
+flow only (its results hold `motion_2d` alone); it needs data with `cameras/front/scene_flow_2d`,
+and a directory mixing it with 3D files is refused.
 """
 
 from __future__ import annotations
@@ -63,11 +66,23 @@ def pin_warning(manifest: dict, split: str, data_dir: str | Path | None = None) 
             "to see which sequences differ")
 
 
+#: what a 2D-only prediction is scored against
+GT_2D = "cameras/front/scene_flow_2d"
+
+
+def no_2d_ground_truth(gt_path: str | Path) -> str:
+    """The problem of a 2D-only prediction scored against a sequence without the 2D ground truth."""
+    return (f"a 2D-only prediction (motion_2d without mask and motion), but its ground truth {gt_path} has no "
+            f"{GT_2D}; score it against a dataset with the front camera's 2D data (`dsr-bench generate` writes it)")
+
+
 def score_sequence(args: tuple[str, str, str]) -> tuple[str, list[str], dict | None]:
     """Check and score one sequence, args = (name, prediction file, ground-truth file): returns
-    (name, problems, per-step values or None). Used by `evaluate` and by the viewer's plots."""
+    (name, problems, per-step values or None). Used by `evaluate` and by the viewer's plots.
+    A 2D-only prediction (motion_2d alone) gets the 2D flow's values only: per-step "motion_2d",
+    "has_2d" True and "has_3d" False, no 3D flow and no IoU."""
     from dsr_bench.scoring.metrics import motion_2d_error, motion_errors, sequence_scores
-    from dsr_bench.scoring.predictions import check_prediction_header
+    from dsr_bench.scoring.predictions import check_prediction_header, is_2d_only
     from dsr_bench.dataset.sequence import SequenceReader
 
     name, pred_path, gt_path = args
@@ -83,15 +98,28 @@ def score_sequence(args: tuple[str, str, str]) -> tuple[str, list[str], dict | N
             problems = check_prediction_header(pred, gt.num_steps)  # nothing is read before this passes
             if problems:
                 return name, problems, None
+            steps = gt.num_steps
+            if is_2d_only(pred):
+                if GT_2D not in gt:
+                    return name, [no_2d_ground_truth(gt_path)], None
+                values = np.full(steps, np.nan)
+                for t in range(steps):
+                    m2 = pred["motion_2d"][t]
+                    if not np.all(np.isfinite(m2)):
+                        problems.append(f"motion_2d[{t}]: NaN or inf")
+                        continue
+                    values[t] = motion_2d_error(m2, gt.read(GT_2D, t), gt.read("cameras/front/mask", t))
+                if problems:
+                    return name, problems, None
+                return name, [], {"motion_2d": values.tolist(), "has_2d": True, "has_3d": False}
             num_slots = int(pred.attrs["num_slots"])
             n = gt.num_objects
             pred_mask = pred["mask"][()]
             if int(pred_mask.max(initial=0)) > num_slots:
                 problems.append(f"mask: slot id {int(pred_mask.max())} > num_slots {num_slots}")
-            steps = gt.num_steps
             per_step = {k: np.full(steps, np.nan) for k in ("motion_visible", "motion_full", "motion_moved",
                                                             "motion_static", "motion_2d")}
-            has_2d = "motion_2d" in pred and "cameras/front/scene_flow_2d" in gt
+            has_2d = "motion_2d" in pred and GT_2D in gt
             gt_mask = gt.read("mask_3d", slice(0, steps))
             for t in range(steps):
                 motion = pred["motion"][t]
@@ -106,7 +134,7 @@ def score_sequence(args: tuple[str, str, str]) -> tuple[str, list[str], dict | N
                     if not np.all(np.isfinite(m2)):
                         problems.append(f"motion_2d[{t}]: NaN or inf")
                         continue
-                    per_step["motion_2d"][t] = motion_2d_error(m2, gt.read("cameras/front/scene_flow_2d", t),
+                    per_step["motion_2d"][t] = motion_2d_error(m2, gt.read(GT_2D, t),
                                                                gt.read("cameras/front/mask", t))
             if problems:
                 return name, problems, None
@@ -122,16 +150,20 @@ def score_sequence(args: tuple[str, str, str]) -> tuple[str, list[str], dict | N
     out["iou_occluded_objects"] = [x.tolist() for x in ious["iou_occluded_objects"]]
     out["iou_visible_objects"] = [x.tolist() for x in ious["iou_visible_objects"]]
     out["has_2d"] = has_2d
+    out["has_3d"] = True
     return name, [], out
 
 
 def check_structure(pred_dir: Path, data_dir: Path, names: list[str]) -> tuple[dict[str, Path], list[tuple[str, str]]]:
     """Every structural problem of a predictions directory, as (file name, problem); the files that
-    passed. Reads no array data and opens only regular files inside the directory."""
-    from dsr_bench.scoring.predictions import check_prediction_header, file_problem, read_meta
+    passed. Reads no array data and opens only regular files inside the directory. A directory mixing
+    3D predictions (mask and motion) with 2D-only ones (motion_2d alone) is one problem (file name "")
+    naming a file of each kind, and then no file passes."""
+    from dsr_bench.scoring.predictions import check_prediction_header, file_problem, is_2d_only, read_meta
 
     problems: list[tuple[str, str]] = []
     valid: dict[str, Path] = {}
+    kinds: dict[bool, str] = {}  # 2D-only? -> the first such file
     expected = set(names)
     for path in sorted(pred_dir.glob("*.h5")):
         if path.stem not in expected:
@@ -149,6 +181,7 @@ def check_structure(pred_dir: Path, data_dir: Path, names: list[str]) -> tuple[d
         try:
             with h5py.File(data_dir / where, "r") as g:
                 steps = int(g.attrs["num_steps"])
+                has_gt_2d = GT_2D in g
         except READ_ERRORS as exc:
             problem = (f"its ground truth {data_dir / where} is unreadable ({type(exc).__name__}); "
                        f"run `dsr-bench validate {data_dir}`")
@@ -157,14 +190,27 @@ def check_structure(pred_dir: Path, data_dir: Path, names: list[str]) -> tuple[d
         try:
             with h5py.File(path, "r") as f:
                 found = check_prediction_header(f, steps)
+                only_2d = not found and is_2d_only(f)
         except READ_ERRORS as exc:
             found = [f"unreadable HDF5 file ({type(exc).__name__}: {' '.join(str(exc).split())})"]
+        if not found and only_2d and not has_gt_2d:
+            found = [no_2d_ground_truth(data_dir / where)]
         if found:
             problems += [(where, p) for p in found]
         else:
             valid[name] = path
+            kinds.setdefault(only_2d, where)
+    if len(kinds) == 2:
+        problems.append(("", mixed_problem(kinds[False], kinds[True])))
+        valid = {}
     problems += [("meta.json", p) for p in read_meta(pred_dir)[1]]
     return valid, problems
+
+
+def mixed_problem(file_3d: str, file_2d: str) -> str:
+    """The problem of a directory that mixes 3D and 2D-only predictions, naming a file of each kind."""
+    return (f"mixed submission: {file_3d} holds mask and motion (3D) but {file_2d} holds motion_2d alone (2D-only); "
+            "write every sequence the same way (all with mask and motion, or all with motion_2d alone)")
 
 
 def _mean(values) -> float:
@@ -173,9 +219,16 @@ def _mean(values) -> float:
 
 
 def aggregate(per_sequence: dict[str, dict]) -> dict:
-    """Official averaging (over sequences per step index, then over steps) and the breakdowns."""
+    """Official averaging (over sequences per step index, then over steps) and the breakdowns. When every
+    sequence is 2D-only (`score_sequence`'s "has_3d" False), the metrics, per-step values and per-sequence
+    means hold "motion_2d" alone and the breakdowns are empty; a mix of 3D and 2D-only sequences is a UserError."""
     seqs = list(per_sequence.values())
-    steps = max(len(s["iou_unordered"]) for s in seqs)
+    only_2d = {name: not s.get("has_3d", True) for name, s in sorted(per_sequence.items())}
+    if len(set(only_2d.values())) > 1:
+        raise UserError(mixed_problem(next(f"{n}.h5" for n, v in only_2d.items() if not v),
+                                      next(f"{n}.h5" for n, v in only_2d.items() if v)))
+    two_d = all(only_2d.values())
+    steps = max(len(s["motion_2d" if two_d else "iou_unordered"]) for s in seqs)
 
     def by_step(key):
         table = np.full((len(seqs), steps), np.nan)
@@ -184,6 +237,12 @@ def aggregate(per_sequence: dict[str, dict]) -> dict:
         with np.errstate(all="ignore"):
             return [_mean(table[:, t]) for t in range(steps)]
 
+    if two_d:
+        per_step = {"motion_2d": by_step("motion_2d")}
+        metrics = {"motion_2d": _mean(per_step["motion_2d"])}
+        with np.errstate(all="ignore"):
+            means = {name: {"motion_2d": _mean(s["motion_2d"])} for name, s in sorted(per_sequence.items())}
+        return {"metrics": metrics, "per_step": per_step, "breakdowns": {}, "per_sequence": means}
     per_step = {k: by_step(k) for k in ("motion_visible", "motion_full", "iou_unordered", "iou_ordered",
                                          "motion_moved", "motion_static", "iou_unordered_official",
                                          "iou_ordered_official")}

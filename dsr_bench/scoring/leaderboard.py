@@ -2,7 +2,8 @@
 
 leaderboard/entries/*.json are results files written by `dsr-bench evaluate` (plus an optional
 "label"); leaderboard/paper.json holds the paper's published numbers, always shown apart and
-marked "reported in the paper". `build` writes leaderboard/README.md (a table per split and track,
+marked "reported in the paper". A 2D-only entry (results holding motion_2d alone) joins the 2D track's
+table only. `build` writes leaderboard/README.md (a table per split and track,
 best per column in bold), a static, sortable leaderboard/index.html and, for each table of reproduced rows
 whose entries hold per-step values, leaderboard/plots/<split>-3d.png (-2d.png for the 2D track; an earlier
 version of a split: <split>-<checksum>-3d.png) comparing the rows step by step, shown under the table.
@@ -16,7 +17,7 @@ import re
 from pathlib import Path
 
 from dsr_bench.atomic import write_text
-from dsr_bench.constants import GRID_SHAPE
+from dsr_bench.constants import GRID_SHAPE, IMAGE_SHAPE
 from dsr_bench.errors import UserError
 
 LOWER_IS_BETTER = {"motion_visible", "motion_full", "motion_2d"}
@@ -24,6 +25,17 @@ TRACKS = {"3D": ("motion_visible", "motion_full", "iou_unordered", "iou_ordered"
 COLUMN_TITLES = {"motion_visible": "flow MSE visible (cm²)", "motion_full": "flow MSE full (cm²)",
                  "iou_unordered": "IoU unordered", "iou_ordered": "IoU ordered", "motion_2d": "2D flow MSE (cm²)",
                  "planning_iou": "planning IoU"}
+
+
+def _number(value) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+
+def is_2d_only(metrics: dict) -> bool:
+    """Whether a results file's metrics are a 2D-only submission's: none of the 3D track's, motion_2d present."""
+    from dsr_bench.scoring.evaluate import HEADLINE
+
+    return "motion_2d" in metrics and not any(k in metrics for k in HEADLINE)
 
 
 def check_entry(results: dict) -> list[str]:
@@ -34,9 +46,14 @@ def check_entry(results: dict) -> list[str]:
     problems = []
     if results.get("format") != RESULTS_FORMAT:
         return [f"not a dsr-bench results file (format {results.get('format')!r}); produce it with `dsr-bench evaluate`"]
-    missing = [k for k in HEADLINE if not isinstance(results.get("metrics", {}).get(k), (int, float))]
-    if missing:
-        problems.append(f"metrics missing: {', '.join(missing)}")
+    metrics = results.get("metrics") if isinstance(results.get("metrics"), dict) else {}
+    if is_2d_only(metrics):  # a 2D-only submission: the 2D track's metric
+        if not _number(metrics.get("motion_2d")):
+            problems.append("metrics missing: motion_2d (a 2D-only submission's metric)")
+    else:
+        missing = [k for k in HEADLINE if not _number(metrics.get(k))]
+        if missing:
+            problems.append(f"metrics missing: {', '.join(missing)}")
     if results.get("coverage", {}).get("partial"):
         problems.append("partial evaluation (--allow-partial): the leaderboard needs every sequence of the split")
     split = results.get("split")
@@ -97,7 +114,11 @@ def load_rows(root: str | Path = "leaderboard") -> list[dict]:
     rows = []
     for r in load_entries(root):
         kind = r["kind"]
-        grid = ((r.get("meta") or {}).get("parameters") or {}).get("grid") or list(GRID_SHAPE)
+        # the model's grid, or the image an image-space model works on (parameters "image"; a 2D-only entry
+        # that names neither: the front camera's)
+        params = (r.get("meta") or {}).get("parameters") or {}
+        default = IMAGE_SHAPE if is_2d_only(r.get("metrics") or {}) else GRID_SHAPE
+        grid = params.get("grid") or params.get("image") or list(default)
         rows.append({"method": r["method"], "split": r["split"], "kind": kind, "label": r.get("label", ""),
                      "grid": "x".join(str(int(g)) for g in grid),
                      "date": r.get("date", "")[:10], "checksum": r.get("split_checksum", "")[:12],

@@ -2,7 +2,8 @@
 
 `dsr-bench evaluate --out results.json` writes `results-steps.png` beside it (`steps_plot_path`): mask IoU
 (unordered, ordered) against the step index, flow MSE (visible surface, full volume: a panel each) against it,
-and the IoU of mostly occluded vs visible objects. Results hold the latter as one value each over all steps
+and the IoU of mostly occluded vs visible objects; a 2D-only submission's results (motion_2d alone) get the 2D
+flow's panel only. Results hold the latter as one value each over all steps
 (`breakdowns`), not per step, so it is drawn as two bars (with the number of object-steps behind each); a
 results file whose `per_step` carries `iou_occluded_objects` / `iou_visible_objects` lists gets curves instead.
 `dsr-bench leaderboard build` writes one PNG per table of reproduced results (split, version of the split,
@@ -31,6 +32,9 @@ STEP_PANELS = (
                                           ("motion_2d", "front camera (2D)"))),
     ("flow MSE, full volume", "cm²", (("motion_full", "full volume"),)),
 )
+#: the 2D flow's legend, and the panel's title when a results file (2D-only) has no 3D flow
+TWO_D_LEGEND = "front camera (2D)"
+TWO_D_TITLE = "2D flow MSE, front camera (visible pixels)"
 OBJECT_KEYS = (("iou_occluded_objects", "mostly occluded"), ("iou_visible_objects", "visible"))
 #: leaderboard track -> [(per_step key, panel title, y label)]
 TRACK_PANELS = {
@@ -86,6 +90,8 @@ def step_series(results: dict) -> tuple[dict | None, str | None]:
         lines = {legend: _floats(lists[key]) for key, legend in keys if key in lists}
         if lines:
             steps = max(len(v) for v in lines.values())
+            if set(lines) == {TWO_D_LEGEND}:  # a 2D-only submission: the front camera's flow alone
+                title = TWO_D_TITLE
             panels.append({"title": title, "ylabel": ylabel, "steps": list(range(steps)), "lines": lines})
     if not panels:
         return None, "the results hold no per-step values (per_step), nothing to plot"

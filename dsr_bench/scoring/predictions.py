@@ -4,8 +4,11 @@ PRED_DIR/seq_0042.h5 holds, for each push t = 0..T-1 (made after observations 0.
   mask       (T, 128, 128, 48) uint8    amodal instance slots: 0 empty, 1..num_slots
   motion     (T, 3, 128, 128, 48) float16 or float32  scene flow t -> t+1 in voxels, (dy, dx, dz)
   motion_2d  (T, 240, 320, 3) float16/32, optional    front-camera flow in metres, (dy, dx, dz)
-and the root attribute `num_slots` (K - 1, the number of object slots the model has: a scalar
-integer in 1..254; slot numbers are the model's own, matching is the metric's job).
+and, with mask, the root attribute `num_slots` (K - 1, the number of object slots the model has: a
+scalar integer in 1..254; slot numbers are the model's own, matching is the metric's job).
+mask and motion come together (the 3D track, optionally with motion_2d); a file with motion_2d alone
+is a 2D-only prediction (the 2D track: image-space models), scored on the 2D flow only, and needs no
+num_slots (if present, it must still be valid). A directory is all 3D or all 2D-only.
 PRED_DIR/meta.json optionally describes the method: a JSON object of at most 1 MiB with string
 "name", "description", "code_url", "hardware", an object "parameters" and a number
 "seconds_per_step". `dsr-bench predict` also records where the predictions came from, string
@@ -17,7 +20,8 @@ What a prediction file must not be, so that a score cannot be borrowed, hang or 
 evaluator (`check_prediction_header`, `file_problem`, `read_meta`; nothing is read before these pass):
 - anything but a regular file inside PRED_DIR (a FIFO, a directory, a device, a symlink leading out);
 - a file whose root holds anything but those datasets: no extra dataset or group, no soft,
-  external or user-defined link, no dataset linked twice;
+  external or user-defined link, no dataset linked twice; mask without motion or motion without mask;
+  none of mask, motion and motion_2d;
 - a dataset whose bytes are not in the file itself: virtual datasets (other files' data, or zeros
   when their source is missing) and external raw storage (`external=`);
 - a dataset compressed with a filter other than gzip, shuffle, fletcher32 or lzf (plugins);
@@ -59,38 +63,66 @@ META_TYPES: dict[str, tuple[tuple[type, ...], str]] = {
 }
 
 
-def write_predictions(path: str | Path, mask: np.ndarray, motion: np.ndarray, num_slots: int,
-                      motion_2d: np.ndarray | None = None) -> Path:
-    """Validate arrays against the contract and write them atomically to `path` (.h5)."""
+def write_predictions(path: str | Path, mask: np.ndarray | None = None, motion: np.ndarray | None = None,
+                      num_slots: int | None = None, motion_2d: np.ndarray | None = None) -> Path:
+    """Validate arrays against the contract and write them atomically to `path` (.h5).
+
+    3D: mask (T, 128, 128, 48) uint8 slots and motion (T, 3, 128, 128, 48) float16/32 voxels (dy, dx, dz), with
+    num_slots (1..254), optionally motion_2d (T, 240, 320, 3) float16/32 metres (dy, dx, dz). 2D-only: motion_2d
+    alone (mask and motion None; num_slots, then unused, is not written)."""
     path = Path(path)
-    mask, motion = np.asarray(mask), np.asarray(motion)
     problems = []
-    if mask.ndim != 4 or mask.shape[1:] != GRID_SHAPE or mask.dtype != np.uint8:
-        problems.append(f"mask must be (T, {', '.join(map(str, GRID_SHAPE))}) uint8, got {mask.shape} {mask.dtype}")
-    if motion.shape != (mask.shape[0], 3) + GRID_SHAPE or motion.dtype not in MOTION_DTYPES:
-        problems.append(f"motion must be (T, 3, {', '.join(map(str, GRID_SHAPE))}) float16/float32, got {motion.shape} {motion.dtype}")
-    elif not np.all(np.isfinite(motion)):
-        problems.append("motion has NaN or inf")
-    if not 1 <= num_slots <= MAX_SLOTS:
-        problems.append(f"num_slots {num_slots} must be 1..{MAX_SLOTS}")
-    elif mask.size and int(mask.max()) > num_slots:
-        problems.append(f"mask has slot {int(mask.max())} > num_slots {num_slots}")
+    if (mask is None) != (motion is None):
+        given, other = ("mask", "motion") if motion is None else ("motion", "mask")
+        raise UserError(f"refusing to write {path.name}: {given} without {other}; mask and motion come together "
+                        "(give both, or neither with motion_2d for a 2D-only prediction)")
+    if mask is None and motion_2d is None:
+        raise UserError(f"refusing to write {path.name}: no arrays; give mask, motion and num_slots (3D), "
+                        "or motion_2d alone (2D-only)")
+    steps = None
+    if mask is not None:
+        mask, motion = np.asarray(mask), np.asarray(motion)
+        steps = mask.shape[0] if mask.ndim else 0
+        if mask.ndim != 4 or mask.shape[1:] != GRID_SHAPE or mask.dtype != np.uint8:
+            problems.append(f"mask must be (T, {', '.join(map(str, GRID_SHAPE))}) uint8, got {mask.shape} {mask.dtype}")
+        if motion.shape != (steps, 3) + GRID_SHAPE or motion.dtype not in MOTION_DTYPES:
+            problems.append(f"motion must be (T, 3, {', '.join(map(str, GRID_SHAPE))}) float16/float32, "
+                            f"got {motion.shape} {motion.dtype}")
+        elif not np.all(np.isfinite(motion)):
+            problems.append("motion has NaN or inf")
+        if num_slots is None:
+            problems.append(f"num_slots is required with mask (the number of object slots, 1..{MAX_SLOTS})")
+        elif not 1 <= num_slots <= MAX_SLOTS:
+            problems.append(f"num_slots {num_slots} must be 1..{MAX_SLOTS}")
+        elif mask.size and int(mask.max()) > num_slots:
+            problems.append(f"mask has slot {int(mask.max())} > num_slots {num_slots}")
     if motion_2d is not None:
         motion_2d = np.asarray(motion_2d)
-        if motion_2d.shape != (mask.shape[0],) + IMAGE_SHAPE + (3,) or motion_2d.dtype not in MOTION_DTYPES:
-            problems.append(f"motion_2d must be (T, 240, 320, 3) float16/float32, got {motion_2d.shape} {motion_2d.dtype}")
+        expected = ((steps,) if steps is not None else motion_2d.shape[:1]) + IMAGE_SHAPE + (3,)
+        if motion_2d.ndim != 4 or motion_2d.shape != expected or motion_2d.dtype not in MOTION_DTYPES:
+            problems.append(f"motion_2d must be (T, {', '.join(map(str, IMAGE_SHAPE))}, 3) float16/float32"
+                            f"{' (T as in mask)' if steps is not None else ''}, got {motion_2d.shape} {motion_2d.dtype}")
+        elif not np.all(np.isfinite(motion_2d)):
+            problems.append("motion_2d has NaN or inf")
     if problems:
         raise UserError(f"refusing to write {path.name}: " + "; ".join(problems))
     path.parent.mkdir(parents=True, exist_ok=True)
     with atomic_path(path) as tmp, h5py.File(tmp, "w") as f:
         f.attrs["format"] = PREDICTION_FORMAT
-        f.attrs["num_slots"] = int(num_slots)
         opts = {"compression": "gzip", "compression_opts": 1}
-        f.create_dataset("mask", data=mask, chunks=(1,) + GRID_SHAPE, track_times=False, **opts)
-        f.create_dataset("motion", data=motion, chunks=(1, 3) + GRID_SHAPE, track_times=False, **opts)
+        if mask is not None:
+            f.attrs["num_slots"] = int(num_slots)
+            f.create_dataset("mask", data=mask, chunks=(1,) + GRID_SHAPE, track_times=False, **opts)
+            f.create_dataset("motion", data=motion, chunks=(1, 3) + GRID_SHAPE, track_times=False, **opts)
         if motion_2d is not None:
             f.create_dataset("motion_2d", data=motion_2d, chunks=(1,) + IMAGE_SHAPE + (3,), track_times=False, **opts)
     return path
+
+
+def is_2d_only(f: h5py.File) -> bool:
+    """Whether an open prediction file (its header checked) is a 2D-only prediction: motion_2d without mask and
+    motion. Reads no array data."""
+    return "mask" not in f and "motion" not in f and "motion_2d" in f
 
 
 def _kind(mode: int) -> str:
@@ -232,16 +264,21 @@ def check_prediction_header(f: h5py.File, num_steps: int) -> list[str]:
     """Structural problems of an open prediction file for a sequence of `num_steps` pushes: the
     root's members and links, num_slots, each dataset's shape, dtype, storage and filters. Reads no
     array data, so it is safe (and cheap) on any file."""
-    problems = check_num_slots(f.attrs)
     links, present, found = _root_problems(f)
+    has_3d = "mask" in present or "motion" in present
+    problems = check_num_slots(f.attrs) if has_3d or "num_slots" in f.attrs else []
     problems += links
+    if ("mask" in present) != ("motion" in present):
+        given, other = ("mask", "motion") if "mask" in present else ("motion", "mask")
+        problems.append(f"{given!r} without {other!r}: mask and motion come together (write both, or neither "
+                        "with motion_2d for a 2D-only prediction)")
+    elif not has_3d and "motion_2d" not in present:
+        problems.append("missing datasets: 'mask' and 'motion' (3D), or 'motion_2d' alone (2D-only)")
     specs = {"mask": ((num_steps,) + GRID_SHAPE, (np.dtype("uint8"),)),
              "motion": ((num_steps, 3) + GRID_SHAPE, MOTION_DTYPES),
              "motion_2d": ((num_steps,) + IMAGE_SHAPE + (3,), MOTION_DTYPES)}
     for name, (shape, dtypes) in specs.items():
-        if name not in found:
-            if name != "motion_2d" and name not in present:
-                problems.append(f"missing dataset {name!r}")
+        if name not in found:  # absent: reported above; present but not a plain dataset: by _root_problems
             continue
         dset = f[name]
         if dset.shape != shape:

@@ -15,6 +15,8 @@ predictions made at t), and `observation` (t on both). World frame: metres, z up
   world/pred/mask                predicted voxels, slots relabelled to their matched object's id
   world/pred/flow                predicted flow arrows
   world/pred/disagree            voxels where the matched prediction and the ground truth differ
+  world/pred/flow_2d             predicted front-camera flow (motion_2d) as arrows from the pixels' world
+                                 points (subsampled); a 2D-only prediction shows this alone
   policy/{object,direction}_probs  the policy's distributions (bar charts); policy/heightmap its input
   metrics/<name>                 per-step metrics of the predictions, as `dsr-bench evaluate` computes them
 """
@@ -92,6 +94,20 @@ def match_slots(pred_mask: np.ndarray, gt_mask: np.ndarray, num_slots: int, num_
     return lut
 
 
+def flow_2d_arrows(flow_2d: np.ndarray, points: np.ndarray, rng: np.random.Generator,
+                   max_arrows: int = MAX_ARROWS) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Arrows (origins world (x, y, z) m, vectors world (x, y, z) m; colours) at up to `max_arrows` random pixels
+    with a finite world point and a non-zero flow, from a front-camera flow (H, W, 3) in metres, (dy, dx, dz),
+    and the camera's world points (H, W, 3) in (x, y, z) metres (NaN: no return)."""
+    flow = np.asarray(flow_2d, dtype=np.float64)
+    idx = np.argwhere(np.all(np.isfinite(points), -1) & np.any(flow != 0, -1))
+    if len(idx) > max_arrows:
+        idx = idx[np.sort(rng.choice(len(idx), max_arrows, replace=False))]
+    vectors = flow[idx[:, 0], idx[:, 1]][:, [1, 0, 2]]
+    origins = np.asarray(points[idx[:, 0], idx[:, 1]], dtype=np.float64)
+    return origins, vectors, magnitude_colors(np.linalg.norm(vectors, axis=1))
+
+
 def check_sequence(seq: SequenceReader) -> None:
     """Raise UserError naming every structural problem (missing datasets, shapes, dtypes) of a sequence."""
     from dsr_bench.dataset.validate import schema_problems
@@ -103,7 +119,8 @@ def check_sequence(seq: SequenceReader) -> None:
 
 def load_predictions(pred_dir: Path, seq: SequenceReader) -> dict:
     """The predictions for `seq` in `pred_dir`, checked against the contract, and their per-step
-    metrics exactly as `dsr-bench evaluate` computes them: {mask, motion, num_slots, metrics}."""
+    metrics exactly as `dsr-bench evaluate` computes them: {mask, motion, num_slots, [motion_2d,] metrics};
+    a 2D-only prediction: {motion_2d, metrics}."""
     import h5py
 
     from dsr_bench.scoring.evaluate import score_sequence
@@ -119,7 +136,9 @@ def load_predictions(pred_dir: Path, seq: SequenceReader) -> dict:
         with h5py.File(path, "r") as f:
             problems = check_prediction_header(f, seq.num_steps)
             if not problems:
-                pred = {"mask": f["mask"][()], "motion": f["motion"][()], "num_slots": int(f.attrs["num_slots"])}
+                pred = {"motion_2d": f["motion_2d"][()]} if "motion_2d" in f else {}
+                if "mask" in f:  # else a 2D-only prediction
+                    pred.update(mask=f["mask"][()], motion=f["motion"][()], num_slots=int(f.attrs["num_slots"]))
     except _READ_ERRORS as exc:
         problems = [f"unreadable ({type(exc).__name__}: {exc})"]
     if not problems:
@@ -256,6 +275,10 @@ def log_sequence(rec, seq: SequenceReader, predictions: dict | None = None, seed
         origins, vectors, colors = flow_arrows(seq.read("scene_flow_3d", t), mask, rng)
         rec.log("world/gt/flow", rr.Arrows3D(origins=origins, vectors=vectors, colors=colors))
         if predictions is not None:
+            for key, values in predictions["metrics"].items():
+                if np.isfinite(values[t]):
+                    rec.log(f"metrics/{key}", rr.Scalars(float(values[t])))
+        if predictions is not None and "mask" in predictions:
             pm = predictions["mask"][t]
             matched = match_slots(pm, mask, predictions["num_slots"], seq.num_objects)[pm]
             _log_voxels(rec, rr, "world/pred/mask", matched)
@@ -264,9 +287,9 @@ def log_sequence(rec, seq: SequenceReader, predictions: dict | None = None, seed
             disagree = np.argwhere(matched != mask)
             rec.log("world/pred/disagree", rr.Points3D(voxel_to_world(disagree), colors=[DISAGREE_COLOR],
                                                        radii=VOXEL_SIZE * 0.6))
-            for key, values in predictions["metrics"].items():
-                if np.isfinite(values[t]):
-                    rec.log(f"metrics/{key}", rr.Scalars(float(values[t])))
+        if predictions is not None and "motion_2d" in predictions and "cameras/front/points" in seq:
+            o, v, c = flow_2d_arrows(predictions["motion_2d"][t], seq.read("cameras/front/points", t), rng)
+            rec.log("world/pred/flow_2d", rr.Arrows3D(origins=o, vectors=v, colors=c))
 
 
 def _log_or_fail(rec, seq, pred, path: Path) -> None:
