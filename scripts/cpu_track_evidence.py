@@ -44,10 +44,9 @@ def run(*args: str) -> None:
 
 def paired(a: dict, b: dict, metric: str) -> dict:
     """Mean of a - b over the sequences both scored, its standard error and n."""
-    names = sorted(set(a) & set(b))
-    d = np.array([a[n][metric] - b[n][metric] for n in names], dtype=np.float64)
-    d = d[np.isfinite(d)]
-    return {"mean": float(d.mean()), "se": float(d.std(ddof=1) / np.sqrt(len(d))), "n": int(len(d))}
+    from dsr_bench.scoring.compare import paired_difference
+
+    return paired_difference(a, b, metric)
 
 
 def torch_config(path: Path) -> dict:

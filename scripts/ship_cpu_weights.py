@@ -1,9 +1,11 @@
 """Copy the CPU track's trained weights into the package (what `dsr-bench predict --model M` uses by default).
 
-    python scripts/ship_cpu_weights.py RUNS_DIR [--data DATA/cpu-train] [--models dsr single nowarp gtwarp 3dflow]
+    python scripts/ship_cpu_weights.py RUNS_DIR [--data DATA/cpu-train] [--models dsr single nowarp gtwarp 3dflow
+        2dflow se3net se3posenet]
 
 RUNS_DIR/<model>.pt are `dsr-bench train --track cpu` files. Each is checked (it loads with
-weights_only=True, it is a CPU-track model of that name, its weights are fp16), its provenance is kept
+weights_only=True, it is a CPU-track model of that name (for the 2D track's 2dflow, se3net, se3posenet: one
+on 120 x 160 images), its weights are fp16), its provenance is kept
 (recipe, stage losses, git hash, the data it saw by directory name and split checksum, never a local
 path; --data fills in the training split's checksum where a file lacks it) and it is written to dsr_bench/models/weights/cpu-track/<model>.pt; the stage-1 files stay out.
 Prints each file's size and SHA-256 for docs/models.md.
@@ -22,6 +24,8 @@ def main() -> None:
     from dsr_bench.atomic import atomic_path
     from dsr_bench.dataset.manifest import file_sha256
     from dsr_bench.models.config import ModelConfig
+    from dsr_bench.models.image_config import IMAGE_MODEL_NAMES, ImageModelConfig
+    from dsr_bench.models.training.image_track import IMAGE_CHECKPOINT_FORMAT
     from dsr_bench.models.predictors import SHIPPED_WEIGHTS
     from dsr_bench.models.training.cpu_track import CPU_CHECKPOINT_FORMAT
 
@@ -35,8 +39,13 @@ def main() -> None:
     SHIPPED_WEIGHTS.mkdir(parents=True, exist_ok=True)
     for model in args.models:
         payload = torch.load(args.runs / f"{model}.pt", map_location="cpu", weights_only=True)
-        config = ModelConfig.from_dict(payload["model_config"])
-        if payload.get("format") != CPU_CHECKPOINT_FORMAT or config.name != model or config.voxel_factor == 1:
+        if model in IMAGE_MODEL_NAMES:
+            config = ImageModelConfig.from_dict(payload["model_config"])
+            cpu_sized = payload.get("format") == IMAGE_CHECKPOINT_FORMAT and config.image_factor == 2
+        else:
+            config = ModelConfig.from_dict(payload["model_config"])
+            cpu_sized = payload.get("format") == CPU_CHECKPOINT_FORMAT and config.voxel_factor != 1
+        if not cpu_sized or config.name != model:
             raise SystemExit(f"{args.runs / f'{model}.pt'}: not the CPU-track weights of {model}")
         if any(v.is_floating_point() and v.dtype != torch.float16 for v in payload["model"].values()):
             raise SystemExit(f"{model}: weights are not fp16")

@@ -148,3 +148,13 @@ def test_ordered_official_iou_uses_one_matching():
     assert np.allclose(scores["iou_unordered_official"], 1.0)
     assert np.allclose(scores["iou_ordered_official"], [1.0, 0.5]) or np.allclose(scores["iou_ordered_official"], [0.5, 1.0])
     assert np.allclose(scores["iou_ordered"], scores["iou_ordered_official"])
+
+
+def test_paired_difference_uses_the_sequences_both_scored():
+    from dsr_bench.scoring.compare import paired_difference
+
+    a = {"s0": {"m": 3.0}, "s1": {"m": 5.0}, "s2": {"m": 4.0}, "only_a": {"m": 100.0}}
+    b = {"s0": {"m": 1.0}, "s1": {"m": 2.0}, "s2": {"m": float("nan")}, "only_b": {"m": -100.0}}
+    out = paired_difference(a, b, "m")
+    assert out["n"] == 2 and out["mean"] == 2.5  # differences 2 and 3; s2 is not finite, the rest unpaired
+    assert out["se"] == pytest.approx(np.std([2.0, 3.0], ddof=1) / np.sqrt(2))

@@ -10,7 +10,8 @@ import typer
 
 
 def train(
-    model: str = typer.Option("dsr", "--model", help="dsr | single | nowarp | gtwarp | 3dflow"),
+    model: str = typer.Option("dsr", "--model", help="dsr | single | nowarp | gtwarp | 3dflow (the 3D track) or "
+                              "2dflow | se3net | se3posenet (the 2D track: front-camera images)"),
     stage: Optional[str] = typer.Option(None, "--stage", help="cube-single | cube-multi | shapenet-multi (any data "
                                         "set); not with --track cpu, whose recipe has its own two stages"),
     data: Path = typer.Option(..., "--data", help="Dataset directory (e.g. generated with --split cube-train)."),
@@ -45,7 +46,8 @@ def train(
     bn_recalibration: int = typer.Option(16, "--bn-recalibration", help="At the stage's end, re-estimate BatchNorm's "
                                          "running statistics on N batches of whole sequences, the state carried "
                                          "(0: keep the moving averages; docs/models.md, BatchNorm)."),
-    single_batches: int = typer.Option(3000, "--single-batches", help="--track cpu: stage 1 single-step batches."),
+    single_batches: Optional[int] = typer.Option(None, "--single-batches", help="--track cpu: stage 1 single-step "
+                                                 "batches (default 3000; the 2D track: all its batches, default 2000)."),
     multi_batches: int = typer.Option(300, "--multi-batches", help="--track cpu: stage 2 batches of --window "
                                       "steps (models without history: x window single-step batches)."),
     same_windows: bool = typer.Option(False, "--same-windows", help="--track cpu, single and 3dflow: stage 2 on the "
@@ -55,16 +57,25 @@ def train(
     """Train a reference model for one stage of the paper's curriculum (torchrun for multi-GPU)."""
     from dsr_bench.errors import UserError
     from dsr_bench.models.config import MODEL_NAMES
+    from dsr_bench.models.image_config import IMAGE_MODEL_NAMES
+
+    if model in IMAGE_MODEL_NAMES:
+        given = [flag for flag, value in (("--stage", stage), ("--init", init), ("--resume", resume), ("--window", window),
+                                          ("--val-split", val_split), ("--epochs", epochs)) if value is not None]
+        if given:
+            raise UserError(f"{given[0]} is not an option of the 2D track's models (single-step, one stage); drop it")
+        _train_image(model, data, out, track, split, batch_size, lr, seed, device, workers, single_batches, quiet)
+        return
+    if model not in MODEL_NAMES:
+        raise UserError(f"--model {model!r}: choose one of {', '.join(MODEL_NAMES + IMAGE_MODEL_NAMES)}")
     from dsr_bench.models.training.config import TrainConfig
     from dsr_bench.models.training.trainer import train as run
 
-    if model not in MODEL_NAMES:
-        raise UserError(f"--model {model!r}: choose one of {', '.join(MODEL_NAMES)}")
     if bn_recalibration < 0:
         raise UserError(f"--bn-recalibration {bn_recalibration}: must be >= 0")
     if track == "cpu":
         _train_cpu(model, stage, data, out, split, batch_size, lr, window, seed, workers, bn_recalibration,
-                   single_batches, multi_batches, init, same_windows, quiet)
+                   3000 if single_batches is None else single_batches, multi_batches, init, same_windows, quiet)
         return
     if track != "full":
         raise UserError(f"--track {track!r}: choose full or cpu")
@@ -108,6 +119,24 @@ def _train_cpu(model: str, stage: str | None, data: Path, out: Path, split: str 
                        same_windows=same_windows, **overrides)
     path = train_cpu(recipe, data, split, out, workers=max(1, workers),
                      report=(lambda line: None) if quiet else (lambda line: typer.echo(line, err=True)))
+    typer.echo(f"weights: {path}")
+
+
+def _train_image(model: str, data: Path, out: Path, track: str, split: str | None, batch_size: int | None,
+                 lr: float | None, seed: int, device: str, workers: int, batches: int | None, quiet: bool) -> None:
+    """The 2D track (`models.training.image_track`): one weights file; --track cpu: 120 x 160 input images,
+    full: 240 x 320."""
+    from dsr_bench.errors import UserError
+    from dsr_bench.models.training.image_track import ImageRecipe, train_image_model
+
+    if track not in ("cpu", "full"):
+        raise UserError(f"--track {track!r}: choose full or cpu")
+    if out.is_dir():
+        raise UserError(f"--out {out} is a directory; the 2D track writes one weights file (e.g. {out / (model + '.pt')})")
+    overrides = {k: v for k, v in {"batch_size": batch_size, "lr": lr, "batches": batches}.items() if v is not None}
+    recipe = ImageRecipe(model, seed=seed, image_factor=2 if track == "cpu" else 1, **overrides)
+    path = train_image_model(recipe, data, split, out, device, workers=max(1, workers),
+                             report=(lambda line: None) if quiet else (lambda line: typer.echo(line, err=True)))
     typer.echo(f"weights: {path}")
 
 

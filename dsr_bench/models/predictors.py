@@ -21,16 +21,18 @@ from dsr_bench.errors import UserError
 from dsr_bench.dataset.sequence import SequenceReader
 
 LEARNED_MODELS = ("dsr", "single", "nowarp", "gtwarp", "3dflow")
+#: The 2D track's learned models (`models.image_nets`): their predictions hold motion_2d only.
+IMAGE_MODELS = ("2dflow", "se3net", "se3posenet")
 REFERENCE_MODELS = ("oracle", "static", "push")
 #: How far the `push` yardstick moves every object voxel along the push (m): about how far the pushed
 #: object moves (10.2-10.7 cm in the authors' and our cube scenes, bench/bench_fidelity.py).
 PUSH_YARDSTICK_DISTANCE = 0.10
-MODEL_NAMES = REFERENCE_MODELS + LEARNED_MODELS
+MODEL_NAMES = REFERENCE_MODELS + LEARNED_MODELS + IMAGE_MODELS
 
 
 class Predictor(Protocol):
     name: str
-    num_slots: int
+    num_slots: int | None  # None: a model without masks (2DFlow)
 
     def predict_sequence(self, seq: SequenceReader) -> dict[str, np.ndarray]:
         """{"mask": (T, Y, X, Z) uint8, "motion": (T, 3, Y, X, Z) float16/32[, "motion_2d"]}."""
@@ -121,14 +123,16 @@ def load_predictor(model: str, checkpoint: Path | None = None, device: str = "cp
     `weights` (dsr.pth ... 3dflow.pth). official_bn: BatchNorm with batch statistics (the official
     code's way) or running statistics (eval); None: batch statistics for the authors' weights, eval
     mode for a dsr-bench checkpoint."""
-    if model in REFERENCE_MODELS and weights is not None:
-        raise UserError(f"--weights is for the learned models ({', '.join(LEARNED_MODELS)}), not --model {model}")
+    if model in REFERENCE_MODELS + IMAGE_MODELS and weights is not None:
+        raise UserError(f"--weights is for the authors' released models ({', '.join(LEARNED_MODELS)}), not --model {model}")
     if model == "oracle":
         return OraclePredictor()
     if model == "static":
         return StaticPredictor()
     if model == "push":
         return PushPredictor()
+    if model in IMAGE_MODELS:
+        return _load_image_predictor(model, checkpoint, device)
     if model in LEARNED_MODELS:
         if checkpoint is not None and weights is not None:
             raise UserError("pass either --checkpoint (a dsr-bench checkpoint) or --weights (the authors' file), not both")
@@ -157,6 +161,23 @@ def load_predictor(model: str, checkpoint: Path | None = None, device: str = "cp
     raise UserError(f"--model {model!r}: choose one of {', '.join(MODEL_NAMES)}")
 
 
+def _load_image_predictor(model: str, checkpoint: Path | None, device: str) -> Predictor:
+    """A 2D-track predictor from `checkpoint`, or from the shipped CPU-track weights."""
+    from dsr_bench.dataset.manifest import file_sha256
+    from dsr_bench.models.image_inference import load_image_predictor
+
+    shipped = checkpoint is None
+    checkpoint = shipped_weights(model) if shipped else Path(checkpoint)
+    if checkpoint is None:
+        raise UserError(f"--model {model} needs --checkpoint CKPT (train one with `dsr-bench train --model {model}`)")
+    if not checkpoint.is_file():
+        raise UserError(f"checkpoint not found: {checkpoint}")
+    predictor = load_image_predictor(model, checkpoint, device)
+    predictor.weights = {"source": "dsr-bench, shipped CPU-track weights" if shipped else "dsr-bench",
+                         "file": checkpoint.name, "sha256": file_sha256(checkpoint)}
+    return predictor
+
+
 def predict_split(predictor: Predictor, data_dir: str | Path, names: list[str], out: str | Path,
                   progress=None) -> list[Path]:
     """Run a predictor over sequences and write one predictions file each, plus meta.json."""
@@ -175,13 +196,16 @@ def predict_split(predictor: Predictor, data_dir: str | Path, names: list[str], 
             pred = predictor.predict_sequence(seq)
             seconds += time.perf_counter() - start
             steps += seq.num_steps
-        written.append(write_predictions(out / f"{name}.h5", pred["mask"], pred["motion"], predictor.num_slots,
-                                         pred.get("motion_2d")))
+        three_d = "mask" in pred  # a 2D-track model's predictions hold motion_2d only
+        written.append(write_predictions(out / f"{name}.h5", pred.get("mask"), pred.get("motion"),
+                                         predictor.num_slots if three_d else None, pred.get("motion_2d")))
         if progress:
             progress()
     meta = {"name": predictor.name,
             "description": getattr(predictor, "description", None) or (type(predictor).__doc__ or "").strip().splitlines()[0],
-            "parameters": {"num_slots": predictor.num_slots, "grid": list(getattr(predictor, "grid", GRID_SHAPE))},
+            "parameters": {**({} if predictor.num_slots is None else {"num_slots": predictor.num_slots}),
+                           **({"image": list(predictor.image)} if hasattr(predictor, "image")
+                              else {"grid": list(getattr(predictor, "grid", GRID_SHAPE))})},
             "seconds_per_step": seconds / max(steps, 1),
             "hardware": f"{os.cpu_count()} CPU cores"}
     weights = getattr(predictor, "weights", None)

@@ -25,9 +25,6 @@ mode does not diverge along a sequence (docs/models.md, BatchNorm). The result i
 from __future__ import annotations
 
 import dataclasses
-import hashlib
-import json
-import os
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
@@ -42,7 +39,7 @@ from dsr_bench.errors import UserError
 from dsr_bench.models import coarse
 from dsr_bench.models.config import ModelConfig
 from dsr_bench.models.training.checkpoints import git_hash
-from dsr_bench.parallel import run_in_order
+from dsr_bench.models.training.split_cache import cached_split
 
 CPU_CHECKPOINT_FORMAT = "dsr-bench-cpu-weights"
 
@@ -97,42 +94,13 @@ def _pool_sequence(path: Path, factor: int) -> dict[str, np.ndarray]:
             "action": coarse.coarse_action(action, factor).astype(np.int16)}
 
 
-def cache_dir() -> Path:
-    """Where pooled splits are cached: $DSR_BENCH_CACHE, else ~/.cache/dsr-bench."""
-    return Path(os.environ.get("DSR_BENCH_CACHE") or Path.home() / ".cache" / "dsr-bench")
-
-
 def pooled_split(data_dir: Path, split: str | None, factor: int = coarse.CPU_TRACK_FACTOR, workers: int = 1,
                  progress: Callable[[int, int], None] | None = None) -> dict[str, np.ndarray]:
     """A split's sequences pooled to the CPU track's grid, stacked: tsdf (N, T, y, x, z) float16, mask
     (N, T, ...) uint8, flow (N, T, 3, ...) float16 in model voxels, action (N, T, 3) int16, names (N,).
-    Cached in `cache_dir()` under a key of the files' paths, sizes and modification times (a changed or
-    regenerated file is pooled again)."""
-    from dsr_bench.dataset.manifest import read_split
-
-    data_dir = Path(data_dir).resolve()
-    _, names = read_split(data_dir, split)
-    paths = [data_dir / f"{name}.h5" for name in names]
-    missing = [p.name for p in paths if not p.is_file()]
-    if missing:
-        raise UserError(f"{data_dir}: {len(missing)} sequences of the split are missing ({missing[0]}, ...); "
-                        "generate them again")
-    stamp = [(str(p), p.stat().st_size, p.stat().st_mtime_ns) for p in paths]
-    key = hashlib.sha256(json.dumps([factor, coarse.MIN_BLOCK_FRACTION, stamp]).encode()).hexdigest()[:20]
-    cached = cache_dir() / f"pooled-f{factor}-{key}.npz"
-    if cached.is_file():
-        with np.load(cached) as arrays:
-            return {k: arrays[k] for k in arrays.files}
-    pooled = run_in_order(partial(_pool_sequence, factor=factor), paths, workers, progress)
-    lengths = {len(p["action"]) for p in pooled}
-    if len(lengths) != 1:
-        raise UserError(f"{data_dir}: sequences of {sorted(lengths)} pushes; the CPU track needs one length")
-    out = {k: np.stack([p[k] for p in pooled]) for k in pooled[0]}
-    out["names"] = np.array(names)
-    cached.parent.mkdir(parents=True, exist_ok=True)
-    with atomic_path(cached) as tmp, open(tmp, "wb") as fh:
-        np.savez(fh, **out)
-    return out
+    Cached (`split_cache.cached_split`): a changed or regenerated file is pooled again."""
+    return cached_split(data_dir, split, f"pooled-f{factor}", [factor, coarse.MIN_BLOCK_FRACTION],
+                        partial(_pool_sequence, factor=factor), workers, progress)
 
 
 def draw_windows(data: dict[str, np.ndarray], batches: int, window: int, batch_size: int, seed: int,

@@ -1,0 +1,66 @@
+"""Configuration of the 2D track's models: 2DFlow, SE3-Net and SE3Pose-Net (`models.image_nets`).
+
+They see the front camera's point-cloud image (world points, metres) and the push, mapped to the
+image plane (`models.image_data.action_pixels`), and predict the 3D displacement of the surface
+point seen at every pixel: the `motion_2d` of the predictions contract, in metres (dy, dx, dz).
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, fields
+
+from dsr_bench.constants import IMAGE_SHAPE, NUM_MASK_SLOTS
+
+IMAGE_MODEL_NAMES = ("2dflow", "se3net", "se3posenet")
+#: What each model is, in one line (predictions' meta.json, the leaderboard).
+IMAGE_MODEL_DESCRIPTIONS = {
+    "2dflow": "2DFlow: per-pixel 3D flow from a 2D encoder-decoder (Byravan and Fox 2017's flow baseline)",
+    "se3net": "SE3-Net: K masks and K rigid motions from image and action, flow blended (Byravan and Fox 2017)",
+    "se3posenet": "SE3Pose-Net: masks and poses from the image, a pose-space transition under the action, "
+                  "flow from the poses (Byravan et al. 2018)",
+}
+
+
+@dataclass(frozen=True)
+class ImageModelConfig:
+    """Everything that defines a 2D-track model; saved in its weights file.
+
+    name: 2dflow | se3net | se3posenet. image_factor: the network sees every `image_factor`-th pixel
+    of the 240 x 320 images along each axis (1: the whole image; the CPU track's 2: 120 x 160); its
+    flow (2dflow) or masks (SE3 models) are brought back to 240 x 320 bilinearly, and the SE3 models'
+    rigid motions are applied to the full-resolution points. num_slots: K masks, background last (does
+    not move). width: channels of the first level (each of the 3 downsamplings doubles them).
+    pose_consistency: SE3Pose-Net's weight of the pose-consistency loss (the encoder's poses of the next
+    image against the transition's predicted poses)."""
+
+    name: str = "se3net"
+    image_factor: int = 2
+    num_slots: int = NUM_MASK_SLOTS
+    width: int = 16
+    hidden: int = 256
+    pose_consistency: float = 0.1
+
+    def __post_init__(self):
+        if self.name not in IMAGE_MODEL_NAMES:
+            raise ValueError(f"image model {self.name!r}: choose one of {', '.join(IMAGE_MODEL_NAMES)}")
+        if self.image_factor not in (1, 2):
+            raise ValueError(f"image_factor {self.image_factor}: 1 (240 x 320) or 2 (120 x 160)")
+        if self.num_slots < 2 or self.width < 2 or self.hidden < 8 or self.pose_consistency < 0:
+            raise ValueError("num_slots must be >= 2, width >= 2, hidden >= 8, pose_consistency >= 0")
+
+    @property
+    def image_shape(self) -> tuple[int, int]:
+        """(height, width) of the network's input."""
+        return IMAGE_SHAPE[0] // self.image_factor, IMAGE_SHAPE[1] // self.image_factor
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, data: dict) -> ImageModelConfig:
+        """Inverse of as_dict; unknown keys are an error."""
+        known = {f.name for f in fields(cls)}
+        unknown = sorted(set(data) - known)
+        if unknown:
+            raise ValueError(f"unknown image model config keys {unknown}")
+        return cls(**data)

@@ -1,0 +1,209 @@
+"""Training the 2D track's models (2DFlow, SE3-Net, SE3Pose-Net) on the front camera's images.
+
+The split's sequences are reduced once to the network's resolution (`image_split`, cached like the CPU
+track's pooled volumes) and single steps are drawn at random (any sequence, any push, with replacement,
+from the recipe's seed): `batches` batches of `batch_size`, Adam (betas 0.9, 0.95) at `lr`, halved at 50%
+and again at 75% of the batches (the CPU track's step decay). The models are single-step, as in their papers.
+
+The loss (`flow_loss`, cm^2): the squared error of the predicted flow summed over its components,
+averaged over the pixels that see an object (what the benchmark scores), plus the same average over
+the pixels that see the table (whose flow is 0), so that the background stays still; no mask
+supervision (the SE3 models learn their masks from the flow alone, as in Byravan and Fox 2017).
+SE3Pose-Net adds its pose-consistency term (Byravan et al. 2018): the poses its encoder finds in the next
+image against the poses its transition predicted (translations in cm^2, rotations as the squared
+Frobenius norm of their difference), weighted by `ImageModelConfig.pose_consistency`.
+
+The result is a weights-only file (fp16 weights, `model_config`, the recipe, the first and last tenth's
+losses and the data it saw), loaded with `weights_only=True` by `dsr-bench predict --checkpoint`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from functools import partial
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from dsr_bench.atomic import atomic_path
+from dsr_bench.errors import UserError
+from dsr_bench.models.image_config import IMAGE_MODEL_NAMES, ImageModelConfig
+from dsr_bench.models.training.checkpoints import git_hash, torch_device
+from dsr_bench.models.training.split_cache import cached_split
+
+IMAGE_CHECKPOINT_FORMAT = "dsr-bench-image-weights"
+M2_TO_CM2 = 1e4
+
+
+@dataclass(frozen=True)
+class ImageRecipe:
+    """Everything that defines a 2D-track training run (saved in its weights file)."""
+
+    model_name: str
+    batches: int = 2000
+    batch_size: int = 8
+    lr: float = 1e-3
+    image_factor: int = 2
+    width: int = 16
+    seed: int = 0
+
+    def __post_init__(self):
+        if self.model_name not in IMAGE_MODEL_NAMES:
+            raise UserError(f"--model {self.model_name!r}: the 2D track's models are {', '.join(IMAGE_MODEL_NAMES)}")
+        if self.batches < 1 or self.batch_size < 2:
+            raise UserError(f"--single-batches {self.batches} must be >= 1 and --batch-size {self.batch_size} >= 2 "
+                            "(BatchNorm needs two samples)")
+        if self.lr <= 0:
+            raise UserError(f"--lr {self.lr}: must be positive")
+
+    def model_config(self) -> ImageModelConfig:
+        return ImageModelConfig(name=self.model_name, image_factor=self.image_factor, width=self.width)
+
+
+def image_split(data_dir: Path, split: str | None, factor: int, workers: int = 1,
+                progress: Callable[[int, int], None] | None = None) -> dict[str, np.ndarray]:
+    """A split's sequences at the network's resolution, stacked (`image_data.reduce_sequence`): points
+    (N, T+1, h, w, 3), flow (N, T, h, w, 3), mask (N, T, h, w), action (N, T, 3), names (N,)."""
+    from dsr_bench.models.image_data import reduce_sequence
+
+    return cached_split(data_dir, split, f"image-f{factor}", [factor, "points-flow-mask-action"],
+                        partial(reduce_sequence, factor=factor), workers, progress)
+
+
+def draw_steps(data: dict[str, np.ndarray], batches: int, batch_size: int, seed: int) -> Iterator[dict]:
+    """`batches` batches of single steps, each a random sequence and push: points, valid, next_points,
+    next_valid (B, 3|1, h, w), flow (B, 3, h, w) metres (x, y, z), mask (B, h, w) int64, action (B, 3) int64."""
+    from dsr_bench.models.image_data import point_tensors
+
+    rng = np.random.default_rng(seed)
+    count, steps = data["action"].shape[:2]
+    for _ in range(batches):
+        seqs, ts = rng.integers(count, size=batch_size), rng.integers(steps, size=batch_size)
+        points, valid = point_tensors(data["points"][seqs, ts])
+        next_points, next_valid = point_tensors(data["points"][seqs, ts + 1])
+        yield {"points": points, "valid": valid, "next_points": next_points, "next_valid": next_valid,
+               "flow": torch.from_numpy(data["flow"][seqs, ts].astype(np.float32)).movedim(-1, 1),
+               "mask": torch.from_numpy(data["mask"][seqs, ts].astype(np.int64)),
+               "action": torch.from_numpy(data["action"][seqs, ts].astype(np.int64))}
+
+
+def flow_loss(flow: torch.Tensor, target: torch.Tensor, mask: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
+    """cm^2: the mean over object pixels (mask > 0) of the squared error summed over components, plus the
+    mean over the other pixels with a point. flow, target (B, 3, h, w) metres; mask (B, h, w); valid (B, 1, h, w)."""
+    error = ((flow - target) ** 2).sum(1) * M2_TO_CM2
+    objects = (mask > 0).float()
+    table = valid[:, 0] * (1 - objects)
+    return (error * objects).sum() / objects.sum().clamp(min=1) + (error * table).sum() / table.sum().clamp(min=1)
+
+
+def pose_consistency(net, batch: dict, out: dict) -> torch.Tensor:
+    """SE3Pose-Net: the encoder's poses of the next image against the transition's predicted poses (cm^2 of
+    translation + squared Frobenius norm of the rotations' difference), averaged over objects."""
+    _, _, found = net.poses(batch["next_points"], batch["next_valid"])
+    predicted = out["next_poses"]
+    translation = ((found[..., :3, 3] - predicted[..., :3, 3]) ** 2).sum(-1) * M2_TO_CM2
+    rotation = ((found[..., :3, :3] - predicted[..., :3, :3]) ** 2).sum((-1, -2))
+    return (translation + rotation).mean()
+
+
+def training_loss(net, batch: dict) -> tuple[torch.Tensor, dict[str, float]]:
+    """The loss of one batch and its terms (floats)."""
+    from dsr_bench.models.image_nets import flow_at
+
+    out = net(batch["points"], batch["valid"], batch["action"])
+    flow = flow_at(out, batch["points"], batch["valid"])
+    loss = flow_loss(flow, batch["flow"], batch["mask"], batch["valid"])
+    terms = {"flow": float(loss.detach())}
+    if "next_poses" in out and net.config.pose_consistency:
+        consistency = pose_consistency(net, batch, out)
+        terms["consistency"] = float(consistency.detach())
+        loss = loss + net.config.pose_consistency * consistency
+    terms["total"] = float(loss.detach())
+    return loss, terms
+
+
+def _to(batch: dict, device: torch.device) -> dict:
+    return {k: v.to(device, non_blocking=True) for k, v in batch.items()}
+
+
+def train_image_model(recipe: ImageRecipe, data_dir: Path, split: str | None, out: Path, device: str = "cpu",
+                      workers: int = 1, report: Callable[[str], None] = print) -> Path:
+    """Train one 2D-track model by `recipe` on DATA_DIR's split and write its weights file to `out`."""
+    from dsr_bench.models.image_nets import ImageNet
+    from dsr_bench.models.training.cpu_track import trained_split_checksum
+
+    dev = torch_device(device)
+    config = recipe.model_config()
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    data = image_split(data_dir, split, recipe.image_factor, workers,
+                       lambda i, n: report(f"reducing {i}/{n}") if i % 50 == 0 or i == n else None)
+    count = data["action"].shape[0]
+    torch.manual_seed(recipe.seed)
+    net = ImageNet(config).to(dev)
+    optimizer = torch.optim.Adam(net.parameters(), lr=recipe.lr, betas=(0.9, 0.95))
+    halve = {int(recipe.batches * 0.5), int(recipe.batches * 0.75)}
+    net.train()
+    start, records = time.perf_counter(), []
+    for b, batch in enumerate(draw_steps(data, recipe.batches, recipe.batch_size, recipe.seed)):
+        loss, terms = training_loss(net, _to(batch, dev))
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        optimizer.step()
+        records.append(terms)
+        if b + 1 in halve:
+            for group in optimizer.param_groups:
+                group["lr"] /= 2
+        if (b + 1) % 100 == 0 or b + 1 == recipe.batches:
+            recent = {k: np.mean([r[k] for r in records[-100:]]) for k in terms}
+            shown = ", ".join(f"{k} {v:.3f}" for k, v in recent.items() if k != "total")
+            report(f"{config.name}: batch {b + 1}/{recipe.batches}, loss {recent['total']:.3f} ({shown}), "
+                   f"{time.perf_counter() - start:.0f} s")
+    tenth = max(1, recipe.batches // 10)
+    summary = {"seconds": round(time.perf_counter() - start, 1),
+               "loss_first_tenth": {k: round(float(np.mean([r[k] for r in records[:tenth]])), 4) for k in records[0]},
+               "loss_last_tenth": {k: round(float(np.mean([r[k] for r in records[-tenth:]])), 4) for k in records[0]}}
+    net.eval()
+    payload = {"format": IMAGE_CHECKPOINT_FORMAT, "model_config": config.as_dict(),
+               "model": {k: (v.half() if v.is_floating_point() else v) for k, v in net.cpu().state_dict().items()},
+               "recipe": dataclasses.asdict(recipe), "training": summary,
+               "data": {"dir": Path(data_dir).resolve().name, "split": split, "sequences": int(count),
+                        "split_checksum": trained_split_checksum(Path(data_dir), split)},
+               "git": git_hash(), "torch_version": str(torch.__version__)}
+    with atomic_path(out) as tmp:
+        torch.save(payload, tmp)
+    return out
+
+
+def load_image_weights(path: Path, model: str | None = None, map_location="cpu"):
+    """An `ImageNet` (eval mode, fp32) from a weights file of `train_image_model`; UserError if the file is not
+    one, or holds another model than `model`."""
+    from dsr_bench.models.image_nets import ImageNet
+
+    path = Path(path)
+    if not path.is_file():
+        raise UserError(f"checkpoint not found: {path}")
+    try:
+        state = torch.load(path, map_location=map_location, weights_only=True)
+    except Exception as exc:
+        raise UserError(f"{path}: not a loadable weights file ({type(exc).__name__}); train one with "
+                        "`dsr-bench train --model 2dflow|se3net|se3posenet`") from None
+    if not isinstance(state, dict) or state.get("format") != IMAGE_CHECKPOINT_FORMAT:
+        raise UserError(f"{path}: not a 2D-track weights file; train one with "
+                        "`dsr-bench train --model 2dflow|se3net|se3posenet`")
+    try:
+        config = ImageModelConfig.from_dict(state["model_config"])
+    except (TypeError, ValueError, KeyError) as exc:
+        raise UserError(f"{path}: unusable model_config ({exc})") from None
+    if model is not None and config.name != model:
+        raise UserError(f"{path} holds a {config.name!r} model, not {model!r}; pass --model {config.name}")
+    net = ImageNet(config)
+    try:
+        net.load_state_dict({k: v.float() if v.is_floating_point() else v for k, v in state["model"].items()})
+    except RuntimeError as exc:
+        raise UserError(f"{path}: weights do not fit the {config.name!r} model ({str(exc).splitlines()[0][:160]})") from None
+    return net.eval(), state
