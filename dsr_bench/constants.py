@@ -92,6 +92,28 @@ POLICY_NEAR_START_DISTANCE: float = 0.25
 POLICY_OUTWARD_PENALTY: float = 10.0
 POLICY_MAX_SAMPLES: int = 64
 
+# --- Planning track (docs/planning.md) ---------------------------------------------------------
+#: Pushes per plan (the paper: "action sequences with a length of 3"), and per task's target.
+PLAN_STEPS: int = 3
+#: Candidate actions per step (appendix: 100 for DSR-Net and SE3Pose-Net, 200 for SE3-Net).
+DEFAULT_CANDIDATES: int = 100
+#: Candidates scored per model call (memory: one uint8 volume of 786 kB per candidate in flight).
+DEFAULT_BATCH: int = 25
+#: lambda of the cost (per cm^2): the weight of an object's position MSE (cm^2, the mean over x, y, z of
+#: the squared centroid difference) against its IoU; 0.1 makes a 3.2 cm error along every axis (5.5 cm
+#: in 3D) cost as much as an IoU of 1. The paper gives no value ("a weighting factor for each channel").
+COST_LAMBDA: float = 0.1
+#: The position MSE (cm^2) charged for a target object that no non-empty predicted slot is matched to:
+#: that of a 10 cm error along every axis.
+UNMATCHED_POSITION_MSE: float = 100.0
+#: Tie-break of the matching: slot-object scores are IoU + MATCH_TIE_BREAK / (1 + centroid distance in cm),
+#: so that pairs of equal IoU (in practice: no overlap at all) match by proximity. Never outweighs IoU.
+MATCH_TIE_BREAK: float = 1e-3
+#: The furthest a start point is backed off from the chosen cell of an object, in cells (10 cm).
+MAX_BACKOFF_CELLS: int = 25
+#: Voxels at or above this z index count as above the table for footprints (8 mm > FREE_HEIGHT).
+FOOTPRINT_MIN_Z: int = 2
+
 # --- File format -----------------------------------------------------------------------------
 #: 2 (dsr-bench 0.2): digests by group (`dsr_bench.dataset.digests`), the exact renderer, the authors' policy
 #: and dynamics; files of schema 1 hold the data of an earlier benchmark version and are regenerated.

@@ -393,3 +393,29 @@ def test_a_2d_only_entry_joins_the_2d_track_only(board, tmp_path):
     assert [row[0] for row in three_d[1:]] == ["static"]  # the 2D-only rows are not in it, not even empty
     two_d = tables["procedural-novel-mini: 2D track (reproduced)"]
     assert [(row[0], row[2]) for row in two_d[1:]] == [("Flow2D", "**3**"), ("SE3Net", "5 \u25bc"), ("static", "4")]
+
+
+def _plan_results(tmp_path, method, iou, pinned=True, partial=False):
+    path = tmp_path / f"plan-{method}.json"
+    path.write_text(json.dumps({"format": "dsr-bench-plan-results", "method": method, "task_set": "plan-novel-test",
+                                "pinned": pinned, "task_checksum": "0c14420b746c" + "0" * 52, "date": "2026-11-25T00:00:00Z",
+                                "coverage": {"expected": 100, "scored": 60 if partial else 100, "partial": partial},
+                                "metrics": {"iou": iou}}))
+    return path
+
+
+def test_planning_results_fill_the_planning_column_beside_the_papers(board, tmp_path):
+    assert main(["leaderboard", "add", str(_plan_results(tmp_path, "oracle", 0.61)), "--root", str(board)]) == 0
+    assert main(["leaderboard", "add", str(_plan_results(tmp_path, "dsr-cpu", 0.29)), "--root", str(board)]) == 0
+    assert sorted(p.name for p in (board / "planning").iterdir()) == ["dsr-cpu-plan-novel-test.json",
+                                                                       "oracle-plan-novel-test.json"]
+    md = (board / "README.md").read_text()
+    section = md[md.index("## plan-novel-test"):]
+    assert "| dsr-cpu (planning) |" in section and "0.290" in section and "100/100 tasks" in section
+    assert "| DSR-Net | " in md and "0.720" in md  # the paper's planning IoU stays in its own table
+    for bad, why in ((_plan_results(tmp_path, "x", 0.5, pinned=False), "not this toolkit's pinned one"),
+                     (_plan_results(tmp_path, "y", 0.5, partial=True), "covers only part"),
+                     (_plan_results(tmp_path, "z", 1.5), r"metrics.iou must be a number in \[0, 1\]")):
+        with pytest.raises(UserError, match=why):
+            add_entry(bad, board)
+    assert len(list((board / "planning").iterdir())) == 2

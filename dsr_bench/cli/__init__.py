@@ -26,7 +26,7 @@ app = typer.Typer(
 _COMMAND_MODULES: tuple[str, ...] = ("data", "scoring", "view", "train")
 #: The order of the commands in `dsr-bench --help` (others follow in the order they were registered).
 COMMAND_ORDER: tuple[str, ...] = ("generate", "validate", "info", "manifest", "import-official", "predict", "evaluate",
-                                  "view", "train", "generate-captures", "annotate")
+                                  "view", "train", "generate-plan-tasks", "plan", "generate-captures", "annotate")
 ENTRY_POINT_GROUP = "dsr_bench.commands"
 
 

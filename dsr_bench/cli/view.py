@@ -9,7 +9,8 @@ import typer
 
 
 def view(
-    sequence: str = typer.Argument(..., help="A sequence name within --data (seq_0042) or a path to a .h5 file."),
+    sequence: str = typer.Argument(..., help="A sequence name within --data (seq_0042) or a path to a .h5 file "
+                                   "(a sequence, or a plan file of `dsr-bench plan`)."),
     data: Optional[Path] = typer.Option(None, "--data", help="Dataset directory holding the sequence (with "
                                         "--predictions, default: the one their meta.json names)."),
     predictions: Optional[Path] = typer.Option(
@@ -32,6 +33,17 @@ def view(
         raise UserError(f"--save {save}: the recording file must end in .rrd")
     if grpc_port is not None and not web:
         raise UserError("--grpc-port is a port of the web viewer: add --web, or drop it")
+    if sequence.endswith(".h5") and Path(sequence).is_file() and predictions is None and data is None:
+        from dsr_bench.viewer.plan import is_plan_file
+
+        if is_plan_file(sequence):  # a plan file of `dsr-bench plan` (docs/planning.md)
+            if save is None and not web and no_display():
+                raise UserError("no display to open the viewer on: write a recording with --save out.rrd, "
+                                "or serve it with --web")
+            from dsr_bench.viewer.plan import view_plan
+
+            _report(view_plan(sequence, save=save, web=web, web_port=web_port, grpc_port=grpc_port), save, web)
+            return
     if data is None and predictions is not None and not (sequence.endswith(".h5") and Path(sequence).is_file()):
         data = _data_of(predictions)
     path = resolve_sequence(data, sequence)
@@ -41,6 +53,11 @@ def view(
     from dsr_bench.viewer import view as run
 
     out = run(path, predictions=predictions, save=save, web=web, web_port=web_port, grpc_port=grpc_port)
+    _report(out, save, web)
+
+
+def _report(out, save: Optional[Path], web: bool) -> None:
+    """Say where the recording went (--save), or serve until interrupted (--web)."""
     if save is not None:
         typer.echo(f"wrote {out} (open it with: rerun {out})")
     elif web:

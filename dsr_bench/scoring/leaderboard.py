@@ -3,7 +3,8 @@
 leaderboard/entries/*.json are results files written by `dsr-bench evaluate` (plus an optional
 "label"); leaderboard/paper.json holds the paper's published numbers, always shown apart and
 marked "reported in the paper". A 2D-only entry (results holding motion_2d alone) joins the 2D track's
-table only. `build` writes leaderboard/README.md (a table per split and track,
+table only. leaderboard/planning/*.json are results files of `dsr-bench plan` (complete runs on a pinned
+task set), shown in the planning IoU column. `build` writes leaderboard/README.md (a table per split and track,
 best per column in bold), a static, sortable leaderboard/index.html and, for each table of reproduced rows
 whose entries hold per-step values, leaderboard/plots/<split>-3d.png (-2d.png for the 2D track; an earlier
 version of a split: <split>-<checksum>-3d.png) comparing the rows step by step, shown under the table.
@@ -76,6 +77,8 @@ def add_entry(results_path: str | Path, root: str | Path = "leaderboard", label:
         results = json.loads(path.read_text())
     except (OSError, json.JSONDecodeError) as exc:
         raise UserError(f"{path}: unreadable results file ({exc})") from None
+    if isinstance(results, dict) and results.get("format") == PLAN_RESULTS_FORMAT:
+        return _add_plan_entry(path, results, Path(root))
     problems = check_entry(results)
     if problems:
         raise UserError(f"{path} cannot join the leaderboard: " + "; ".join(problems))
@@ -97,6 +100,34 @@ def _kind(results: dict) -> str:
     checksum = results.get("split_checksum", "")
     # an entry scored on an earlier pin of its split stays visible, in its own table, unranked against the rest
     return "reproduced" if checksum == expected else f"reproduced on an earlier version of the split, {checksum[:12]}"
+
+
+#: Results of `dsr-bench plan` (the planning track), kept in leaderboard/planning/ and shown in the planning IoU column.
+PLAN_RESULTS_FORMAT = "dsr-bench-plan-results"
+
+
+def _add_plan_entry(path: Path, results: dict, root: Path) -> Path:
+    """Copy a planning results file into leaderboard/planning/: only a complete run on a pinned task set."""
+    metrics = results.get("metrics") if isinstance(results.get("metrics"), dict) else {}
+    coverage = results.get("coverage") if isinstance(results.get("coverage"), dict) else {}
+    iou = metrics.get("iou")
+    problems = []
+    if not isinstance(iou, (int, float)) or isinstance(iou, bool) or not 0 <= iou <= 1:
+        problems.append(f"metrics.iou must be a number in [0, 1], got {iou!r}")
+    if results.get("pinned") is not True:
+        problems.append("its task set is not this toolkit's pinned one; plan on a pinned task set "
+                        "(`dsr-bench generate-plan-tasks --tasks plan-novel-test`)")
+    if coverage.get("partial") is not False:
+        problems.append("it covers only part of the task set; run `dsr-bench plan` on every task")
+    if not isinstance(results.get("method"), str) or not isinstance(results.get("task_set"), str):
+        problems.append("method and task_set must be strings")
+    if problems:
+        raise UserError(f"{path} cannot join the leaderboard: " + "; ".join(problems))
+    slug = re.sub(r"[^a-z0-9]+", "-", f"{results['method']}-{results['task_set']}".lower()).strip("-")
+    target = root / "planning" / f"{slug}.json"
+    target.parent.mkdir(parents=True, exist_ok=True)
+    write_text(target, json.dumps(results, indent=1, sort_keys=True) + "\n")
+    return target
 
 
 def load_entries(root: str | Path = "leaderboard") -> list[dict]:
@@ -123,6 +154,9 @@ def load_rows(root: str | Path = "leaderboard") -> list[dict]:
                      "grid": "x".join(str(int(g)) for g in grid),
                      "date": r.get("date", "")[:10], "checksum": r.get("split_checksum", "")[:12],
                      **{k: v for k, v in r["metrics"].items()}})
+    from dsr_bench.planning.scoring import leaderboard_rows
+
+    rows += leaderboard_rows(sorted((root / "planning").glob("*.json")), include_paper=False)  # paper.json has them
     paper = root / "paper.json"
     if paper.exists():
         for r in json.loads(paper.read_text())["rows"]:

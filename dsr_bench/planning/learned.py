@@ -1,0 +1,124 @@
+"""Candidate actions through a DSR-Net-like model (`dsr_bench.models.dsr_net.DSRNet`) against one state.
+
+The representation and the masks depend on the observation and the history only, so the volume encoder, the
+decoder and the mask head run once per step; only the motion head (SE(3) or 3DFlow) runs per candidate, in
+batches. With BatchNorm in eval mode (the shipped CPU-track weights) this gives, per candidate, exactly what
+`DSRNet.forward` gives; with the official batch statistics each candidate runs alone (batch 1), as forward
+would at inference.
+
+The predicted next state of a candidate: each voxel labelled in the predicted masks at t (on the benchmark's
+grid) moved by the predicted 3D flow at it (benchmark voxels) and rounded to the nearest voxel (forward
+warping of labels; a voxel moved out of the grid is dropped, two voxels landing on one keep the later one
+in C order). A CPU-track model (`voxel_factor` 4) sees the TSDF pooled, and its masks and motions are brought
+back to the benchmark's grid (`dsr_bench.models.coarse`) before the warp.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from dsr_bench.constants import GRID_SHAPE
+
+
+def move_labels(mask: np.ndarray, motion_at: np.ndarray, voxels: np.ndarray) -> np.ndarray:
+    """Forward-warp labels: mask (Y, X, Z) uint8, voxels (M, 3) int64 the labelled voxels' indices, motion_at
+    (B, 3, M) their flow in voxels (dy, dx, dz) -> (B, Y, X, Z) uint8 (labels at round(index + flow))."""
+    b = motion_at.shape[0]
+    labels = mask[voxels[:, 0], voxels[:, 1], voxels[:, 2]]
+    target = np.rint(voxels.T[None].astype(np.float32) + motion_at).astype(np.int64)  # (B, 3, M)
+    shape = np.array(GRID_SHAPE).reshape(1, 3, 1)
+    inside = np.all((target >= 0) & (target < shape), axis=1)  # (B, M)
+    flat = (target[:, 0] * GRID_SHAPE[1] + target[:, 1]) * GRID_SHAPE[2] + target[:, 2]
+    out = np.zeros((b, int(np.prod(GRID_SHAPE))), np.uint8)
+    rows = np.broadcast_to(np.arange(b)[:, None], flat.shape)
+    out[rows[inside], flat[inside]] = np.broadcast_to(labels, flat.shape)[inside]
+    return out.reshape((b,) + GRID_SHAPE)
+
+
+class BatchedModel:
+    """One state of a `ModelPredictor`'s network, and candidate actions scored against it.
+
+    observe(tsdf) runs the network's state-dependent part; predict(actions) the motion head per batch;
+    executed(action) carries the history as `ModelPredictor` does (`DSRNet.next_state` of the executed action)."""
+
+    def __init__(self, predictor):
+        self.predictor = predictor
+        self.model = predictor.model
+        self.config = self.model.config
+        self.device = predictor.device
+        self.factor = int(self.config.voxel_factor)
+        self.reset()
+
+    def reset(self) -> None:
+        self.state = self.model.initial_state(1, self.device)
+        self._rep = self._mask = self._labels = self._voxels = None
+
+    def _bn(self):
+        from dsr_bench.models.dsr_net import batchnorm_statistics
+
+        return batchnorm_statistics(self.model, batch=bool(self.predictor.official_bn))
+
+    @torch.no_grad()
+    def observe(self, tsdf: np.ndarray) -> np.ndarray:
+        """TSDF (Y, X, Z) -> the predicted masks at t on the benchmark grid (Y, X, Z) uint8 (slot k -> k + 1)."""
+        from dsr_bench.models import coarse
+        from dsr_bench.models.labels import slot_labels
+
+        volume = np.asarray(tsdf, np.float32)
+        volume = volume if self.factor == 1 else coarse.pool_tsdf(volume, self.factor)
+        x = torch.from_numpy(volume).unsqueeze(0).to(self.device)
+        net = self.model
+        state = torch.zeros_like(self.state) if self.config.history == "none" else self.state
+        coords = net.coords.unsqueeze(0).to(x.dtype)
+        with self._bn():
+            rep = net.decoder(*net.encoder(torch.cat([x.unsqueeze(1), coords, state.to(x.dtype)], 1)))
+            mask = torch.softmax(net.mask_head(rep).float(), 1)
+        self._rep, self._mask = rep, mask
+        labels = slot_labels(mask)[0].cpu().numpy()
+        self._labels = labels if self.factor == 1 else coarse.unpool_mask(labels, self.factor)
+        self._voxels = np.argwhere(self._labels > 0)
+        return self._labels
+
+    @torch.no_grad()
+    def motion(self, actions: np.ndarray) -> torch.Tensor:
+        """Candidate actions (B, 3) on the benchmark grid -> the model's motion (B, 3, *model grid) in model voxels."""
+        from dsr_bench.models import coarse
+        from dsr_bench.models.data import action_map
+        from dsr_bench.models.se3 import blended_motion, euler_to_matrix, soft_centroids
+
+        acts = np.asarray(actions, np.int64).reshape(-1, 3)
+        grid = tuple(self.config.grid)
+        maps = action_map(acts if self.factor == 1 else coarse.coarse_action(acts, self.factor), grid[:2]).to(self.device)
+        net, b = self.model, len(acts)
+        chunks = [slice(i, i + 1) for i in range(b)] if self.predictor.official_bn else [slice(0, b)]
+        out = []
+        with self._bn():
+            for part in chunks:
+                n = part.stop - part.start
+                rep = self._rep.expand(n, *self._rep.shape[1:])
+                mask = self._mask.expand(n, *self._mask.shape[1:])
+                if self.config.motion == "flow":
+                    out.append(net.motion_head(rep, maps[part]).float())
+                    continue
+                params = net.motion_head(rep, maps[part]).float()
+                rotations = euler_to_matrix(params[..., 3:], self.config.euler)
+                out.append(blended_motion(mask, rotations, params[..., :3], soft_centroids(mask[:, :-1])))
+        return torch.cat(out)
+
+    def predict(self, actions: np.ndarray) -> np.ndarray:
+        """Candidate actions (B, 3) -> predicted next masks (B, Y, X, Z) uint8 (see the module doc)."""
+        motion = self.motion(actions).cpu().numpy()  # (B, 3, *grid) model voxels
+        v = self._voxels
+        if self.factor == 1:
+            at = motion[:, :, v[:, 0], v[:, 1], v[:, 2]]
+        else:
+            c = v // self.factor
+            at = motion[:, :, c[:, 0], c[:, 1], c[:, 2]] * np.float32(self.factor)
+        return move_labels(self._labels, at.astype(np.float32), v)
+
+    @torch.no_grad()
+    def executed(self, action: np.ndarray) -> None:
+        """Carry the history: `DSRNet.next_state` of this step's outputs for the executed action."""
+        outputs = {"representation": self._rep, "mask": self._mask, "motion": self.motion(np.asarray(action)[None])}
+        self.state = self.model.next_state(outputs)

@@ -1,0 +1,42 @@
+"""The planning track's constants, the state a planner observes, and the one `Planner` protocol.
+
+Volumes are (world y, world x, z) = (128, 128, 48) voxels of 4 mm (`dsr_bench.constants.GRID_SHAPE`);
+actions are (direction 0..7, row, col) on the 128 x 128 workspace grid (`dsr_bench.geometry.grid`).
+"""
+
+from __future__ import annotations
+
+from typing import Protocol
+
+import numpy as np
+
+# The track's constants live with the benchmark's others (`dsr_bench.constants`, "Planning track").
+from dsr_bench.constants import (COST_LAMBDA, DEFAULT_CANDIDATES, DEFAULT_BATCH, FOOTPRINT_MIN_Z,  # noqa: E402,F401
+                                 MATCH_TIE_BREAK, MAX_BACKOFF_CELLS, PLAN_STEPS, UNMATCHED_POSITION_MSE)
+
+
+class Planner(Protocol):
+    """A planner of the track: it observes the front camera's TSDF and predicts the next amodal masks of
+    candidate actions. `predicts=False` (random): candidates are drawn uniformly and never scored.
+
+    Order of calls per task: reset(); then per step observe(tsdf) -> masks to sample around (or None for
+    uniform sampling), predict(actions) (any number of batches), executed(action)."""
+
+    name: str
+    description: str
+    predicts: bool
+    num_slots: int
+
+    def reset(self) -> None:
+        """Forget the history: a new task starts."""
+
+    def observe(self, tsdf: np.ndarray) -> np.ndarray | None:
+        """The front camera's TSDF (Y, X, Z) float32 of the current state -> the planner's amodal masks of it,
+        (Y, X, Z) uint8 slot ids (0 background), or None (sample uniformly)."""
+
+    def predict(self, actions: np.ndarray) -> np.ndarray:
+        """Candidate actions (B, 3) int64 (d, row, col) -> predicted next amodal masks (B, Y, X, Z) uint8,
+        slot ids 1..num_slots (0 background), from the state last observed."""
+
+    def executed(self, action: np.ndarray) -> None:
+        """The action (3,) was executed in the world: carry the history to the next observation."""

@@ -1,0 +1,106 @@
+"""The MPC loop of the track: for each of PLAN_STEPS steps, observe (the front camera's TSDF), sample
+candidate actions (around the planner's masks, or uniformly), score each by the cost of its predicted next
+state against the target, execute the cheapest in the world, repeat. The world is an `Environment` (the
+simulator implements it in `generators.planning`); this module imports no simulator.
+
+Randomness: candidates are drawn from numpy's Generator seeded with (--seed, the task's seed), the same for
+every planner, so a plan is a pure function of (task, planner, candidates, seed) up to the model's floating
+point.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Protocol
+
+import numpy as np
+
+from dsr_bench.planning.cost import centroids, plan_cost
+from dsr_bench.planning.protocol import COST_LAMBDA, DEFAULT_BATCH, PLAN_STEPS
+from dsr_bench.planning.sampling import free_cells, sample_around_masks, sample_uniform, tsdf_footprint
+from dsr_bench.planning.tasks import Task
+
+
+@dataclass
+class WorldState:
+    """What the world shows after a reset or a push: the front camera's TSDF (Y, X, Z) float32, the true amodal
+    masks (Y, X, Z) uint8 (object ids; recorded and scored, never shown to a learned planner), the object poses
+    (N, 7) and the front camera's colour image (H, W, 3) uint8 (for the viewer)."""
+
+    tsdf: np.ndarray
+    mask_3d: np.ndarray
+    object_poses: np.ndarray
+    color: np.ndarray | None = None
+
+
+class Environment(Protocol):
+    """A world a plan runs in (the simulator's: `generators.planning.SimEnvironment`)."""
+
+    def reset(self, task: Task) -> WorldState:
+        """Restore the task's start state."""
+
+    def step(self, action: np.ndarray) -> WorldState:
+        """Execute the push (d, row, col) and observe."""
+
+
+@dataclass
+class PlanRecord:
+    """Everything a plan did, as the plan file stores it (`dsr_bench.planning.plans`)."""
+
+    states: list[WorldState] = field(default_factory=list)  # PLAN_STEPS + 1: the start, then after each push
+    actions: list[np.ndarray] = field(default_factory=list)  # (3,) chosen per step
+    candidates: list[np.ndarray] = field(default_factory=list)  # (C, 3) per step
+    costs: list[np.ndarray] = field(default_factory=list)  # (C,) per step (NaN: not scored)
+    position_mse: list[np.ndarray] = field(default_factory=list)  # (C, N) cm^2
+    object_iou: list[np.ndarray] = field(default_factory=list)  # (C, N)
+    chosen: list[int] = field(default_factory=list)
+    planner_masks: list[np.ndarray] = field(default_factory=list)  # (Y, X, Z) the masks sampled around per step
+    predicted: list[np.ndarray] = field(default_factory=list)  # (Y, X, Z) the chosen candidate's predicted next masks
+    seconds: list[float] = field(default_factory=list)  # planning (not simulation) seconds per step
+
+
+def run_plan(task: Task, planner, env: Environment, candidates: int, seed: int = 0, batch: int = DEFAULT_BATCH,
+             lam: float = COST_LAMBDA, steps: int = PLAN_STEPS) -> PlanRecord:
+    """Plan and execute `steps` pushes from the task's start towards its target; see the module doc."""
+    rng = np.random.default_rng([int(seed), int(task.seed)])
+    n = task.num_objects
+    target = task.target_mask
+    target_c = centroids(target, n)[0]
+    record = PlanRecord()
+    state = env.reset(task)
+    record.states.append(state)
+    planner.reset()
+    zeros = np.zeros_like(target)
+    for _ in range(steps):
+        start = time.perf_counter()
+        masks = planner.observe(state.tsdf)
+        if not planner.predicts:
+            acts = sample_uniform(free_cells(tsdf_footprint(state.tsdf)), rng, 1)
+            costs, pos, iou, best, best_pred = np.full(1, np.nan), np.full((1, n), np.nan), np.full((1, n), np.nan), 0, zeros
+        else:
+            acts = sample_around_masks(masks, rng, candidates)
+            costs = np.zeros(len(acts))
+            pos, iou = np.zeros((len(acts), n)), np.zeros((len(acts), n))
+            best, best_pred = -1, zeros
+            for lo in range(0, len(acts), batch):
+                preds = planner.predict(acts[lo: lo + batch])
+                for j, pred in enumerate(preds):
+                    terms = plan_cost(pred, target, planner.num_slots, n, lam, target_c)
+                    costs[lo + j], pos[lo + j], iou[lo + j] = terms.total, terms.position_mse, terms.iou
+                    if best < 0 or terms.total < costs[best]:
+                        best, best_pred = lo + j, pred.copy()
+        action = acts[best]
+        planner.executed(action)
+        record.seconds.append(time.perf_counter() - start)
+        state = env.step(action)
+        record.states.append(state)
+        record.actions.append(action)
+        record.candidates.append(acts)
+        record.costs.append(costs)
+        record.position_mse.append(pos)
+        record.object_iou.append(iou)
+        record.chosen.append(int(best))
+        record.planner_masks.append(zeros if masks is None else np.asarray(masks, np.uint8))
+        record.predicted.append(best_pred)
+    return record

@@ -1,0 +1,405 @@
+"""The planning track's simulator side (`dsr_bench.planning` has the rest, and never imports this module):
+making planning tasks, the pybullet `SimEnvironment` plans run in (and the oracle's true next states), and the
+commands `dsr-bench generate-plan-tasks` and `dsr-bench plan`, registered through the `dsr_bench.commands`
+entry point.
+
+A task: a scene generated as a sequence (`generators.episode.generate_episode`, the same seeding, so a task
+is a pure function of its seed: bit for bit on any machine) with PLAN_STEPS pushes of the heuristic policy;
+its first state is the start, its last the target. A plan restores the start in a fresh pybullet world from the
+task file (the objects' solids and poses), so it never depends on the generator's world.
+"""
+
+from __future__ import annotations
+
+import os
+import shlex
+import time
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import typer
+
+from dsr_bench.errors import UserError
+
+
+# --- tasks ---------------------------------------------------------------------------------------------
+class _Recording:
+    """An object set that remembers the objects of its last `sample` (those of the accepted scene)."""
+
+    def __init__(self, base):
+        self.base, self.name, self.last = base, base.name, None
+
+    def sample(self, rng, count):
+        self.last = self.base.sample(rng, count)
+        return self.last
+
+
+def make_task(object_set, seed: int, name: str, pushes: int, objects: str, objects_per_scene: int,
+              policy: str = "heuristic") -> tuple[dict[str, np.ndarray], dict]:
+    """A task's arrays and attributes (`dsr_bench.planning.tasks`) from a seed: the scene and pushes of
+    `generate_episode`, its first state the start and its last the target."""
+    from dsr_bench import __version__
+    from generators.episode import EpisodeConfig, generate_episode
+
+    recording = _Recording(object_set)
+    config = EpisodeConfig(objects=objects, steps=pushes, objects_per_scene=objects_per_scene, policy=policy)
+    ep = generate_episode(config, recording, seed, name)
+    a = ep.arrays
+    arrays = {"start/object_poses": a["object_poses"][0], "start/mask_3d": a["mask_3d"][0],
+              "target/object_poses": a["object_poses"][-1], "target/mask_3d": a["mask_3d"][-1],
+              "reference/action": a["action"], "start/tsdf": a["tsdf"][0], "start/heightmap": a["heightmap"][0],
+              "start/color": a["cameras/front/color"][0], "target/color": a["cameras/front/color"][-1]}
+    for i, spec in enumerate(recording.last):
+        for j, part in enumerate(spec.parts):
+            arrays[f"objects/{i}/part_{j}/vertices"] = np.asarray(part.vertices, np.float64)
+            arrays[f"objects/{i}/part_{j}/faces"] = np.asarray(part.faces, np.int64)
+    attrs = {"name": name, "seed": int(seed), "num_objects": len(recording.last), "pushes": pushes,
+             "objects": ep.attrs["objects"], "toolkit_version": __version__,
+             "generator_args": {**config.as_attrs(), "scene_attempts": ep.scene_attempts}}
+    return arrays, attrs
+
+
+_WORKER: dict = {}
+
+
+def _task_job(job: tuple) -> str:
+    from dsr_bench.planning.tasks import write_task
+    from generators.objects import get_object_set
+
+    out, name, seed, spec = job
+    os.environ.setdefault("OMP_NUM_THREADS", "1")
+    if _WORKER.get("set_name") != spec["objects"]:
+        _WORKER["set"], _WORKER["set_name"] = get_object_set(spec["objects"]), spec["objects"]
+    arrays, attrs = make_task(_WORKER["set"], seed, name, spec["pushes"], spec["objects"], spec["objects_per_scene"],
+                              spec["policy"])
+    attrs["task_set"], attrs["index"] = spec["name"], int(name.split("_")[-1])
+    write_task(Path(out) / f"{name}.h5", arrays, attrs)
+    return name
+
+
+def generate_tasks(task_set: str, out: Path, workers: int = 1, num_tasks: int | None = None,
+                   progress=None) -> dict:
+    """Write the tasks of a named set into `out` (task_0000.h5, ...; existing complete tasks of the same seed are
+    kept) and its manifest (tasks.json); return the manifest. `num_tasks`: only the first ones (a prefix)."""
+    from dsr_bench.dataset.splits import sequence_seed
+    from dsr_bench.parallel import run_in_order
+    from dsr_bench.planning.tasks import build_manifest, get_task_set, read_task, task_name, write_manifest
+    from generators.run import check_writable
+
+    spec = get_task_set(task_set)
+    count = spec.num_tasks if num_tasks is None else num_tasks
+    if not 1 <= count <= spec.num_tasks:
+        raise UserError(f"--num-tasks {count}: must be 1..{spec.num_tasks} for {task_set}")
+    check_writable(out)
+    out.mkdir(parents=True, exist_ok=True)
+    names = [task_name(i) for i in range(count)]
+    jobs = []
+    for i, name in enumerate(names):
+        path, seed = out / f"{name}.h5", sequence_seed(spec.base_seed, i)
+        if path.exists():
+            if read_task(path).seed != seed:
+                raise UserError(f"{path} is a task of another set or seed; use another --out or delete it")
+            if progress:
+                progress()
+            continue
+        jobs.append((str(out), name, seed, spec.__dict__))
+    run_in_order(_task_job, jobs, max(1, workers), (lambda done, total: progress()) if progress else None)
+    manifest = build_manifest(out, task_set, names)
+    write_manifest(out, manifest)
+    return manifest
+
+
+# --- the world of a plan ---------------------------------------------------------------------------------
+def task_objects(task) -> list:
+    """ObjectSpec-like objects (parts, colour, mass) of a task, for `PushWorld` and `SceneRenderer`."""
+    from generators.objects.spec import Part
+
+    return [SimpleNamespace(parts=tuple(Part(v, f) for v, f in parts), color=tuple(ident["color"]),
+                            mass=float(ident["mass"]), is_large=bool(ident.get("is_large", False)))
+            for parts, ident in zip(task.parts, task.objects)]
+
+
+class SimEnvironment:
+    """A task's world in pybullet (`generators.physics.PushWorld`) observed by `generators.render.SceneRenderer`:
+    `reset(task)` builds it at the start poses, `step(action)` pushes and observes, `current_mask()` and
+    `simulate(actions)` are the oracle's callbacks (true next states, the world restored after each)."""
+
+    def __init__(self):
+        self.world = self.renderer = None
+
+    def close(self) -> None:
+        if self.world is not None:
+            self.world.close()
+            self.world = None
+
+    def reset(self, task):
+        from generators.physics import PushWorld
+        from generators.render import SceneRenderer
+
+        self.close()
+        objects = task_objects(task)
+        self.world, self.renderer = PushWorld(objects), SceneRenderer(objects)
+        for i, pose in enumerate(task.arrays["start/object_poses"]):
+            self.world.set_pose(i, pose)
+        # contacts without moving anything: pybullet's restoreState does not clear contact manifolds that a saved
+        # state lacks, so a state saved before any contact exists would not restore the same world twice
+        self.world._pb.performCollisionDetection(physicsClientId=self.world.client)
+        return self._observe()
+
+    def _observe(self):
+        from dsr_bench.planning.runner import WorldState
+
+        poses = self.world.poses()
+        obs = self.renderer.observe(poses)
+        return WorldState(tsdf=obs.tsdf, mask_3d=obs.mask_3d, object_poses=poses, color=obs.images["front"].color)
+
+    def _push(self, action) -> None:
+        from dsr_bench.constants import PUSH_TRAVEL
+        from dsr_bench.geometry import direction_vector, pixel_to_world
+
+        d, row, col = (int(x) for x in action)
+        self.world.push(pixel_to_world(np.array([row, col])), direction_vector(d), PUSH_TRAVEL)
+
+    def step(self, action):
+        """Execute the push from the current state saved and restored (as `simulate` runs each candidate, so the
+        executed push is the oracle's prediction of it, bit for bit), and observe."""
+        pb, client = self.world._pb, self.world.client
+        saved = pb.saveState(physicsClientId=client)
+        pb.restoreState(stateId=saved, physicsClientId=client)
+        pb.removeState(saved, physicsClientId=client)
+        self._push(action)
+        return self._observe()
+
+    def current_mask(self) -> np.ndarray:
+        return self.renderer.amodal_mask(self.world.poses())
+
+    def simulate(self, actions: np.ndarray) -> np.ndarray:
+        pb, client = self.world._pb, self.world.client
+        saved = pb.saveState(physicsClientId=client)
+        out = []
+        try:
+            for action in actions:
+                pb.restoreState(stateId=saved, physicsClientId=client)
+                self._push(action)
+                out.append(self.renderer.amodal_mask(self.world.poses()))
+        finally:
+            pb.restoreState(stateId=saved, physicsClientId=client)
+            pb.removeState(saved, physicsClientId=client)
+        return np.stack(out)
+
+
+# --- running plans ----------------------------------------------------------------------------------------
+def _one_thread() -> None:
+    """One thread per worker process (parallelism comes from --workers): torch's OpenMP threads spinning at their
+    barriers on a loaded machine cost far more than they bring."""
+    import sys
+
+    os.environ.setdefault("OMP_NUM_THREADS", "1")
+    if "torch" in sys.modules:
+        sys.modules["torch"].set_num_threads(1)
+
+
+def _planner(model: str, env: SimEnvironment, checkpoint: str | None, device: str):
+    from dsr_bench.planning.planners import make_planner
+
+    if model == "oracle":
+        return make_planner("oracle", (env.current_mask, env.simulate))
+    key = (model, checkpoint, device)
+    if _WORKER.get("planner_key") != key:
+        _WORKER["planner"] = make_planner(model, checkpoint=Path(checkpoint) if checkpoint else None, device=device)
+        _WORKER["planner_key"] = key
+    return _WORKER["planner"]
+
+
+def _plan_job(job: tuple) -> tuple[str, dict]:
+    from dsr_bench.planning.plans import plan_arrays, write_plan
+    from dsr_bench.planning.runner import run_plan
+    from dsr_bench.planning.scoring import score_plan
+    from dsr_bench.planning.tasks import read_task
+
+    task_path, out, model, checkpoint, device, candidates, seed, batch, name, ground_truth = job
+    done = _finished(Path(out) / f"{name}.h5", ground_truth, model, checkpoint, candidates, seed)
+    if done is not None:  # reads the plan file's attributes only
+        return name, done
+    _one_thread()
+    task = read_task(task_path)
+    env = SimEnvironment()
+    try:
+        planner = _planner(model, env, checkpoint, device)
+        start = time.perf_counter()
+        record = run_plan(task, planner, env, candidates, seed=seed, batch=batch)
+        seconds = time.perf_counter() - start
+    finally:
+        env.close()
+    arrays = plan_arrays(task, record)
+    scores = score_plan(arrays["states/mask_3d"][-1], arrays["states/mask_3d"][0], task.target_mask, task.num_objects)
+    scores["seconds"] = seconds
+    attrs = {"task": task.name, "task_file": task.path.name, "task_ground_truth_sha256": task.ground_truth_sha256,
+             "model": model, "checkpoint": str(checkpoint or ""), "planner": planner.name,
+             "description": planner.description, "candidates": candidates, "seed": seed, "lambda": _lambda(),
+             **scores}
+    write_plan(Path(out) / f"{task.name}.h5", arrays, attrs)
+    return task.name, scores
+
+
+def _steps() -> int:
+    from dsr_bench.planning.protocol import PLAN_STEPS
+
+    return PLAN_STEPS
+
+
+def _finished(path: Path, ground_truth: str, model: str, checkpoint: str | None, candidates: int,
+              seed: int) -> dict | None:
+    """The scores of an existing plan file made with the same task, planner, candidates, seed and lambda (a rerun
+    resumes), else None (the plan is made again and the file replaced)."""
+    from dsr_bench.planning.plans import read_plan_attrs
+
+    if not path.is_file():
+        return None
+    try:
+        attrs = read_plan_attrs(path)
+    except UserError:
+        return None
+    same = (attrs.get("task_ground_truth_sha256") == ground_truth
+            and attrs.get("model", attrs.get("planner")) == model
+            and attrs.get("checkpoint", "") == str(checkpoint or "") and attrs.get("candidates") == candidates
+            and attrs.get("seed") == seed and attrs.get("lambda") == _lambda())
+    keys = ("iou", "iou_identity", "iou_occupancy", "start_iou", "start_iou_identity", "start_iou_occupancy",
+            "iou_per_object", "seconds")
+    return {k: attrs[k] for k in keys} if same and all(k in attrs for k in keys) else None
+
+
+def _lambda() -> float:
+    from dsr_bench.planning.protocol import COST_LAMBDA
+
+    return COST_LAMBDA
+
+
+def plan_tasks(model: str, tasks: str, out: Path, candidates: int, workers: int = 1, seed: int = 0,
+               checkpoint: Path | None = None, device: str = "cpu", num_tasks: int | None = None,
+               batch: int | None = None, progress=None) -> dict:
+    """Run a planner on a task directory (or a named set's data/<name>), write one plan file per task and
+    OUT/results.json; return the results (`dsr_bench.planning.scoring.results`). Plan files already in `out`
+    made with the same task, planner, candidates and seed are kept and scored (a rerun resumes)."""
+    import json
+
+    from dsr_bench.atomic import write_text
+    from dsr_bench.parallel import run_in_order
+    from dsr_bench.planning.planners import PLANNER_NAMES, make_planner
+    from dsr_bench.planning.protocol import DEFAULT_BATCH
+    from dsr_bench.planning.scoring import results
+    from dsr_bench.planning.tasks import TASK_SETS, resolve_tasks
+    from generators.run import check_writable
+
+    if model not in PLANNER_NAMES:
+        raise UserError(f"--model {model!r}: choose one of {', '.join(PLANNER_NAMES)}")
+    if candidates < 1:
+        raise UserError(f"--candidates {candidates}: must be at least 1")
+    if workers < 1:
+        raise UserError(f"--workers {workers}: must be at least 1")
+    task_dir, manifest = resolve_tasks(tasks)
+    entries = manifest["tasks"][: num_tasks] if num_tasks else manifest["tasks"]
+    _one_thread()
+    describe = make_planner(model, (None, None)) if model in ("random", "oracle") else \
+        make_planner(model, checkpoint=checkpoint, device=device)  # fails fast on a bad model or checkpoint
+    if model not in ("random", "oracle"):  # in this process, the workers' planner (workers=1) is this one
+        _WORKER["planner"], _WORKER["planner_key"] = describe, (model, str(checkpoint) if checkpoint else None, device)
+    check_writable(out)
+    out.mkdir(parents=True, exist_ok=True)
+    batch = batch or DEFAULT_BATCH
+    jobs = [(str(task_dir / e["file"]), str(out), model, str(checkpoint) if checkpoint else None, device, candidates,
+             seed, batch, e["name"], e["ground_truth_sha256"]) for e in entries]
+    outcomes = run_in_order(_plan_job, jobs, workers, (lambda done, total: progress()) if progress else None)
+    per_task = dict(outcomes)
+    command = shlex.join(["dsr-bench", "plan", "--model", model, "--tasks", str(tasks), "--out", str(out),
+                          "--candidates", str(candidates), "--seed", str(seed)]
+                         + (["--num-tasks", str(num_tasks)] if num_tasks else [])
+                         + (["--checkpoint", str(checkpoint)] if checkpoint else []))
+    planner = {"name": describe.name, "description": describe.description}
+    if getattr(describe, "weights", None):
+        planner["weights"] = describe.weights
+    parameters = {"candidates": candidates, "seed": seed, "lambda": _lambda(), "steps": _steps(),
+                  "hardware": f"{os.cpu_count()} CPU cores", "workers": workers}
+    named = TASK_SETS.get(manifest["task_set"])
+    expected = named.num_tasks if named else len(manifest["tasks"])  # a prefix of a named set is partial
+    out_results = results(per_task, planner, manifest, expected,
+                          [out / f"{name}.h5" for name in per_task], command, parameters)
+    write_text(out / "results.json", json.dumps(out_results, indent=1, sort_keys=True) + "\n")
+    return out_results
+
+
+# --- commands -----------------------------------------------------------------------------------------------
+def generate_plan_tasks(
+    tasks: str = typer.Option("plan-novel-test", "--tasks", help="Task set: plan-novel-test (100) | plan-novel-mini (4)."),
+    out: Path | None = typer.Option(None, "--out", "-o", help="Directory to write (default data/<task set>)."),
+    workers: int = typer.Option(1, "--workers", "-w", help="Parallel worker processes."),
+    num_tasks: int | None = typer.Option(None, "--num-tasks", "-n", help="Only the first N tasks of the set."),
+    pin: bool = typer.Option(False, "--pin", hidden=True, help="Maintainers: record the complete set's checksum "
+                             "and task digests in dsr_bench/planning/task_pins.json."),
+) -> None:
+    """Simulate planning tasks (start scene + 3 heuristic pushes -> target) and write them with tasks.json."""
+    from rich.progress import Progress
+
+    from dsr_bench.planning.tasks import get_task_set, pinned_checksums
+
+    spec = get_task_set(tasks)
+    out = out or Path("data") / tasks
+    with Progress(transient=True) as bar:
+        job = bar.add_task(f"generate-plan-tasks {tasks}", total=num_tasks or spec.num_tasks)
+        manifest = generate_tasks(tasks, out, workers, num_tasks, progress=lambda: bar.advance(job))
+    if pin:
+        from dsr_bench.planning.tasks import pin_task_set
+
+        if num_tasks not in (None, spec.num_tasks):
+            raise UserError("--pin needs the complete set: drop --num-tasks")
+        typer.echo(f"pinned {tasks} in {pin_task_set(manifest)}")
+    pin = pinned_checksums().get(tasks)
+    state = ("matches the pin" if pin == manifest["checksum"] else "differs from the pin" if pin and not num_tasks
+             else "not pinned" if not pin else "a prefix of the set (not comparable with the pin)")
+    typer.echo(f"{out}: {len(manifest['tasks'])} tasks of {tasks}; checksum {manifest['checksum']} ({state})")
+
+
+def plan(
+    model: str = typer.Option(..., "--model", help="random | oracle | dsr | single | nowarp | 3dflow"),
+    tasks: str = typer.Option("plan-novel-test", "--tasks", help="Task directory, or a task set's name "
+                              "(data/<name>)."),
+    out: Path = typer.Option(..., "--out", "-o", help="Directory for the plan files and results.json."),
+    candidates: int = typer.Option(100, "--candidates", "-c", help="Candidate actions per step (the paper: 100)."),
+    workers: int = typer.Option(1, "--workers", "-w", help="Parallel worker processes (one task each)."),
+    seed: int = typer.Option(0, "--seed", help="Seed of the candidate sampling (with each task's seed)."),
+    checkpoint: Path | None = typer.Option(None, "--checkpoint", help="A learned model's checkpoint (default: "
+                                              "the shipped CPU-track weights)."),
+    device: str = typer.Option("cpu", "--device", help="cpu or cuda (learned models)."),
+    num_tasks: int | None = typer.Option(None, "--num-tasks", "-n", help="Only the first N tasks (partial "
+                                            "results)."),
+) -> None:
+    """Plan 3 pushes per task with MPC (sample candidates, score by the paper's cost, execute the best in pybullet),
+    write a plan file per task and results.json (final-vs-target voxel IoU per task and mean)."""
+    from rich.progress import Progress
+
+    with Progress(transient=True) as bar:
+        job = bar.add_task(f"plan {model}", total=num_tasks or _size(tasks))
+        r = plan_tasks(model, tasks, out, candidates, workers, seed, checkpoint, device, num_tasks,
+                       progress=lambda: bar.advance(job))
+    m = r["metrics"]
+    typer.echo(f"{r['method']} on {r['task_set']} ({r['coverage']['scored']}/{r['coverage']['expected']} tasks"
+               f"{', pinned' if r['pinned'] else ''}): IoU {m['iou']:.4f} (start {m['start_iou']:.4f}), occupancy IoU "
+               f"{m['iou_occupancy']:.4f}; {m['tasks_per_minute'] or 0:.2f} tasks/min per worker; "
+               f"results in {out / 'results.json'}")
+
+
+def _size(tasks: str) -> int | None:
+    """The number of tasks in a task directory (None if it cannot be read: `plan_tasks` says why)."""
+    from dsr_bench.planning.tasks import resolve_tasks
+
+    try:
+        return len(resolve_tasks(tasks)[1]["tasks"])
+    except UserError:
+        return None
+
+
+def register(app: typer.Typer) -> None:
+    """Add the planning commands to the `dsr-bench` CLI (the `dsr_bench.commands` entry point)."""
+    app.command("generate-plan-tasks")(generate_plan_tasks)
+    app.command("plan")(plan)
