@@ -160,30 +160,33 @@ def test_the_push_start_is_projected_with_the_sequences_camera(tmp_path):
     assert np.abs(pixels[:, 1] - uv[:, 1] / 2).max() <= 0.5 + 1e-9
 
 
-def test_train_predict_evaluate_from_the_cli(tmp_path, capsys):
+@pytest.mark.parametrize("name", IMAGE_MODEL_NAMES)
+def test_train_predict_evaluate_from_the_cli(name, tmp_path, capsys):
     data = write_synthetic_dataset(tmp_path / "data", num_sequences=2, num_steps=2)
-    weights = tmp_path / "se3net.pt"
-    assert main(["train", "--model", "se3net", "--track", "cpu", "--data", str(data), "--out", str(weights),
-                 "--single-batches", "3", "--batch-size", "2", "--quiet"]) == 0
+    weights = tmp_path / f"{name}.pt"
+    assert main(["train", "--model", name, "--track", "cpu", "--data", str(data), "--out", str(weights),
+                 "--single-batches", "2", "--batch-size", "2", "--quiet"]) == 0
     state = torch.load(weights, weights_only=True)
-    assert state["model_config"]["name"] == "se3net" and state["model_config"]["image_factor"] == 2
+    assert state["model_config"]["name"] == name and state["model_config"]["image_factor"] == 2
     assert state["data"]["sequences"] == 2 and all(v.dtype != torch.float32 for v in state["model"].values())
     pred = tmp_path / "pred"
-    assert main(["predict", "--model", "se3net", "--checkpoint", str(weights), "--data", str(data), "--out", str(pred)]) == 0
+    assert main(["predict", "--model", name, "--checkpoint", str(weights), "--data", str(data), "--out", str(pred)]) == 0
     import h5py
 
     with h5py.File(pred / "seq_0000.h5", "r") as f:
         assert set(f) == {"motion_2d"} and f["motion_2d"].shape == (2, 240, 320, 3)
     meta = json.loads((pred / "meta.json").read_text())
-    assert meta["name"] == "se3net-cpu" and meta["parameters"]["image"] == [120, 160]
+    assert meta["name"] == f"{name}-cpu" and meta["parameters"]["image"] == [120, 160]
+    assert ("num_slots" in meta["parameters"]) == (name != "2dflow")  # 2DFlow has no masks
     results = tmp_path / "results.json"
     assert main(["evaluate", str(pred), "--data", str(data), "--out", str(results)]) == 0
     metrics = json.loads(results.read_text())["metrics"]
     assert set(metrics) == {"motion_2d"} and math.isfinite(metrics["motion_2d"])
     # the wrong model for the weights, and a 3D-track option, are one-line errors
-    assert main(["predict", "--model", "2dflow", "--checkpoint", str(weights), "--data", str(data),
+    other = "se3net" if name == "2dflow" else "2dflow"
+    assert main(["predict", "--model", other, "--checkpoint", str(weights), "--data", str(data),
                  "--out", str(tmp_path / "p2")]) == 2
-    assert "holds a 'se3net' model" in capsys.readouterr().err
+    assert f"holds a '{name}' model" in capsys.readouterr().err
     assert main(["train", "--model", "2dflow", "--stage", "cube-single", "--data", str(data), "--out",
                  str(tmp_path / "x.pt")]) == 2
     assert "--stage is not an option of the 2D track" in capsys.readouterr().err
