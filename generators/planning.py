@@ -319,6 +319,8 @@ def plan_tasks(model: str, tasks: str, out: Path, candidates: int, workers: int 
     planner = {"name": describe.name, "description": describe.description}
     if getattr(describe, "weights", None):
         planner["weights"] = describe.weights
+    if getattr(describe, "grid", None):
+        planner["grid"] = [int(g) for g in describe.grid]
     parameters = {"candidates": candidates, "seed": seed, "lambda": _lambda(), "steps": _steps(),
                   "hardware": f"{os.cpu_count()} CPU cores", "workers": workers}
     named = TASK_SETS.get(manifest["task_set"])

@@ -410,7 +410,7 @@ def test_planning_results_fill_the_planning_column_beside_the_papers(board, tmp_
     assert sorted(p.name for p in (board / "planning").iterdir()) == ["dsr-cpu-plan-novel-test.json",
                                                                        "oracle-plan-novel-test.json"]
     md = (board / "README.md").read_text()
-    section = md[md.index("## plan-novel-test"):]
+    section = md[md.index("## plan-novel-test: planning track (reproduced)"):]
     assert "| dsr-cpu (planning) |" in section and "0.290" in section and "100/100 tasks" in section
     assert "| DSR-Net | " in md and "0.720" in md  # the paper's planning IoU stays in its own table
     for bad, why in ((_plan_results(tmp_path, "x", 0.5, pinned=False), "not this toolkit's pinned one"),

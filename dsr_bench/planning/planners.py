@@ -76,6 +76,8 @@ class LearnedPlanner:
         self.description = predictor.description
         self.num_slots = predictor.num_slots
         self.weights = getattr(predictor, "weights", None)
+        #: the grid the network works on (y, x, z), recorded in the results and shown on the leaderboard
+        self.grid = tuple(getattr(predictor, "grid", ()))
         self._model = BatchedModel(predictor)
 
     def reset(self) -> None:

@@ -76,10 +76,11 @@ def leaderboard_rows(results_files: list[str | Path], include_paper: bool = True
 
     from dsr_bench.constants import GRID_SHAPE
 
-    grid = "x".join(map(str, GRID_SHAPE))
     rows = []
     for path in results_files:
         r = json.loads(Path(path).read_text())
+        # the planner's model grid where the results record it (a learned planner); "-" for oracle and random
+        grid = "x".join(str(int(g)) for g in (r.get("planner") or {}).get("grid") or ()) or "-"
         kind = "reproduced" if r.get("pinned") else f"task set not pinned ({r.get('task_checksum', '')[:12]})"
         partial = r["coverage"]["partial"]
         rows.append({"method": f"{r['method']} (planning)", "split": r["task_set"], "kind": kind,
@@ -87,6 +88,7 @@ def leaderboard_rows(results_files: list[str | Path], include_paper: bool = True
                      "grid": grid, "date": r.get("date", "")[:10], "checksum": r.get("task_checksum", "")[:12],
                      "planning_iou": r["metrics"]["iou"]})
     if include_paper:
-        rows += [{"method": m, "split": "ycb-test", "kind": "reported in the paper", "label": "Sec. 4.3", "grid": grid,
+        rows += [{"method": m, "split": "ycb-test", "kind": "reported in the paper", "label": "Sec. 4.3",
+                  "grid": "x".join(map(str, GRID_SHAPE)),
                   "date": "2020", "checksum": "", "planning_iou": v} for m, v in PAPER_ROWS]
     return rows

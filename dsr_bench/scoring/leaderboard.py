@@ -171,6 +171,10 @@ def _tables(rows: list[dict]):
 
     frame = pd.DataFrame(rows)
     for (split, kind), group in frame.groupby(["split", "kind"], sort=True):
+        if "planning_iou" in group and group["planning_iou"].notna().all():  # a planning task set's own table
+            yield split, kind, "planning", group[["method", "grid", "planning_iou", "label", "date", "checksum"]
+                                                 ].reset_index(drop=True), ["planning_iou"]
+            continue
         for track, columns in TRACKS.items():
             cols = [c for c in columns + (("planning_iou",) if track == "3D" else ()) if c in group]
             sub = group.dropna(subset=[c for c in cols if c in group], how="all")
@@ -238,7 +242,8 @@ def build(root: str | Path = "leaderboard") -> tuple[Path, Path]:
         if split in SPLITS:
             md += [f"{SPLITS[split].description}.", ""]
         header = ["method", "model grid", *[COLUMN_TITLES[c] for c in cols], "note", "date", "split checksum"]
-        comparable = kind != "reported in the paper" and (table["method"] == NO_MOTION).any()
+        # a planning table compares planners with each other (random is its yardstick), not with a no-motion row
+        comparable = kind != "reported in the paper" and (track == "planning" or (table["method"] == NO_MOTION).any())
         best = {c: _best(table, c) if comparable or kind == "reported in the paper" else None for c in cols}
         if kind != "reported in the paper" and not comparable:
             md += ["No no-motion (static) row was scored on this version of the split: these rows cannot be compared "
@@ -304,7 +309,7 @@ def _table_plot(root: Path, entries: list[dict], split: str, kind: str, track: s
     from dsr_bench.scoring.plots import MISSING_MATPLOTLIB, leaderboard_series, matplotlib_missing, \
         write_leaderboard_plot
 
-    if not kind.startswith("reproduced"):
+    if not kind.startswith("reproduced") or track == "planning":  # plans have no per-step prediction values
         return None
     panels = leaderboard_series([e for e in entries if e["split"] == split and e["kind"] == kind], track)
     if not panels:
