@@ -293,7 +293,11 @@ def plan_tasks(model: str, tasks: str, out: Path, candidates: int, workers: int 
     from generators.run import check_writable
 
     if model not in PLANNER_NAMES:
-        raise UserError(f"--model {model!r}: choose one of {', '.join(PLANNER_NAMES)}")
+        from dsr_bench.models.predictors import IMAGE_MODELS
+
+        why = (" (the 2D track's models predict image flow, not the 3D masks a plan is scored on)"
+               if model in IMAGE_MODELS else "")
+        raise UserError(f"--model {model!r}: choose one of {', '.join(PLANNER_NAMES)}{why}")
     if candidates < 1:
         raise UserError(f"--candidates {candidates}: must be at least 1")
     if workers < 1:

@@ -159,6 +159,8 @@ def test_errors_of_the_commands_are_one_line_with_exit_2(tmp_path, capsys):
     assert err.startswith("error: task directory not found") and "generate-plan-tasks" in err and "\n" not in err
     assert main(["plan", "--model", "nosuch", "--tasks", str(tmp_path), "--out", str(tmp_path / "o")]) == 2
     assert "choose one of random, oracle" in capsys.readouterr().err
+    assert main(["plan", "--model", "se3net", "--tasks", str(tmp_path), "--out", str(tmp_path / "o")]) == 2
+    assert "predict image flow, not the 3D masks" in capsys.readouterr().err
     assert main(["generate-plan-tasks", "--tasks", "nosuch", "--out", str(tmp_path)]) == 2
     assert "unknown task set 'nosuch'" in capsys.readouterr().err
 

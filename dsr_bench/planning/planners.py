@@ -103,8 +103,11 @@ def make_planner(name: str, oracle_callbacks: tuple[Callable, Callable] | None =
         if oracle_callbacks is None:
             raise UserError("--model oracle needs the simulator: run it through `dsr-bench plan`")
         return OraclePlanner(*oracle_callbacks)
-    from dsr_bench.models.predictors import LEARNED_MODELS, load_predictor
+    from dsr_bench.models.predictors import IMAGE_MODELS, LEARNED_MODELS, load_predictor
 
+    if name in IMAGE_MODELS:
+        raise UserError(f"--model {name}: the 2D track's models predict image flow, not the 3D masks a plan is scored "
+                        f"on; choose one of {', '.join(PLANNER_NAMES)}")
     if name not in LEARNED_MODELS or name == "gtwarp":
         raise UserError(f"--model {name!r}: choose one of {', '.join(PLANNER_NAMES)} (gtwarp needs ground-truth "
                         "flow, which a plan has not)")
