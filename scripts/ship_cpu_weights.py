@@ -34,7 +34,7 @@ def main() -> None:
     parser.add_argument("--models", nargs="+", default=["dsr", "single", "nowarp", "gtwarp", "3dflow"])
     parser.add_argument("--data", type=Path, help="The training data, to record its split checksum if missing.")
     args = parser.parse_args()
-    from dsr_bench.models.training.cpu_track import trained_split_checksum
+    from dsr_bench.models.training.checkpoints import trained_split_checksum
 
     SHIPPED_WEIGHTS.mkdir(parents=True, exist_ok=True)
     for model in args.models:

@@ -206,3 +206,19 @@ def test_the_shipped_2d_weights_are_small_cpu_track_models(name, tmp_path):
     predictor = load_predictor(name)  # no --checkpoint: the shipped file
     assert predictor.name == f"{name}-cpu" and predictor.weights["source"] == "dsr-bench, shipped CPU-track weights"
     assert not predictor.net.training
+
+
+def test_a_file_that_is_not_2d_weights_is_a_one_line_error(tmp_path, capsys):
+    data = write_synthetic_dataset(tmp_path / "data", num_sequences=1, num_steps=2)
+    junk = tmp_path / "junk.pt"
+    junk.write_bytes(b"not a torch file")
+    three_d = tmp_path / "dsr.pt"
+    torch.save({"format": "dsr-bench-cpu-weights", "model": {}, "model_config": {}}, three_d)
+    for path, message in ((junk, "junk.pt: not a loadable dsr-bench checkpoint"),
+                          (three_d, "dsr.pt: not a 2D-track weights file"),
+                          (tmp_path / "missing.pt", "checkpoint not found")):
+        assert main(["predict", "--model", "se3net", "--checkpoint", str(path), "--data", str(data),
+                     "--out", str(tmp_path / "p")]) == 2
+        err = capsys.readouterr().err
+        assert message in err and len(err.strip().splitlines()) == 1
+    assert not (tmp_path / "p").exists()

@@ -22,7 +22,7 @@ from dsr_bench.models.config import ModelConfig
 from dsr_bench.models.training.schedules import StageConfig
 
 __all__ = ["CHECKPOINT_FORMAT", "git_hash", "load_checkpoint", "load_weights", "rng_state", "save_checkpoint",
-           "set_rng_state", "unwrap"]
+           "read_weights_only", "set_rng_state", "trained_split_checksum", "unwrap", "write_weights_file"]
 
 CHECKPOINT_FORMAT = "dsr-bench-checkpoint"
 
@@ -95,16 +95,23 @@ def save_checkpoint(path: Path, model, optimizer, scheduler, model_config: Model
     return path
 
 
-def load_checkpoint(path: Path, map_location="cpu") -> dict:
-    """Load a dsr-bench checkpoint safely (weights_only=True); UserError if it is not one."""
+def read_weights_only(path: Path, map_location="cpu"):
+    """torch.load(path, weights_only=True): what a checkpoint or weights file holds; UserError naming the file if it
+    is missing or cannot be loaded that way (no code in it is ever run)."""
     path = Path(path)
     if not path.is_file():
         raise UserError(f"checkpoint not found: {path}")
     try:
-        state = torch.load(path, map_location=map_location, weights_only=True)
+        return torch.load(path, map_location=map_location, weights_only=True)
     except Exception as exc:
         first = str(exc).strip().splitlines()[0] if str(exc).strip() else ""
         raise UserError(f"{path}: not a loadable dsr-bench checkpoint ({type(exc).__name__}: {first[:200]})") from None
+
+
+def load_checkpoint(path: Path, map_location="cpu") -> dict:
+    """Load a dsr-bench checkpoint safely (weights_only=True); UserError if it is not one."""
+    path = Path(path)
+    state = read_weights_only(path, map_location)
     if not isinstance(state, dict) or not {"model", "model_config"} <= set(state):
         raise UserError(f"{path}: not a dsr-bench checkpoint (no model / model_config); "
                         "train one with `dsr-bench train`")
@@ -113,3 +120,33 @@ def load_checkpoint(path: Path, map_location="cpu") -> dict:
     except (TypeError, ValueError, KeyError) as exc:
         raise UserError(f"{path}: unusable model_config ({exc})") from None
     return state
+
+
+def trained_split_checksum(data_dir: Path, split: str | None) -> str:
+    """The ground-truth checksum of the split trained on (what `dsr-bench info` shows), "" if unknown."""
+    from dsr_bench.dataset.manifest import load_manifest, read_split, split_digest
+
+    try:
+        name, _ = read_split(data_dir, split)
+        return split_digest(load_manifest(data_dir), name)
+    except (UserError, KeyError, ValueError):
+        return ""
+
+
+def half(state: dict) -> dict:
+    """A state dict with its floating-point tensors in fp16 (the CPU-sized tracks' weights files)."""
+    return {k: (v.half() if v.is_floating_point() else v) for k, v in state.items()}
+
+
+def write_weights_file(out: Path, fmt: str, model_config: dict, state: dict, data_dir: Path, split: str | None,
+                       sequences: int, **extra) -> Path:
+    """Write a weights-only file atomically: `fmt`, the model config, fp16 weights, `extra` (the recipe, losses, ...)
+    and the provenance: the data trained on (directory name, split, sequence count, split checksum, never a local
+    path), the git commit and torch's version. Loadable with torch.load(weights_only=True)."""
+    payload = {"format": fmt, "model_config": model_config, "model": half(state), **extra,
+               "data": {"dir": Path(data_dir).resolve().name, "split": split, "sequences": int(sequences),
+                        "split_checksum": trained_split_checksum(Path(data_dir), split)},
+               "git": git_hash(), "torch_version": str(torch.__version__)}
+    with atomic_path(out) as tmp:
+        torch.save(payload, tmp)
+    return Path(out)

@@ -38,7 +38,7 @@ from dsr_bench.atomic import atomic_path
 from dsr_bench.errors import UserError
 from dsr_bench.models import coarse
 from dsr_bench.models.config import ModelConfig
-from dsr_bench.models.training.checkpoints import git_hash
+from dsr_bench.models.training.checkpoints import half, trained_split_checksum, write_weights_file  # noqa: F401
 from dsr_bench.models.training.split_cache import cached_split
 
 CPU_CHECKPOINT_FORMAT = "dsr-bench-cpu-weights"
@@ -148,17 +148,6 @@ def _stage(net, data, batches: int, window: int, recipe: CpuRecipe, lr: float, s
             "loss_last_tenth": [round(float(v), 5) for v in last]}
 
 
-def trained_split_checksum(data_dir: Path, split: str | None) -> str:
-    """The ground-truth checksum of the split trained on (what `dsr-bench info` shows), "" if unknown."""
-    from dsr_bench.dataset.manifest import load_manifest, read_split, split_digest
-
-    try:
-        name, _ = read_split(data_dir, split)
-        return split_digest(load_manifest(data_dir), name)
-    except (UserError, KeyError, ValueError):
-        return ""
-
-
 def stage1_path(out: Path) -> Path:
     """Where a run writing `out` keeps its stage-1 weights."""
     return Path(out).with_suffix(".stage1.pt")
@@ -226,14 +215,7 @@ def train_cpu(recipe: CpuRecipe, data_dir: Path, split: str | None, out: Path, w
                                tuple(config.grid))
         passes = recalibrate_batchnorm(net, windows, "cpu")
     net.eval()
-    payload = {"format": CPU_CHECKPOINT_FORMAT, "model_config": config.as_dict(),
-               "model": {k: (v.half() if v.is_floating_point() else v) for k, v in net.state_dict().items()},
-               "recipe": dataclasses.asdict(recipe), "stages": stages, "bn_recalibration_passes": passes,
-               # the training's moving averages, which recalibration replaced (scripts/batchnorm_modes.py)
-               "bn_moving_averages": {k: (v.half() if v.is_floating_point() else v) for k, v in moving.items()},
-               "data": {"dir": Path(data_dir).resolve().name, "split": split, "sequences": int(count),
-                        "split_checksum": trained_split_checksum(Path(data_dir), split)},
-               "git": git_hash(), "torch_version": str(torch.__version__)}
-    with atomic_path(out) as tmp:
-        torch.save(payload, tmp)
-    return out
+    # the training's moving averages, which recalibration replaced, are kept (scripts/batchnorm_modes.py)
+    return write_weights_file(out, CPU_CHECKPOINT_FORMAT, config.as_dict(), net.state_dict(), data_dir, split, count,
+                              recipe=dataclasses.asdict(recipe), stages=stages, bn_recalibration_passes=passes,
+                              bn_moving_averages=half(moving))

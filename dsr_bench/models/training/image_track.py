@@ -29,10 +29,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from dsr_bench.atomic import atomic_path
 from dsr_bench.errors import UserError
 from dsr_bench.models.image_config import IMAGE_MODEL_NAMES, ImageModelConfig
-from dsr_bench.models.training.checkpoints import git_hash, torch_device
+from dsr_bench.models.training.checkpoints import read_weights_only, torch_device, write_weights_file
 from dsr_bench.models.training.split_cache import cached_split
 
 IMAGE_CHECKPOINT_FORMAT = "dsr-bench-image-weights"
@@ -134,7 +133,6 @@ def train_image_model(recipe: ImageRecipe, data_dir: Path, split: str | None, ou
                       workers: int = 1, report: Callable[[str], None] = print) -> Path:
     """Train one 2D-track model by `recipe` on DATA_DIR's split and write its weights file to `out`."""
     from dsr_bench.models.image_nets import ImageNet
-    from dsr_bench.models.training.cpu_track import trained_split_checksum
 
     dev = torch_device(device)
     config = recipe.model_config()
@@ -168,15 +166,8 @@ def train_image_model(recipe: ImageRecipe, data_dir: Path, split: str | None, ou
                "loss_first_tenth": {k: round(float(np.mean([r[k] for r in records[:tenth]])), 4) for k in records[0]},
                "loss_last_tenth": {k: round(float(np.mean([r[k] for r in records[-tenth:]])), 4) for k in records[0]}}
     net.eval()
-    payload = {"format": IMAGE_CHECKPOINT_FORMAT, "model_config": config.as_dict(),
-               "model": {k: (v.half() if v.is_floating_point() else v) for k, v in net.cpu().state_dict().items()},
-               "recipe": dataclasses.asdict(recipe), "training": summary,
-               "data": {"dir": Path(data_dir).resolve().name, "split": split, "sequences": int(count),
-                        "split_checksum": trained_split_checksum(Path(data_dir), split)},
-               "git": git_hash(), "torch_version": str(torch.__version__)}
-    with atomic_path(out) as tmp:
-        torch.save(payload, tmp)
-    return out
+    return write_weights_file(out, IMAGE_CHECKPOINT_FORMAT, config.as_dict(), net.cpu().state_dict(), data_dir, split,
+                              count, recipe=dataclasses.asdict(recipe), training=summary)
 
 
 def load_image_weights(path: Path, model: str | None = None, map_location="cpu"):
@@ -185,13 +176,7 @@ def load_image_weights(path: Path, model: str | None = None, map_location="cpu")
     from dsr_bench.models.image_nets import ImageNet
 
     path = Path(path)
-    if not path.is_file():
-        raise UserError(f"checkpoint not found: {path}")
-    try:
-        state = torch.load(path, map_location=map_location, weights_only=True)
-    except Exception as exc:
-        raise UserError(f"{path}: not a loadable weights file ({type(exc).__name__}); train one with "
-                        "`dsr-bench train --model 2dflow|se3net|se3posenet`") from None
+    state = read_weights_only(path, map_location)
     if not isinstance(state, dict) or state.get("format") != IMAGE_CHECKPOINT_FORMAT:
         raise UserError(f"{path}: not a 2D-track weights file; train one with "
                         "`dsr-bench train --model 2dflow|se3net|se3posenet`")
