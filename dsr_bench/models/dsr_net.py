@@ -277,6 +277,13 @@ class DSRNet(nn.Module):
 
         Returns mask_logits (B, K, ...), mask (softmax, fp32, background last), motion (B, 3, ...)
         fp32 in voxels (dy, dx, dz) and the representation (B, C, ...)."""
+        out = self.represent(tsdf, state)
+        out["motion"] = self.motion_of(out["representation"], out["mask"], action)
+        return out
+
+    def represent(self, tsdf: torch.Tensor, state: torch.Tensor) -> dict[str, torch.Tensor]:
+        """The part of `forward` that does not see the action: representation, mask_logits and mask (softmax,
+        fp32). The planning track runs it once per state and `motion_of` once per batch of candidate actions."""
         b = tsdf.shape[0]
         if tuple(tsdf.shape[1:]) != tuple(self.config.grid):
             raise ValueError(f"tsdf grid {tuple(tsdf.shape[1:])} differs from the model's {tuple(self.config.grid)}")
@@ -286,21 +293,25 @@ class DSRNet(nn.Module):
         x = torch.cat([tsdf.unsqueeze(1), coords, state.to(tsdf.dtype)], 1)
         if self.channels_last:
             x = x.contiguous(memory_format=torch.channels_last_3d)
-            action = action.contiguous(memory_format=torch.channels_last)
         rep = self.decoder(*self.encoder(x))
         logits = self.mask_head(rep)
         with torch.autocast(tsdf.device.type, enabled=False):  # softmax, pivots and blending in fp32
             mask = torch.softmax(logits.float(), 1)
+        return {"mask_logits": logits, "mask": mask, "representation": rep}
+
+    def motion_of(self, rep: torch.Tensor, mask: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        """The motion (B, 3, ...) fp32 in voxels (dy, dx, dz) of actions (B, 8, D0, D1) from a representation
+        and its mask (`represent`)."""
+        if self.channels_last:
+            action = action.contiguous(memory_format=torch.channels_last)
         if self.config.motion == "flow":
-            motion = self.motion_head(rep, action).float()
-        else:
-            params = self.motion_head(rep, action)
-            with torch.autocast(tsdf.device.type, enabled=False):
-                params = params.float()
-                rotations = euler_to_matrix(params[..., 3:], self.config.euler)
-                pivots = soft_centroids(mask[:, :-1])
-                motion = blended_motion(mask, rotations, params[..., :3], pivots)
-        return {"mask_logits": logits, "mask": mask, "motion": motion, "representation": rep}
+            return self.motion_head(rep, action).float()
+        params = self.motion_head(rep, action)
+        with torch.autocast(rep.device.type, enabled=False):
+            params = params.float()
+            rotations = euler_to_matrix(params[..., 3:], self.config.euler)
+            pivots = soft_centroids(mask[:, :-1])
+            return blended_motion(mask, rotations, params[..., :3], pivots)
 
     @torch.no_grad()
     def next_state(self, outputs: dict, gt_flow: torch.Tensor | None = None, gt_mask: torch.Tensor | None = None,

@@ -1,10 +1,10 @@
 """Candidate actions through a DSR-Net-like model (`dsr_bench.models.dsr_net.DSRNet`) against one state.
 
 The representation and the masks depend on the observation and the history only, so the volume encoder, the
-decoder and the mask head run once per step; only the motion head (SE(3) or 3DFlow) runs per candidate, in
-batches. With BatchNorm in eval mode (the shipped CPU-track weights) this gives, per candidate, exactly what
-`DSRNet.forward` gives; with the official batch statistics each candidate runs alone (batch 1), as forward
-would at inference.
+decoder and the mask head run once per step (`DSRNet.represent`); only the motion head (`DSRNet.motion_of`:
+SE(3) or 3DFlow) runs per candidate, in batches. With BatchNorm in eval mode (the shipped CPU-track weights)
+this gives, per candidate, exactly what `DSRNet.forward` gives; with the official batch statistics each
+candidate runs alone (batch 1), as forward would at inference.
 
 The predicted next state of a candidate: each voxel labelled in the predicted masks at t (on the benchmark's
 grid) moved by the predicted 3D flow at it (benchmark voxels) and rounded to the nearest voxel (forward
@@ -68,14 +68,10 @@ class BatchedModel:
         volume = np.asarray(tsdf, np.float32)
         volume = volume if self.factor == 1 else coarse.pool_tsdf(volume, self.factor)
         x = torch.from_numpy(volume).unsqueeze(0).to(self.device)
-        net = self.model
-        state = torch.zeros_like(self.state) if self.config.history == "none" else self.state
-        coords = net.coords.unsqueeze(0).to(x.dtype)
         with self._bn():
-            rep = net.decoder(*net.encoder(torch.cat([x.unsqueeze(1), coords, state.to(x.dtype)], 1)))
-            mask = torch.softmax(net.mask_head(rep).float(), 1)
-        self._rep, self._mask = rep, mask
-        labels = slot_labels(mask)[0].cpu().numpy()
+            out = self.model.represent(x, self.state)
+        self._rep, self._mask = out["representation"], out["mask"]
+        labels = slot_labels(self._mask)[0].cpu().numpy()
         self._labels = labels if self.factor == 1 else coarse.unpool_mask(labels, self.factor)
         self._voxels = np.argwhere(self._labels > 0)
         return self._labels
@@ -85,12 +81,11 @@ class BatchedModel:
         """Candidate actions (B, 3) on the benchmark grid -> the model's motion (B, 3, *model grid) in model voxels."""
         from dsr_bench.models import coarse
         from dsr_bench.models.data import action_map
-        from dsr_bench.models.se3 import blended_motion, euler_to_matrix, soft_centroids
 
         acts = np.asarray(actions, np.int64).reshape(-1, 3)
         grid = tuple(self.config.grid)
         maps = action_map(acts if self.factor == 1 else coarse.coarse_action(acts, self.factor), grid[:2]).to(self.device)
-        net, b = self.model, len(acts)
+        b = len(acts)
         chunks = [slice(i, i + 1) for i in range(b)] if self.predictor.official_bn else [slice(0, b)]
         out = []
         with self._bn():
@@ -98,12 +93,7 @@ class BatchedModel:
                 n = part.stop - part.start
                 rep = self._rep.expand(n, *self._rep.shape[1:])
                 mask = self._mask.expand(n, *self._mask.shape[1:])
-                if self.config.motion == "flow":
-                    out.append(net.motion_head(rep, maps[part]).float())
-                    continue
-                params = net.motion_head(rep, maps[part]).float()
-                rotations = euler_to_matrix(params[..., 3:], self.config.euler)
-                out.append(blended_motion(mask, rotations, params[..., :3], soft_centroids(mask[:, :-1])))
+                out.append(self.model.motion_of(rep, mask, maps[part]))
         return torch.cat(out)
 
     def predict(self, actions: np.ndarray) -> np.ndarray:
