@@ -8,6 +8,8 @@ from typing import Optional
 
 import typer
 
+from dsr_bench.engines import HELP as ENGINE_HELP
+
 OBJECT_SETS_HELP = "cube | shapenet | ycb | procedural | procedural-novel"
 
 
@@ -22,21 +24,39 @@ def generate(
     objects_per_scene: Optional[int] = typer.Option(None, "--objects-per-scene", help="Objects per scene, 1-5 (default 4)."),
     policy: Optional[str] = typer.Option(None, "--policy", help="heuristic (the paper's) or random."),
     cameras: str = typer.Option("front", "--cameras", help="front, or front,back for the rig's second view."),
-    workers: int = typer.Option(1, "--workers", "-w", help="Parallel worker processes."),
-    shard: str = typer.Option("0/1", "--shard", help="Generate only shard i of n (i/n), e.g. for a SLURM array."),
+    workers: Optional[int] = typer.Option(None, "--workers", "-w", help="Parallel worker processes (default 1; "
+                                          "with --ray local the CPUs of its Ray, with --slurm those of each task)."),
+    shard: Optional[str] = typer.Option(None, "--shard", help="Generate only shard i of n (i/n), e.g. in a SLURM "
+                                        "array written by hand (--ray and --slurm shard the run themselves)."),
     object_root: Optional[Path] = typer.Option(None, "--object-root", help="Mesh root for shapenet / ycb."),
+    ray: Optional[str] = typer.Option(None, "--ray", metavar="ADDRESS", help=ENGINE_HELP["ray"]),
+    slurm: bool = typer.Option(False, "--slurm", help=ENGINE_HELP["slurm"]),
+    slurm_partition: Optional[str] = typer.Option(None, "--slurm-partition", help=ENGINE_HELP["slurm_partition"]),
+    slurm_time: Optional[int] = typer.Option(None, "--slurm-time", metavar="MINUTES", help=ENGINE_HELP["slurm_time"]),
+    slurm_tasks: Optional[int] = typer.Option(None, "--slurm-tasks", help=ENGINE_HELP["slurm_tasks"]),
+    slurm_logs: Optional[Path] = typer.Option(None, "--slurm-logs", help=ENGINE_HELP["slurm_logs"]),
+    slurm_local: bool = typer.Option(False, "--slurm-local", help=ENGINE_HELP["slurm_local"]),
 ) -> None:
-    """Simulate pushing sequences (pybullet) and write them with ground truth, a manifest and splits."""
+    """Simulate pushing sequences (pybullet) and write them with ground truth, a manifest and splits: here, on a Ray
+    cluster (--ray) or in a SLURM job array (--slurm), with the same arrays whichever."""
     from rich.console import Console
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
     from rich.table import Table
 
+    from dsr_bench.engines import engine_from_options, slurm_options_given
+    from dsr_bench.errors import UserError
     from generators.run import finalize_dataset, generate_dataset, plan_from_arguments, prepare_run, summarize
 
     console = Console(stderr=True)
     plan = plan_from_arguments(objects=objects, num_sequences=num_sequences, out=out, split=split, seed=seed,
                                steps=steps, objects_per_scene=objects_per_scene, policy=policy, cameras=cameras,
-                               workers=workers, shard=shard, object_root=object_root)
+                               workers=1 if workers is None else workers, shard=shard or "0/1",
+                               object_root=object_root)
+    if shard is not None and (ray is not None or slurm):
+        raise UserError(f"--shard {shard} with {'--ray' if ray is not None else '--slurm'}: the engine splits the run "
+                        "itself; drop --shard")
+    engine = engine_from_options(ray, slurm, workers, slurm_options_given(slurm_partition, slurm_time, slurm_tasks,
+                                                                          slurm_logs, slurm_local), "dsr-bench-generate")
     total = len(plan.indices())
     todo, skipped = prepare_run(plan)
     with Progress(TextColumn("[bold]generate"), BarColumn(), MofNCompleteColumn(),
@@ -50,7 +70,7 @@ def generate(
             elapsed = bar.tasks[task].elapsed or 1e-9
             bar.update(task, advance=1, rate=f"{len(done) / elapsed * 60:.1f} seq/min")
 
-        results = generate_dataset(plan, todo, progress=advance)
+        results = generate_dataset(plan, todo, progress=advance, engine=engine)
         bar.update(task, completed=total)
     manifest = finalize_dataset(plan)
     stats = summarize(results)
@@ -58,6 +78,8 @@ def generate(
     table.add_row("object set / policy", f"{plan.config.objects} / {plan.config.policy}")
     table.add_row("shard", f"{plan.shard[0]}/{plan.shard[1]}: {total} of {plan.num_sequences} sequences")
     table.add_row("generated / already present", f"{len(results)} / {len(skipped)}")
+    if engine is not None:
+        table.add_row("ran on", engine.label)
     if stats:
         table.add_row("seconds per sequence (per worker)", f"{stats['mean_seconds']:.2f}")
         table.add_row("  physics / render", f"{stats['mean_physics_seconds']:.2f} / {stats['mean_render_seconds']:.2f}")

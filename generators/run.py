@@ -5,7 +5,9 @@ arrays do not depend on `workers` or `shard`. Every file is written under a temp
 renamed when complete (`dsr_bench.atomic`), so a killed run (even kill -9) leaves only complete files
 under final names; rerunning the same command skips them and finishes the rest. Shards may run at
 the same time into one directory, on one host or several sharing it: a run removes only the
-temporaries whose writer is provably gone, never a live writer's.
+temporaries whose writer is provably gone, never a live writer's. The sequences of a run may also
+run on a Ray cluster or a SLURM job array (`generate_dataset`'s engine, `dsr_bench.engines`), the
+driver writing the manifest once they are all done.
 
 Before any simulation a run checks that it can write in --out and that every file already named
 like one of its sequences is a complete sequence of the same arguments (skipped); anything else
@@ -17,14 +19,15 @@ from __future__ import annotations
 import os
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
 
 from dsr_bench.constants import MAX_OBJECTS_PER_SCENE
-from dsr_bench.errors import UserError
 from dsr_bench.dataset.splits import sequence_name, sequence_seed
+from dsr_bench.engines import Engine, LocalEngine
+from dsr_bench.errors import UserError
 from generators.episode import EpisodeConfig
 
 
@@ -236,6 +239,7 @@ def _init_worker(objects: str, object_root: str | None) -> None:
 
     os.environ.setdefault("OMP_NUM_THREADS", "1")
     _WORKER["set"] = get_object_set(objects, object_root)
+    _WORKER["key"] = (objects, object_root)
 
 
 def _generate_one(plan: RunPlan, index: int) -> SequenceResult:
@@ -253,8 +257,13 @@ def _generate_one(plan: RunPlan, index: int) -> SequenceResult:
                           episode.timings)
 
 
-def _pool_task(args) -> SequenceResult:
-    return _generate_one(*args)
+def sequence_job(job: tuple[RunPlan, int]) -> SequenceResult:
+    """Generate and write sequence `index` of `plan`, job = (plan, index), in whichever process runs it (this one, a
+    local worker, a Ray worker, a SLURM array task): the object set is loaded once per process."""
+    plan, index = job
+    if _WORKER.get("key") != (plan.config.objects, plan.config.object_root):
+        _init_worker(plan.config.objects, plan.config.object_root)
+    return _generate_one(plan, index)
 
 
 def prepare_run(plan: RunPlan) -> tuple[list[int], list[str]]:
@@ -283,27 +292,22 @@ def prepare_run(plan: RunPlan) -> tuple[list[int], list[str]]:
     return todo, skipped
 
 
-def generate_dataset(plan: RunPlan, todo: list[int],
-                     progress: Callable[[SequenceResult], None] | None = None) -> list[SequenceResult]:
-    """Generate the sequences `todo` (indices from `prepare_run`) and return their results."""
-    results: list[SequenceResult] = []
-    if plan.workers == 1 or len(todo) <= 1:
-        _init_worker(plan.config.objects, plan.config.object_root)
-        for index in todo:
-            results.append(_generate_one(plan, index))
-            if progress:
-                progress(results[-1])
-        return results
+def generate_dataset(plan: RunPlan, todo: list[int], progress: Callable[[SequenceResult], None] | None = None,
+                     engine: Engine | None = None) -> list[SequenceResult]:
+    """Generate the sequences `todo` (indices from `prepare_run`) and return their results in the order of `todo`;
+    `progress(result)` is called as each sequence is written. `engine` (`dsr_bench.engines`) says where they run:
+    a Ray cluster, a SLURM array; None: `plan.workers` processes on this machine. Each sequence is the same array
+    for array wherever it runs (`sequence_seed`); the workers write into `plan.out` (made absolute for them)."""
     import multiprocessing as mp
-    from concurrent.futures import ProcessPoolExecutor
 
-    ctx = mp.get_context("spawn")
-    with ProcessPoolExecutor(plan.workers, mp_context=ctx, initializer=_init_worker,
-                             initargs=(plan.config.objects, plan.config.object_root)) as pool:
-        for result in pool.map(_pool_task, [(plan, i) for i in todo]):
-            results.append(result)
-            if progress:
-                progress(result)
+    engine = engine or LocalEngine(plan.workers, mp.get_context("spawn"))
+    plan = replace(plan, out=plan.out.absolute())
+    results: list = [None] * len(todo)
+    for position, result in engine.as_finished(sequence_job, [(plan, index) for index in todo],
+                                               describe=lambda job: sequence_name(job[1])):
+        results[position] = result
+        if progress:
+            progress(result)
     return results
 
 

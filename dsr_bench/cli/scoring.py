@@ -8,6 +8,8 @@ from typing import Optional
 
 import typer
 
+from dsr_bench.engines import HELP as ENGINE_HELP
+
 leaderboard_app = typer.Typer(help="Build the leaderboard tables or add a results entry.", no_args_is_help=True)
 
 
@@ -87,26 +89,41 @@ def evaluate(
     out: Optional[Path] = typer.Option(None, "--out", "-o", help="Write the results JSON here, and its per-step "
                                        "plots beside it (results.json -> results-steps.png)."),
     allow_partial: bool = typer.Option(False, "--allow-partial", help="Score the valid sequences despite problems."),
-    workers: int = typer.Option(0, "--workers", "-w", help="Worker processes (0 = all cores)."),
+    workers: int = typer.Option(0, "--workers", "-w", help="Worker processes (0 = all cores; with --ray local the "
+                                "CPUs of its Ray, with --slurm the processes of each task, 0 = 1)."),
+    ray: Optional[str] = typer.Option(None, "--ray", metavar="ADDRESS", help=ENGINE_HELP["ray"]),
+    slurm: bool = typer.Option(False, "--slurm", help=ENGINE_HELP["slurm"]),
+    slurm_partition: Optional[str] = typer.Option(None, "--slurm-partition", help=ENGINE_HELP["slurm_partition"]),
+    slurm_time: Optional[int] = typer.Option(None, "--slurm-time", metavar="MINUTES", help=ENGINE_HELP["slurm_time"]),
+    slurm_tasks: Optional[int] = typer.Option(None, "--slurm-tasks", help=ENGINE_HELP["slurm_tasks"]),
+    slurm_logs: Optional[Path] = typer.Option(None, "--slurm-logs", help=ENGINE_HELP["slurm_logs"]),
+    slurm_local: bool = typer.Option(False, "--slurm-local", help=ENGINE_HELP["slurm_local"]),
 ) -> None:
-    """Validate a predictions directory strictly, then score it with the benchmark's metrics.
+    """Validate a predictions directory strictly, then score it with the benchmark's metrics: here, on a Ray
+    cluster (--ray) or in a SLURM job array (--slurm), with the same numbers whichever.
     Each problem is one line `PRED_DIR/FILE: problem` on stderr; any problem means no score (exit 1).
     A progress bar (per sequence) shows on stderr when it is a terminal."""
     from rich.console import Console
 
     from dsr_bench.atomic import write_text
-    from dsr_bench.progress import progress_bar
+    from dsr_bench.engines import engine_from_options, slurm_options_given
     from dsr_bench.errors import UserError
+    from dsr_bench.progress import progress_bar
     from dsr_bench.scoring.evaluate import evaluate as run
     from dsr_bench.scoring.predictions import infer_source
 
     if not pred_dir.is_dir():
         raise UserError(f"predictions directory not found: {pred_dir}")
+    engine = engine_from_options(ray, slurm, workers, slurm_options_given(slurm_partition, slurm_time, slurm_tasks,
+                                                                          slurm_logs, slurm_local), "dsr-bench-evaluate")
     data, split, note = infer_source(pred_dir, data, split)
     if note:
         typer.echo(_printable(note), err=True)
+    if engine is not None:  # remote workers are given absolute paths
+        pred_dir, data = pred_dir.absolute(), data.absolute()
     with progress_bar("evaluate") as progress:
-        evaluation = run(pred_dir, data, split, allow_partial=allow_partial, workers=workers, progress=progress)
+        evaluation = run(pred_dir, data, split, allow_partial=allow_partial, workers=workers, progress=progress,
+                         engine=engine)
     console = Console(stderr=True)
     for warning in evaluation.warnings:
         typer.echo(f"warning: {_printable(warning)}", err=True)

@@ -26,6 +26,7 @@ import h5py
 import numpy as np
 
 from dsr_bench.errors import UserError
+from dsr_bench.engines import Engine
 from dsr_bench.parallel import run_in_order
 from dsr_bench.scoring.predictions import META_TYPES
 
@@ -283,9 +284,11 @@ def _pinned(manifest: dict, split: str) -> bool:
 
 
 def evaluate(pred_dir: str | Path, data_dir: str | Path, split: str | None = None, allow_partial: bool = False,
-             workers: int = 0, progress: Callable[[int, int], None] | None = None) -> Evaluation:
+             workers: int = 0, progress: Callable[[int, int], None] | None = None, engine: Engine | None = None
+             ) -> Evaluation:
     """Check and score a predictions directory against a split of a dataset. `progress(done, total)`: called once
-    per sequence scored, as each finishes (the sequences that pass the structural checks)."""
+    per sequence scored, as each finishes (the sequences that pass the structural checks). `engine`
+    (`dsr_bench.engines`: Ray, SLURM) scores the sequences instead of `workers` local processes."""
     from dsr_bench import __version__
     from dsr_bench.dataset.manifest import load_manifest, read_split, split_digest
     from dsr_bench.scoring.predictions import read_meta
@@ -299,7 +302,9 @@ def evaluate(pred_dir: str | Path, data_dir: str | Path, split: str | None = Non
     valid, problems = check_structure(pred_dir, data_dir, names)
     jobs = [(name, str(path), str(data_dir / f"{name}.h5")) for name, path in valid.items()]
     workers = workers or min(len(jobs), os.cpu_count() or 1)
-    outcomes = run_in_order(score_sequence, jobs, workers, progress)  # in the order of jobs: results bit-identical
+    # in the order of jobs, whoever scores them: results bit-identical
+    outcomes = (run_in_order(score_sequence, jobs, workers, progress) if engine is None
+                else engine.map(score_sequence, jobs, progress, describe=lambda job: job[0]))
     scored = {}
     for name, found, values in outcomes:
         problems += [(f"{name}.h5", p) for p in found]
