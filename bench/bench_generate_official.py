@@ -1,4 +1,5 @@
-"""Benchmark: seconds per 10-step cube sequence, the authors' generator against ours, side by side.
+"""Benchmark: seconds per 10-step cube sequence and bytes on disk per step, the authors' generator against ours,
+side by side.
 
     python bench/bench_generate_official.py [--official-repo PATH] [--repeats 3] [--steps 10]
                                             [--official-python PATH] [--official-env DIR] [--no-venv]
@@ -10,8 +11,9 @@ sequence to a fresh directory:
   from their repository root in their own environment (built once with their dependencies, see
   bench/official.py; --no-venv runs it with --official-python as is). It is unseeded;
 - ours: `dsr-bench generate --objects cube -n 1 --workers 1 --seed K --out DIR`, K = --seed + run.
-Prints each side's median wall seconds per sequence, the ratio of the medians and one markdown
-table row (date, cores, both medians, ratio) to quote. Without `--official-repo` only our side is
+Prints each side's median wall seconds per sequence, the ratio of the medians, each side's median bytes on
+disk per step (every file the run wrote, over its steps; the authors' files hold one step each) and their
+ratio, and one markdown table row (date, cores, both medians, ratios) to quote. Without `--official-repo` only our side is
 run and no comparison is made. Both generators are single-process; run on an idle machine.
 """
 
@@ -59,10 +61,15 @@ def official_command(python: Path, out: Path, steps: int) -> list[str]:
     return cmd + (["--max_path_length", str(steps)] if steps != 10 else [])
 
 
+def bytes_on_disk(out: Path) -> int:
+    """Bytes of every file under `out` (what a run wrote)."""
+    return sum(p.stat().st_size for p in out.rglob("*") if p.is_file())
+
+
 def run_process(what: str, cmd: list[str], out: Path, cwd: Path | None, logs: Path, timeout: float,
-                env: dict | None = None) -> float:
-    """Wall seconds of one fresh process writing into `out` (removed afterwards); a failure, or a
-    run that wrote nothing, is a one-line UserError with the last line of its output."""
+                env: dict | None = None, sizes: list[int] | None = None) -> float:
+    """Wall seconds of one fresh process writing into `out` (removed afterwards; the bytes it wrote appended to
+    `sizes`); a failure, or a run that wrote nothing, is a one-line UserError with the last line of its output."""
     log = logs / ("theirs.log" if what == THEIRS else "ours.log")
     with open(log, "w") as fh:
         t0 = time.perf_counter()
@@ -76,6 +83,8 @@ def run_process(what: str, cmd: list[str], out: Path, cwd: Path | None, logs: Pa
                         f"({last_line(log.read_text())}; output in {log})")
     if not out.is_dir() or not any(p.is_file() for p in out.rglob("*")):
         raise UserError(f"{what} wrote nothing under {out} (`{' '.join(cmd)}`; output in {log})")
+    if sizes is not None:
+        sizes.append(bytes_on_disk(out))
     shutil.rmtree(out)
     return seconds
 
@@ -97,18 +106,20 @@ def main(argv: list[str] | None = None) -> dict:
     logs = Path(tempfile.mkdtemp(prefix="dsr-bench-generate-logs-"))  # kept when a run fails
     try:
         count = {"ours": 0, "theirs": 0}
+        sizes: dict[str, list[int]] = {OURS: [], THEIRS: []}
 
         def ours() -> float:
             seed = args.seed + count["ours"]
             count["ours"] += 1
             out = work / f"ours-{seed}"
-            return run_process(OURS, our_command(out, seed, args.steps), out, None, logs, args.timeout)
+            return run_process(OURS, our_command(out, seed, args.steps), out, None, logs, args.timeout, sizes=sizes[OURS])
 
         def theirs() -> float:
             count["theirs"] += 1
             out = work / f"theirs-{count['theirs']}"
             env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "PYTHONHOME", "VIRTUAL_ENV")}
-            return run_process(THEIRS, official_command(python, out, args.steps), out, repo, logs, args.timeout, env)
+            return run_process(THEIRS, official_command(python, out, args.steps), out, repo, logs, args.timeout, env,
+                               sizes[THEIRS])
 
         runs = {THEIRS: theirs, OURS: ours} if repo else {OURS: ours}
         timings = alternate(runs, args.repeats)
@@ -116,15 +127,23 @@ def main(argv: list[str] | None = None) -> dict:
         print(f"one {args.steps}-step cube sequence per run, a fresh process each; {os.cpu_count()} cores; "
               f"{args.repeats} runs of each side" + (", alternated" if repo else ""))
         figures = report(timings, [(THEIRS, OURS)] if repo else [], per=1, unit="sequence")
+        per_step = {side: statistics.median(b) / args.steps / 1e6 for side, b in sizes.items() if b}
+        for side, mb in per_step.items():
+            print(f"{side}: {mb:.3f} MB on disk per step (median of {len(sizes[side])} runs)")
+        if len(per_step) == 2:
+            figures["MB per step"] = per_step
+            print(f"bytes per step, {THEIRS} / {OURS}: {per_step[THEIRS] / per_step[OURS]:.2f}x")
         if not repo:
             print("no comparison with the authors' code was made: pass --official-repo PATH (a checkout of "
                   "columbia-ai-robotics/dsr) to run their data_generation.py beside ours")
             return {"timings": timings, "figures": figures}
         date = dt.date.today().isoformat()
-        print(f"\n| date | machine | {THEIRS}, s/sequence | {OURS}, s/sequence | ratio | runs |")
-        print("|---|---|---|---|---|---|")
+        print(f"\n| date | machine | {THEIRS}, s/sequence | {OURS}, s/sequence | ratio | MB/step, theirs | "
+              "MB/step, ours | ratio | runs |")
+        print("|---|---|---|---|---|---|---|---|---|")
         print(f"| {date} | {os.cpu_count()} cores | {statistics.median(timings[THEIRS]):.1f} | "
               f"{statistics.median(timings[OURS]):.2f} | {figures[f'{THEIRS} / {OURS}']:.1f}x | "
+              f"{per_step[THEIRS]:.2f} | {per_step[OURS]:.2f} | {per_step[THEIRS] / per_step[OURS]:.1f}x | "
               f"{args.repeats} + {args.repeats}, alternated, medians |")
         return {"timings": timings, "figures": figures}
     finally:

@@ -302,7 +302,10 @@ def test_bench_generate_alternates_the_authors_generator_with_ours(fake_repo, mo
     assert seeds == [5, 6]  # a new sequence per run
     assert f"{bench.THEIRS} / {bench.OURS}:" in text
     row = [line for line in text.splitlines() if line.startswith("| 2")]
-    assert len(row) == 1 and row[0].count("|") == 7 and "alternated" in row[0]
+    assert len(row) == 1 and row[0].count("|") == 10 and "alternated" in row[0]
+    mb = out["figures"]["MB per step"]  # every file each run wrote, over its 10 steps: ours wrote one byte
+    assert mb[bench.OURS] == pytest.approx(1 / 10 / 1e6) and mb[bench.THEIRS] > 0
+    assert f"bytes per step, {bench.THEIRS} / {bench.OURS}:" in text
 
 
 def test_bench_generate_without_a_checkout_runs_only_ours(monkeypatch, capsys):
