@@ -30,7 +30,8 @@ def main() -> None:
     args = parser.parse_args()
 
     from dsr_bench.dataset.digests import digest_attrs
-    from dsr_bench.dataset.sequence import _DEFLATE, write_sequence
+    from dsr_bench.dataset.sequence import write_sequence
+    from dsr_bench.dataset.storage import _DEFLATE
     from dsr_bench.dataset.splits import sequence_seed
     from generators.episode import EpisodeConfig, generate_episode
     from generators.objects import get_object_set

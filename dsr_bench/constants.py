@@ -117,5 +117,9 @@ FOOTPRINT_MIN_Z: int = 2
 # --- File format -----------------------------------------------------------------------------
 #: 2 (dsr-bench 0.2): digests by group (`dsr_bench.dataset.digests`), the exact renderer, the authors' policy
 #: and dynamics; files of schema 1 hold the data of an earlier benchmark version and are regenerated.
-SCHEMA_VERSION: int = 2
+#: 3 (dsr-bench 0.3): the same arrays; a camera's world points may be left out of the file and derived from its
+#: depth on reading (`derived_arrays`), and the 3D flow is stored in tiles (dsr_bench.dataset.storage).
+SCHEMA_VERSION: int = 3
+#: Schemas this toolkit reads: 2 holds the same arrays with every camera's points stored.
+READABLE_SCHEMA_VERSIONS: tuple[int, ...] = (2, 3)
 FORMAT_NAME: str = "dsr-bench-sequence"

@@ -194,7 +194,7 @@ def recorded_sequence_arguments(path: Path) -> dict:
 
     import h5py
 
-    from dsr_bench.constants import FORMAT_NAME, SCHEMA_VERSION
+    from dsr_bench.constants import FORMAT_NAME, READABLE_SCHEMA_VERSIONS, SCHEMA_VERSION
 
     fix = "move it away or use another --out"
     if not path.is_file():
@@ -209,7 +209,7 @@ def recorded_sequence_arguments(path: Path) -> dict:
         fmt = fmt.decode(errors="replace")
     if fmt != FORMAT_NAME:
         raise UserError(f"{path} is not a dsr-bench sequence (format attribute {fmt!r}); {fix}")
-    if attrs.get("schema_version") != SCHEMA_VERSION:
+    if attrs.get("schema_version") not in READABLE_SCHEMA_VERSIONS:  # an older schema of the same arrays is kept
         raise UserError(f"{path} was written by another dsr-bench version (schema {attrs.get('schema_version')}, "
                         f"this one writes {SCHEMA_VERSION}); {fix}")
     try:

@@ -83,7 +83,7 @@ def test_file_digests_see_any_array_change(data, tmp_path):
 
 def test_build_manifest_fields_and_split_checksum(data):
     m = build_manifest(data)
-    assert m["format"] == "dsr-bench-dataset" and m["schema_version"] == 2
+    assert m["format"] == "dsr-bench-dataset" and m["schema_version"] == 3
     assert [s["name"] for s in m["sequences"]] == ["seq_0000", "seq_0001"]
     entry = m["sequences"][0]
     assert entry["file"] == "seq_0000.h5" and entry["num_steps"] == 1 and entry["num_objects"] == 2

@@ -75,10 +75,7 @@ def _rewrite(path: Path, change) -> None:
     """Rewrite a sequence with `change(arrays)` applied and its digests recomputed, as a generator that
     produced those arrays would have written it."""
     with SequenceReader(path) as seq:
-        names: list[str] = []
-        seq._file.visititems(lambda n, o: names.append(n) if isinstance(o, h5py.Dataset)
-                             and not n.startswith("meshes/") else None)
-        arrays = {n: seq.read(n) for n in names}
+        arrays = {n: seq.read(n) for n in seq.array_names()}  # stored and derived (points)
         attrs = {k: v for k, v in seq.attrs.items() if k not in ("format", "schema_version")}
         meshes = {i: seq.mesh(i) for i in range(seq.num_objects) if seq.mesh(i) is not None}
     change(arrays)

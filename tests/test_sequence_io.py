@@ -1,5 +1,7 @@
 """The sequence file: schema-checked atomic writes and validated lazy reads."""
 
+import json
+
 import h5py
 import numpy as np
 import pytest
@@ -25,7 +27,17 @@ def test_round_trip_shapes_dtypes_and_values(synthetic):
             assert stored.dtype == array.dtype and stored.shape == array.shape, name
             assert np.array_equal(stored, array, equal_nan=True), name
         assert seq.read("tsdf", 1).shape == resolve_shape(FIELDS["tsdf"], 2, 2)[1:]
-        assert seq.dataset("scene_flow_3d").chunks == (1, 3, 128, 128, 48)  # one chunk per step
+        assert seq.dataset("tsdf").chunks == (1, 128, 128, 48)  # one chunk per step
+        flow = seq.dataset("scene_flow_3d")  # (Y, X) tiles, byte-shuffled, all-zero tiles never written
+        assert flow.chunks == (1, 3, 16, 16, 48) and flow.shuffle and flow.compression == "gzip"
+        written = flow.id.get_num_chunks()
+        empty = sum(not arrays["scene_flow_3d"][t, :, y:y + 16, x:x + 16].any()
+                    for t in range(2) for y in range(0, 128, 16) for x in range(0, 128, 16))
+        assert written == 2 * 64 - empty and empty > 0
+        # a plain h5py read (HDF5's own filters and fill value) sees the same arrays
+        with h5py.File(synthetic, "r") as plain:
+            for name in ("scene_flow_3d", "mask_3d", "tsdf"):
+                assert np.array_equal(plain[name][()], arrays[name]), name
         assert seq.dataset("mask_3d").attrs["units"] == "instance id"
         v, f = seq.mesh(1)
         assert np.allclose(v, meshes[1][0]) and np.array_equal(f, meshes[1][1])
@@ -76,7 +88,7 @@ def test_sparse_deflate_round_trips(pattern):
     """The chunk compressor (zero blocks spliced in precompressed) inflates back to the exact bytes."""
     import zlib
 
-    from dsr_bench.dataset.sequence import _deflate_sparse
+    from dsr_bench.dataset.storage import _deflate_sparse
 
     rng = np.random.default_rng(0)
     data = np.zeros(128 * 128 * 48, dtype=np.float32)
@@ -89,9 +101,54 @@ def test_sparse_deflate_round_trips(pattern):
     assert zlib.decompress(_deflate_sparse(data.view(np.uint8))) == data.tobytes()
 
 
+def test_tiled_grids_round_trip_bit_for_bit_and_read_steps_agrees(tmp_path):
+    """write_array's tiled, shuffled layout: read_step / read_steps / h5py return the written bits (signed zeros,
+    denormals, NaN payloads included), tiles that are all zero are not stored, and a step in one chunk comes back
+    without a copy (read-only)."""
+    from dsr_bench.dataset.storage import read_step, read_steps, write_array
+
+    rng = np.random.default_rng(3)
+    flow = np.zeros((3, 3, 128, 128, 48), dtype=np.float32)
+    flow[:, :, 20:40, 70:90] = rng.normal(size=(3, 3, 20, 20, 48)).astype(np.float32)
+    flow[1, 0, 5, 5, 5], flow[1, 1, 5, 5, 6], flow[2, 2, 100, 3, 0] = -0.0, 1e-42, np.float32("nan")
+    mask = (flow[:, 0] != 0).astype(np.uint8) * 3
+    tsdf = rng.random((3, 128, 128, 48), dtype=np.float32)
+    with h5py.File(tmp_path / "f.h5", "w") as f:
+        for name, array in (("scene_flow_3d", flow), ("mask_3d", mask), ("tsdf", tsdf)):
+            write_array(f, name, array)
+    with h5py.File(tmp_path / "f.h5", "r") as f:
+        assert f["scene_flow_3d"].id.get_num_chunks() == 3 * 4 + 1 + 1  # the objects' tiles and the two odd voxels
+        assert f["mask_3d"].chunks == (1, 128, 128, 48) and f["mask_3d"].id.get_num_chunks() == 3
+        for name, array in (("scene_flow_3d", flow), ("mask_3d", mask), ("tsdf", tsdf)):
+            bits = array.view(np.uint8)
+            assert np.array_equal(read_steps(f[name], 0, 3).view(np.uint8), bits), name
+            assert np.array_equal(f[name][()].view(np.uint8), bits), name
+            for t in range(3):
+                assert np.array_equal(read_step(f[name], t).view(np.uint8), bits[t]), name
+        assert not read_step(f["tsdf"], 1).flags.writeable
+
+
+def test_a_chunk_that_inflates_beyond_its_size_is_left_to_hdf5(tmp_path):
+    """A file we did not write: a raw chunk whose stream holds more (or fewer) bytes than the chunk is never inflated
+    past its size by the fast reader; h5py decides, as it would without the fast path."""
+    import zlib
+
+    from dsr_bench.dataset.storage import inflate_exact, read_step
+
+    big = zlib.compress(bytes(10_000_000))
+    assert inflate_exact(big, 4096) is None and inflate_exact(zlib.compress(bytes(4096)), 4096) == bytes(4096)
+    with h5py.File(tmp_path / "f.h5", "w") as f:
+        ds = f.create_dataset("x", shape=(2, 32, 32), dtype=np.float32, chunks=(1, 32, 32), compression="gzip")
+        ds.id.write_direct_chunk((0, 0, 0), big)
+        ds[1] = 1.0
+    with h5py.File(tmp_path / "f.h5", "r") as f:
+        assert np.array_equal(read_step(f["x"], 1), np.ones((32, 32), np.float32))
+        assert np.array_equal(read_step(f["x"], 0), f["x"][0])
+
+
 def test_read_steps_equals_h5py_for_every_layout(tmp_path):
     """The raw-chunk reader returns exactly what h5py decodes, for our layout and for others (fallback)."""
-    from dsr_bench.dataset.sequence import read_steps
+    from dsr_bench.dataset.storage import read_steps
 
     rng = np.random.default_rng(1)
     data = (rng.normal(size=(4, 6, 8, 5)) * (rng.random((4, 6, 8, 5)) > 0.7)).astype(np.float32)
@@ -116,3 +173,63 @@ def test_reader_read_matches_h5py_for_steps_ranges_and_other_indices(tmp_path):
                 expected = f[name][()] if index is None else f[name][index]
                 got = seq.read(name, index)
                 assert got.dtype == expected.dtype and np.array_equal(got, expected), (name, index)
+
+
+def test_points_that_follow_from_depth_are_derived_not_stored_and_read_back_bit_for_bit(tmp_path):
+    """A camera's points equal to `derive_points` of its depth (as the generator's are) are left out of the file and
+    listed in derived_arrays; the reader derives exactly them (step, range, whole), says they exist, validates them
+    and digests them like stored ones (so pins are unchanged). Points that differ by one bit are stored as given."""
+    from dsr_bench.dataset.digests import digest_attrs, file_digests
+    from dsr_bench.dataset.sequence import DERIVED_ATTR, derive_points
+    from dsr_bench.dataset.validate import validate_sequence
+    from dsr_bench.geometry import make_camera
+
+    arrays, attrs, meshes = synthetic_arrays(2, 2, 5)
+    spec = attrs["cameras"]["front"]
+    camera = make_camera("front", spec["height"], spec["width"])
+    points = derive_points(arrays["cameras/front/depth"], camera)
+    assert np.isnan(points).any() and np.isfinite(points).any()
+    arrays["cameras/front/points"] = points
+    attrs.update(digest_attrs(arrays, attrs["objects"]))
+    write_sequence(tmp_path / "derived.h5", arrays, attrs, meshes)
+    with h5py.File(tmp_path / "derived.h5", "r") as f:
+        assert "cameras/front/points" not in f and DERIVED_ATTR in f.attrs
+    with SequenceReader(tmp_path / "derived.h5") as seq:
+        assert "cameras/front/points" in seq and seq.derived == {"cameras/front/points"}
+        assert seq.shape_and_dtype("cameras/front/points") == (points.shape, np.dtype(np.float32))
+        assert np.array_equal(seq.read("cameras/front/points").view(np.uint32), points.view(np.uint32))
+        assert np.array_equal(seq.read("cameras/front/points", 1).view(np.uint32), points[1].view(np.uint32))
+        assert np.array_equal(seq.read("cameras/front/points", slice(1, 3)).view(np.uint32), points[1:3].view(np.uint32))
+        assert DERIVED_ATTR not in seq.attrs
+    digests = file_digests(tmp_path / "derived.h5")
+    assert digests["observations_sha256"] == attrs["observations_sha256"]
+    assert digests["ground_truth_sha256"] == attrs["ground_truth_sha256"]
+    assert validate_sequence(tmp_path / "derived.h5") == []
+
+    nudged = points.copy()
+    nudged.view(np.uint32)[0, 120, 160, 0] ^= 1  # one ulp off: not the derivation, kept as given
+    arrays["cameras/front/points"] = nudged
+    write_sequence(tmp_path / "stored.h5", arrays, attrs, meshes)
+    with SequenceReader(tmp_path / "stored.h5") as seq:
+        assert not seq.derived and np.array_equal(seq.read("cameras/front/points").view(np.uint32),
+                                                  nudged.view(np.uint32))
+
+
+def test_a_file_of_schema_2_is_read_and_a_bad_derived_list_is_refused(tmp_path, synthetic):
+    """Schema 2 (every array stored) stays readable; a derived_arrays naming something that cannot be derived (not a
+    camera's points, or points also stored) is a one-line format error."""
+    import shutil
+
+    from dsr_bench.dataset.sequence import DERIVED_ATTR
+
+    old = tmp_path / "old.h5"
+    shutil.copy(synthetic, old)
+    with h5py.File(old, "r+") as f:
+        f.attrs["schema_version"] = 2
+    with SequenceReader(old) as seq:
+        assert seq.read("tsdf", 0).shape == (128, 128, 48)
+    for listed in (["tsdf"], ["cameras/front/points"], ["cameras/side/points"]):
+        with h5py.File(old, "r+") as f:
+            f.attrs[DERIVED_ATTR] = json.dumps(listed)
+        with pytest.raises(SequenceFormatError, match="cannot be derived"):
+            SequenceReader(old)

@@ -209,22 +209,17 @@ def within_tolerance(actual: Fingerprint, pinned: Fingerprint) -> bool:
 def file_fingerprints(path: str | Path) -> tuple[dict[str, Fingerprint], list[dict]]:
     """Fingerprints of every array of a sequence file but `meshes/` (streamed one step at a time,
     memory of one step of the largest array), and its object list."""
-    import h5py
-
     from dsr_bench.dataset.sequence import SequenceReader
 
     with SequenceReader(path) as seq:
-        names: list[str] = []
-        seq._file.visititems(lambda n, o: names.append(n) if isinstance(o, h5py.Dataset)
-                             and not n.startswith("meshes/") else None)
         out = {}
-        for name in sorted(names):
-            ds = seq._file[name]
-            acc = FingerprintAccumulator(name, ds.dtype, ds.shape)
-            if ds.ndim == 0 or ds.shape[0] == 0:
-                acc.update(np.asarray(ds[()]))
+        for name in seq.array_names():  # stored and derived (a camera's points)
+            shape, dtype = seq.shape_and_dtype(name)
+            acc = FingerprintAccumulator(name, dtype, shape)
+            if len(shape) == 0 or shape[0] == 0:
+                acc.update(np.asarray(seq.read(name)))
             else:
-                for i in range(ds.shape[0]):
+                for i in range(shape[0]):
                     acc.update(np.asarray(seq.read(name, i))[None])
             out[name] = acc.result()
         return out, list(seq.objects)

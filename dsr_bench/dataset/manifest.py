@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from dsr_bench.atomic import write_text
-from dsr_bench.constants import SCHEMA_VERSION
+from dsr_bench.constants import READABLE_SCHEMA_VERSIONS, SCHEMA_VERSION
 from dsr_bench.dataset.digests import GROUND_TRUTH_KEY, OBSERVATIONS_KEY, split_checksum
 from dsr_bench.errors import UserError
 
@@ -207,9 +207,9 @@ def load_manifest(data_dir: str | Path) -> dict:
     problem = _manifest_structure_problem(manifest)
     if problem:
         raise UserError(f"{path}: {problem}; rebuild it with `dsr-bench manifest {data_dir}`")
-    if manifest.get("schema_version") != SCHEMA_VERSION:
+    if manifest.get("schema_version") not in READABLE_SCHEMA_VERSIONS:
         raise UserError(f"{path}: schema version {manifest.get('schema_version')}, "
-                        f"this toolkit reads {SCHEMA_VERSION}; "
+                        f"this toolkit reads {', '.join(map(str, READABLE_SCHEMA_VERSIONS))}; "
                         "use the dsr-bench version that wrote it or regenerate the dataset")
     return manifest
 

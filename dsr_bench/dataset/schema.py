@@ -65,7 +65,7 @@ SEQUENCE_SCHEMA: tuple[Field, ...] = (
     Field("mask", ("T+1", "H", "W"), "uint8", "instance id", "Visible instance ids: 0 table/background, 1..N",
           camera=True),
     Field("points", ("T+1", "H", "W", "3"), "float32", "m, world (x, y, z) (NaN = no return)",
-          "World point of each pixel", camera=True),
+          "World point of each pixel (stored, or derived from depth on reading: docs/format.md, 'Storage')", camera=True),
     Field("scene_flow_2d", ("T", "H", "W", "3"), "float32", "m, world (dy, dx, dz)",
           "World displacement t -> t+1 of the surface point seen at each pixel; 0 for the background",
           camera=True),

@@ -8,7 +8,6 @@ version before anything else.
 from __future__ import annotations
 
 import json
-import zlib
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -17,10 +16,9 @@ import h5py
 import numpy as np
 
 from dsr_bench.atomic import atomic_path
-from dsr_bench.constants import FORMAT_NAME, SCHEMA_VERSION
+from dsr_bench.constants import FORMAT_NAME, READABLE_SCHEMA_VERSIONS, SCHEMA_VERSION
 from dsr_bench.dataset.schema import FIELDS, REQUIRED_ATTRS, check_array, dataset_path, resolve_shape
-
-
+from dsr_bench.dataset.storage import GZIP1, read_steps, write_array
 from dsr_bench.errors import UserError
 
 
@@ -28,138 +26,47 @@ class SequenceFormatError(UserError):
     """A file is not a readable sequence of this toolkit's format."""
 
 
-#: HDF5 storage: one chunk per step, gzip level 1 (fast random access by step, small files, fast to
-#: write and read; byte shuffling made these mostly-constant arrays larger and slower).
-_COMPRESSION = {"compression": "gzip", "compression_opts": 1}
+def _create_dataset(f: h5py.Group, name: str, array: np.ndarray) -> h5py.Dataset:
+    """Write one array in the format's storage layout (`dsr_bench.dataset.storage.write_array`)."""
+    return write_array(f, name, array)
 
 
-def _fast_deflate():
-    """A zlib-format compressor faster than zlib's own at level 1 (ISA-L, the optional `isal`
-    package), or None. HDF5's gzip filter reads any zlib stream, so files stay plain gzip files."""
-    try:
-        from isal import isal_zlib
-    except ImportError:
-        return None
-    return lambda data: isal_zlib.compress(data, 1)
+#: The root attribute listing the arrays a file leaves out because they follow from others (JSON list of paths).
+DERIVED_ATTR = "derived_arrays"
 
 
-_DEFLATE = _fast_deflate()
-
-#: zlib's level 1 runs at ~0.6 GB/s even on zeros, and flow and mask chunks are mostly zero: without
-#: ISA-L, all-zero 16 KiB blocks skip the compressor (see `_deflate_sparse`).
-_ZERO_BLOCK = 16384
-_ZERO_RUNS: dict[int, bytes] = {}  # raw deflate of 2**j zero blocks, each ending in a full flush
+def points_name(camera: str) -> str:
+    """The HDF5 path of a camera's world points (derivable from its depth)."""
+    return f"cameras/{camera}/points"
 
 
-def _deflated_zeros(blocks: int) -> bytes:
-    """Raw deflate data (byte-aligned, history reset, not final) of `blocks` zero blocks."""
-    out = []
-    j = 0
-    while blocks:
-        if blocks & 1:
-            if j not in _ZERO_RUNS:
-                c = zlib.compressobj(1, zlib.DEFLATED, -15)
-                _ZERO_RUNS[j] = c.compress(bytes(_ZERO_BLOCK << j)) + c.flush(zlib.Z_FULL_FLUSH)
-            out.append(_ZERO_RUNS[j])
-        blocks >>= 1
-        j += 1
-    return b"".join(out)
+def derive_points(depth: np.ndarray, camera) -> np.ndarray:
+    """World points (..., H, W, 3) float32 of z-depth images (..., H, W) in metres, NaN where depth is 0: each pixel's
+    ray (`Camera.ray_directions_world`, unit camera z) times its depth, plus the camera centre, in float64. Exactly
+    the generator's points, which is why a file may leave them out."""
+    depth = np.asarray(depth)
+    rays = camera.ray_directions_world()  # (H, W, 3), computed once for every image: `Camera.backproject`'s terms
+    points = rays * depth[..., None] + np.asarray(camera.extrinsics, np.float64)[:3, 3]
+    points[depth <= 0] = np.nan
+    return points.astype(np.float32)
 
 
-def _deflate_sparse(data: np.ndarray) -> bytes:
-    """A zlib stream (level 1) of the bytes `data` (uint8, 1-D, contiguous) in which runs of all-zero
-    16 KiB blocks are not fed to the compressor but spliced in precompressed.
+def _derivable_points(arrays: Mapping[str, np.ndarray], cameras: Mapping[str, dict]) -> list[str]:
+    """The cameras' points that equal `derive_points` of their depth bit for bit (NaN payloads included)."""
+    from dsr_bench.geometry import Camera
 
-    Each run of other blocks is compressed and ended with a full flush (byte-aligned output, no
-    back-references across it), so the pieces concatenate into one valid deflate stream; the
-    Adler-32 of a zero run is updated in closed form (a unchanged, b += n * a)."""
-    blocks = len(data) // _ZERO_BLOCK
-    if blocks < 2:
-        return zlib.compress(data, 1)
-    zero = ~data[:blocks * _ZERO_BLOCK].view(np.uint64).reshape(blocks, -1).any(axis=1)
-    if not zero.any():
-        return zlib.compress(data, 1)
-    kinds = np.append(zero, False)  # the tail after the last whole block is compressed
-    edges = np.concatenate(([0], np.flatnonzero(kinds[1:] != kinds[:-1]) + 1, [len(kinds)]))
-    compressor = zlib.compressobj(1, zlib.DEFLATED, -15)
-    out = [b"\x78\x01"]  # zlib header: deflate, 32 KiB window, fastest
-    a, b = 1, 0
-    for first, last in zip(edges[:-1], edges[1:]):
-        start, stop = int(first) * _ZERO_BLOCK, min(int(last) * _ZERO_BLOCK, len(data))
-        if stop <= start:
+    names = []
+    for cam, spec in cameras.items():
+        points, depth = arrays.get(points_name(cam)), arrays.get(f"cameras/{cam}/depth")
+        if points is None or depth is None or np.asarray(points).dtype != np.float32:
             continue
-        if kinds[first]:
-            out.append(_deflated_zeros(int(last - first)))
-            b = (b + (stop - start) * a) % 65521
-        else:
-            piece = data[start:stop]
-            out.append(compressor.compress(piece))
-            out.append(compressor.flush(zlib.Z_FULL_FLUSH))
-            adler = zlib.adler32(piece, (b << 16) | a)
-            a, b = adler & 0xFFFF, adler >> 16
-    out.append(compressor.flush(zlib.Z_FINISH))
-    out.append(((b << 16) | a).to_bytes(4, "big"))
-    return b"".join(out)
-
-
-def _fast_inflate():
-    """zlib-stream decompressor: ISA-L's (about 2x zlib's speed) when `isal` is installed, else zlib's."""
-    try:
-        from isal import isal_zlib
-    except ImportError:
-        return zlib.decompress
-    return isal_zlib.decompress
-
-
-_INFLATE = _fast_inflate()
-
-
-def read_steps(ds: h5py.Dataset, start: int, stop: int) -> np.ndarray:
-    """Steps [start, stop) of a per-step dataset, shape (stop - start, *ds.shape[1:]).
-
-    For this format's layout (one chunk per step, gzip only) the chunks are read raw and inflated here
-    (ISA-L when available: the training loader's main cost); any other layout is read through h5py.
-    """
-    step_shape = tuple(ds.shape[1:])
-    fast = (ds.chunks == (1,) + step_shape and ds.compression == "gzip" and not ds.shuffle
-            and not ds.fletcher32 and ds.scaleoffset is None and 0 <= start <= stop <= ds.shape[0])
-    if not fast:
-        return ds[start:stop]
-    out = np.empty((stop - start,) + step_shape, dtype=ds.dtype)
-    origin = (0,) * len(step_shape)
-    for i, t in enumerate(range(start, stop)):
-        try:
-            mask, raw = ds.id.read_direct_chunk((t,) + origin)
-        except (OSError, KeyError, ValueError, RuntimeError):  # e.g. a chunk never written (fill value)
-            mask, raw = 1, b""
-        if mask:  # a filter was skipped for this chunk, or no chunk: let HDF5 decode it
-            out[i] = ds[t]
-            continue
-        out[i] = np.frombuffer(_INFLATE(raw), dtype=ds.dtype).reshape(step_shape)
-    return out
-
-
-def _create_dataset(f, name: str, array: np.ndarray, chunks: tuple[int, ...] | None):
-    """Create dataset `name` from a C-contiguous array: one chunk per step, gzip level 1 when chunked.
-
-    Each step's chunk is compressed here (ISA-L if installed, else zlib skipping zero blocks) and
-    written as is: the same stored array and filter pipeline; only the compressed bytes differ."""
-    if chunks is None or array.dtype.kind not in "fiu" or chunks != (1,) + array.shape[1:]:
-        return f.create_dataset(name, data=array, chunks=chunks, track_times=False,
-                                **(_COMPRESSION if chunks else {}))
-    deflate = _DEFLATE or _deflate_sparse
-    ds = f.create_dataset(name, shape=array.shape, dtype=array.dtype, chunks=chunks, track_times=False,
-                          **_COMPRESSION)
-    rest = (0,) * (array.ndim - 1)
-    for i in range(array.shape[0]):
-        ds.id.write_direct_chunk((i,) + rest, deflate(array[i].reshape(-1).view(np.uint8)))
-    return ds
-
-
-def _chunks(shape: tuple[int, ...]) -> tuple[int, ...] | None:
-    if len(shape) < 2 or int(np.prod(shape)) < 4096:
-        return None
-    return (1,) + tuple(shape[1:])
+        camera = Camera(cam, int(spec["height"]), int(spec["width"]), np.array(spec["intrinsics"]),
+                        np.array(spec["extrinsics"]))
+        derived = derive_points(depth, camera)
+        if derived.shape == np.shape(points) and np.array_equal(derived.view(np.uint32),
+                                                                np.ascontiguousarray(points).view(np.uint32)):
+            names.append(points_name(cam))
+    return names
 
 
 def _encode_attr(value: Any) -> Any:
@@ -212,6 +119,7 @@ def write_sequence(
     if problems:
         raise SequenceFormatError(f"refusing to write {path.name}: " + "; ".join(problems))
 
+    derived = _derivable_points(arrays, cameras)  # left out: the reader derives them from depth
     path.parent.mkdir(parents=True, exist_ok=True)
     with atomic_path(path) as tmp:  # temporary + lock, renamed when complete (dsr_bench.atomic)
         with h5py.File(tmp, "w", track_order=True) as f:
@@ -219,18 +127,20 @@ def write_sequence(
             f.attrs["schema_version"] = SCHEMA_VERSION
             for key, value in attrs.items():
                 f.attrs[key] = _encode_attr(value)
-            for name in sorted(arrays):
+            if derived:
+                f.attrs[DERIVED_ATTR] = json.dumps(derived)
+            for name in sorted(set(arrays) - set(derived)):
                 array = np.ascontiguousarray(arrays[name])
                 field = field_for(name)
-                ds = _create_dataset(f, name, array, _chunks(array.shape))
+                ds = _create_dataset(f, name, array)
                 ds.attrs["units"] = field.units
             for name in sorted(extras or {}):
                 array = np.ascontiguousarray(extras[name])
-                _create_dataset(f, name, array, _chunks(array.shape))
+                _create_dataset(f, name, array)
             for index, (vertices, faces) in sorted((meshes or {}).items()):
                 g = f.create_group(f"meshes/{index}")
-                g.create_dataset("vertices", data=np.asarray(vertices, np.float32), track_times=False, **_COMPRESSION)
-                g.create_dataset("faces", data=np.asarray(faces, np.int32), track_times=False, **_COMPRESSION)
+                g.create_dataset("vertices", data=np.asarray(vertices, np.float32), track_times=False, **GZIP1)
+                g.create_dataset("faces", data=np.asarray(faces, np.int32), track_times=False, **GZIP1)
     return path
 
 
@@ -258,12 +168,13 @@ class SequenceReader:
                 f"{self.path}: not a dsr-bench sequence (format attribute {fmt!r}); official release files "
                 "are converted with `dsr-bench import-official SRC DST`"
             )
-        if version != SCHEMA_VERSION:
+        if version not in READABLE_SCHEMA_VERSIONS:
             self._file.close()
             fix = ("it holds an earlier benchmark version's data: regenerate it (`dsr-bench generate`) or re-import "
                    "it (`dsr-bench import-official`)" if isinstance(version, (int, np.integer)) and version < SCHEMA_VERSION
                    else "upgrade dsr-bench")
-            raise SequenceFormatError(f"{self.path}: schema version {version}, this toolkit reads {SCHEMA_VERSION}; {fix}")
+            readable = ", ".join(map(str, READABLE_SCHEMA_VERSIONS))
+            raise SequenceFormatError(f"{self.path}: schema version {version}, this toolkit reads {readable}; {fix}")
         self.attrs: dict[str, Any] = {}
         for key, value in self._file.attrs.items():
             if isinstance(value, str) and value[:1] in "[{":
@@ -274,6 +185,14 @@ class SequenceReader:
         self.num_objects: int = int(self.attrs["num_objects"])
         self.objects: list[dict] = list(self.attrs["objects"])
         self.cameras: dict[str, dict] = dict(self.attrs["cameras"])
+        #: arrays left out of the file and derived on reading (a camera's points, from its depth)
+        self.derived: frozenset[str] = frozenset(self.attrs.pop(DERIVED_ATTR, []))
+        unknown = [n for n in self.derived if n not in {points_name(c) for c in self.cameras}
+                   or f"cameras/{n.split('/')[1]}/depth" not in self._file or n in self._file]
+        if unknown:
+            self._file.close()
+            raise SequenceFormatError(f"{self.path}: {DERIVED_ATTR} lists {sorted(unknown)}, which cannot be derived "
+                                      "(only a camera's points, from its stored depth); regenerate the file")
 
     # context manager -----------------------------------------------------------------------------
     def __enter__(self) -> SequenceReader:
@@ -287,19 +206,39 @@ class SequenceReader:
 
     # access ----------------------------------------------------------------------------------------
     def __contains__(self, name: str) -> bool:
-        return name in self._file
+        return name in self._file or name in self.derived
 
     def dataset(self, name: str) -> h5py.Dataset:
-        """The raw h5py dataset (for slicing without loading)."""
+        """The raw h5py dataset of a stored array (for slicing without loading); `read` also derives the others."""
         if name not in self._file:
-            raise KeyError(f"{self.path.name}: no dataset {name!r}")
+            derived = f" (derived from depth: read it with .read({name!r}))" if name in self.derived else ""
+            raise KeyError(f"{self.path.name}: no dataset {name!r}{derived}")
         return self._file[name]
 
+    def shape_and_dtype(self, name: str) -> tuple[tuple[int, ...], np.dtype]:
+        """The shape and dtype of an array, stored or derived, without reading it."""
+        if name in self.derived:
+            depth = self.dataset(f"cameras/{name.split('/')[1]}/depth")
+            return tuple(depth.shape) + (3,), np.dtype(np.float32)
+        ds = self.dataset(name)
+        return tuple(ds.shape), ds.dtype
+
+    def array_names(self) -> list[str]:
+        """Every array of the sequence, stored or derived, but the meshes (sorted)."""
+        names: list[str] = list(self.derived)
+        self._file.visititems(lambda n, o: names.append(n) if isinstance(o, h5py.Dataset)
+                              and not n.startswith("meshes/") else None)
+        return sorted(names)
+
     def read(self, name: str, index: int | slice | None = None) -> np.ndarray:
-        """Read a dataset, or one step / a range of steps of it along the first axis."""
+        """Read an array, or one step / a range of steps of it along the first axis. Arrays the file leaves out
+        (`derived`: a camera's points) are derived from what it stores (`derive_points`)."""
+        if name in self.derived:
+            camera = name.split("/")[1]
+            return derive_points(self.read(f"cameras/{camera}/depth", index), self.camera(camera))
         ds = self.dataset(name)
         if index is None:
-            return ds[()]
+            return read_steps(ds, 0, ds.shape[0]) if ds.ndim > 1 else ds[()]
         if ds.ndim > 1 and isinstance(index, (int, np.integer)) and -ds.shape[0] <= index < ds.shape[0]:
             step = int(index) % ds.shape[0]
             return read_steps(ds, step, step + 1)[0]

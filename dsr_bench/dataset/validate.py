@@ -61,6 +61,8 @@ def _open(path: str | Path):
 def schema_problems(seq) -> tuple[list[str], set[str]]:
     """Structural problems of an open sequence (missing datasets, shapes, dtypes) and the names of
     the datasets that passed. Shared by `validate` and the viewer."""
+    from types import SimpleNamespace
+
     from dsr_bench.dataset.schema import FIELDS, check_array, dataset_path, resolve_shape
 
     problems: list[str] = []
@@ -76,7 +78,8 @@ def schema_problems(seq) -> tuple[list[str], set[str]]:
                 image = (int(seq.cameras[cam]["height"]), int(seq.cameras[cam]["width"])) if cam else None
                 shape = (resolve_shape(field, seq.num_steps, seq.num_objects, image) if image
                          else resolve_shape(field, seq.num_steps, seq.num_objects))
-                found = check_array(field, seq.dataset(name), shape, name)
+                stored_shape, dtype = seq.shape_and_dtype(name)
+                found = check_array(field, SimpleNamespace(shape=stored_shape, dtype=dtype), shape, name)
             except Exception as exc:  # noqa: BLE001 - malformed camera attributes, unreadable dataset
                 found = [f"{name}: cannot check ({type(exc).__name__}: {exc})"]
             problems += found

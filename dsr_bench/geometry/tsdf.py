@@ -42,8 +42,10 @@ def _project(camera: Camera, grid_shape: tuple[int, int, int]) -> tuple[np.ndarr
     inside = (z > 0) & (u >= 0) & (u < camera.width) & (v >= 0) & (v < camera.height)
     voxels = np.flatnonzero(inside)
     pixels_of_voxels = v[inside].astype(np.int64) * camera.width + u[inside].astype(np.int64)
-    pixels, inverse = np.unique(pixels_of_voxels, return_inverse=True)
-    inverse = inverse.reshape(-1).astype(np.intp)
+    # np.unique(pixels_of_voxels, return_inverse=True) without its sort: pixel ids are bounded by the image
+    present = np.bincount(pixels_of_voxels, minlength=camera.height * camera.width) > 0
+    pixels = np.flatnonzero(present)
+    inverse = (np.cumsum(present) - 1)[pixels_of_voxels].astype(np.intp)
     z_in = np.ascontiguousarray(z[inside])
     # the voxels grouped by pixel (stable), for the band search of `ProjectiveTSDF.from_pixel_depths`
     order = np.argsort(inverse, kind="stable")

@@ -28,7 +28,7 @@ from torch.utils.data import Dataset, default_collate
 
 from dsr_bench.constants import GRID_SHAPE, NUM_DIRECTIONS
 from dsr_bench.errors import UserError
-from dsr_bench.dataset.sequence import read_steps
+from dsr_bench.dataset.storage import read_steps
 
 #: The arrays of a sequence file that training reads (and the window datasets read by default):
 #: `scripts/slim_dataset.py` keeps these.

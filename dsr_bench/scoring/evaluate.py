@@ -85,6 +85,7 @@ def score_sequence(args: tuple[str, str, str]) -> tuple[str, list[str], dict | N
     from dsr_bench.scoring.metrics import motion_2d_error, motion_errors, sequence_scores
     from dsr_bench.scoring.predictions import check_prediction_header, is_2d_only
     from dsr_bench.dataset.sequence import SequenceReader
+    from dsr_bench.dataset.storage import read_step, read_steps
 
     name, pred_path, gt_path = args
     problems: list[str] = []
@@ -105,7 +106,7 @@ def score_sequence(args: tuple[str, str, str]) -> tuple[str, list[str], dict | N
                     return name, [no_2d_ground_truth(gt_path)], None
                 values = np.full(steps, np.nan)
                 for t in range(steps):
-                    m2 = pred["motion_2d"][t]
+                    m2 = read_step(pred["motion_2d"], t)
                     if not np.all(np.isfinite(m2)):
                         problems.append(f"motion_2d[{t}]: NaN or inf")
                         continue
@@ -115,23 +116,26 @@ def score_sequence(args: tuple[str, str, str]) -> tuple[str, list[str], dict | N
                 return name, [], {"motion_2d": values.tolist(), "has_2d": True, "has_3d": False}
             num_slots = int(pred.attrs["num_slots"])
             n = gt.num_objects
-            pred_mask = pred["mask"][()]
+            pred_mask = read_steps(pred["mask"], 0, steps)
             if int(pred_mask.max(initial=0)) > num_slots:
                 problems.append(f"mask: slot id {int(pred_mask.max())} > num_slots {num_slots}")
             per_step = {k: np.full(steps, np.nan) for k in ("motion_visible", "motion_full", "motion_moved",
                                                             "motion_static", "motion_2d")}
             has_2d = "motion_2d" in pred and GT_2D in gt
             gt_mask = gt.read("mask_3d", slice(0, steps))
+            pred_motion, gt_flow, gt_tsdf = pred["motion"], gt.dataset("scene_flow_3d"), gt.dataset("tsdf")
             for t in range(steps):
-                motion = pred["motion"][t]
-                if not np.all(np.isfinite(motion)):
+                motion = read_step(pred_motion, t)
+                with np.errstate(over="ignore", invalid="ignore"):
+                    errs = motion_errors(motion, read_step(gt_flow, t), read_step(gt_tsdf, t), gt_mask[t], n)
+                # the full-volume sum is finite whenever the motion is, so the elementwise check runs only when not
+                if not np.isfinite(errs["motion_full"]) and not np.all(np.isfinite(motion)):
                     problems.append(f"motion[{t}]: NaN or inf")
                     continue
-                errs = motion_errors(motion, gt.read("scene_flow_3d", t), gt.read("tsdf", t), gt_mask[t], n)
                 for k, v in errs.items():
                     per_step[k][t] = v
                 if has_2d:
-                    m2 = pred["motion_2d"][t]
+                    m2 = read_step(pred["motion_2d"], t)
                     if not np.all(np.isfinite(m2)):
                         problems.append(f"motion_2d[{t}]: NaN or inf")
                         continue

