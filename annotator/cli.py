@@ -96,20 +96,28 @@ def _display_error(exc: Exception) -> bool:
 
 def import_capture(
     src: Path = typer.Argument(..., help="Folder of <camera>_color_<N>.png / <camera>_depth_<N>.png (cameras front, "
-                                         "back) with rig.json (docs/annotator.md, 'Real captures in')."),
+                                         "back) with rig.json, or of RealSense recordings front.bag / back.bag with "
+                                         "rig.json and steps.json (docs/annotator.md, 'Real captures in')."),
     out: Path = typer.Option(..., "--out", "-o", help="Capture directory to write (e.g. captures/seq_0000)."),
     rig: Optional[Path] = typer.Option(None, "--rig", help="The rig file: intrinsics, distortion, depth scale, "
                                        "extrinsics or ChArUco board, objects (default SRC/rig.json)."),
     pushes: Optional[Path] = typer.Option(None, "--pushes", help="The robot's push log, start [x, y] m and direction "
                                           "per push, table frame (default SRC/pushes.json)."),
+    steps: Optional[Path] = typer.Option(None, "--steps", help="Bags only: the time (s, the frames' header stamps) of "
+                                         "every step, JSON \"step_times\": one time per step (default "
+                                         "SRC/steps.json)."),
+    max_gap_ms: Optional[float] = typer.Option(None, "--max-gap-ms", help="Bags only: largest gap (ms) from a step "
+                                               "time to its colour frame and from it to its depth frame (default 50)."),
     name: Optional[str] = typer.Option(None, "--name", help="Capture name (default the rig file's, else OUT's name)."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace OUT if it exists."),
 ) -> None:
-    """Import a real rig's colour and depth PNGs as a capture: undistort, calibrate to the table (ChArUco board or
-    given extrinsics), map the logged pushes to benchmark actions."""
-    from annotator.importer import import_png_folder
+    """Import a real rig's colour and depth (PNGs, or RealSense .bag recordings: depth registered to colour) as a
+    capture: undistort, calibrate to the table (ChArUco board or given extrinsics), map the logged pushes to
+    benchmark actions."""
+    from annotator.importer import import_capture as run_import
 
-    path, report = import_png_folder(src, out, rig=rig, pushes=pushes, name=name, overwrite=overwrite)
+    path, report = run_import(src, out, rig=rig, pushes=pushes, steps=steps, max_gap_ms=max_gap_ms, name=name,
+                              overwrite=overwrite)
     for cam, how in report["extrinsics"].items():
         r = report.get("cameras", {}).get(cam)
         detail = "" if r is None else (f": {r['corners']} corners, reprojection {r['reprojection_px']:.2f} px, "

@@ -14,6 +14,9 @@ N. Images with distortion coefficients are undistorted (colour bilinear, depth n
 with its neighbours) onto the same fx, fy, cx, cy. Extrinsics come from the rig file or from the ChArUco board
 (`annotator.calibrate`); the front camera must see the whole grid. Everything is checked before anything is
 written, and the capture is written atomically (`write_capture`).
+
+A folder of RealSense `.bag` recordings instead (front.bag, back.bag) is the other form (`annotator.realsense`):
+`import_capture` dispatches on the folder's content; `load_rig` and `calibrate_cameras` serve both.
 """
 
 from __future__ import annotations
@@ -182,6 +185,74 @@ def read_objects(path: Path, src: Path, entries) -> list[tuple[str, np.ndarray, 
     return out
 
 
+def load_rig(src: Path, rig: str | Path | None) -> tuple[Path, dict]:
+    """(path, parsed JSON object) of the rig file (`rig`, default SRC/rig.json); UserError naming it and the fix."""
+    rig_path = Path(rig) if rig is not None else src / RIG_FILE
+    if not rig_path.is_file():
+        raise UserError(f"{rig_path}: no rig file; write one (cameras, board or extrinsics, objects: "
+                        "docs/annotator.md, 'Real captures in') or give it with --rig")
+    try:
+        spec = json.loads(rig_path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise _rig_error(rig_path, f"unreadable JSON ({exc})") from None
+    if not isinstance(spec, dict):
+        raise _rig_error(rig_path, 'expected {"cameras": {"front": {...}, "back": {...}}, "objects": [...], ...}')
+    return rig_path, spec
+
+
+def calibrate_cameras(rig_path: Path, spec: dict, cameras: dict[str, CaptureCamera], given: dict[str, bool],
+                      board_image) -> dict:
+    """Calibrate (in place) the cameras whose extrinsics were not `given` from the rig file's board, check the
+    residuals and that the front camera sees the whole grid; returns the calibration report (`annotator.calibrate`).
+    board_image(name) -> (where: the image named in errors, colour (H, W, 3) uint8 RGB undistorted, depth (H, W) m
+    aligned to it, 0 = none) of the board seen by that camera."""
+    from annotator.calibrate import board_view, calibration_residuals, check_grid_visible, check_residuals, parse_board
+
+    report: dict = {"extrinsics": {n: "rig file" if given[n] else "board" for n in cameras}}
+    need_board = [n for n in cameras if not given[n]]
+    if need_board:
+        if "board" not in spec:
+            raise _rig_error(rig_path, f"camera(s) {', '.join(need_board)} have no 'extrinsics' (4x4 camera-to-table, "
+                                       "m) and there is no 'board' to calibrate them from: give either")
+        board = parse_board(str(rig_path), spec["board"])
+        views, calib_depth = {}, {}
+        for n in need_board:
+            where, image, calib_depth[n] = board_image(n)
+            views[n] = board_view(image, cameras[n].intrinsics, board, f"{where} ({rig_path} board)")
+            cameras[n] = CaptureCamera(n, cameras[n].height, cameras[n].width, cameras[n].intrinsics,
+                                       views[n].extrinsics, cameras[n].depth_scale)
+        report.update(calibration_residuals({n: cameras[n].camera for n in need_board}, views, calib_depth, board))
+        report["board"] = dict(spec["board"])
+        check_residuals(f"{rig_path} board", report)
+    check_grid_visible(f"{rig_path} camera 'front'", cameras["front"].camera)
+    return report
+
+
+def import_capture(src: str | Path, out: str | Path, *, rig: str | Path | None = None,
+                   pushes: str | Path | None = None, steps: str | Path | None = None, max_gap_ms: float | None = None,
+                   name: str | None = None, overwrite: bool = False) -> tuple[Path, dict]:
+    """Import SRC, a folder of step PNGs (`import_png_folder`) or of RealSense bags (`annotator.realsense`), into the
+    capture directory `out`; returns (out, calibration report)."""
+    src = Path(src)
+    if not src.is_dir():
+        raise UserError(f"{src}: no such folder; give the folder of <camera>_color_<N>.png / _depth_<N>.png images or "
+                        "of front.bag / back.bag recordings")
+    has_bags = any(src.glob("*.bag"))
+    has_pngs = any(IMAGE_PATTERN.match(p.name) for p in src.iterdir())
+    if has_bags and has_pngs:
+        raise UserError(f"{src}: holds both .bag recordings and <camera>_color_<N>.png images; keep one form per "
+                        "folder")
+    if has_bags:
+        from annotator.realsense import DEFAULT_MAX_GAP_MS, import_bags
+
+        return import_bags(src, out, rig=rig, pushes=pushes, steps=steps, name=name, overwrite=overwrite,
+                           max_gap_ms=DEFAULT_MAX_GAP_MS if max_gap_ms is None else max_gap_ms)
+    if steps is not None or max_gap_ms is not None:
+        raise UserError(f"{src}: --steps and --max-gap-ms pick frames of .bag recordings; this folder holds none "
+                        "(step PNGs are numbered by their names)")
+    return import_png_folder(src, out, rig=rig, pushes=pushes, name=name, overwrite=overwrite)
+
+
 def import_png_folder(src: str | Path, out: str | Path, *, rig: str | Path | None = None,
                       pushes: str | Path | None = None, name: str | None = None, overwrite: bool = False
                       ) -> tuple[Path, dict]:
@@ -189,8 +260,6 @@ def import_png_folder(src: str | Path, out: str | Path, *, rig: str | Path | Non
 
     Everything is read and checked first (one-line UserErrors naming the input and the fix), then written at once.
     """
-    from annotator.calibrate import (board_view, calibration_residuals, check_grid_visible, check_residuals,
-                                     parse_board)
     from annotator.pushes import read_pushes
 
     src, out = Path(src), Path(out)
@@ -198,15 +267,8 @@ def import_png_folder(src: str | Path, out: str | Path, *, rig: str | Path | Non
         raise UserError(f"{src}: no such folder; give the folder of <camera>_color_<N>.png / _depth_<N>.png images")
     if out.exists() and not overwrite:
         raise UserError(f"{out} already exists; pass --overwrite to replace it or choose another --out")
-    rig_path = Path(rig) if rig is not None else src / RIG_FILE
-    if not rig_path.is_file():
-        raise UserError(f"{rig_path}: no rig file; write one (cameras, board or extrinsics, objects: docs/annotator.md, "
-                        "'Real captures in') or give it with --rig")
-    try:
-        spec = json.loads(rig_path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise _rig_error(rig_path, f"unreadable JSON ({exc})") from None
-    if not isinstance(spec, dict) or not isinstance(spec.get("cameras"), dict):
+    rig_path, spec = load_rig(src, rig)
+    if not isinstance(spec.get("cameras"), dict):
         raise _rig_error(rig_path, 'expected {"cameras": {"front": {...}, "back": {...}}, "objects": [...], ...}')
     names = list(spec["cameras"])
     bad = [n for n in names if n not in CAMERA_NAMES]
@@ -231,37 +293,22 @@ def import_png_folder(src: str | Path, out: str | Path, *, rig: str | Path | Non
     depths = [{n: load(n, "depth", files[(n, "depth", s)]).astype(np.float64) * cameras[n].depth_scale
                for n in names} for s in steps]
 
-    report: dict = {"extrinsics": {n: "rig file" if given[n] else "board" for n in names}}
-    need_board = [n for n in names if not given[n]]
-    if need_board:
-        if "board" not in spec:
-            raise _rig_error(rig_path, f"camera(s) {', '.join(need_board)} have no 'extrinsics' (4x4 camera-to-table, "
-                                       "m) and there is no 'board' to calibrate them from: give either")
-        board = parse_board(str(rig_path), spec["board"])
+    def board_image(n: str) -> tuple[str, np.ndarray, np.ndarray]:
         images = spec["board"].get("images", {}) or {}
-        views, calib_depth = {}, {}
-        for n in need_board:
-            if n in images:
-                files = images[n] if isinstance(images[n], dict) else {"color": images[n]}
-                for kind, rel in files.items():
-                    if kind not in ("color", "depth") or not (src / str(rel)).is_file():
-                        raise _rig_error(rig_path, f"board image {kind!r}: {rel!r} of camera {n!r} is not a file "
-                                                   f"under {src}; give {{\"color\": PATH, \"depth\": PATH}} (depth "
-                                                   "optional) or a colour image PATH")
-                path = src / str(files["color"])
-                image = load(n, "color", path)
-                calib_depth[n] = (load(n, "depth", src / str(files["depth"])).astype(np.float64)
-                                  * cameras[n].depth_scale if "depth" in files
-                                  else np.zeros((cameras[n].height, cameras[n].width)))
-            else:
-                path, image, calib_depth[n] = files[(n, "color", steps[0])], colors[0][n], depths[0][n]
-            views[n] = board_view(image, cameras[n].intrinsics, board, f"{path} ({rig_path} board)")
-            cameras[n] = CaptureCamera(n, cameras[n].height, cameras[n].width, cameras[n].intrinsics,
-                                       views[n].extrinsics, cameras[n].depth_scale)
-        report.update(calibration_residuals({n: cameras[n].camera for n in need_board}, views, calib_depth, board))
-        report["board"] = dict(spec["board"])
-        check_residuals(f"{rig_path} board", report)
-    check_grid_visible(f"{rig_path} camera 'front'", cameras["front"].camera)
+        if n not in images:
+            return str(files[(n, "color", steps[0])]), colors[0][n], depths[0][n]
+        given_files = images[n] if isinstance(images[n], dict) else {"color": images[n]}
+        for kind, rel in given_files.items():
+            if kind not in ("color", "depth") or not (src / str(rel)).is_file():
+                raise _rig_error(rig_path, f"board image {kind!r}: {rel!r} of camera {n!r} is not a file under {src}; "
+                                           'give {"color": PATH, "depth": PATH} (depth optional) or a colour image '
+                                           "PATH")
+        path = src / str(given_files["color"])
+        depth = (load(n, "depth", src / str(given_files["depth"])).astype(np.float64) * cameras[n].depth_scale
+                 if "depth" in given_files else np.zeros((cameras[n].height, cameras[n].width)))
+        return str(path), load(n, "color", path), depth
+
+    report = calibrate_cameras(rig_path, spec, cameras, given, board_image)
 
     source = {"kind": "real", "importer": "annotator.importer", "format": "png-folder", "src": str(src),
               "rig": spec, "step_numbers": steps, "undistorted": sorted(maps), "calibration": report,
