@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from functools import partial
-from typing import Any, Callable, NamedTuple
+from typing import Any, Callable, NamedTuple, Sequence
 
 import numpy as np
 
@@ -20,8 +20,6 @@ from dsr_bench.errors import UserError
 #: Nudge sizes: fine / coarse translation (m) and rotation (rad).
 TRANSLATION_STEPS: dict[str, float] = {"fine": 0.001, "coarse": 0.01}
 ROTATION_STEPS: dict[str, float] = {"fine": float(np.deg2rad(1.0)), "coarse": float(np.deg2rad(5.0))}
-#: Keys acted on after the key callback returns (they open a window of their own).
-DEFERRED_KEYS = ("M",)
 #: GLFW key codes of the non-character keys used in KEYMAP.
 GLFW_SPECIAL_KEYS: dict[str, int] = {"Space": 32, "Esc": 256, "Enter": 257, "Tab": 258}
 
@@ -88,16 +86,16 @@ def _select_next(ctl: "Controller") -> None:
     _select(ctl, (ctl.session.selected + 1) % max(1, ctl.session.num_objects))
 
 
-def _translate(axis: int, sign: int, ctl: "Controller") -> None:
+def _translate(axis: int, sign: int, ctl: "Controller", count: int = 1) -> None:
     vec = np.zeros(3)
-    vec[axis] = sign * ctl.view.translation_step
+    vec[axis] = sign * ctl.view.translation_step * count
     ctl.session.nudge(ctl.session.selected, translation=tuple(vec), rotation=(0.0, 0.0, 0.0), frame=ctl.view.frame)
     ctl.view.message = f"moved {'+' if sign > 0 else '-'}{'xyz'[axis]} {vec[axis] * 1000:+g} mm ({ctl.view.frame})"
 
 
-def _rotate(axis: int, sign: int, ctl: "Controller") -> None:
+def _rotate(axis: int, sign: int, ctl: "Controller", count: int = 1) -> None:
     vec = np.zeros(3)
-    vec[axis] = sign * ctl.view.rotation_step
+    vec[axis] = sign * ctl.view.rotation_step * count
     ctl.session.nudge(ctl.session.selected, translation=(0.0, 0.0, 0.0), rotation=tuple(vec), frame=ctl.view.frame)
     name = ("roll", "pitch", "yaw")[axis]
     ctl.view.message = f"rotated {name} {np.rad2deg(vec[axis]):+g} deg ({ctl.view.frame})"
@@ -249,6 +247,87 @@ def key_help_lines(keymap: dict[str, Binding] | None = None) -> list[str]:
     return [f"{' '.join(keys)}\t{group}" for group, keys in groups.items()]
 
 
+# --- Key coalescing: what a held key does -------------------------------------------------------------------------
+
+
+#: A nudge key repeated within one frame moves at most this many steps (the rest of its repeats are dropped).
+MAX_REPEAT = 5
+#: Key events older than this (s) when the window gets to them are dropped if they are nudges (never other keys).
+MAX_LAG = 0.5
+
+
+class KeyAction(NamedTuple):
+    """What the window does with pending keys: press `key` standing for `count` presses (> 1: a merged nudge)."""
+
+    key: str
+    count: int = 1
+
+
+def is_nudge(key: str) -> bool:
+    """Whether a key (KEYMAP name, letters case-insensitive) nudges the selected object."""
+    binding = KEYMAP.get(key.upper() if len(key) == 1 else key)
+    return binding is not None and binding.method == "nudge"
+
+
+class KeyCoalescer:
+    """The key events a window received since its last frame -> the actions to apply before drawing the next.
+
+    The window's key callback only `push`es (key, time); once per frame the window `drain`s: a run of the same
+    nudge key becomes one nudge of the summed size, at most `max_repeat` steps (the repeats beyond are dropped),
+    nudges waiting longer than `max_lag` s are dropped, and every other key is kept, once, in order. A held key so
+    moves at most `max_repeat` steps per frame, however fast it repeats or however slow the frame, and nothing is
+    left queued between frames: releasing it stops the motion at the next frame. No window here: pure.
+    """
+
+    def __init__(self, max_repeat: int = MAX_REPEAT, max_lag: float = MAX_LAG):
+        self.max_repeat = int(max_repeat)
+        self.max_lag = float(max_lag)
+        self._pending: list[tuple[str, float]] = []
+        self.received = 0
+        self.dropped = 0
+
+    def push(self, key: str, t: float) -> None:
+        """A key event received at time `t` (s, any monotonic clock)."""
+        self._pending.append((key.upper() if len(key) == 1 else key, float(t)))
+        self.received += 1
+
+    @property
+    def pending(self) -> int:
+        """Key events not yet drained."""
+        return len(self._pending)
+
+    def drain(self, now: float) -> list[KeyAction]:
+        """The actions for the events pushed since the last drain (see the class docstring); empties the queue."""
+        out: list[KeyAction] = []
+        for key, t in self._pending:
+            if not is_nudge(key):
+                out.append(KeyAction(key))
+            elif now - t > self.max_lag:
+                self.dropped += 1
+            elif out and out[-1].key == key and is_nudge(key):
+                if out[-1].count < self.max_repeat:
+                    out[-1] = KeyAction(key, out[-1].count + 1)
+                else:
+                    self.dropped += 1
+            else:
+                out.append(KeyAction(key))
+        self._pending.clear()
+        return out
+
+
+def coalesce(events: Sequence[tuple[str, float]], frames: Sequence[float], max_repeat: int = MAX_REPEAT,
+             max_lag: float = MAX_LAG) -> list[tuple[float, KeyAction]]:
+    """What a window does with key events: (key, time) events and the times its frames start (both ascending) ->
+    (frame time, action) in order; each frame drains the events received before it (`KeyCoalescer`)."""
+    keys, out, k = KeyCoalescer(max_repeat, max_lag), [], 0
+    for frame in frames:
+        while k < len(events) and events[k][1] <= frame:
+            keys.push(*events[k])
+            k += 1
+        out.extend((frame, action) for action in keys.drain(frame))
+    return out
+
+
 # --- The controller ---------------------------------------------------------------------------------------------------
 
 
@@ -288,9 +367,10 @@ class Controller:
         self.picker = picker
         self.echo = echo or rich_echo
 
-    def press(self, key: str) -> set[str]:
+    def press(self, key: str, count: int = 1) -> set[str]:
         """Act on one key (a KEYMAP name, letters case-insensitive); returns what changed: a subset of
-        {"cloud", "meshes", "panel"}. A UserError from the session becomes the panel's message."""
+        {"cloud", "meshes", "panel"}. A UserError from the session becomes the panel's message. `count`: for a
+        nudge key, how many presses it stands for (one nudge of `count` steps, see `KeyCoalescer`)."""
         name = key.upper() if len(key) == 1 else key
         binding = KEYMAP.get(name)
         if binding is None:
@@ -298,7 +378,10 @@ class Controller:
             return {"panel"}
         before = self._snapshot()
         try:
-            binding.action(self)
+            if binding.method == "nudge":
+                binding.action(self, count=max(1, int(count)))
+            else:
+                binding.action(self)
         except UserError as exc:
             self.view.message = f"{binding.label}: {exc}"
             self.echo(f"[{binding.label}] {exc}")

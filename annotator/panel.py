@@ -26,7 +26,11 @@ SCORE_CACHE = 256
 
 
 def cached_score(session, view: ViewState, obj: int):
-    """session.score(obj) at the current step, cached in `view` on (step, obj, pose) (None when it fails)."""
+    """The fit score of object `obj`'s pose at the current step: the one the session recorded with the pose's
+    last change (no new fit), else session.score(obj) cached in `view` on (step, obj, pose) (None when it fails)."""
+    stored = session.stored_score(obj)
+    if stored is not None:
+        return stored
     key = (session.step, obj, session.poses()[obj].round(9).tobytes())
     if key not in view.score_cache:
         if len(view.score_cache) > SCORE_CACHE:

@@ -1,8 +1,10 @@
 """An annotation session: one capture, its annotation state, the operations a user performs, autosave and resume.
 
 The window (`annotator.window`), the CLI (`dsr-bench annotate`) and the benchmark use only this class. Every
-mutating call is one undoable user action, and the state is written atomically to `<work>/state.json` before the
-call returns, so killing the process loses nothing; `Session.open` resumes from that file.
+mutating call is one undoable user action, and it is saved before the call returns, so killing the process loses
+nothing: its record is appended to `<work>/journal.jsonl` and fsync'd (cost independent of the history's length),
+and every COMPACT_RECORDS records, and on resume, the journal is folded into `<work>/state.json` (written
+atomically). `Session.open` resumes from both (`read_saved`).
 
 Poses are (7,) = (x, y, z, qx, qy, qz, qw) in the table frame, metres (`dsr_bench.geometry.pose_to_matrix`); unset
 poses read as NaN rows. Step s is observation s (0..T); push s moves the scene from step s to s + 1.
@@ -16,9 +18,12 @@ private operations (`_icp`, `_fit`, `_crop`, `_commit`) as an API of their own; 
 from __future__ import annotations
 
 import json
+import os
+import sys
 from collections import OrderedDict
 from dataclasses import dataclass
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
@@ -31,10 +36,17 @@ from dsr_bench.constants import RIG_PUSHER_RADIUS
 from dsr_bench.errors import UserError
 from dsr_bench.geometry import matrix_to_pose, pose_to_matrix
 
-__all__ = ["FitScore", "Session", "SnapScore", "STATE_FILE", "WORK_DIRNAME"]
+__all__ = ["JOURNAL_FILE", "STATE_FILE", "WORK_DIRNAME", "FitScore", "Saved", "Session", "SnapScore", "read_saved"]
 
 WORK_DIRNAME = "annotation"
 STATE_FILE = "state.json"
+#: The change journal next to state.json: a header line {"format": JOURNAL_FORMAT, "generation": g}, then one JSON
+#: record per change (`AnnotationState.record`), each appended and fsync'd before the call returns. It applies on
+#: top of the state.json whose "journal" is g (a state.json without it is generation 0 and has no journal).
+JOURNAL_FILE = "journal.jsonl"
+JOURNAL_FORMAT = "dsr-bench-annotation-journal"
+#: The journal is folded into state.json after this many records (and when a session resumes from it).
+COMPACT_RECORDS = 500
 #: Crop radius around an object: its bounding sphere plus this margin (m).
 CROP_MARGIN = 0.03
 #: Carry-forward: an object counts as moved when its carried pose's coverage drops by this much (fraction) ...
@@ -100,6 +112,58 @@ def _nan_score(d: dict | None) -> FitScore | None:
     return FitScore.from_dict({k: (float("nan") if v is None else v) for k, v in d.items()})
 
 
+class Saved(NamedTuple):
+    """What `read_saved` found: the state (state.json with its journal replayed), its journal generation, the records
+    replayed, notes on records left out, and whether the journal file is the one of that generation (False: none,
+    or a stale one; new records must then go to a fresh journal)."""
+
+    state: AnnotationState
+    generation: int
+    replayed: int
+    notes: list[str]
+    journal_current: bool
+
+
+def _journal_lines(path: Path, generation: int) -> tuple[list[bytes], list[str], bool]:
+    """The complete record lines of the journal, notes on what was left out (a last line cut short by a crash), and
+    whether it is the journal of `generation` (another generation's is stale: its records are already in the
+    snapshot, and none are returned)."""
+    if not path.is_file():
+        return [], [], False
+    lines = path.read_bytes().split(b"\n")
+    tail = lines.pop()  # b"" when the file ends with a newline; else a record cut short
+    notes = [f"{path.name}: ignored its last record, cut short ({len(tail)} bytes; a crash mid-write)"] if tail else []
+    try:
+        header = json.loads(lines[0]) if lines else None
+    except (json.JSONDecodeError, UnicodeDecodeError):
+        header = None
+    if not isinstance(header, dict) or header.get("format") != JOURNAL_FORMAT:
+        return [], notes + ([f"{path.name}: no journal header; its {len(lines) - 1} records are ignored"]
+                            if len(lines) > 1 else []), False
+    if header.get("generation") != generation:
+        return [], [], False
+    return lines[1:], notes, True
+
+
+def read_saved(work_dir: str | Path) -> Saved:
+    """The annotation state saved in a work directory: state.json with its journal's records replayed (see
+    `Saved`). A cut-short or unreadable record ends the replay (a crash mid-write leaves one), with a note. Raises
+    StateError (or a JSON error) when state.json is unreadable."""
+    work = Path(work_dir)
+    d = json.loads((work / STATE_FILE).read_text())
+    state = AnnotationState.from_dict(d)
+    generation = d.get("journal", 0) if isinstance(d.get("journal", 0), int) else 0
+    lines, notes, current = _journal_lines(work / JOURNAL_FILE, generation)
+    for k, line in enumerate(lines):
+        try:
+            state.replay(json.loads(line))
+        except (json.JSONDecodeError, UnicodeDecodeError, StateError) as exc:
+            notes.append(f"{JOURNAL_FILE}: record {k + 1} unreadable ({exc}); it and the {len(lines) - k - 1} after "
+                         "it are ignored")
+            return Saved(state, generation, k, notes, current)
+    return Saved(state, generation, len(lines), notes, current)
+
+
 class Session:
     """One capture being annotated (see the module docstring); create with `Session.open`."""
 
@@ -109,42 +173,80 @@ class Session:
         self.state = state
         self._samples: dict[int, align.SurfaceSamples] = {}
         self._clouds: OrderedDict[int, tuple] = OrderedDict()
+        self._generation = 0  # journal generation of the last snapshot written or read
+        self._records = 0  # records in the journal since
+        self.notes: list[str] = []  # what resuming had to leave out (a journal's cut-short tail)
 
     # opening and saving ------------------------------------------------------------------------------------------
     @classmethod
     def open(cls, capture_dir: str | Path, work_dir: str | Path | None = None) -> Session:
-        """Open a capture (validated) and resume `<work_dir>/state.json` if present (default work dir:
-        `<capture_dir>/annotation/`). Raises UserError when the saved state is unreadable or belongs to another
-        capture."""
+        """Open a capture (validated) and resume `<work_dir>/state.json` plus its journal if present (default work
+        dir: `<capture_dir>/annotation/`). Raises UserError when the saved state is unreadable or belongs to another
+        capture. A journal whose last records are cut short (a crash mid-write) resumes without them, with a note
+        in `notes` (also printed to stderr)."""
         capture = load_capture(capture_dir)
         work = Path(work_dir) if work_dir is not None else capture.path / WORK_DIRNAME
         path = work / STATE_FILE
-        if path.is_file():
-            try:
-                state = AnnotationState.from_dict(json.loads(path.read_text()))
-            except (json.JSONDecodeError, UnicodeDecodeError, StateError) as exc:
-                raise UserError(f"{path}: unreadable annotation state ({exc}); move it away to start afresh or give "
-                                "another --work directory") from None
-            if state.capture != capture.name:
-                raise UserError(f"{path} belongs to capture {state.capture!r}, not {capture.name!r}; give another "
-                                f"--work directory for {capture.name!r}")
-            if (state.num_steps, state.num_objects) != (capture.num_steps, capture.num_objects):
-                raise UserError(f"{path} has {state.num_steps} pushes x {state.num_objects} objects but capture "
-                                f"{capture.name!r} has {capture.num_steps} x {capture.num_objects}; give another "
-                                "--work directory")
-            return cls(capture, work, state)
-        session = cls(capture, work, AnnotationState(capture.name, capture.num_steps, capture.num_objects))
-        session._save()
+        if not path.is_file():
+            session = cls(capture, work, AnnotationState(capture.name, capture.num_steps, capture.num_objects))
+            session._write_snapshot()
+            return session
+        try:
+            saved = read_saved(work)
+        except (json.JSONDecodeError, UnicodeDecodeError, StateError) as exc:
+            raise UserError(f"{path}: unreadable annotation state ({exc}); move it away to start afresh or give "
+                            "another --work directory") from None
+        state, notes = saved.state, saved.notes
+        if state.capture != capture.name:
+            raise UserError(f"{path} belongs to capture {state.capture!r}, not {capture.name!r}; give another "
+                            f"--work directory for {capture.name!r}")
+        if (state.num_steps, state.num_objects) != (capture.num_steps, capture.num_objects):
+            raise UserError(f"{path} has {state.num_steps} pushes x {state.num_objects} objects but capture "
+                            f"{capture.name!r} has {capture.num_steps} x {capture.num_objects}; give another "
+                            "--work directory")
+        session = cls(capture, work, state)
+        session._generation = saved.generation
+        session.notes = notes
+        for note in notes:
+            print(f"annotate: {note}", file=sys.stderr)
+        if saved.replayed or notes or not saved.journal_current:
+            session._write_snapshot()  # fold the journal in, or start one (none yet, or a stale one)
         return session
 
     @property
     def state_path(self) -> Path:
         return self.work_dir / STATE_FILE
 
-    def _save(self) -> None:
-        """Write the state atomically (`dsr_bench.atomic`: temporary file, fsync, rename)."""
+    @property
+    def journal_path(self) -> Path:
+        return self.work_dir / JOURNAL_FILE
+
+    def _write_snapshot(self) -> None:
+        """Fold everything into state.json (atomic: temporary file, fsync, rename) under the next journal
+        generation, then start that generation's empty journal (atomic too). A crash between the two leaves a
+        journal of the old generation, which resume ignores: the snapshot already holds its records."""
         self.work_dir.mkdir(parents=True, exist_ok=True)
-        write_text(self.state_path, json.dumps(self.state.to_dict(), separators=(",", ":")), fsync=True)
+        self._generation += 1
+        d = self.state.to_dict()
+        d["journal"] = self._generation
+        write_text(self.state_path, json.dumps(d, separators=(",", ":")), fsync=True)
+        header = {"format": JOURNAL_FORMAT, "generation": self._generation}
+        write_text(self.journal_path, json.dumps(header) + "\n", fsync=True)
+        self._records = 0
+
+    def _save(self, kind: str, op=None) -> None:
+        """Make the change just applied in memory durable before the call returns: append its record to the journal
+        and fsync it (a few hundred bytes, whatever the history's length); every COMPACT_RECORDS records the
+        journal is folded into state.json instead."""
+        if self._records >= COMPACT_RECORDS:
+            self._write_snapshot()
+            return
+        line = json.dumps(self.state.record(kind, op), separators=(",", ":")) + "\n"
+        with open(self.journal_path, "a", encoding="utf-8") as f:
+            f.write(line)
+            f.flush()
+            os.fsync(f.fileno())
+        self._records += 1
 
     # read-only views -------------------------------------------------------------------------------------------------
     @property
@@ -263,7 +365,7 @@ class Session:
         op = self.state.operation(kind, changes, cursor=cursor, visit=visit)
         self.state.apply(op)
         self.state.count(kind)
-        self._save()
+        self._save("apply", op)
 
     def _set_pose(self, kind: str, obj: int, pose: np.ndarray, status: str, score: FitScore | None = None) -> None:
         step = self.state.step
@@ -273,7 +375,7 @@ class Session:
     def select(self, obj: int) -> None:
         """Select object `obj` (the target of the window's keys); saved, not an undoable action."""
         self.state.selected = self._check_obj(obj)
-        self._save()
+        self._save("select")
 
     def init_from_picks(self, obj: int, mesh_points: np.ndarray, cloud_points: np.ndarray) -> np.ndarray:
         """Place object `obj` at the current step from k >= 3 picked pairs: mesh points (k, 3) in the object
@@ -377,7 +479,7 @@ class Session:
         if self.state.undo() is None:
             return False
         self.state.count("undo")
-        self._save()
+        self._save("undo")
         return True
 
     def redo(self) -> bool:
@@ -385,7 +487,7 @@ class Session:
         if self.state.redo() is None:
             return False
         self.state.count("redo")
-        self._save()
+        self._save("redo")
         return True
 
     # steps ------------------------------------------------------------------------------------------------------------
@@ -403,7 +505,7 @@ class Session:
             if step != self.state.step:
                 self.state.step = step
                 self.state.count("step")
-                self._save()
+                self._save("cursor")
             return []
         source = max(s for s in range(step) if self.state.visited[s])
         carries = {obj: (source, pose, None, None) for obj in range(self.num_objects)

@@ -8,6 +8,10 @@ set by hand), which steps were visited, the current step and selected object, un
 Every mutation is an `Operation` holding, for each (step, object) it touches, the entry before and after, plus the
 cursor (current step) and visited flags before and after; undo applies the "before" side, redo the "after" side,
 so both are exact. `to_dict` / `from_dict` give a JSON-able dict (poses as lists, NaN rows as null).
+
+Journal records (`record` / `replay`): one JSON-able dict per change ("apply" with the operation, "undo", "redo",
+"select", "cursor"), each with the cursor, selection and action counts after it; replaying a state's records in
+order on the state they started from gives that state exactly (the session appends them to its journal file).
 """
 
 from __future__ import annotations
@@ -26,6 +30,8 @@ ACTION_KINDS: tuple[str, ...] = ("pick", "place", "previous", "nudge", "snap", "
                                  "redo")
 #: Undo history kept (oldest operations are dropped beyond this).
 MAX_HISTORY = 2000
+#: Journal record kinds: a new operation, undo, redo, a selection, a cursor move to a visited step.
+RECORD_KINDS: tuple[str, ...] = ("apply", "undo", "redo", "select", "cursor")
 
 
 class StateError(ValueError):
@@ -188,6 +194,42 @@ class AnnotationState:
     def count(self, kind: str) -> None:
         """Count one user action of a kind (see ACTION_KINDS)."""
         self.counts[kind] = self.counts.get(kind, 0) + 1
+
+    # journal records ------------------------------------------------------------------------------------------
+    def record(self, kind: str, op: Operation | None = None) -> dict[str, Any]:
+        """The journal record (JSON-able) of a change just made: `kind` (RECORD_KINDS), the operation of "apply",
+        and the cursor, selection and action counts after the change."""
+        if kind not in RECORD_KINDS or (kind == "apply") != (op is not None):
+            raise ValueError(f"bad journal record {kind!r}")
+        out: dict[str, Any] = {"kind": kind, "step": self.step, "selected": self.selected, "counts": dict(self.counts)}
+        if op is not None:
+            out["op"] = op.as_json()
+        return out
+
+    def replay(self, record: Any) -> None:
+        """Re-apply one journal record (`record`); raises StateError when it cannot apply to this state."""
+        try:
+            kind = record["kind"]
+            if kind == "apply":
+                op = Operation.from_json(record["op"])
+                t1 = self.num_steps + 1
+                if any(not (0 <= s < t1 and 0 <= i < self.num_objects) for s, i, _, _ in op.cells) \
+                        or any(not 0 <= s < t1 for s, _, _ in op.visited) or not 0 <= op.cursor[1] < t1:
+                    raise StateError("journal: an operation outside this capture's steps and objects")
+                self.apply(op)
+            elif kind in ("undo", "redo") and (self.undo() if kind == "undo" else self.redo()) is None:
+                raise StateError(f"journal: nothing to {kind}")
+            elif kind not in RECORD_KINDS:
+                raise StateError(f"journal: unknown record {kind!r}")
+            step, selected = int(record["step"]), int(record["selected"])
+            if not (0 <= step <= self.num_steps and 0 <= selected < self.num_objects):
+                raise StateError(f"journal: step {step} or object {selected + 1} out of range")
+            self.step, self.selected = step, selected
+            self.counts.update({str(k): int(v) for k, v in record["counts"].items()})
+        except StateError:
+            raise
+        except (KeyError, TypeError, ValueError, IndexError, AttributeError) as exc:
+            raise StateError(f"journal: malformed record ({type(exc).__name__}: {exc})") from None
 
     # serialisation --------------------------------------------------------------------------------------------
     def to_dict(self) -> dict[str, Any]:

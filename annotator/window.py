@@ -7,16 +7,19 @@ windows need Vulkan and captured black there):
   step (capture colours, or depth-residual colours with key R), every object mesh at its current pose
   (the selected one orange, the others coloured by status), an axes gizmo at the selected object's
   centre showing the nudge frame (table or object axes) and the table frame at the origin. Mouse
-  navigation is open3d's own; every key updates the geometries in place (`update_geometry`).
+  navigation is open3d's own; the geometries are updated in place (`update_geometry`).
 - the panel (a second legacy `Visualizer` showing an `open3d.geometry.Image`, drawn by `annotator.panel`):
   an image geometry in its own window is the one image path of the legacy visualizer that renders under
   Xvfb, keeps the 3D view free and is updated in place.
 
-Keys go to `annotator.keys.Controller` (keys -> Session calls); messages (errors) and the progress table
-(key F) also go to the terminal. Pick mode (key M) opens open3d's `VisualizerWithEditing` twice (cloud,
-then mesh, `pick_points`); it runs after the key callback returns, and the main window ignores keys
-meanwhile. The display is checked before open3d is asked (open3d 0.20 otherwise falls back silently to an
-invisible offscreen context).
+Frames: the key callbacks only queue keys (`annotator.keys.KeyCoalescer`); each frame (`render`) processes the
+window events, acts on the queued keys through `annotator.keys.Controller` (keys -> Session calls; a held nudge
+key's repeats merged into one nudge, at most `MAX_REPEAT` steps a frame, so releasing it stops the motion at the
+next frame), then redraws what changed once from the session's latest state (`redraw`: cloud, meshes, panel), not
+once per key. Messages (errors) and the progress table (key F) also go to the terminal. Pick mode (key M) opens
+open3d's `VisualizerWithEditing` twice (cloud, then mesh, `pick_points`); it runs after the key callbacks
+return, and the main window ignores keys meanwhile. The display is checked before open3d is asked (open3d 0.20
+otherwise falls back silently to an invisible offscreen context).
 """
 
 from __future__ import annotations
@@ -29,7 +32,7 @@ from functools import partial
 import numpy as np
 
 from annotator.images import object_colors, posed
-from annotator.keys import DEFERRED_KEYS, KEYMAP, Controller, glfw_code
+from annotator.keys import KEYMAP, Controller, KeyCoalescer, glfw_code
 from annotator.panel import Panel
 from dsr_bench.display import no_display
 from dsr_bench.errors import UserError
@@ -115,7 +118,8 @@ class AnnotatorWindow:
         if not self.vis.create_window("dsr-bench annotator: 3D (Esc quits)", width=width, height=height):
             raise UserError(f"could not create the annotator window (no OpenGL display); {NO_DISPLAY_HINT}")
         self.panel_vis = None
-        self._deferred: list[str] = []
+        self.keys = KeyCoalescer()
+        self._dirty: set[str] = set()
         self._busy = False
         try:
             self._build_scene()
@@ -126,6 +130,7 @@ class AnnotatorWindow:
                 raise UserError(f"could not create the annotator's panel window; {NO_DISPLAY_HINT}")
             self.panel_image = o3d.geometry.Image(np.ascontiguousarray(panel))
             self.panel_vis.add_geometry(self.panel_image)
+            self._dirty.add("view")  # the first frame draws both windows
             for key in KEYMAP:
                 self.vis.register_key_callback(glfw_code(key), partial(self._on_key, key))
         except BaseException:
@@ -150,6 +155,7 @@ class AnnotatorWindow:
         axes = o3d.geometry.TriangleMesh.create_coordinate_frame(size=1.0)
         self.gizmo_base = np.asarray(axes.vertices).copy()
         self.gizmo = axes
+        self._drawn: dict[int, tuple[bytes, bytes]] = {}  # (pose, colour) each mesh was last drawn at
         self._update_meshes()
         self.vis.add_geometry(self.cloud)
         self.vis.add_geometry(o3d.geometry.TriangleMesh.create_coordinate_frame(size=TABLE_AXES_SIZE),
@@ -176,11 +182,18 @@ class AnnotatorWindow:
         ctr.set_up(up / np.linalg.norm(up))
         ctr.set_zoom(0.45)
 
-    def _update_meshes(self) -> None:
+    def _update_meshes(self) -> list:
+        """Posed vertices and colours of the meshes whose pose or colour changed (returned), and the gizmo."""
         o3d, s = self._o3d, self.ctl.session
         poses = np.asarray(s.poses(), np.float64)
         colors = object_colors(s.status(), int(s.selected))
-        for (vertices, _), mesh, pose, color in zip(self.mesh_data, self.meshes, poses, colors):
+        changed = []
+        for k, ((vertices, _), mesh, pose, color) in enumerate(zip(self.mesh_data, self.meshes, poses, colors)):
+            drawn = (pose.tobytes(), color.tobytes())
+            if self._drawn.get(k) == drawn:
+                continue  # unchanged since the last redraw: no new vertices to upload
+            self._drawn[k] = drawn
+            changed.append(mesh)
             if np.all(np.isfinite(pose)):
                 world = posed(vertices, pose)
             else:  # unset: collapse to one point (degenerate triangles draw nothing; no hide in the legacy API)
@@ -197,54 +210,55 @@ class AnnotatorWindow:
             self.gizmo.vertices = o3d.utility.Vector3dVector(scaled @ rot.T + centre)
         else:
             self.gizmo.vertices = o3d.utility.Vector3dVector(np.zeros_like(self.gizmo_base) + HIDDEN_POINT)
+        return changed
 
     def _update_cloud(self) -> None:
         points, colors = self.ctl.cloud()
         self.cloud.points = self._o3d.utility.Vector3dVector(points)
         self.cloud.colors = self._o3d.utility.Vector3dVector(colors)
 
-    # keys ----------------------------------------------------------------------------------------
+    # keys and frames ---------------------------------------------------------------------------------
     def _on_key(self, key: str, _vis) -> bool:
-        """The GLFW key callback. Keys that open another window (pick mode) wait for `render`: GLFW's
-        event processing must not be re-entered from inside a callback. While such a window is open, this
-        window's keys are ignored (its events are still delivered)."""
-        if self._busy:
-            return False
-        if key in DEFERRED_KEYS:
-            self._deferred.append(key)
-        else:
-            self.press(key)
+        """The GLFW key callback: only queues the key (`KeyCoalescer`); `render` acts on the queued keys after the
+        events are processed (so a key that opens another window, pick mode, never re-enters GLFW's event
+        processing from inside a callback). While such a window is open, this window's keys are ignored (its
+        events are still delivered)."""
+        if not self._busy:
+            self.keys.push(key, time.monotonic())
         return False
 
-    def press(self, key: str) -> set[str]:
-        """Do what pressing `key` (a KEYMAP name) does, and update the changed geometries in place."""
-        changed = self.ctl.press(key)
-        if "cloud" in changed:
-            self._update_cloud()
-            self.vis.update_geometry(self.cloud)
-        if "meshes" in changed:
-            self._update_meshes()
-            for mesh in self.meshes:
-                self.vis.update_geometry(mesh)
-            self.vis.update_geometry(self.gizmo)
-        if "panel" in changed:
-            self._update_panel()
+    def press(self, key: str, count: int = 1) -> set[str]:
+        """Do what pressing `key` (a KEYMAP name; `count` presses for a nudge key) does; the changed geometries
+        are redrawn once, by the next `redraw` (`render` calls it)."""
+        changed = self.ctl.press(key, count)
+        self._dirty |= changed
         if self.ctl.view.reset_view:
             self.ctl.view.reset_view = False
             self.reset_view()
+            self._dirty.add("view")
         if self.ctl.view.quit:
             self.vis.close()
         return changed
 
     def refresh(self) -> None:
         """Re-read everything from the session (after changes made outside the window's keys)."""
-        self._update_cloud()
-        self.vis.update_geometry(self.cloud)
-        self._update_meshes()
-        for mesh in self.meshes:
-            self.vis.update_geometry(mesh)
-        self.vis.update_geometry(self.gizmo)
-        self._update_panel()
+        self._dirty |= {"cloud", "meshes", "panel"}
+        self.redraw()
+
+    def redraw(self) -> set[str]:
+        """Update what changed since the last redraw, once, from the session's latest state; returns what was
+        updated (a subset of {"cloud", "meshes", "panel", "view"})."""
+        dirty, self._dirty = self._dirty, set()
+        if "cloud" in dirty:
+            self._update_cloud()
+            self.vis.update_geometry(self.cloud)
+        if "meshes" in dirty:
+            for mesh in self._update_meshes():
+                self.vis.update_geometry(mesh)
+            self.vis.update_geometry(self.gizmo)
+        if "panel" in dirty:
+            self._update_panel()
+        return dirty
 
     def _update_panel(self) -> None:
         if self.panel_vis is None:
@@ -258,20 +272,26 @@ class AnnotatorWindow:
             self.panel_image = self._o3d.geometry.Image(np.ascontiguousarray(panel))
             self.panel_vis.add_geometry(self.panel_image)
         self.panel_vis.update_geometry(self.panel_image)
-        self.panel_vis.update_renderer()
 
     def render(self) -> bool:
-        """Process window events and redraw both windows; False once either window was closed."""
+        """One frame: process window events (the key callbacks queue keys), act on the queued keys (a held key's
+        repeats merged, `KeyCoalescer`) and update what changed, once; open3d draws a window flagged for redrawing
+        as the next frame polls its events, and an idle frame draws nothing. False once either window was closed."""
         alive = self.vis.poll_events()
-        while self._deferred:
-            self._busy = True
-            try:
-                self.press(self._deferred.pop(0))
-            finally:
-                self._busy = False
-        self.vis.update_renderer()
         if self.panel_vis is not None:
             alive = self.panel_vis.poll_events() and alive
+        self._busy = True  # a pick window's event loop delivers this window's keys too: ignored meanwhile
+        try:
+            for action in self.keys.drain(time.monotonic()):
+                self.press(action.key, action.count)
+                if self.ctl.view.quit:
+                    break
+        finally:
+            self._busy = False
+        redrawn = self.redraw()
+        if redrawn - {"panel"}:  # else nothing to draw (open3d flags on its own what the mouse changes)
+            self.vis.update_renderer()
+        if redrawn & {"panel", "view"} and self.panel_vis is not None:
             self.panel_vis.update_renderer()
         return bool(alive) and not self.ctl.view.quit
 

@@ -274,15 +274,16 @@ def test_nudge_rotates_about_the_centre_and_translates_in_the_chosen_axes(captur
 
 
 def test_autosave_and_resume_after_a_kill(capture_dir, truth, tmp_path):
-    from annotator.session import STATE_FILE, Session
+    from annotator.session import Session, read_saved
 
     work = tmp_path / "work"
     session = Session.open(capture_dir, work)
     _place_from_truth(session, truth, snap=False)
     session.snap(1)
     session.select(2)
-    saved = json.loads((work / STATE_FILE).read_text())  # written before the calls returned
+    saved = read_saved(work)[0].to_dict()  # state.json + journal, written before the calls returned
     assert saved["status"][0] == session.status(0) and saved["selected"] == 2
+    assert saved == session.state.to_dict()
     assert not list(work.glob(".*tmp*"))
     del session  # a kill: nothing is flushed on exit
     resumed = Session.open(capture_dir, work)
@@ -291,6 +292,80 @@ def test_autosave_and_resume_after_a_kill(capture_dir, truth, tmp_path):
     np.testing.assert_allclose(pose_to_matrix(resumed.poses(0)[0]), pose_to_matrix(truth[0, 0]), atol=1e-9)
     assert resumed.action_counts["pick"] == 3 and resumed.action_counts["snap"] == 1
     assert resumed.undo() and resumed.status(0)[1] == "initialised"  # history survives too
+
+
+def test_journal_round_trip_and_compaction(capture_dir, truth, tmp_path, monkeypatch):
+    """Every change is one journal record; resume (state.json + journal) equals the in-memory state, before and
+    after the journal is folded into state.json."""
+    from annotator import session as session_mod
+    from annotator.session import JOURNAL_FILE, STATE_FILE, Session, read_saved
+
+    monkeypatch.setattr(session_mod, "COMPACT_RECORDS", 7)
+    work = tmp_path / "work"
+    session = Session.open(capture_dir, work)
+    snapshot = (work / STATE_FILE).read_bytes()
+    _place_from_truth(session, truth, snap=False)
+    session.nudge(0, translation=(0.002, 0.0, 0.0))
+    assert (work / STATE_FILE).read_bytes() == snapshot  # only the journal grew
+    assert len((work / JOURNAL_FILE).read_text().splitlines()) == 1 + session.num_objects + 1
+    session.select(1)
+    session.undo()
+    session.redo()
+    session.go_to(1)
+    session.go_to(0)  # a cursor move to a visited step
+    for k in range(5):  # past COMPACT_RECORDS: folded into state.json, a fresh journal
+        session.nudge(1, rotation=(0.0, 0.0, 0.01 * (k + 1)), frame="object")
+        saved = read_saved(work)
+        assert saved.state.to_dict() == session.state.to_dict() and not saved.notes and saved.journal_current
+    assert (work / STATE_FILE).read_bytes() != snapshot
+    resumed = Session.open(capture_dir, work)
+    assert resumed.state.to_dict() == session.state.to_dict() and resumed.notes == []
+    assert len((work / JOURNAL_FILE).read_text().splitlines()) == 1  # folded in on resume
+
+
+def test_journal_cut_short_by_a_crash(capture_dir, truth, tmp_path, capsys):
+    """A journal whose last record a crash cut short resumes without it (a one-line note), and a journal that a crash
+    left behind after its records went into state.json (old generation) is ignored."""
+    from annotator.session import JOURNAL_FILE, STATE_FILE, Session
+
+    work = tmp_path / "work"
+    session = Session.open(capture_dir, work)
+    _place_from_truth(session, truth, snap=False)
+    acknowledged = session.state.to_dict()
+    session.nudge(0, translation=(0.0, 0.003, 0.0))
+    journal = work / JOURNAL_FILE
+    data = journal.read_bytes()
+    journal.write_bytes(data[: len(data) - 40])  # the nudge's record, cut short mid-write
+    resumed = Session.open(capture_dir, work)
+    assert resumed.state.to_dict() == acknowledged
+    assert len(resumed.notes) == 1 and "cut short" in resumed.notes[0] and "\n" not in resumed.notes[0]
+    assert "cut short" in capsys.readouterr().err
+    # a crash between writing state.json and starting its journal: the old journal's records are already in it
+    resumed.nudge(1, translation=(0.001, 0.0, 0.0))
+    state_json = json.loads((work / STATE_FILE).read_text())
+    old_journal = journal.read_bytes()
+    resumed._write_snapshot()
+    journal.write_bytes(old_journal)
+    again = Session.open(capture_dir, work)
+    assert again.state.to_dict() == resumed.state.to_dict() and again.notes == []
+    assert json.loads((work / STATE_FILE).read_text())["journal"] > state_json["journal"]
+    again.select(1 - again.selected)  # goes to a fresh journal of the snapshot's generation, not the stale one
+    assert Session.open(capture_dir, work).state.to_dict() == again.state.to_dict()
+
+
+def test_state_written_before_journals_resumes(capture_dir, truth, tmp_path):
+    """A state.json of the version before journals (no "journal" key, no journal file) reads as it is."""
+    from annotator.session import JOURNAL_FILE, STATE_FILE, Session
+
+    work = tmp_path / "work"
+    session = Session.open(capture_dir, work)
+    _place_from_truth(session, truth, snap=False)
+    old = session.state.to_dict()  # what the annotator wrote before journals
+    (work / JOURNAL_FILE).unlink()
+    (work / STATE_FILE).write_text(json.dumps(old))
+    resumed = Session.open(capture_dir, work)
+    assert resumed.state.to_dict() == old and resumed.notes == []
+    assert (work / JOURNAL_FILE).is_file()
 
 
 def test_state_of_another_capture_is_refused(capture_dir, tmp_path):

@@ -26,8 +26,8 @@ from dsr_bench.geometry import make_camera, pose_to_matrix  # noqa: E402
 
 #: The Session methods the window calls (annotator/session.py, see the annotator docs) ...
 SESSION_METHODS = {"poses", "status", "cloud", "go_to", "select", "init_from_picks", "init_from_previous", "nudge",
-                   "snap", "confirm", "undo", "redo", "score", "residual_colors", "progress_table", "recarry",
-                   "next_to_check"}
+                   "snap", "confirm", "undo", "redo", "score", "stored_score", "residual_colors", "progress_table",
+                   "recarry", "next_to_check"}
 #: ... and the properties it reads.
 SESSION_PROPERTIES = {"step", "selected", "num_steps", "num_objects", "undo_depth", "redo_depth"}
 #: The calls that change the annotation.
@@ -364,6 +364,18 @@ def test_nudges_use_view_steps_and_frame(session):
     assert session.selected == 1 and "no object 5" in ctl.view.message
 
 
+def test_a_merged_nudge_moves_its_count_of_steps_in_one_change(session):
+    ctl = keys.Controller(session, echo=lambda s: None)
+    p0, depth = session.poses()[0].copy(), session.undo_depth
+    assert "meshes" in ctl.press("D", count=3)
+    assert np.allclose(session.poses()[0][:3] - p0[:3], [0.003, 0, 0]) and session.undo_depth == depth + 1
+    assert "+3 mm" in ctl.view.message
+    ctl.press("O", count=2)  # +2 degrees of yaw, one change
+    assert session.undo_depth == depth + 2 and "+2 deg" in ctl.view.message
+    ctl.press("Tab", count=4)  # not a nudge: once
+    assert session.selected == 1
+
+
 def test_session_errors_become_messages(session):
     ctl = keys.Controller(session, echo=lambda s: None)
     changed = ctl.press("C")  # no previous step at step 0
@@ -491,8 +503,8 @@ def display_child(capture_dir: str, work_dir: str, out: str) -> None:
     messages: list[str] = []
     press = window.ctl.press
 
-    def logged(key):
-        changed = press(key)
+    def logged(key, count=1):
+        changed = press(key, count)
         messages.append(f"{key}: {window.ctl.view.message}")
         return changed
 
