@@ -48,5 +48,5 @@ def board(tmp_path, monkeypatch):
     root.mkdir()
     shutil.copy(Path(__file__).resolve().parents[1] / "leaderboard" / "paper.json", root / "paper.json")
     spec = SPLITS["procedural-novel-mini"]
-    monkeypatch.setitem(SPLITS, spec.name, Split(**{**spec.__dict__, "expected_digest": "c" * 64}))
+    monkeypatch.setitem(SPLITS, spec.name, Split(**{**spec.__dict__, "pinned_checksum": "c" * 64}))
     return root
