@@ -5,7 +5,7 @@ on exactly the same inputs, side by side.
                                    [--official-repo PATH]
 
 Writes predictions with a reference model, then runs, alternated (A, B, C, ... A, B, C, ...):
-- reading the same files alone (the floor);
+- reading the arrays evaluate reads, step by step as it reads them, alone (the floor);
 - `dsr_bench.scoring.evaluate.evaluate` with all cores, and with one process (every metric);
 - only with `--official-repo PATH` (a checkout of columbia-ai-robotics/dsr): the authors'
   `calc_iou_unordered` (per step) and `calc_iou_ordered` (per sequence), loaded from their
@@ -39,12 +39,16 @@ THEIRS = "authors' calc_iou_unordered + calc_iou_ordered"
 
 
 def read_only(pred_dir: Path, data_dir: Path, names: list[str]) -> None:
+    """Read every step of the arrays `evaluate` reads, the way it reads them (`dsr_bench.dataset.storage`)."""
     import h5py
+
+    from dsr_bench.dataset.storage import read_step
 
     for name in names:
         with h5py.File(pred_dir / f"{name}.h5", "r") as p, h5py.File(data_dir / f"{name}.h5", "r") as g:
-            p["mask"][()], p["motion"][()]
-            g["mask_3d"][()], g["scene_flow_3d"][()], g["tsdf"][()]
+            for ds in (p["mask"], p["motion"], g["mask_3d"], g["scene_flow_3d"], g["tsdf"]):
+                for t in range(p["mask"].shape[0]):
+                    read_step(ds, t)
 
 
 def official_inputs(pred_mask: np.ndarray, gt_mask: np.ndarray, num_slots: int):
