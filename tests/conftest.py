@@ -50,3 +50,17 @@ def board(tmp_path, monkeypatch):
     spec = SPLITS["procedural-novel-mini"]
     monkeypatch.setitem(SPLITS, spec.name, Split(**{**spec.__dict__, "pinned_checksum": "c" * 64}))
     return root
+
+
+@pytest.fixture(scope="session")
+def sim(tmp_path_factory):
+    """A simulated two-camera capture without sensor noise (2 pushes, 3 objects, 240 x 320): the scene the importer
+    tests write in each real input form (PNG folder, RealSense bags)."""
+    pytest.importorskip("pybullet")
+    pytest.importorskip("open3d")
+    from dsr_bench.dataset.capture import load_capture
+    from generators.capture import generate_capture
+
+    out = tmp_path_factory.mktemp("sim") / "seq_000"
+    generate_capture(out, name="seq_000", seed=1, steps=2, objects_per_scene=3, noise="none", image_shape=(240, 320))
+    return load_capture(out)

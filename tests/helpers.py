@@ -1,5 +1,8 @@
 """Plain helpers shared by test modules (fixtures live in conftest.py)."""
 
+from pathlib import Path
+
+import h5py
 import numpy as np
 
 from dsr_bench.geometry import pose_to_matrix
@@ -15,3 +18,33 @@ def place_from_truth(session, truth, step: int = 0, snap: bool = True) -> None:
         session.init_from_picks(i, v[idx], v[idx] @ m[:3, :3].T + m[:3, 3])
         if snap:
             session.snap(i)
+
+
+def stored_arrays(path: Path) -> dict[str, np.ndarray]:
+    """Every dataset stored in an HDF5 file, read whole, by path."""
+    out: dict[str, np.ndarray] = {}
+    with h5py.File(path, "r") as f:
+        f.visititems(lambda name, obj: out.__setitem__(name, obj[()]) if isinstance(obj, h5py.Dataset) else None)
+    return out
+
+
+def assert_same_dataset(got: Path, want: Path, sequences: int = 4) -> None:
+    """Two generated datasets are the same: the same `sequences` files, every stored array equal (values and dtypes,
+    NaN equal to NaN), the same manifest digests, split checksum and split file, and no temporary, lock or probe left
+    anywhere in `got`."""
+    from dsr_bench.dataset.manifest import load_manifest, split_digest
+
+    names = sorted(p.name for p in want.glob("seq_*.h5"))
+    assert len(names) == sequences and sorted(p.name for p in got.glob("seq_*.h5")) == names
+    for name in names:
+        a, b = stored_arrays(got / name), stored_arrays(want / name)
+        assert sorted(a) == sorted(b), name
+        for key in b:
+            nan = b[key].dtype.kind in "fc"  # NaN (no depth) equals NaN
+            assert a[key].dtype == b[key].dtype and np.array_equal(a[key], b[key], equal_nan=nan), f"{name}:{key}"
+    ma, mb = load_manifest(got), load_manifest(want)
+    assert [(s["name"], s["content_sha256"]) for s in ma["sequences"]] == [
+        (s["name"], s["content_sha256"]) for s in mb["sequences"]]
+    assert split_digest(ma, "all") == split_digest(mb, "all")
+    assert (got / "splits" / "all.txt").read_text() == (want / "splits" / "all.txt").read_text()
+    assert sorted(str(p.relative_to(got)) for p in got.rglob(".*")) == []

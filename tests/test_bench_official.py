@@ -333,3 +333,29 @@ def test_bench_generate_reports_a_failing_or_silent_official_run_in_one_line(fak
     (fake_repo / "data_generation.py").write_text("pass\n")
     with pytest.raises(UserError, match="wrote nothing"):
         bench.main(args)
+
+
+# --- bench_storage -----------------------------------------------------------------------------------
+
+def test_bench_storage_restores_bit_for_bit_and_reports_where_the_bytes_go(tmp_path, capsys):
+    """bench_storage re-writes a schema-2-style dataset (points stored) through today's writer, checks every array
+    bit for bit (or stops), and reports bytes per step by array and whole files; points equal to depth's
+    back-projection are left out (derived), so the re-stored files are smaller."""
+    import h5py
+
+    import bench_storage
+    from dsr_bench.dataset.sequence import SequenceReader, derive_points
+    from dsr_bench.testing import write_synthetic_dataset
+
+    data = write_synthetic_dataset(tmp_path / "data", num_sequences=2, num_steps=2)
+    for path in sorted(data.glob("seq_*.h5")):  # as the generator writes them: points follow from depth exactly
+        with SequenceReader(path) as seq:
+            points = derive_points(seq.read("cameras/front/depth"), seq.camera("front"))
+        with h5py.File(path, "r+") as f:
+            f["cameras/front/points"][...] = points
+    out = bench_storage.main([str(data), "--num-sequences", "2", "--repeats", "1"])
+    text = capsys.readouterr().out
+    assert "arrays re-stored bit for bit" in text and "(derived from depth on reading)" in text
+    assert "cameras/front/points" in out["bytes"]["as stored"] and "cameras/front/points" not in out["bytes"]["current layout"]
+    assert out["mb_per_step"]["current layout"] < out["mb_per_step"]["as stored"]
+    assert set(out["read_seconds_per_step"]) == {"as stored", "current layout"}

@@ -16,11 +16,10 @@ import socket
 import sys
 from pathlib import Path
 
-import h5py
-import numpy as np
 import pytest
 
 from dsr_bench.cli import main
+from helpers import assert_same_dataset
 
 REPO = Path(__file__).resolve().parents[1]
 ARGS = ["generate", "--objects", "cube", "-n", "4", "--steps", "2", "--seed", "5"]
@@ -31,33 +30,6 @@ needs_simulator = pytest.mark.skipif(importlib.util.find_spec("pybullet") is Non
 def _generate(out: Path, *extra: str) -> Path:
     assert main([*ARGS, "--out", str(out), *extra]) == 0
     return out
-
-
-def _arrays(path: Path) -> dict[str, np.ndarray]:
-    out: dict[str, np.ndarray] = {}
-    with h5py.File(path, "r") as f:
-        f.visititems(lambda name, obj: out.__setitem__(name, obj[()]) if isinstance(obj, h5py.Dataset) else None)
-    return out
-
-
-def _assert_same_dataset(got: Path, want: Path) -> None:
-    """Every array of every sequence equal (values and dtypes), the same manifest digests and split checksum."""
-    from dsr_bench.dataset.manifest import load_manifest, split_digest
-
-    names = sorted(p.name for p in want.glob("seq_*.h5"))
-    assert len(names) == 4 and sorted(p.name for p in got.glob("seq_*.h5")) == names
-    for name in names:
-        a, b = _arrays(got / name), _arrays(want / name)
-        assert sorted(a) == sorted(b), name
-        for key in b:
-            nan = b[key].dtype.kind in "fc"  # NaN (no depth) equals NaN
-            assert a[key].dtype == b[key].dtype and np.array_equal(a[key], b[key], equal_nan=nan), f"{name}:{key}"
-    ma, mb = load_manifest(got), load_manifest(want)
-    assert [(s["name"], s["content_sha256"]) for s in ma["sequences"]] == [
-        (s["name"], s["content_sha256"]) for s in mb["sequences"]]
-    assert split_digest(ma, "all") == split_digest(mb, "all")
-    assert (got / "splits" / "all.txt").read_text() == (want / "splits" / "all.txt").read_text()
-    assert not [p.name for p in got.iterdir() if p.name.startswith(".")]  # no temporary or lock left
 
 
 def _error(capsys) -> str:
@@ -78,7 +50,7 @@ def _closed_port() -> int:
 def test_generate_on_a_local_ray_equals_one_process(tmp_path):
     pytest.importorskip("ray")
     plain = _generate(tmp_path / "plain")
-    _assert_same_dataset(_generate(tmp_path / "ray", "--ray", "local", "--workers", "2"), plain)
+    assert_same_dataset(_generate(tmp_path / "ray", "--ray", "local", "--workers", "2"), plain)
 
 
 @needs_simulator
@@ -87,7 +59,7 @@ def test_generate_as_a_submitit_array_equals_one_process(tmp_path):
     plain = _generate(tmp_path / "plain")
     logs = tmp_path / "logs"
     got = _generate(tmp_path / "slurm", "--slurm", "--slurm-local", "--slurm-tasks", "2", "--slurm-logs", str(logs))
-    _assert_same_dataset(got, plain)
+    assert_same_dataset(got, plain)
     assert len(list(logs.glob("*_result.pkl"))) == 2  # two array tasks ran
     _generate(got, "--slurm", "--slurm-local", "--slurm-logs", str(logs))  # complete: resumed, nothing submitted
     assert len(list(logs.glob("*_result.pkl"))) == 2

@@ -224,18 +224,6 @@ def write_bag_folder(sim, folder: Path) -> dict[str, Camera]:
 
 
 @pytest.fixture(scope="module")
-def sim(tmp_path_factory):
-    pytest.importorskip("pybullet")
-    pytest.importorskip("open3d")
-    from dsr_bench.dataset.capture import load_capture
-    from generators.capture import generate_capture
-
-    out = tmp_path_factory.mktemp("sim") / "seq_000"
-    generate_capture(out, name="seq_000", seed=1, steps=2, objects_per_scene=3, noise="none", image_shape=(240, 320))
-    return load_capture(out)
-
-
-@pytest.fixture(scope="module")
 def bags(sim, tmp_path_factory):
     folder = tmp_path_factory.mktemp("bags") / "src"
     return folder, write_bag_folder(sim, folder)

@@ -122,33 +122,6 @@ def inflate_exact(raw: bytes, nbytes: int) -> bytes | None:
     """The zlib stream `raw` inflated, when it holds exactly `nbytes` bytes and nothing after; else None.
 
     Never inflates more than nbytes + 1 bytes, so a hostile chunk (a file we did not write) cannot
-    make the reader allocate more than its dataset's step."""
-    d = _DECOMPRESSOBJ()
-    try:
-        out = d.decompress(raw, nbytes + 1)
-    except zlib.error:
-        return None
-    if len(out) != nbytes or not d.eof or d.unconsumed_tail or d.unused_data:
-        return None
-    return out
-
-
-def _decompressobj_factory():
-    """zlib-stream decompressor objects: ISA-L's (about 2x zlib's speed) when `isal` is installed, else zlib's."""
-    try:
-        from isal import isal_zlib
-    except ImportError:
-        return zlib.decompressobj
-    return isal_zlib.decompressobj
-
-
-_DECOMPRESSOBJ = _decompressobj_factory()
-
-
-def inflate_exact(raw: bytes, nbytes: int) -> bytes | None:
-    """The zlib stream `raw` inflated, when it holds exactly `nbytes` bytes and nothing after; else None.
-
-    Never inflates more than nbytes + 1 bytes, so a hostile chunk (a file we did not write) cannot
     make the reader allocate more than its chunk's size."""
     d = _DECOMPRESSOBJ()
     try:
