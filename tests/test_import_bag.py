@@ -546,3 +546,33 @@ def test_bag_options_are_documented_and_png_folders_refuse_them(tmp_path, capsys
     (tmp_path / "src").mkdir()
     assert main(["import-capture", str(tmp_path / "src"), "--out", str(tmp_path / "o"), "--max-gap-ms", "20"]) == 2
     assert "--steps and --max-gap-ms pick frames of .bag recordings" in capsys.readouterr().err
+
+
+def test_a_bag_capture_goes_through_annotate_and_both_exports_from_the_cli(sim, imported, tmp_path, capsys):
+    """The whole real-rig path from the command line, headless: import (the fixture) -> annotate --place (step 0 from
+    poses, as a person's picks would give them) --auto -> --export (a DSR sequence that validates, with the logged
+    pushes as actions) and --bop (scene_gt / scene_camera per camera, translations in mm)."""
+    import json
+
+    from dsr_bench.cli import main
+    from dsr_bench.dataset.sequence import SequenceReader
+    from dsr_bench.dataset.validate import validate_sequence
+
+    from dsr_bench.geometry import pose_to_matrix
+
+    truth = sim.truth_poses()
+    place = tmp_path / "place.json"
+    place.write_text(json.dumps({"objects": {str(i + 1): pose_to_matrix(truth[0, i]).tolist()
+                                             for i in range(truth.shape[1])}}))
+    out, bop = tmp_path / "bag_000.h5", tmp_path / "bop"
+    assert main(["annotate", str(imported), "--work", str(tmp_path / "work"), "--place", str(place), "--auto",
+                 "--export", str(out), "--bop", str(bop), "--allow-unchecked"]) == 0
+    assert validate_sequence(out) == []
+    with SequenceReader(out) as seq:
+        assert seq.num_steps == 2 and seq.read("action").shape == (2, 3)
+        assert np.abs(seq.read("object_poses")[0, :, :3] - truth[0, :, :3]).max() < 0.005  # metres
+    for scene in ("000000", "000001"):  # front, back
+        gt = json.loads((bop / scene / "scene_gt.json").read_text())
+        cameras = json.loads((bop / scene / "scene_camera.json").read_text())
+        assert sorted(gt) == sorted(cameras) == ["0", "1", "2"]
+        assert all(len(entry["cam_t_m2c"]) == 3 and max(map(abs, entry["cam_t_m2c"])) > 100 for entry in gt["0"])
