@@ -8,7 +8,8 @@ from typing import Optional
 
 import typer
 
-from dsr_bench.engines import HELP as ENGINE_HELP
+from dsr_bench.cli.engine_options import (RayAddress, Slurm, SlurmLocal, SlurmLogs, SlurmPartition, SlurmTasks,
+                                         SlurmTime)
 
 OBJECT_SETS_HELP = "cube | shapenet | ycb | procedural | procedural-novel"
 
@@ -29,13 +30,13 @@ def generate(
     shard: Optional[str] = typer.Option(None, "--shard", help="Generate only shard i of n (i/n), e.g. in a SLURM "
                                         "array written by hand (--ray and --slurm shard the run themselves)."),
     object_root: Optional[Path] = typer.Option(None, "--object-root", help="Mesh root for shapenet / ycb."),
-    ray: Optional[str] = typer.Option(None, "--ray", metavar="ADDRESS", help=ENGINE_HELP["ray"]),
-    slurm: bool = typer.Option(False, "--slurm", help=ENGINE_HELP["slurm"]),
-    slurm_partition: Optional[str] = typer.Option(None, "--slurm-partition", help=ENGINE_HELP["slurm_partition"]),
-    slurm_time: Optional[int] = typer.Option(None, "--slurm-time", metavar="MINUTES", help=ENGINE_HELP["slurm_time"]),
-    slurm_tasks: Optional[int] = typer.Option(None, "--slurm-tasks", help=ENGINE_HELP["slurm_tasks"]),
-    slurm_logs: Optional[Path] = typer.Option(None, "--slurm-logs", help=ENGINE_HELP["slurm_logs"]),
-    slurm_local: bool = typer.Option(False, "--slurm-local", help=ENGINE_HELP["slurm_local"]),
+    ray: RayAddress = None,
+    slurm: Slurm = False,
+    slurm_partition: SlurmPartition = None,
+    slurm_time: SlurmTime = None,
+    slurm_tasks: SlurmTasks = None,
+    slurm_logs: SlurmLogs = None,
+    slurm_local: SlurmLocal = False,
 ) -> None:
     """Simulate pushing sequences (pybullet) and write them with ground truth, a manifest and splits: here, on a Ray
     cluster (--ray) or in a SLURM job array (--slurm), with the same arrays whichever."""

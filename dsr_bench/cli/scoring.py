@@ -8,7 +8,8 @@ from typing import Optional
 
 import typer
 
-from dsr_bench.engines import HELP as ENGINE_HELP
+from dsr_bench.cli.engine_options import (RayAddress, Slurm, SlurmLocal, SlurmLogs, SlurmPartition, SlurmTasks,
+                                         SlurmTime)
 
 leaderboard_app = typer.Typer(help="Build the leaderboard tables or add a results entry.", no_args_is_help=True)
 
@@ -91,13 +92,13 @@ def evaluate(
     allow_partial: bool = typer.Option(False, "--allow-partial", help="Score the valid sequences despite problems."),
     workers: int = typer.Option(0, "--workers", "-w", help="Worker processes (0 = all cores; with --ray local the "
                                 "CPUs of its Ray, with --slurm the processes of each task, 0 = 1)."),
-    ray: Optional[str] = typer.Option(None, "--ray", metavar="ADDRESS", help=ENGINE_HELP["ray"]),
-    slurm: bool = typer.Option(False, "--slurm", help=ENGINE_HELP["slurm"]),
-    slurm_partition: Optional[str] = typer.Option(None, "--slurm-partition", help=ENGINE_HELP["slurm_partition"]),
-    slurm_time: Optional[int] = typer.Option(None, "--slurm-time", metavar="MINUTES", help=ENGINE_HELP["slurm_time"]),
-    slurm_tasks: Optional[int] = typer.Option(None, "--slurm-tasks", help=ENGINE_HELP["slurm_tasks"]),
-    slurm_logs: Optional[Path] = typer.Option(None, "--slurm-logs", help=ENGINE_HELP["slurm_logs"]),
-    slurm_local: bool = typer.Option(False, "--slurm-local", help=ENGINE_HELP["slurm_local"]),
+    ray: RayAddress = None,
+    slurm: Slurm = False,
+    slurm_partition: SlurmPartition = None,
+    slurm_time: SlurmTime = None,
+    slurm_tasks: SlurmTasks = None,
+    slurm_logs: SlurmLogs = None,
+    slurm_local: SlurmLocal = False,
 ) -> None:
     """Validate a predictions directory strictly, then score it with the benchmark's metrics: here, on a Ray
     cluster (--ray) or in a SLURM job array (--slurm), with the same numbers whichever.

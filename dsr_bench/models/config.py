@@ -12,6 +12,13 @@ _VARIANTS = {"dsr": {"history": "warp"}, "single": {"history": "none"}, "nowarp"
              "gtwarp": {"history": "gtwarp"}, "3dflow": {"history": "none", "motion": "flow"}}
 
 
+def check_known_keys(cls, data: dict, what: str) -> None:
+    """ValueError naming the keys of `data` that are not fields of the dataclass `cls` (a file from another toolkit)."""
+    unknown = sorted(set(data) - {f.name for f in fields(cls)})
+    if unknown:
+        raise ValueError(f"unknown {what} keys {unknown}")
+
+
 @dataclass(frozen=True)
 class ModelConfig:
     """Everything that defines a model; saved in every checkpoint (defaults: the official code).
@@ -88,10 +95,7 @@ class ModelConfig:
     @classmethod
     def from_dict(cls, data: dict) -> ModelConfig:
         """Inverse of as_dict; unknown keys are an error (a checkpoint from another toolkit)."""
-        known = {f.name for f in fields(cls)}
-        unknown = sorted(set(data) - known)
-        if unknown:
-            raise ValueError(f"unknown model config keys {unknown}")
+        check_known_keys(cls, data, "model config")
         data = dict(data)
         data["grid"] = tuple(int(g) for g in data["grid"])
         return cls(**data)

@@ -7,9 +7,10 @@ point seen at every pixel: the `motion_2d` of the predictions contract, in metre
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass
 
 from dsr_bench.constants import IMAGE_SHAPE, NUM_MASK_SLOTS
+from dsr_bench.models.config import check_known_keys
 
 IMAGE_MODEL_NAMES = ("2dflow", "se3net", "se3posenet")
 #: What each model is, in one line (predictions' meta.json, the leaderboard).
@@ -59,8 +60,5 @@ class ImageModelConfig:
     @classmethod
     def from_dict(cls, data: dict) -> ImageModelConfig:
         """Inverse of as_dict; unknown keys are an error."""
-        known = {f.name for f in fields(cls)}
-        unknown = sorted(set(data) - known)
-        if unknown:
-            raise ValueError(f"unknown image model config keys {unknown}")
+        check_known_keys(cls, data, "image model config")
         return cls(**data)
