@@ -131,10 +131,12 @@ def main(argv: list[str] | None = None) -> dict:
     add_official_args(parser, needs_env=False)
     args = parser.parse_args(argv)
 
+    from dsr_bench.memory import keep_freed_memory
     from dsr_bench.scoring.evaluate import evaluate, score_sequence
     from dsr_bench.dataset.manifest import build_manifest, read_split, write_manifest
     from dsr_bench.models.predictors import load_predictor, predict_split
 
+    keep_freed_memory()  # as the dsr-bench command does in its own process (its workers do too)
     functions = None
     if args.official_repo is not None:
         functions = load_official_functions(check_official_repo(args.official_repo, ("test.py",)))

@@ -25,6 +25,7 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 
 from dsr_bench.errors import UserError
+from dsr_bench.memory import keep_freed_memory
 from dsr_bench.parallel import as_finished, in_order, run_in_order
 
 INSTALL = "pip install 'dsr-bench[cluster]'"
@@ -68,6 +69,7 @@ class LocalEngine(Engine):
 def call_job(function, job) -> tuple[bool, object]:
     """(True, function(job)), or (False, 'Type: message') when it raises, its traceback printed on this worker's
     stderr (the task's log): an error comes back as data, whatever the engine does with exceptions."""
+    keep_freed_memory()
     try:
         return True, function(job)
     except Exception as exc:  # noqa: BLE001 - any failure of the job is reported by the driver, naming the job

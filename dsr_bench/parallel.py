@@ -13,7 +13,9 @@ def as_finished(function, jobs: list, workers: int, mp_context=None) -> Iterator
     if workers > 1 and len(jobs) > 1:
         from concurrent.futures import ProcessPoolExecutor, as_completed
 
-        with ProcessPoolExecutor(min(workers, len(jobs)), mp_context=mp_context) as pool:
+        from dsr_bench.memory import keep_freed_memory
+
+        with ProcessPoolExecutor(min(workers, len(jobs)), mp_context=mp_context, initializer=keep_freed_memory) as pool:
             index = {pool.submit(function, job): i for i, job in enumerate(jobs)}
             for future in as_completed(index):
                 yield index[future], future.result()

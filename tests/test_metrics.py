@@ -4,7 +4,8 @@ import numpy as np
 import pytest
 
 from dsr_bench.scoring.metrics import (
-    assignment, brute_force_assignment, matched_iou, motion_2d_error, motion_errors, overlap, sequence_scores,
+    assignment, brute_force_assignment, matched_iou, motion_2d_error, motion_errors, overlap, prediction_minus_truth,
+    sequence_scores,
 )
 
 GRID = (128, 128, 48)
@@ -158,3 +159,27 @@ def test_paired_difference_uses_the_sequences_both_scored():
     out = paired_difference(a, b, "m")
     assert out["n"] == 2 and out["mean"] == 2.5  # differences 2 and 3; s2 is not finite, the rest unpaired
     assert out["se"] == pytest.approx(np.std([2.0, 3.0], ddof=1) / np.sqrt(2))
+
+
+@pytest.mark.parametrize("nonzero_fraction", [0.0, 0.01, 0.2, 0.3, 1.0])
+def test_sparse_float16_subtraction_gives_the_same_squares_and_metrics(nonzero_fraction):
+    rng = np.random.default_rng(3)
+    gt = np.zeros((3,) + GRID, np.float32)
+    moving = rng.random(GRID) < 0.05
+    gt[:, moving] = rng.normal(0, 3, (3, int(moving.sum())))
+    gt[0, 0, 0, :4] = [-0.0, np.inf, -np.inf, 1e-30]
+    pred = np.zeros(gt.shape, np.float16)
+    chosen = rng.random(gt.shape) < nonzero_fraction
+    pred[chosen] = rng.normal(0, 3, int(chosen.sum())).astype(np.float16)
+    pred[1, 0, 0, :5] = [-0.0, np.nan, np.inf, 6e-8, 65504]  # signed zero, NaN, inf, subnormal, max
+    plain = np.subtract(pred, gt, dtype=np.float32)
+    diff = prediction_minus_truth(pred, gt)
+    assert diff.dtype == np.float32 and diff.shape == gt.shape
+    np.testing.assert_array_equal(diff ** 2, plain ** 2)  # NaNs in the same places
+    assert (np.abs(diff).view(np.uint32) == np.abs(plain).view(np.uint32)).all()  # equal but for a zero's sign
+    tsdf = np.full(GRID, -0.5, np.float32)
+    gt_mask = moving.astype(np.uint8) * 2
+    pred[1, 0, 0, 1:3] = 0  # finite metrics to compare
+    got = motion_errors(pred, gt, tsdf, gt_mask, 2)
+    ref = motion_errors(pred.astype(np.float32), gt, tsdf, gt_mask, 2)
+    assert {k: np.float64(v).hex() for k, v in got.items()} == {k: np.float64(v).hex() for k, v in ref.items()}

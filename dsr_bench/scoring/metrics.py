@@ -109,15 +109,38 @@ def official_iou(ov: Overlap, rows: np.ndarray | None = None, cols: np.ndarray |
     return float(square[rows, cols].sum() / size) if size else 1.0
 
 
+#: a float16 prediction with at most this fraction of nonzero values is subtracted sparsely
+SPARSE_FLOAT16 = 0.25
+
+
+def prediction_minus_truth(pred: np.ndarray, gt: np.ndarray) -> np.ndarray:
+    """float32(pred) - gt, elementwise, as float32 (any shape). Every value equals the plain float32
+    subtraction's except that a zero may have the other sign, so squares and sums are bit-identical.
+
+    A float16 prediction that is mostly +0.0 (the yardsticks', a static scene's) is subtracted only
+    where it is nonzero and is -gt elsewhere: numpy casts float16 in software, at about 2 ns a value,
+    which made the cast the dearest part of `evaluate` (5 ms a step, against 0.8 ms this way)."""
+    if pred.dtype != np.float16:
+        return np.subtract(pred, gt, dtype=np.float32)
+    bits = pred.reshape(-1).view(np.uint16)
+    nonzero = np.flatnonzero(bits != 0)  # -0.0 (0x8000) and NaN count as nonzero: cast like the rest
+    if nonzero.size > SPARSE_FLOAT16 * bits.size:
+        return np.subtract(pred, gt, dtype=np.float32)
+    diff = np.negative(gt, dtype=np.float32)  # 0 - g == -g exactly, up to the sign of a zero g
+    flat, truth = diff.reshape(-1), gt.reshape(-1)
+    flat[nonzero] = pred.reshape(-1)[nonzero].astype(np.float32) - truth[nonzero]
+    return diff
+
+
 def motion_errors(pred: np.ndarray, gt: np.ndarray, tsdf: np.ndarray, gt_mask: np.ndarray,
                   num_objects: int) -> dict[str, float]:
     """Motion errors of one step (cm^2); pred, gt: (3, Y, X, Z) voxels; tsdf, gt_mask: (Y, X, Z).
 
     One full-volume pass for the full-volume error; everything else only touches object voxels."""
-    diff = np.subtract(pred, gt, dtype=np.float32).reshape(3, -1)  # float16 cast in the same pass: 2x faster
+    diff = prediction_minus_truth(pred, gt).reshape(3, -1)
     flat = diff.reshape(-1)
     out = {"motion_full": float(np.einsum("i,i->", flat, flat, dtype=np.float64)) / flat.size * VOXEL2_TO_CM2}
-    idx = np.flatnonzero(gt_mask)
+    idx = np.flatnonzero(gt_mask != 0)  # a bool volume's nonzero is 10x faster than a uint8 one's
     labels = gt_mask.reshape(-1)[idx].astype(np.int64)
     sq = np.einsum("ci,ci->i", diff[:, idx], diff[:, idx])
     depth_index = idx % gt_mask.shape[-1]
