@@ -1,5 +1,5 @@
 """Start-up (issue 20): `dsr-bench --help`, and every command's `--help`, imports none of the heavy libraries,
-and a box run imports neither a mesh library nor open3d (whose import pulls in its plotly/dash viewer). Each
+and a run of boxes or procedural objects imports neither a mesh library nor open3d (whose import pulls in its plotly/dash viewer). Each
 check runs the CLI in a fresh interpreter and reads its sys.modules afterwards; bench/bench_startup.py times
 the same commands."""
 
@@ -39,9 +39,12 @@ def test_probe_sees_what_a_command_imports():
 
 
 @pytest.mark.skipif(importlib.util.find_spec("pybullet") is None, reason="needs pybullet (the sim extra)")
-def test_a_cube_run_imports_no_mesh_library_nor_open3d(tmp_path):
-    out = tmp_path / "cubes"
-    report = bench_startup.probe([[*bench_startup.CUBE_RUN, "--out", str(out)]], NOT_FOR_BOXES + ("pybullet",),
-                                 cwd=REPO)
+@pytest.mark.parametrize("objects", ["cube", "procedural"])
+def test_a_builtin_run_imports_no_mesh_library_nor_open3d(objects, tmp_path):
+    """Boxes, and the procedural mugs, bottles, cans, phones and sofas, are built in numpy alone."""
+    out = tmp_path / objects
+    run = [*bench_startup.CUBE_RUN, "--out", str(out)]
+    run[run.index("cube")] = objects
+    report = bench_startup.probe([run], NOT_FOR_BOXES + ("pybullet",), cwd=REPO)
     assert report[0]["rc"] == 0 and (out / "seq_0000.h5").is_file()
     assert report[0]["loaded"] == ["pybullet"]  # it did simulate

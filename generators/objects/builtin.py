@@ -19,7 +19,7 @@ from collections.abc import Callable
 import numpy as np
 
 from dsr_bench.geometry import vector_norm
-from generators.objects.box import box_solid
+from generators.objects.primitives import Solid, bounds, box_solid, cylinder_solid, revolve_solid, scaled, solid, translated
 from generators.objects.spec import ObjectSpec, make_spec, random_color
 
 CUBE_DIVISORS = (700, 750, 800, 850, 900, 1000, 1100, 1200, 1400)
@@ -49,37 +49,17 @@ NOVEL_MAX_HEIGHT = 0.12  # m
 NOVEL_MAX_SIDE = 0.16  # m, longest horizontal side
 
 
-def _trimesh():
-    import trimesh
-
-    return trimesh
-
-
-def _box(size, centre=(0, 0, 0)):
-    """A trimesh box, for parts that trimesh goes on to combine or scale (a box object alone: `box_solid`)."""
-    tm = _trimesh()
-    return tm.creation.box(extents=np.asarray(size, float), transform=tm.transformations.translation_matrix(centre))
-
-
-def _revolve(profile) -> object:
+def _revolve(profile) -> Solid:
     """A solid of revolution about z from a (radius, height) profile starting and ending on the axis."""
-    return _trimesh().creation.revolve(np.asarray(profile, float), sections=40)
+    return revolve_solid(profile, sections=40)
 
 
-def _normalise(meshes, diagonal: float) -> list:
-    """Scale meshes jointly so their bounding-box diagonal is `diagonal` metres, resting on z = 0."""
-    tm = _trimesh()
-    bounds = tm.util.concatenate(meshes).bounds
-    factor = diagonal / vector_norm(bounds[1] - bounds[0])
-    out = []
-    for m in meshes:
-        m = m.copy()
-        m.apply_scale(factor)
-        out.append(m)
-    low = tm.util.concatenate(out).bounds[0]
-    for m in out:
-        m.apply_translation([0, 0, -low[2]])
-    return out
+def _normalise(parts: list[Solid], diagonal: float) -> list[Solid]:
+    """Scale parts jointly so their bounding-box diagonal is `diagonal` metres, resting on z = 0."""
+    low, high = bounds(parts)
+    factor = diagonal / vector_norm(high - low)
+    out = [scaled(p, factor) for p in parts]
+    return [translated(p, [0, 0, -bounds(out)[0][2]]) for p in out]
 
 
 # --- ShapeNet-like families (unit-free shapes, normalised afterwards) ---------------------------
@@ -104,15 +84,15 @@ def _mug(rng):
     # parts barely overlap (arms enter the wall by 0.01), so the volume-weighted centre of mass is exact
     x0, x1 = r - 0.01, r + reach - bar  # arm span, from inside the wall to the grip
     parts = [body,
-             _box([x1 - x0, t, bar], [(x0 + x1) / 2, 0, z1 - bar / 2]),   # upper arm
-             _box([x1 - x0, t, bar], [(x0 + x1) / 2, 0, z0 + bar / 2]),   # lower arm
-             _box([bar, t, z1 - z0], [r + reach - bar / 2, 0, (z0 + z1) / 2])]            # grip
+             box_solid([x1 - x0, t, bar], [(x0 + x1) / 2, 0, z1 - bar / 2]),   # upper arm
+             box_solid([x1 - x0, t, bar], [(x0 + x1) / 2, 0, z0 + bar / 2]),   # lower arm
+             box_solid([bar, t, z1 - z0], [r + reach - bar / 2, 0, (z0 + z1) / 2])]            # grip
     return parts, f"mug_r{r:.3f}_h{h:.3f}_reach{reach:.3f}"
 
 
 def _phone(rng):
     w, length, t = rng.uniform(0.45, 0.55), 1.0, rng.uniform(0.06, 0.09)
-    return [_box([w, length, t], [0, 0, t / 2])], f"phone_w{w:.3f}_t{t:.3f}"
+    return [box_solid([w, length, t], [0, 0, t / 2])], f"phone_w{w:.3f}_t{t:.3f}"
 
 
 def _sofa(rng):
@@ -120,10 +100,10 @@ def _sofa(rng):
     seat_h, back_h, arm_h = rng.uniform(0.15, 0.22), rng.uniform(0.4, 0.55), rng.uniform(0.25, 0.33)
     back_t, arm_w = rng.uniform(0.1, 0.15), rng.uniform(0.08, 0.12)
     inner = width - 2 * arm_w  # seat and back sit between the arms, the seat in front of the back: no overlap
-    parts = [_box([inner, depth - back_t, seat_h], [0, -back_t / 2, seat_h / 2]),
-             _box([inner, back_t, back_h], [0, depth / 2 - back_t / 2, back_h / 2]),
-             _box([arm_w, depth, arm_h], [-width / 2 + arm_w / 2, 0, arm_h / 2]),
-             _box([arm_w, depth, arm_h], [width / 2 - arm_w / 2, 0, arm_h / 2])]
+    parts = [box_solid([inner, depth - back_t, seat_h], [0, -back_t / 2, seat_h / 2]),
+             box_solid([inner, back_t, back_h], [0, depth / 2 - back_t / 2, back_h / 2]),
+             box_solid([arm_w, depth, arm_h], [-width / 2 + arm_w / 2, 0, arm_h / 2]),
+             box_solid([arm_w, depth, arm_h], [width / 2 - arm_w / 2, 0, arm_h / 2])]
     return parts, f"sofa_d{depth:.3f}_b{back_h:.3f}"
 
 
@@ -178,7 +158,7 @@ def category_scale(rng: np.random.Generator, category: str, is_large: bool) -> f
 
 class CubeSet:
     """The paper's boxes (official half extents), random colours; no large object. Built with numpy alone
-    (`generators.objects.box`): a cube run imports no mesh library."""
+    (`generators.objects.primitives`): a cube run imports no mesh library."""
 
     name = "cube"
 
@@ -210,7 +190,7 @@ class ProceduralSet:
 # --- YCB-like novel shapes (metres, real sizes before fitting) ------------------------------------
 def _ycb_box(dims):
     def build(rng):
-        return [_box(dims, [0, 0, dims[2] / 2])]
+        return [box_solid(dims, [0, 0, dims[2] / 2])]
     return build
 
 
@@ -228,7 +208,10 @@ def _rounded_can(width, depth, height, corner):
         ring = np.concatenate([np.stack([sx * cx + corner * np.cos(a), sy * cy + corner * np.sin(a)], 1)
                                for sx in (-1, 1) for sy in (-1, 1)])
         pts = np.concatenate([np.c_[ring, np.zeros(len(ring))], np.c_[ring, np.full(len(ring), height)]])
-        return [_trimesh().Trimesh(pts).convex_hull]
+        import trimesh  # qhull's triangulation of the hull: the one shape that needs a mesh library
+
+        hull = trimesh.Trimesh(pts).convex_hull
+        return [solid(hull.vertices, hull.faces)]
     return build
 
 
@@ -252,25 +235,23 @@ def _bowl(rng):
 
 def _clamp(rng, arm=0.12, foot=0.08, t=0.025, h=0.035):
     """An L-shaped clamp lying flat: two bars meeting at a corner."""
-    return [_box([arm, t, h], [arm / 2, 0, h / 2]), _box([t, foot, h], [t / 2, foot / 2 + t / 2, h / 2])]
+    return [box_solid([arm, t, h], [arm / 2, 0, h / 2]), box_solid([t, foot, h], [t / 2, foot / 2 + t / 2, h / 2])]
 
 
 def _mustard(rng):
     """A mustard bottle: a revolved profile squeezed to an oval section (95 x 58 mm), 190 mm tall."""
     body = _revolve([[0, 0], [0.0475, 0], [0.0475, 0.14], [0.014, 0.172], [0.014, 0.19], [0, 0.19]])
-    body.apply_scale([1.0, 0.61, 1.0])
-    return [body]
+    return [scaled(body, [1.0, 0.61, 1.0])]
 
 
 def _duplo(rng, pitch=0.016, rows=2, cols=4, height=0.0192):
     """A filled 2 x 4 Duplo brick with its eight studs (parts overlap the top by 0.5 mm)."""
     w, d = rows * pitch - 0.0002, cols * pitch - 0.0002
-    parts = [_box([w, d, height], [0, 0, height / 2])]
+    parts = [box_solid([w, d, height], [0, 0, height / 2])]
     for i in range(rows):
         for j in range(cols):
-            stud = _trimesh().creation.cylinder(radius=0.0048, height=0.0050, sections=24)
-            stud.apply_translation([(i - (rows - 1) / 2) * pitch, (j - (cols - 1) / 2) * pitch, height + 0.002])
-            parts.append(stud)
+            stud = cylinder_solid(radius=0.0048, height=0.0050, sections=24)
+            parts.append(translated(stud, [(i - (rows - 1) / 2) * pitch, (j - (cols - 1) / 2) * pitch, height + 0.002]))
     return parts
 
 
@@ -301,7 +282,8 @@ NOVEL_LARGE = {
 
 def fit_scale(meshes) -> float:
     """Uniform shrink factor (<= 1) that keeps an object within NOVEL_MAX_HEIGHT and NOVEL_MAX_SIDE."""
-    extent = _trimesh().util.concatenate(meshes).extents
+    low, high = bounds(meshes)
+    extent = high - low
     return float(min(1.0, NOVEL_MAX_HEIGHT / extent[2], NOVEL_MAX_SIDE / max(extent[0], extent[1])))
 
 
@@ -320,8 +302,7 @@ class ProceduralNovelSet:
             meshes = table[name](rng)
             scale = fit_scale(meshes)
             if scale < 1.0:
-                for m in meshes:
-                    m.apply_scale(scale)
+                meshes = [scaled(m, scale) for m in meshes]
             model_id = name if scale == 1.0 else f"{name}_x{scale:.3f}"
             out.append(make_spec(self.name, name, model_id, scale, meshes, random_color(rng), i == large))
         return out

@@ -61,7 +61,7 @@ class ObjectSpec:
 
 def make_spec(set_name: str, category: str, model_id: str, scale: float, meshes: list, color, is_large: bool,
               mass: float = OFFICIAL_MASS) -> ObjectSpec:
-    """An ObjectSpec from closed solids (metres; trimesh meshes, or `generators.objects.box.BoxSolid`: anything
+    """An ObjectSpec from closed solids (metres; trimesh meshes, or `generators.objects.primitives.Solid`: anything
     with vertices, faces, is_watertight, volume and center_mass): checks each is a closed solid and moves the origin to
     the centre of mass (volume-weighted over parts, uniform density; the small overlaps of our built-in
     parts are counted twice, which moves it well under 1 mm)."""
