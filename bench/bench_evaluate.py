@@ -136,7 +136,7 @@ def main(argv: list[str] | None = None) -> dict:
     from dsr_bench.dataset.manifest import build_manifest, read_split, write_manifest
     from dsr_bench.models.predictors import load_predictor, predict_split
 
-    keep_freed_memory()  # as the dsr-bench command does in its own process (its workers do too)
+    keep_freed_memory()  # as `dsr-bench evaluate` does in its own process (its workers do too)
     functions = None
     if args.official_repo is not None:
         functions = load_official_functions(check_official_repo(args.official_repo, ("test.py",)))

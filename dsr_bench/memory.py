@@ -5,8 +5,10 @@ each such block fresh and unmaps it on free, so every array of every step is pag
 at a time: measured, that was 27% of `dsr-bench evaluate`'s time per sequence (0.208 s -> 0.150 s,
 `python bench/bench_evaluate.py`). Raising the mmap and trim thresholds makes freed blocks stay in the
 heap, so the next step's arrays of the same sizes reuse pages already mapped. The cost is memory the
-process keeps until it exits (at most its peak). Called in processes dsr-bench owns: the CLI's and
-its worker processes. Elsewhere (not glibc: macOS, musl) it does nothing.
+process keeps until it exits (at most its peak). Called where it was measured to pay and the process is
+dsr-bench's own: `dsr-bench evaluate`, and the worker processes of evaluate, validate and generate
+(`dsr_bench.parallel`, `dsr_bench.engines`); not in a library call, whose process is the user's. Without
+glibc (macOS, musl) it does nothing.
 """
 
 from __future__ import annotations

@@ -13,7 +13,6 @@ import sys
 import typer
 
 from dsr_bench.errors import UserError, one_line
-from dsr_bench.memory import keep_freed_memory
 
 app = typer.Typer(
     name="dsr-bench",
@@ -63,7 +62,6 @@ def _root(
 
 def main(argv: list[str] | None = None) -> int:
     """Console entry point: user errors become one line on stderr and exit code 2."""
-    keep_freed_memory()
     try:
         rc = app(args=argv, standalone_mode=False)  # returns the code of typer.Exit when not standalone
     except UserError as exc:

@@ -109,6 +109,7 @@ def evaluate(
     from dsr_bench.atomic import write_text
     from dsr_bench.engines import engine_from_options, slurm_options_given
     from dsr_bench.errors import UserError
+    from dsr_bench.memory import keep_freed_memory
     from dsr_bench.progress import progress_bar
     from dsr_bench.scoring.evaluate import evaluate as run
     from dsr_bench.scoring.predictions import infer_source
@@ -122,6 +123,7 @@ def evaluate(
         typer.echo(_printable(note), err=True)
     if engine is not None:  # remote workers are given absolute paths
         pred_dir, data = pred_dir.absolute(), data.absolute()
+    keep_freed_memory()  # this process scores the sequences itself with --workers 1 (dsr_bench/memory.py)
     with progress_bar("evaluate") as progress:
         evaluation = run(pred_dir, data, split, allow_partial=allow_partial, workers=workers, progress=progress,
                          engine=engine)
