@@ -19,7 +19,8 @@ from collections.abc import Callable
 import numpy as np
 
 from dsr_bench.geometry import vector_norm
-from generators.objects.primitives import Solid, bounds, box_solid, cylinder_solid, revolve_solid, scaled, solid, translated
+from generators.objects.primitives import (Solid, bounds, box_solid, cylinder_solid, revolve_solid, scaled, solid,
+                                          translated)
 from generators.objects.spec import ObjectSpec, make_spec, random_color
 
 CUBE_DIVISORS = (700, 750, 800, 850, 900, 1000, 1100, 1200, 1400)
@@ -59,7 +60,8 @@ def _normalise(parts: list[Solid], diagonal: float) -> list[Solid]:
     low, high = bounds(parts)
     factor = diagonal / vector_norm(high - low)
     out = [scaled(p, factor) for p in parts]
-    return [translated(p, [0, 0, -bounds(out)[0][2]]) for p in out]
+    lift = -bounds(out)[0][2]
+    return [translated(p, [0, 0, lift]) for p in out]
 
 
 # --- ShapeNet-like families (unit-free shapes, normalised afterwards) ---------------------------
@@ -248,9 +250,9 @@ def _duplo(rng, pitch=0.016, rows=2, cols=4, height=0.0192):
     """A filled 2 x 4 Duplo brick with its eight studs (parts overlap the top by 0.5 mm)."""
     w, d = rows * pitch - 0.0002, cols * pitch - 0.0002
     parts = [box_solid([w, d, height], [0, 0, height / 2])]
+    stud = cylinder_solid(radius=0.0048, height=0.0050, sections=24)
     for i in range(rows):
         for j in range(cols):
-            stud = cylinder_solid(radius=0.0048, height=0.0050, sections=24)
             parts.append(translated(stud, [(i - (rows - 1) / 2) * pitch, (j - (cols - 1) / 2) * pitch, height + 0.002]))
     return parts
 

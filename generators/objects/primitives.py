@@ -59,11 +59,6 @@ class Solid:
         reverse = np.unique(edges[:, ::-1], axis=0)
         return len(directed) == len(edges) and np.array_equal(directed, reverse)
 
-    @property
-    def bounds(self) -> np.ndarray:
-        """(2, 3): the lowest and highest coordinate along x, y, z (m)."""
-        return np.array([self.vertices.min(axis=0), self.vertices.max(axis=0)])
-
 
 def solid(vertices: np.ndarray, faces: np.ndarray) -> Solid:
     """A `Solid` from a closed, outward triangle mesh (float64 metres, int64 indices)."""
@@ -92,8 +87,8 @@ def revolve_solid(profile, sections: int) -> Solid:
     points = np.column_stack((np.cos(theta), np.sin(theta)))
     per = len(profile)
     radius, height = profile[:, 0], profile[:, 1]
-    vertices = np.column_stack((np.tile(points, (1, per)).reshape((-1, 2)) * np.tile(radius, len(points)).reshape((-1, 1)),
-                                np.tile(height, len(points))))[:-per]  # the last slice is the first again
+    around = np.tile(points, (1, per)).reshape((-1, 2)) * np.tile(radius, len(points)).reshape((-1, 1))
+    vertices = np.column_stack((around, np.tile(height, len(points))))[:-per]  # the last slice is the first again
     # one slice's two triangles per profile segment, less the zero-area ones (on the axis)
     single = np.tile(np.array([0, per, 1, 1, per, per + 1]), per - 1).reshape((-1, 3))
     single += np.tile(np.arange(per - 1), (2, 1)).T.reshape((-1, 1))
