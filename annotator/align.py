@@ -20,7 +20,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 from dsr_bench.errors import UserError
-from dsr_bench.geometry import Camera, matrix_to_pose  # noqa: F401 - matrix_to_pose: used as align.matrix_to_pose
+from dsr_bench.geometry import Camera, matrix_to_pose, rotation_angle  # noqa: F401 - matrix_to_pose: used as align.matrix_to_pose
 
 #: Distance (m) within which a cloud point counts as lying on the mesh surface (sensor noise + calibration error).
 INLIER_DISTANCE = 0.005
@@ -114,11 +114,6 @@ def rotvec_to_matrix(rotvec: np.ndarray) -> np.ndarray:
     from scipy.spatial.transform import Rotation
 
     return Rotation.from_rotvec(np.asarray(rotvec, dtype=np.float64).reshape(3)).as_matrix()
-
-
-def rotation_angle(rotation: np.ndarray) -> float:
-    """Angle (rad) of a rotation matrix (3, 3)."""
-    return float(np.arccos(np.clip((np.trace(rotation) - 1) / 2, -1.0, 1.0)))
 
 
 def pose_delta(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:

@@ -238,11 +238,6 @@ def imported(bags, tmp_path_factory):
     return out
 
 
-def _rotation_deg(a: np.ndarray, b: np.ndarray) -> float:
-    cos = (np.trace(a[:3, :3].T @ b[:3, :3]) - 1) / 2
-    return float(np.degrees(np.arccos(np.clip(cos, -1, 1))))
-
-
 # --- registration and distortion, directly ---------------------------------------------------------------------------
 
 
@@ -384,6 +379,7 @@ def test_bag_import_matches_the_ground_truth(sim, bags, imported):
     registered depth covers 99% of the pixels the colour camera sees, within 1 mm (median) and 3 mm (99%) of its true
     depth (the depth stream is rounded to 1 mm and sampled at the depth camera's pixels). Measured: coverage 99.8%,
     median 0.57-0.61 mm, 99.5% within 3 mm."""
+    from annotator.align import pose_delta
     from annotator.export import renderer_for
     from dsr_bench.dataset.capture import load_capture
 
@@ -398,8 +394,8 @@ def test_bag_import_matches_the_ground_truth(sim, bags, imported):
         got = capture.cameras[name]
         np.testing.assert_allclose(got.intrinsics, cam.intrinsics, rtol=1e-6)  # float32 in the bag
         assert (got.height, got.width) == SHAPE and abs(got.depth_scale - 0.001) < 1e-9
-        dt = np.linalg.norm(got.extrinsics[:3, 3] - cam.extrinsics[:3, 3])
-        assert dt < 0.003 and _rotation_deg(got.extrinsics, cam.extrinsics) < 0.5, (name, dt)
+        dt, angle = pose_delta(cam.extrinsics, got.extrinsics)
+        assert dt < 0.003 and np.degrees(angle) < 0.5, (name, dt)
         r = report["cameras"][name]
         assert r["corners"] >= 12 and r["board_mm"] < 1.0 and abs(r["depth_mm"]) < 2.0, r
     assert report["between_cameras_mm"] < 2.0

@@ -148,11 +148,6 @@ def imported(rig, tmp_path_factory):
     return out
 
 
-def _rotation_deg(a: np.ndarray, b: np.ndarray) -> float:
-    cos = (np.trace(a[:3, :3].T @ b[:3, :3]) - 1) / 2
-    return float(np.degrees(np.arccos(np.clip(cos, -1, 1))))
-
-
 # --- pushes ----------------------------------------------------------------------------------------------------------
 
 
@@ -207,6 +202,7 @@ def test_push_log_errors_are_one_line_naming_the_file_and_the_push(rig, tmp_path
 
 
 def test_board_calibration_recovers_the_true_extrinsics(rig, imported):
+    from annotator.align import pose_delta
     from dsr_bench.dataset.capture import load_capture
 
     _, true = rig
@@ -217,8 +213,8 @@ def test_board_calibration_recovers_the_true_extrinsics(rig, imported):
         got = capture.cameras[name]
         np.testing.assert_allclose(got.intrinsics, cam.intrinsics)  # fx != fy kept; undistorted onto the same K
         assert (got.height, got.width) == SHAPE
-        dt = np.linalg.norm(got.extrinsics[:3, 3] - cam.extrinsics[:3, 3])
-        assert dt < 0.003 and _rotation_deg(got.extrinsics, cam.extrinsics) < 0.5, (name, dt)
+        dt, angle = pose_delta(cam.extrinsics, got.extrinsics)
+        assert dt < 0.003 and np.degrees(angle) < 0.5, (name, dt)
         r = report["cameras"][name]
         assert r["corners"] >= 12 and r["board_mm"] < 1.0 and abs(r["depth_mm"]) < 2.0, r
     assert report["between_cameras_mm"] < 2.0 and report["shared_corners"] >= 3

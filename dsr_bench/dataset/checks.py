@@ -16,6 +16,7 @@ from collections.abc import Callable
 import numpy as np
 
 from dsr_bench.constants import FLOW_COMPONENTS, GRID_BOUNDS, GRID_SHAPE, NUM_DIRECTIONS, TSDF_TRUNCATION, VOXEL_SIZE
+from dsr_bench.geometry import rotation_angle
 
 #: Largest allowed difference (voxels) between stored flow and the rigid motion of the stored poses
 #: (our own data; also the numerical slack added to the official release's bound).
@@ -148,12 +149,6 @@ def official_flow_bound(angle: float) -> float:
     this is what can be checked: 1 voxel without rotation, at most 1 + sqrt(3) (a half turn).
     """
     return 1.0 + math.sqrt(3.0) * math.sin(min(abs(angle), math.pi) / 2)
-
-
-def rotation_angle(rotation: np.ndarray) -> float:
-    """Angle (radians, 0..pi) of a 3x3 rotation matrix."""
-    cos = (rotation[0, 0] + rotation[1, 1] + rotation[2, 2] - 1.0) / 2.0
-    return float(np.arccos(np.clip(cos, -1.0, 1.0)))
 
 
 def _grid_point_motion(indices_yxz: np.ndarray, motion: np.ndarray) -> np.ndarray:

@@ -67,6 +67,12 @@ def dot_last(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return out
 
 
+def rotation_angle(rotation: np.ndarray) -> float:
+    """Angle (radians, 0..pi) of a 3x3 rotation matrix."""
+    cos = (rotation[0, 0] + rotation[1, 1] + rotation[2, 2] - 1.0) / 2.0
+    return float(np.arccos(np.clip(cos, -1.0, 1.0)))
+
+
 def vector_norm(v: np.ndarray) -> np.ndarray:
     """Euclidean norm over the last axis, without BLAS (see `apply_matrix`)."""
     v = np.asarray(v, dtype=np.float64)
