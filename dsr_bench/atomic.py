@@ -230,6 +230,49 @@ def write_bytes(path: str | Path, data: bytes, fsync: bool = False) -> Path:
     return path
 
 
+def check_writable(path: str | Path, option: str = "--out", directory: bool = True) -> None:
+    """Raise a one-line UserError unless the output `path` can be written, before any work is done.
+
+    `directory`: `path` is a directory the command fills (files must be creatable in it, or, where it does not
+    exist yet, in its nearest existing parent); otherwise a file the command writes atomically (a temporary
+    beside it, renamed over it: its directory must take new files, and a file already there must not be
+    immutable or a directory). A probe file is created and removed; nothing else is written. `option` names
+    the path in the message (`--out`, `--root`, ...)."""
+    target = Path(path)
+    here = target if directory else target.parent if str(target.parent) else Path(".")
+    while True:
+        try:
+            if here.exists():
+                break
+        except OSError as exc:  # e.g. a parent without search permission
+            raise UserError(f"{option} {target}: cannot look into {here.parent} ({exc.strerror}); choose another "
+                            f"{option} or fix its permissions") from None
+        if here.parent == here:
+            break
+        here = here.parent
+    if not here.is_dir():
+        what = option if here == target else f"{option} {target}: its parent"
+        raise UserError(f"{what} {here} exists and is not a directory; choose another {option} or move the file away")
+    probe = here / f".dsr-bench-write-probe-{host_name()}-{os.getpid()}-{secrets.token_hex(4)}"
+    try:
+        fd = os.open(probe, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+    except OSError as exc:
+        where = "cannot create files in it" if here == target else f"cannot create files in {here}"
+        raise UserError(f"{option} {target}: {where} ({exc.strerror or exc}); choose a writable {option} or give "
+                        f"write permission on {here}") from None
+    os.close(fd)
+    probe.unlink(missing_ok=True)
+    if directory or not (target.exists() or target.is_symlink()):
+        return
+    if target.is_dir():
+        raise UserError(f"{option} {target} is a directory; give a file name (for example {target / 'out.json'})")
+    try:  # an immutable or append-only file refuses to be opened for writing (and to be renamed over)
+        os.close(os.open(target, os.O_WRONLY))
+    except OSError as exc:
+        raise UserError(f"{option} {target}: cannot be replaced ({exc.strerror or exc}); choose another {option} "
+                        "or make the file writable (chattr -i)") from None
+
+
 # --- cleaning ---------------------------------------------------------------------------------------
 def pid_alive(pid: int) -> bool:
     """Whether process `pid` exists on this host (a zombie counts as alive)."""

@@ -85,7 +85,7 @@ def generate_tasks(task_set: str, out: Path, workers: int = 1, num_tasks: int | 
     from dsr_bench.dataset.splits import sequence_seed
     from dsr_bench.parallel import run_in_order
     from dsr_bench.planning.tasks import build_manifest, get_task_set, read_task, task_name, write_manifest
-    from generators.run import check_writable
+    from dsr_bench.atomic import check_writable
 
     spec = get_task_set(task_set)
     count = spec.num_tasks if num_tasks is None else num_tasks
@@ -290,7 +290,7 @@ def plan_tasks(model: str, tasks: str, out: Path, candidates: int, workers: int 
     from dsr_bench.planning.protocol import DEFAULT_BATCH
     from dsr_bench.planning.scoring import results
     from dsr_bench.planning.tasks import TASK_SETS, resolve_tasks
-    from generators.run import check_writable
+    from dsr_bench.atomic import check_writable
 
     if model not in PLANNER_NAMES:
         from dsr_bench.models.predictors import IMAGE_MODELS

@@ -26,6 +26,7 @@ import numpy as np
 
 from dsr_bench.constants import MAX_OBJECTS_PER_SCENE
 from dsr_bench.dataset.splits import sequence_name, sequence_seed
+from dsr_bench.atomic import check_writable
 from dsr_bench.engines import Engine, LocalEngine
 from dsr_bench.errors import UserError
 from generators.episode import EpisodeConfig
@@ -132,38 +133,6 @@ def check_plan(plan: RunPlan) -> None:
     if plan.workers < 1:
         raise UserError(f"--workers {plan.workers}: must be at least 1")
     check_writable(plan.out)
-
-
-def check_writable(out: Path) -> None:
-    """Fail with one line unless files can be created in `out` (or, if it does not exist yet, in its
-    nearest existing parent): a probe file is created and removed, nothing else is written."""
-    import secrets
-
-    from dsr_bench.atomic import host_name
-
-    here = out
-    while True:
-        try:
-            if here.exists():
-                break
-        except OSError as exc:  # e.g. a parent without search permission
-            raise UserError(f"--out {out}: cannot look into {here.parent} ({exc.strerror}); choose another "
-                            "--out or fix its permissions") from None
-        if here.parent == here:
-            break
-        here = here.parent
-    if not here.is_dir():
-        what = "--out" if here == out else f"--out {out}: its parent"
-        raise UserError(f"{what} {here} exists and is not a directory; choose another --out or move the file away")
-    probe = here / f".dsr-bench-write-probe-{host_name()}-{os.getpid()}-{secrets.token_hex(4)}"
-    try:
-        fd = os.open(probe, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
-    except OSError as exc:
-        where = "cannot create files in it" if here == out else f"cannot create it in {here}"
-        raise UserError(f"--out {out}: {where} ({exc.strerror or exc}); choose a writable --out or give write "
-                        f"permission on {here}") from None
-    os.close(fd)
-    probe.unlink(missing_ok=True)
 
 
 def needs_writing(path: Path, expected: dict, recorded: Callable[[Path], object], different: str,
