@@ -212,18 +212,22 @@ def _planner(model: str, env: SimEnvironment, checkpoint: str | None, device: st
     return _WORKER["planner"]
 
 
-def _plan_job(job: tuple) -> tuple[str, dict]:
+def _plan_job(job: tuple) -> tuple[str, dict, str | None]:
+    """(name, scores, a warning line or None) of one task: an existing plan file of the same run is rescored from
+    its stored final state (`dsr_bench.planning.verify.plan_scores`), anything else is planned (again)."""
     from dsr_bench.planning.plans import plan_arrays, write_plan
     from dsr_bench.planning.runner import run_plan
     from dsr_bench.planning.scoring import score_plan
     from dsr_bench.planning.tasks import read_task
 
     task_path, out, model, checkpoint, device, candidates, seed, batch, name, ground_truth = job
-    done = _finished(Path(out) / f"{name}.h5", ground_truth, model, checkpoint, candidates, seed)
-    if done is not None:  # reads the plan file's attributes only
-        return name, done
+    task = read_task(task_path)  # the digests recomputed from its arrays
+    if task.name != name or task.ground_truth_sha256 != ground_truth:
+        raise UserError(f"{task_path} changed after it was verified (another process writing the tasks?); run again")
+    done, note = _finished(Path(out) / f"{name}.h5", task, model, checkpoint, candidates, seed)
+    if done is not None:
+        return name, done, None
     _one_thread()
-    task = read_task(task_path)
     env = SimEnvironment()
     try:
         planner = _planner(model, env, checkpoint, device)
@@ -239,8 +243,8 @@ def _plan_job(job: tuple) -> tuple[str, dict]:
              "model": model, "checkpoint": str(checkpoint or ""), "planner": planner.name,
              "description": planner.description, "candidates": candidates, "seed": seed, "lambda": _lambda(),
              **scores}
-    write_plan(Path(out) / f"{task.name}.h5", arrays, attrs)
-    return task.name, scores
+    write_plan(Path(out) / f"{name}.h5", arrays, attrs)
+    return name, scores, note
 
 
 def _steps() -> int:
@@ -249,25 +253,30 @@ def _steps() -> int:
     return PLAN_STEPS
 
 
-def _finished(path: Path, ground_truth: str, model: str, checkpoint: str | None, candidates: int,
-              seed: int) -> dict | None:
-    """The scores of an existing plan file made with the same task, planner, candidates, seed and lambda (a rerun
-    resumes), else None (the plan is made again and the file replaced)."""
+def _finished(path: Path, task, model: str, checkpoint: str | None, candidates: int,
+              seed: int) -> tuple[dict | None, str | None]:
+    """(scores, None) of an existing plan file of this task made with the same planner, checkpoint, candidates,
+    seed and lambda (a rerun resumes): recomputed from its stored final state against the verified task, never
+    read from its attributes. (None, None) when there is no such file or it is another run's (planned again, the
+    file replaced); (None, a warning line) when the file is not a valid plan of its task (planned again too)."""
     from dsr_bench.planning.plans import read_plan_attrs
+    from dsr_bench.planning.verify import plan_scores
 
     if not path.is_file():
-        return None
+        return None, None
+    same = {"model": model, "checkpoint": str(checkpoint or ""), "candidates": candidates, "seed": seed,
+            "lambda": _lambda()}
     try:
         attrs = read_plan_attrs(path)
-    except UserError:
-        return None
-    same = (attrs.get("task_ground_truth_sha256") == ground_truth
-            and attrs.get("model", attrs.get("planner")) == model
-            and attrs.get("checkpoint", "") == str(checkpoint or "") and attrs.get("candidates") == candidates
-            and attrs.get("seed") == seed and attrs.get("lambda") == _lambda())
-    keys = ("iou", "iou_identity", "iou_occupancy", "start_iou", "start_iou_identity", "start_iou_occupancy",
-            "iou_per_object", "seconds")
-    return {k: attrs[k] for k in keys} if same and all(k in attrs for k in keys) else None
+    except UserError as exc:
+        return None, f"{exc}: planned again"
+    made = {**attrs, "model": attrs.get("model", attrs.get("planner")), "checkpoint": attrs.get("checkpoint", "")}
+    if any(made.get(k) != v for k, v in same.items()):
+        return None, None  # another run's plan (other options): replaced, as always
+    try:
+        return plan_scores(path, task, task.ground_truth_sha256)[0], None
+    except UserError as exc:
+        return None, f"{exc}: planned again"
 
 
 def _lambda() -> float:
@@ -278,10 +287,13 @@ def _lambda() -> float:
 
 def plan_tasks(model: str, tasks: str, out: Path, candidates: int, workers: int = 1, seed: int = 0,
                checkpoint: Path | None = None, device: str = "cpu", num_tasks: int | None = None,
-               batch: int | None = None, progress=None) -> dict:
+               batch: int | None = None, progress=None, warn=None) -> dict:
     """Run a planner on a task directory (or a named set's data/<name>), write one plan file per task and
-    OUT/results.json; return the results (`dsr_bench.planning.scoring.results`). Plan files already in `out`
-    made with the same task, planner, candidates and seed are kept and scored (a rerun resumes)."""
+    OUT/results.json; return the results (`dsr_bench.planning.scoring.results`). The tasks are verified first
+    (`dsr_bench.planning.verify.verify_tasks`: a task that differs from the pin is one line to `warn` and makes
+    the results unpinned). Plan files already in `out` made for the same task with the same planner, candidates
+    and seed are kept and rescored from their final states (a rerun resumes); an invalid one is planned again
+    with a line to `warn`."""
     import json
 
     from dsr_bench.atomic import write_text
@@ -289,7 +301,7 @@ def plan_tasks(model: str, tasks: str, out: Path, candidates: int, workers: int 
     from dsr_bench.planning.planners import PLANNER_NAMES, make_planner
     from dsr_bench.planning.protocol import DEFAULT_BATCH
     from dsr_bench.planning.scoring import results
-    from dsr_bench.planning.tasks import TASK_SETS, resolve_tasks
+    from dsr_bench.planning.verify import verify_tasks
     from dsr_bench.atomic import check_writable
 
     if model not in PLANNER_NAMES:
@@ -302,8 +314,11 @@ def plan_tasks(model: str, tasks: str, out: Path, candidates: int, workers: int 
         raise UserError(f"--candidates {candidates}: must be at least 1")
     if workers < 1:
         raise UserError(f"--workers {workers}: must be at least 1")
-    task_dir, manifest = resolve_tasks(tasks)
-    entries = manifest["tasks"][: num_tasks] if num_tasks else manifest["tasks"]
+    verified = verify_tasks(tasks)  # before anything is written
+    warn = warn or (lambda line: None)
+    for line in verified.warnings:
+        warn(line)
+    names = verified.names[: num_tasks] if num_tasks else verified.names
     _one_thread()
     describe = make_planner(model, (None, None)) if model in ("random", "oracle") else \
         make_planner(model, checkpoint=checkpoint, device=device)  # fails fast on a bad model or checkpoint
@@ -312,10 +327,19 @@ def plan_tasks(model: str, tasks: str, out: Path, candidates: int, workers: int 
     check_writable(out)
     out.mkdir(parents=True, exist_ok=True)
     batch = batch or DEFAULT_BATCH
-    jobs = [(str(task_dir / e["file"]), str(out), model, str(checkpoint) if checkpoint else None, device, candidates,
-             seed, batch, e["name"], e["ground_truth_sha256"]) for e in entries]
+    jobs = [(str(verified.path(name)), str(out), model, str(checkpoint) if checkpoint else None, device, candidates,
+             seed, batch, name, verified.digests[name]) for name in names]
     outcomes = run_in_order(_plan_job, jobs, workers, (lambda done, total: progress()) if progress else None)
-    per_task = dict(outcomes)
+    per_task = {}
+    for name, scores, note in outcomes:
+        per_task[name] = scores
+        if note:
+            warn(note)
+    others = sorted(p.name for p in out.glob("*.h5") if p.stem not in per_task)
+    if others:
+        warn(f"{out} also holds {', '.join(others[:3])}{' ...' if len(others) > 3 else ''}, plans this run did not "
+             "make: the directory is not one run's (`dsr_bench.planning.verify.recompute_results` refuses it); "
+             "remove them")
     command = shlex.join(["dsr-bench", "plan", "--model", model, "--tasks", str(tasks), "--out", str(out),
                           "--candidates", str(candidates), "--seed", str(seed)]
                          + (["--num-tasks", str(num_tasks)] if num_tasks else [])
@@ -327,10 +351,9 @@ def plan_tasks(model: str, tasks: str, out: Path, candidates: int, workers: int 
         planner["grid"] = [int(g) for g in describe.grid]
     parameters = {"candidates": candidates, "seed": seed, "lambda": _lambda(), "steps": _steps(),
                   "hardware": f"{os.cpu_count()} CPU cores", "workers": workers}
-    named = TASK_SETS.get(manifest["task_set"])
-    expected = named.num_tasks if named else len(manifest["tasks"])  # a prefix of a named set is partial
-    out_results = results(per_task, planner, manifest, expected,
-                          [out / f"{name}.h5" for name in per_task], command, parameters)
+    # the checksum recomputed from the task files (tasks.json is never trusted); a prefix of a named set is partial
+    out_results = results(per_task, planner, {"task_set": verified.task_set, "checksum": verified.checksum},
+                          verified.expected, [out / f"{name}.h5" for name in per_task], command, parameters)
     write_text(out / "results.json", json.dumps(out_results, indent=1, sort_keys=True) + "\n")
     return out_results
 
@@ -381,13 +404,15 @@ def plan(
                                             "results)."),
 ) -> None:
     """Plan 3 pushes per task with MPC (sample candidates, score by the paper's cost, execute the best in pybullet),
-    write a plan file per task and results.json (final-vs-target voxel IoU per task and mean)."""
+    write a plan file per task and results.json (final-vs-target voxel IoU per task and mean). Every task file is
+    checked against this toolkit's pin first (a task that differs: a warning, results not pinned); a rerun keeps the
+    plan files of the same run, rescored from their final states, and plans the others again."""
     from rich.progress import Progress
 
     with Progress(transient=True) as bar:
         job = bar.add_task(f"plan {model}", total=num_tasks or _size(tasks))
         r = plan_tasks(model, tasks, out, candidates, workers, seed, checkpoint, device, num_tasks,
-                       progress=lambda: bar.advance(job))
+                       progress=lambda: bar.advance(job), warn=lambda line: typer.echo(f"warning: {line}", err=True))
     m = r["metrics"]
     typer.echo(f"{r['method']} on {r['task_set']} ({r['coverage']['scored']}/{r['coverage']['expected']} tasks"
                f"{', pinned' if r['pinned'] else ''}): IoU {m['iou']:.4f} (start {m['start_iou']:.4f}), occupancy IoU "

@@ -13,4 +13,5 @@ Modules (numpy, h5py and torch only: no simulator; the simulator side is `genera
   runner     the MPC loop over an `Environment` (observe, sample, score, execute), one plan per task
   plans      the plan file (every observation, candidate set, cost and chosen action)
   scoring    final-vs-target voxel IoU per task, the results JSON, leaderboard rows
+  verify     nothing trusted: tasks against the pin, plans against their tasks, results recomputed and checked
 """

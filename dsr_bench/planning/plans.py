@@ -15,7 +15,8 @@
 Root attributes: format, version, task, task_file, task_ground_truth_sha256, planner, description, candidates,
 seed, lambda, toolkit_version, and the scores (`dsr_bench.planning.scoring.score_plan`): iou, iou_occupancy,
 iou_identity, start_iou, start_iou_identity,
-start_iou_occupancy, iou_per_object (JSON).
+start_iou_occupancy, iou_per_object (JSON), seconds. The stored scores are a record for people, never read back: a
+rerun and `dsr_bench.planning.verify` recompute them from states/mask_3d[-1] and the verified task.
 """
 
 from __future__ import annotations

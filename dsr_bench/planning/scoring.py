@@ -46,13 +46,16 @@ def plans_checksum(paths: list[Path]) -> str:
 
 def results(per_task: Mapping[str, dict], planner: Mapping, manifest: Mapping, expected: int, plan_paths: list[Path],
             command: str, parameters: Mapping) -> dict:
-    """The results JSON of a planning run (`dsr-bench plan`): means over the tasks scored, per task values."""
+    """The results JSON of a planning run (`dsr-bench plan`): means over the tasks scored (in name order), per task
+    values. `manifest`: {"task_set", "checksum"}, the checksum recomputed from the task files
+    (`dsr_bench.planning.verify.verify_tasks`), never a tasks.json's; `pinned` is whether it is this toolkit's pin."""
     from dsr_bench import __version__
     from dsr_bench.planning.tasks import pinned_checksums
 
     keys = ("iou", "iou_identity", "iou_occupancy", "start_iou", "start_iou_identity", "start_iou_occupancy")
-    metrics = {k: float(np.mean([t[k] for t in per_task.values()])) if per_task else float("nan") for k in keys}
-    seconds = [t["seconds"] for t in per_task.values() if "seconds" in t]
+    ordered = [per_task[name] for name in sorted(per_task)]  # one order of summation, wherever it is recomputed
+    metrics = {k: float(np.mean([t[k] for t in ordered])) if per_task else float("nan") for k in keys}
+    seconds = [t["seconds"] for t in ordered if "seconds" in t]
     metrics["planning_iou"] = metrics["iou"]
     metrics["tasks_per_minute"] = 60.0 * len(seconds) / sum(seconds) if seconds and sum(seconds) > 0 else None
     name = manifest["task_set"]

@@ -15,7 +15,10 @@ qy, qz, qw) world metres; actions (d, row, col)):
 Root attributes: format, version, name, task_set, index, seed, num_objects, pushes, objects (JSON identities:
 colour, mass, is_large, ...), generator_args (JSON), toolkit_version, and the digests (`task_digests`):
 ground_truth_sha256, observations_sha256, content_sha256. The reader recomputes them: a file whose arrays do
-not match its digests is refused (`UserError`, one line naming the file and the fix).
+not match its digests is refused (`UserError`, one line naming the file and the fix), and `Task.digests` holds the
+recomputed ones. Digests a file carries prove nothing (a forger recomputes them): `dsr_bench.planning.verify`
+compares the recomputed digests with the pin this toolkit ships (`task_pins.json`, `pinned_tasks`), and tasks.json
+is never taken for the files it lists.
 """
 
 from __future__ import annotations
@@ -105,6 +108,8 @@ class Task:
     objects: list[dict]
     parts: list[list[tuple[np.ndarray, np.ndarray]]]
     attrs: dict = field(default_factory=dict)
+    #: the digests recomputed from the arrays on reading (`task_digests`), never the file's own attributes
+    digests: dict = field(default_factory=dict)
 
     @property
     def num_objects(self) -> int:
@@ -120,7 +125,8 @@ class Task:
 
     @property
     def ground_truth_sha256(self) -> str:
-        return str(self.attrs[GROUND_TRUTH_KEY])
+        """The ground-truth digest recomputed from the arrays (what the file says is checked against it)."""
+        return str(self.digests.get(GROUND_TRUTH_KEY) or task_digests(self.arrays, self.objects)[GROUND_TRUTH_KEY])
 
 
 def write_task(path: str | Path, arrays: Mapping[str, np.ndarray], attrs: Mapping) -> Path:
@@ -225,7 +231,7 @@ def read_task(path: str | Path) -> Task:
             raise UserError(f"{path}: object {i} has no solid parts; {_fix(path)}")
         parts.append(obj)
     return Task(path=path, name=str(attrs.get("name", path.stem)), seed=seed, arrays=arrays, objects=objects,
-                parts=parts, attrs=attrs)
+                parts=parts, attrs=attrs, digests=digests)
 
 
 # --- task directories --------------------------------------------------------------------------------------
@@ -241,7 +247,7 @@ def build_manifest(task_dir: str | Path, task_set: str, names: list[str]) -> dic
         task = read_task(task_dir / f"{name}.h5")
         entries.append({"name": name, "file": f"{name}.h5", "sha256": file_sha256(task.path),
                         GROUND_TRUTH_KEY: task.ground_truth_sha256,
-                        OBSERVATIONS_KEY: str(task.attrs[OBSERVATIONS_KEY])})
+                        OBSERVATIONS_KEY: task.digests[OBSERVATIONS_KEY]})
     return {"format": MANIFEST_FORMAT, "version": 1, "task_set": task_set, "toolkit_version": __version__,
             "tasks": entries, "checksum": split_checksum((e["name"], e[GROUND_TRUTH_KEY]) for e in entries)}
 
@@ -281,6 +287,14 @@ def pinned_checksums() -> dict[str, str]:
     return {name: pin["checksum"] for name, pin in json.loads(PINS_FILE.read_text())["task_sets"].items()}
 
 
+def pinned_tasks(task_set: str) -> dict[str, str] | None:
+    """{task name: its pinned ground-truth digest} of a task set pinned in this toolkit, None if it is not."""
+    if not PINS_FILE.is_file():
+        return None
+    pin = json.loads(PINS_FILE.read_text())["task_sets"].get(task_set)
+    return None if pin is None else {name: d["ground_truth"] for name, d in pin["tasks"].items()}
+
+
 def pin_task_set(manifest: Mapping) -> Path:
     """Record a task directory's checksum and per-task digests as the pin of its set (task_pins.json)."""
     from dsr_bench.atomic import write_text
@@ -295,9 +309,10 @@ def pin_task_set(manifest: Mapping) -> Path:
     return write_text(PINS_FILE, text)
 
 
-def resolve_tasks(tasks: str) -> tuple[Path, dict]:
-    """A task directory from --tasks (a directory, or a task set's name: data/<name>) and its manifest."""
+def resolve_tasks(tasks: str | Path) -> tuple[Path, dict]:
+    """A task directory from --tasks (a directory, or a task set's name: data/<name>) and its manifest (untrusted:
+    `dsr_bench.planning.verify.verify_tasks` checks the files against the pin)."""
     path = Path(tasks)
-    if not path.is_dir() and tasks in TASK_SETS:
-        path = Path("data") / tasks
+    if not path.is_dir() and str(tasks) in TASK_SETS:
+        path = Path("data") / str(tasks)
     return path, load_manifest(path)
