@@ -1,0 +1,308 @@
+"""The planning track never trusts its files (`dsr_bench.planning.verify`): a corpus of forged task files, plan files
+and results files, each refused with one line, scored as `"pinned": false`, planned again, or reported by
+`check_results` / `recompute_results`. One honest run of the random planner on plan-novel-mini (4 pinned tasks) is
+the material; every case edits a copy of it."""
+
+import json
+import shutil
+
+import h5py
+import numpy as np
+import pytest
+
+from dsr_bench.errors import UserError
+
+
+@pytest.fixture(scope="module")
+def mini(tmp_path_factory):
+    """plan-novel-mini's 4 tasks (pinned) and an honest random run on them: (tasks, plans, results)."""
+    pytest.importorskip("pybullet")
+    from dsr_bench.cli import main
+
+    root = tmp_path_factory.mktemp("forged")
+    assert main(["generate-plan-tasks", "--tasks", "plan-novel-mini", "--out", str(root / "tasks")]) == 0
+    assert main(["plan", "--model", "random", "--tasks", str(root / "tasks"), "--out", str(root / "plans")]) == 0
+    return root / "tasks", root / "plans", json.loads((root / "plans" / "results.json").read_text())
+
+
+@pytest.fixture
+def copy(mini, tmp_path):
+    """A writable copy of the honest run: (tasks, plans, results)."""
+    tasks, plans, results = mini
+    shutil.copytree(tasks, tmp_path / "tasks")
+    shutil.copytree(plans, tmp_path / "plans")
+    return tmp_path / "tasks", tmp_path / "plans", results
+
+
+def _plan(capsys, tasks, out, *extra):
+    """`dsr-bench plan --model random` in this process: (exit code, stdout, the stderr lines)."""
+    from dsr_bench.cli import main
+
+    capsys.readouterr()
+    code = main(["plan", "--model", "random", "--tasks", str(tasks), "--out", str(out), *extra])
+    captured = capsys.readouterr()
+    return code, captured.out, [line for line in captured.err.splitlines() if line.strip()]
+
+
+def _forge_task(path, edit):
+    """Edit a task file's arrays and write its own digests anew, as a forger would."""
+    from dsr_bench.planning.tasks import task_digests
+
+    with h5py.File(path, "a") as f:
+        edit(f)
+        arrays = {}
+        f.visititems(lambda name, obj: arrays.__setitem__(name, obj[()]) if isinstance(obj, h5py.Dataset) else None)
+        for key, value in task_digests(arrays, json.loads(f.attrs["objects"])).items():
+            f.attrs[key] = value
+
+
+def _set_attr(path, key, value):
+    with h5py.File(path, "a") as f:
+        f.attrs[key] = value
+
+
+def _scores(results):
+    return {name: {k: v for k, v in t.items() if k != "seconds"} for name, t in results["per_task"].items()}
+
+
+def test_an_honest_run_recomputes_to_its_results_exactly(mini):
+    from dsr_bench.planning.verify import check_results, recompute_results, verify_tasks
+
+    tasks, plans, results = mini
+    assert results["pinned"] is True and results["coverage"] == {"scored": 4, "expected": 4, "partial": False}
+    assert verify_tasks(tasks).warnings == () and verify_tasks(tasks).pinned
+    assert recompute_results(plans, tasks) == results  # every field, bit for bit
+    assert check_results(results) == []
+
+
+def test_a_task_edited_with_its_own_digests_recomputed_is_not_pinned(copy, capsys):
+    """The issue's case: task_0001's target set to its start, the file's digests recomputed (tasks.json left, then
+    rebuilt too): one warning naming the task, "pinned": false, and the old plan of the genuine task planned again."""
+    from dsr_bench.planning.tasks import build_manifest, write_manifest
+    from dsr_bench.planning.verify import check_results, recompute_results
+
+    tasks, plans, honest = copy
+    _forge_task(tasks / "task_0001.h5", lambda f: f["target/mask_3d"].write_direct(f["start/mask_3d"][()]))
+    for rebuild_manifest in (False, True):
+        if rebuild_manifest:
+            write_manifest(tasks, build_manifest(tasks, "plan-novel-mini", [f"task_000{i}" for i in range(4)]))
+        code, out, err = _plan(capsys, tasks, plans)
+        assert code == 0 and "(4/4 tasks)" in out and "pinned" not in out
+        pin_lines = [line for line in err if "differs from the pin" in line]
+        assert len(pin_lines) == 1 and "task_0001.h5" in pin_lines[0] and '"pinned": false' in pin_lines[0]
+        results = json.loads((plans / "results.json").read_text())
+        assert results["pinned"] is False and results["task_checksum"] != honest["task_checksum"]
+        assert check_results(results) == [] and recompute_results(plans, tasks) == results
+    assert results["per_task"]["task_0001"]["start_iou"] == 1.0  # its start scored against itself: the forged task
+
+
+def test_resume_recomputes_a_stored_score_never_reads_it(copy, capsys):
+    """The issue's case: a plan file's stored iou set to 0.99 gave 0.5057 on a rerun; now the rerun is the honest
+    result, with no warning (the stored scores are never read)."""
+    from dsr_bench.planning.verify import recompute_results
+
+    tasks, plans, honest = copy
+    for key in ("iou", "iou_identity", "iou_occupancy", "start_iou"):
+        _set_attr(plans / "task_0000.h5", key, 0.99)
+    stamp = (plans / "task_0000.h5").stat().st_mtime_ns
+    code, out, err = _plan(capsys, tasks, plans)
+    assert code == 0 and err == [] and "(4/4 tasks, pinned): IoU 0.2725" in out
+    assert (plans / "task_0000.h5").stat().st_mtime_ns == stamp  # resumed, not planned again
+    results = json.loads((plans / "results.json").read_text())
+    assert results["per_task"] == honest["per_task"] and results["metrics"] == honest["metrics"]
+    assert recompute_results(plans, tasks)["per_task"] == honest["per_task"]
+
+
+def test_a_plan_file_of_another_task_is_planned_again_and_refused_by_recompute(copy, capsys):
+    """The issue's case: one changed byte in a plan's task name made task_0001's score replace task_0000's
+    ("3/4 tasks, pinned"); now the rerun plans task_0001 again (one warning) and scores 4/4 honestly."""
+    from dsr_bench.planning.verify import recompute_results
+
+    tasks, plans, honest = copy
+    _set_attr(plans / "task_0001.h5", "task", "task_0000")
+    with pytest.raises(UserError, match=r"task_0001.h5: a plan of task_0000, not of the task it is named for") as e:
+        recompute_results(plans, tasks)
+    assert "\n" not in str(e.value)
+    code, out, err = _plan(capsys, tasks, plans)
+    assert code == 0 and "(4/4 tasks, pinned)" in out
+    assert len(err) == 1 and "task_0001.h5: a plan of task_0000" in err[0] and err[0].endswith("planned again")
+    results = json.loads((plans / "results.json").read_text())
+    assert _scores(results) == _scores(honest)  # the random planner's plan is a pure function of its seeds
+    assert recompute_results(plans, tasks) == results
+    shutil.copy(plans / "task_0000.h5", plans / "task_0001.h5")  # a whole plan file under another task's name
+    with pytest.raises(UserError, match="a plan of task_0000, not of the task it is named for"):
+        recompute_results(plans, tasks)
+
+
+@pytest.mark.parametrize("forge, message", [
+    ("name", "its name attribute says task_0000, tasks.json lists it as task_0001"),
+    ("voxel", "its arrays do not match its ground_truth_sha256"),
+    ("junk", "unreadable task file"),
+    ("manifest", "is not task_NNNN with its file task_NNNN.h5"),
+])
+def test_a_damaged_or_misnamed_task_is_one_line_exit_2_and_nothing_written(copy, capsys, forge, message):
+    tasks, plans, _ = copy
+    path = tasks / "task_0001.h5"
+    if forge == "name":  # one changed byte, not covered by the digests
+        _set_attr(path, "name", "task_0000")
+    elif forge == "voxel":  # an edited voxel, digests left
+        with h5py.File(path, "a") as f:
+            f["target/mask_3d"][0, 0, 0] = 1
+    elif forge == "junk":
+        path.write_bytes(b"\x89HDF\r\n not really")
+    else:
+        manifest = json.loads((tasks / "tasks.json").read_text())
+        manifest["tasks"][1]["file"] = "../plans/task_0001.h5"
+        (tasks / "tasks.json").write_text(json.dumps(manifest))
+    out = plans.parent / "fresh"
+    code, stdout, err = _plan(capsys, tasks, out)
+    assert code == 2 and len(err) == 1 and message in err[0] and stdout.strip() == ""
+    assert not out.exists()  # verified before anything is written
+
+
+def test_recompute_refuses_missing_extra_cherry_picked_mixed_and_unreadable_plans(copy, mini):
+    from dsr_bench.planning.verify import recompute_results
+
+    tasks, plans, honest = copy
+    cases = []
+
+    def case(message, setup):
+        cases.append((message, setup))
+
+    def results(edit):
+        r = json.loads(json.dumps(honest))
+        edit(r)
+        (plans / "results.json").write_text(json.dumps(r))
+
+    case("results.json scores task_0003 but its plan file is missing", lambda: (plans / "task_0003.h5").unlink())
+    case("task_0003.h5 is not in results.json's per_task", lambda: results(lambda r: r["per_task"].pop("task_0003")))
+    case("plans of 3 tasks but not of task_0001: a partial run is a prefix", lambda: (
+        (plans / "task_0001.h5").unlink(), results(lambda r: r["per_task"].pop("task_0001"))))
+    case("task_0009.h5 is not a task of", lambda: shutil.copy(plans / "task_0000.h5", plans / "task_0009.h5"))
+    case("task_0002.h5 was made with seed 7, task_0000.h5 with 0: not one run's plans",
+         lambda: _set_attr(plans / "task_0002.h5", "seed", 7))
+    case("task_0002.h5: unreadable plan file", lambda: (plans / "task_0002.h5").write_bytes(b"junk"))
+    case("its start or target state is not task_0002's", lambda: _forge_states(plans / "task_0002.h5", 0))
+    case("has no results.json", lambda: (plans / "results.json").unlink())
+    case("not a dsr-bench planning results file", lambda: (plans / "results.json").write_text("[1, 2]"))
+    for message, setup in cases:
+        shutil.rmtree(plans)
+        shutil.copytree(mini[1], plans)  # the honest plans again
+        setup()
+        with pytest.raises(UserError, match=message.replace("(", r"\(")) as e:
+            recompute_results(plans, tasks)
+        assert "\n" not in str(e.value), message
+
+
+def _forge_states(path, step):
+    with h5py.File(path, "a") as f:
+        states = f["states/mask_3d"][()]
+        states[step] = np.roll(states[step], 3, axis=0)
+        f["states/mask_3d"].write_direct(states)
+
+
+def test_an_invalid_plan_file_is_planned_again_with_one_warning(copy, capsys):
+    from dsr_bench.planning.verify import recompute_results
+
+    tasks, plans, honest = copy
+    (plans / "task_0002.h5").write_bytes(b"junk")
+    _forge_states(plans / "task_0003.h5", 0)
+    code, out, err = _plan(capsys, tasks, plans)
+    assert code == 0 and "(4/4 tasks, pinned)" in out and len(err) == 2
+    assert "task_0002.h5: unreadable plan file" in err[0] and "task_0003.h5: its start or target" in err[1]
+    results = json.loads((plans / "results.json").read_text())
+    assert _scores(results) == _scores(honest) and recompute_results(plans, tasks) == results
+
+
+def test_a_prefix_run_is_partial_pinned_and_recomputes(copy, capsys):
+    from dsr_bench.planning.verify import check_results, recompute_results
+
+    tasks, plans, honest = copy
+    out = plans.parent / "prefix"
+    code, stdout, err = _plan(capsys, tasks, out, "--num-tasks", "2")
+    assert code == 0 and err == [] and "(2/4 tasks, pinned)" in stdout
+    results = json.loads((out / "results.json").read_text())
+    assert results["coverage"] == {"scored": 2, "expected": 4, "partial": True}
+    assert check_results(results) == [] and recompute_results(out, tasks) == results
+
+
+def _forged_results(honest):
+    """(what, forged results dict) of the issue's edits of a results file."""
+    import copy as copying
+
+    def edit(what, change):
+        r = copying.deepcopy(honest)
+        change(r)
+        return what, r
+
+    def mean(r):
+        for key in ("iou", "planning_iou"):
+            r["metrics"][key] = float(np.mean([t["iou"] for _, t in sorted(r["per_task"].items())]))
+
+    def per_task_and_mean(r):
+        r["per_task"]["task_0000"]["iou"] = 0.9
+        mean(r)
+
+    return [
+        edit("per-task value", lambda r: r["per_task"]["task_0000"].__setitem__("iou", 0.9)),
+        edit("per-task value and its mean", per_task_and_mean),
+        edit("mean", lambda r: r["metrics"].__setitem__("iou", 0.5)),
+        edit("task removed", lambda r: r["per_task"].pop("task_0003")),
+        edit("per_task empty", lambda r: r["per_task"].clear()),
+        edit("coverage 1/4 not partial", lambda r: r.__setitem__("coverage", {"scored": 1, "expected": 4,
+                                                                              "partial": False})),
+        edit("checksum zeroed, pinned", lambda r: r.update(task_checksum="0" * 64, split_checksum="0" * 64)),
+        edit("mini relabelled test", lambda r: r.update(task_set="plan-novel-test", split="plan-novel-test")),
+        edit("iou above 1", lambda r: r["per_task"]["task_0001"].__setitem__("iou", 1.5)),
+        edit("iou NaN", lambda r: r["per_task"]["task_0001"].__setitem__("iou_occupancy", float("nan"))),
+        edit("iou a boolean", lambda r: r["per_task"]["task_0001"].__setitem__("start_iou", True)),
+        edit("pinned false on the pin", lambda r: r.__setitem__("pinned", False)),
+        edit("method renamed", lambda r: r.__setitem__("method", "dsr")),
+        edit("checksum of another set", lambda r: r.update(task_set="plan-novel-test", split="plan-novel-test",
+                                                            coverage={"scored": 4, "expected": 100, "partial": True})),
+    ]
+
+
+def test_every_forged_results_file_is_caught(copy):
+    """Each forgery is a problem of `check_results`, or a field where `recompute_results` (from the plan files and
+    the verified tasks) differs from it: never accepted as it is."""
+    from dsr_bench.planning.verify import check_results, differences, recompute_results
+
+    tasks, plans, honest = copy
+    for what, forged in _forged_results(honest):
+        problems = check_results(forged)
+        (plans / "results.json").write_text(json.dumps(forged))
+        try:
+            differ = differences(recompute_results(plans, tasks), forged)
+        except UserError as exc:
+            differ = [str(exc)]
+            assert "\n" not in str(exc)
+        assert problems or differ, what
+        assert all(isinstance(p, str) and "\n" not in p and len(p) < 100 for p in problems), what
+    named = dict(_forged_results(honest))
+    assert "metrics iou is not the mean of the per-task values" in check_results(named["per-task value"])
+    assert check_results(named["per-task value and its mean"]) == []  # consistent in itself: only recomputing shows it
+    assert "coverage partial disagrees with scored < expected" in check_results(named["coverage 1/4 not partial"])
+    assert "per_task is empty" in check_results(named["per_task empty"])
+    assert "coverage scored is not the number of per_task entries" in check_results(named["task removed"])
+    assert "pinned is true but task_checksum is not the pin of task_set" in check_results(
+        named["checksum zeroed, pinned"])
+    relabelled = check_results(named["mini relabelled test"])
+    assert "task_checksum is the pin of plan-novel-mini, not of plan-novel-test" in relabelled
+    assert "coverage expected is not the task set's size" in relabelled
+    assert any("outside [0, 1]" in p for p in check_results(named["iou above 1"]))
+    assert any("outside [0, 1]" in p for p in check_results(named["iou NaN"]))
+    assert "pinned is false but task_checksum is the pin of task_set" in check_results(
+        named["pinned false on the pin"])
+    assert "planner is not an object with the method's name and a description" in check_results(
+        named["method renamed"])
+
+
+@pytest.mark.parametrize("junk", [None, [], "x", {"format": "dsr-bench-plan-results"},
+                                  {"per_task": [1], "metrics": "m", "coverage": None, "pinned": "yes"},
+                                  {"per_task": {"task_0000": {"iou": "0.5"}}, "metrics": {"iou": None}}])
+def test_check_results_reports_garbage_without_raising(junk):
+    from dsr_bench.planning.verify import check_results
+
+    problems = check_results(junk)
+    assert problems and all(isinstance(p, str) and "\n" not in p for p in problems)
