@@ -260,7 +260,7 @@ def _finished(path: Path, task, model: str, checkpoint: str | None, candidates: 
     read from its attributes. (None, None) when there is no such file or it is another run's (planned again, the
     file replaced); (None, a warning line) when the file is not a valid plan of its task (planned again too)."""
     from dsr_bench.planning.plans import read_plan_attrs
-    from dsr_bench.planning.verify import plan_scores
+    from dsr_bench.planning.verify import PlanMismatch, plan_scores
 
     if not path.is_file():
         return None, None
@@ -269,14 +269,14 @@ def _finished(path: Path, task, model: str, checkpoint: str | None, candidates: 
     try:
         attrs = read_plan_attrs(path)
     except UserError as exc:
-        return None, f"{exc}: planned again"
+        return None, f"{' '.join(str(exc).split('; ')[:1])}: planned again"
     made = {**attrs, "model": attrs.get("model", attrs.get("planner")), "checkpoint": attrs.get("checkpoint", "")}
     if any(made.get(k) != v for k, v in same.items()):
         return None, None  # another run's plan (other options): replaced, as always
     try:
         return plan_scores(path, task, task.ground_truth_sha256)[0], None
-    except UserError as exc:
-        return None, f"{exc}: planned again"
+    except PlanMismatch as exc:
+        return None, f"{exc.problem}: planned again"
 
 
 def _lambda() -> float:

@@ -113,9 +113,19 @@ def verify_tasks(tasks: str | Path) -> VerifiedTasks:
                          expected=spec.num_tasks if spec else len(names), warnings=tuple(warnings))
 
 
+class PlanMismatch(UserError):
+    """A plan file that is not a valid plan of its task: `problem` is the message without the fix (what a rerun of
+    `dsr-bench plan`, which plans the task again, prints)."""
+
+    def __init__(self, path: Path, problem: str):
+        self.problem = f"{path}: {problem}"
+        super().__init__(f"{self.problem}; rerun `dsr-bench plan` with the same options over its directory (it plans "
+                         "such a task again)")
+
+
 def _dataset(path: Path, f, name: str) -> np.ndarray:
     if name not in f:
-        raise UserError(f"{path}: a plan file without {name}; rerun `dsr-bench plan` for its task (delete the file)")
+        raise PlanMismatch(path, f"a plan file without {name}")
     return f[name][()]
 
 
@@ -124,7 +134,8 @@ def plan_scores(path: str | Path, task, digest: str, same: Mapping | None = None
     stored final state and `task`'s start and target (a task read by `read_task`, `digest` its verified
     ground-truth digest), and the file's attributes. UserError (one line) unless the file is a plan of `task`
     (its name, task file, task digest, start and target states), of the track's shapes, and, for each key of
-    `same`, made with that value (model, candidates, seed, ...). The stored scores are never read."""
+    `same`, made with that value (model, candidates, seed, ...); `PlanMismatch` for a plan file that is not. The
+    stored scores are never read."""
     import h5py
 
     from dsr_bench.constants import GRID_SHAPE
@@ -133,17 +144,18 @@ def plan_scores(path: str | Path, task, digest: str, same: Mapping | None = None
     from dsr_bench.planning.scoring import score_plan
 
     path = Path(path)
-    fix = "rerun `dsr-bench plan` with the same options over its directory (it plans such a task again)"
-    attrs = read_plan_attrs(path)
+    try:
+        attrs = read_plan_attrs(path)
+    except UserError as exc:
+        raise PlanMismatch(path, str(exc).split(": ", 1)[-1].split("; ", 1)[0]) from None
     if path.stem != task.name or attrs.get("task") != task.name or attrs.get("task_file") != f"{task.name}.h5":
-        raise UserError(f"{path}: a plan of {_show(attrs.get('task'))}, not of the task it is named for "
-                        f"({_show(path.stem)}); {fix}")
+        raise PlanMismatch(path, f"a plan of {_show(attrs.get('task'))}, not of the task it is named for "
+                                 f"({_show(path.stem)})")
     if attrs.get("task_ground_truth_sha256") != digest:
-        raise UserError(f"{path}: made for another version of {task.name} (its task digest is not the task file's); "
-                        f"{fix}")
+        raise PlanMismatch(path, f"made for another version of {task.name} (its task digest is not the task file's)")
     for key, value in (same or {}).items():
         if attrs.get(key) != value:
-            raise UserError(f"{path}: made with {key} {_show(attrs.get(key))}, not {_show(value)}; {fix}")
+            raise PlanMismatch(path, f"made with {key} {_show(attrs.get(key))}, not {_show(value)}")
     try:
         with h5py.File(path, "r") as f:
             states, target = _dataset(path, f, "states/mask_3d"), _dataset(path, f, "target/mask_3d")
@@ -151,19 +163,18 @@ def plan_scores(path: str | Path, task, digest: str, same: Mapping | None = None
     except UserError:
         raise
     except Exception as exc:  # noqa: BLE001 - whatever h5py raises on a damaged file
-        raise UserError(f"{path}: unreadable plan file ({type(exc).__name__}); {fix}") from None
+        raise PlanMismatch(path, f"unreadable plan file ({type(exc).__name__})") from None
     n = task.num_objects
     if states.shape != (PLAN_STEPS + 1,) + GRID_SHAPE or states.dtype != np.uint8 or int(states.max()) > n:
-        raise UserError(f"{path}: states/mask_3d is not {PLAN_STEPS + 1} states of object ids 0..{n} on the grid; "
-                        f"{fix}")
+        raise PlanMismatch(path, f"states/mask_3d is not {PLAN_STEPS + 1} states of object ids 0..{n} on the grid")
     if actions.shape != (PLAN_STEPS, 3) or not np.issubdtype(actions.dtype, np.integer):
-        raise UserError(f"{path}: actions is not {PLAN_STEPS} pushes (d, row, col); {fix}")
+        raise PlanMismatch(path, f"actions is not {PLAN_STEPS} pushes (d, row, col)")
     if not np.array_equal(states[0], task.start_mask) or not np.array_equal(target, task.target_mask):
-        raise UserError(f"{path}: its start or target state is not {task.name}'s; {fix}")
+        raise PlanMismatch(path, f"its start or target state is not {task.name}'s")
     seconds = attrs.get("seconds")
     if isinstance(seconds, (bool, np.bool_)) or not isinstance(seconds, (int, float, np.number)) or \
             not math.isfinite(float(seconds)) or float(seconds) < 0:
-        raise UserError(f"{path}: its seconds attribute is not a time; {fix}")
+        raise PlanMismatch(path, "its seconds attribute is not a time")
     scores = score_plan(states[-1], task.start_mask, task.target_mask, n)
     scores["seconds"] = float(seconds)
     return scores, attrs
