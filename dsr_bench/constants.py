@@ -33,6 +33,8 @@ WORKSPACE_CENTER: tuple[float, float] = (0.5, 0.0)
 TSDF_TRUNCATION: float = 5 * VOXEL_SIZE
 #: voxel^2 -> cm^2 (0.4 cm voxels), the official factor for motion MSE.
 VOXEL2_TO_CM2: float = 0.16
+#: The metrics' visible surface: voxels with TSDF_SURFACE_LOW < tsdf < 0 (and an object, above z = 0).
+TSDF_SURFACE_LOW: float = -0.99
 
 # --- Actions ---------------------------------------------------------------------------------
 NUM_DIRECTIONS: int = 8

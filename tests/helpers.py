@@ -48,3 +48,19 @@ def assert_same_dataset(got: Path, want: Path, sequences: int = 4) -> None:
     assert split_digest(ma, "all") == split_digest(mb, "all")
     assert (got / "splits" / "all.txt").read_text() == (want / "splits" / "all.txt").read_text()
     assert sorted(str(p.relative_to(got)) for p in got.rglob(".*")) == []
+
+
+def pin_split(monkeypatch, data_dir: Path, split: str) -> dict:
+    """Pin `split` of a (synthetic) dataset in this toolkit for the test: its real pin (`build_pin`: checksum, array
+    fingerprints, the scored digests `evaluate` recomputes) stands in split_pins.json's place; returns the pin."""
+    from dsr_bench.dataset import splits
+    from dsr_bench.dataset.manifest import load_manifest, read_split
+    from dsr_bench.dataset.pins import build_pin
+
+    spec = splits.SPLITS[split]
+    _, names = read_split(data_dir, split)
+    pin = build_pin(data_dir, names, load_manifest(data_dir), split)
+    pins = {**splits.pinned_digests(), split: pin}
+    monkeypatch.setattr(splits, "pinned_digests", lambda: pins)
+    monkeypatch.setitem(splits.SPLITS, split, splits.Split(**{**spec.__dict__, "pinned_checksum": pin["checksum"]}))
+    return pin

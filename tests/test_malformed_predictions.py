@@ -18,6 +18,7 @@ from dsr_bench.scoring.evaluate import pin_warning
 from dsr_bench.dataset.manifest import load_manifest, split_digest
 from dsr_bench.dataset.splits import SPLITS, Split
 from dsr_bench.testing import write_synthetic_dataset
+from helpers import pin_split
 
 TARGET = "seq_0000.h5"
 
@@ -390,9 +391,13 @@ def test_results_record_whether_pinned(pinned_data, tmp_path, monkeypatch, capsy
 
     pred = tmp_path / "pred"
     assert main(["predict", "--model", "oracle", "--data", str(pinned_data), "--out", str(pred)]) == 0
-    _pin(monkeypatch, split_digest(load_manifest(pinned_data), "procedural-novel-mini"))
+    pin_split(monkeypatch, pinned_data, "procedural-novel-mini")  # the checksum and the scored digests
     evaluation = evaluate(pred, pinned_data, workers=1)
     assert evaluation.results["pinned"] is True and evaluation.warnings == []
+    monkeypatch.undo()
+    _pin(monkeypatch, split_digest(load_manifest(pinned_data), "procedural-novel-mini"))  # a checksum alone
+    evaluation = evaluate(pred, pinned_data, workers=1)
+    assert evaluation.results["pinned"] is False and "cannot be verified" in evaluation.warnings[0]
     _pin(monkeypatch, None)
     assert evaluate(pred, pinned_data, workers=1).results["pinned"] is False
 

@@ -109,6 +109,8 @@ def manifest(data_dir: Path = typer.Argument(..., help="Dataset directory.")) ->
     built = build_manifest(data_dir)
     path = write_manifest(data_dir, built)
     typer.echo(f"wrote {path}: {len(built['sequences'])} sequences, splits: {', '.join(built['splits']) or 'none'}")
+    typer.echo(f"its checksums are the files' own digest attributes, not recomputed: `dsr-bench validate {data_dir}` "
+               "recomputes them from the arrays, and `dsr-bench evaluate` verifies what it scores against the pins")
 
 
 def import_official_command(

@@ -24,8 +24,10 @@ from dsr_bench.dataset.digests import (
 def build_pin(data_dir: str | Path, names: list[str], manifest: Mapping, split: str,
               digests: Callable[[Path], dict] = file_digests) -> dict:
     """The pin of split `split` of a dataset: its sequences `names` are read (every array, one step at a
-    time) and must match the manifest's digests (SystemExit naming the sequence otherwise)."""
+    time) and must match the manifest's digests (SystemExit naming the sequence otherwise); each sequence's
+    `scored` digests (`dsr_bench.dataset.scored`) are what `evaluate` recomputes while it scores."""
     from dsr_bench.dataset.manifest import split_digest
+    from dsr_bench.dataset.scored import file_scored_digests
 
     listed = {s["name"]: s for s in manifest["sequences"]}
     found = {}
@@ -37,7 +39,8 @@ def build_pin(data_dir: str | Path, names: list[str], manifest: Mapping, split: 
     fields = sorted({f for d in found.values() for f in d["fingerprints"]})
     sequences = {
         name: {"ground_truth": d[GROUND_TRUTH_KEY], "observations": d[OBSERVATIONS_KEY],
-               "arrays": [d["fingerprints"][f].to_list() if f in d["fingerprints"] else None for f in fields]}
+               "arrays": [d["fingerprints"][f].to_list() if f in d["fingerprints"] else None for f in fields],
+               "scored": file_scored_digests(Path(data_dir) / listed[name]["file"])}
         for name, d in found.items()
     }
     return {"checksum": split_digest(manifest, split),
@@ -129,3 +132,39 @@ def summarize(split: str, comparison: PinComparison, limit: int = 3) -> list[tup
                       f"observations ({', '.join(arrays)}) that differ from the pin within the stated tolerance "
                       "(rendering noise of another CPU or library); their ground truth is identical"))
     return lines
+
+
+def verify_scored(split: str, names: list[str], recomputed: Mapping[str, Mapping[str, str]],
+                  data_dir: str | Path, limit: int = 3) -> tuple[bool, list[str]]:
+    """Whether what `evaluate` scored is the pinned split: `names` (the split's list in the dataset) are the pinned
+    sequences and every scored sequence's recomputed `scored` digests (`recomputed`, {name: {field: digest}})
+    equal the pin's. Returns (verified, warning lines); a split this toolkit does not pin is (False, [])."""
+    from dsr_bench.dataset.scored import differing_fields
+    from dsr_bench.dataset.splits import SPLITS, pinned_digests
+
+    spec = SPLITS.get(split)
+    if spec is None or spec.expected_digest is None:
+        return False, []
+    pin = pinned_digests().get(split, {})
+    if pin.get("checksum") != spec.expected_digest or any("scored" not in s for s in pin.get("sequences", {}).values()):
+        return False, [f"{data_dir}: split {split!r} has no scored digests pinned in this toolkit, so its ground "
+                       "truth cannot be verified while scoring; its results are not pinned"]
+    fix = f"regenerate it with `dsr-bench generate --split {split} --out {data_dir}`"
+    pinned = pin["sequences"]
+    lines = []
+    missing, extra = sorted(set(pinned) - set(names)), sorted(set(names) - set(pinned))
+    if missing or extra:
+        what = "; ".join(part for part in (f"lacks {len(missing)} pinned sequences (e.g. {', '.join(missing[:limit])})"
+                                           if missing else "", f"adds {len(extra)} (e.g. {', '.join(extra[:limit])})"
+                                           if extra else "") if part)
+        lines.append(f"{data_dir}: split {split!r} {what}; it is not the pinned split: {fix}")
+    changed = {name: differing_fields(d, pinned[name].get("scored", {}))
+               for name, d in sorted(recomputed.items()) if name in pinned}
+    changed = {name: fields for name, fields in changed.items() if fields}
+    for name, fields in list(changed.items())[:limit]:
+        lines.append(f"{Path(data_dir) / (name + '.h5')}: {', '.join(fields)} differ from the pinned {split} "
+                     f"(recomputed while scoring, whatever the file's digest attributes say); {fix}")
+    if len(changed) > limit:
+        lines.append(f"{data_dir}: {len(changed) - limit} more sequences whose ground truth differs from the pinned "
+                     f"{split}; {fix}")
+    return not lines, lines

@@ -22,6 +22,7 @@ import h5py
 import numpy as np
 
 from dsr_bench.constants import GRID_SHAPE
+from dsr_bench.dataset.scored import nonzero_rows
 
 #: deflate level 1 through HDF5's gzip filter: what every chunked array uses
 GZIP1 = {"compression": "gzip", "compression_opts": 1}
@@ -206,6 +207,35 @@ def read_step(ds: h5py.Dataset, t: int) -> np.ndarray:
         if step is not None:
             return step
     return ds[t]
+
+
+def read_step_and_columns(ds: h5py.Dataset, t: int) -> tuple[np.ndarray, np.ndarray]:
+    """Step t of a per-step grid (..., Z) and which of its Z columns hold a non-zero byte (bool, shape[1:-1]).
+
+    For this format's tiled grids (tiles spanning the whole Z column) only the tiles written are looked at: a tile
+    never written is the fill value 0, so the columns are found at a fraction of a full pass's cost; any other
+    layout is read whole and every column is looked at (`dsr_bench.dataset.scored.nonzero_rows`)."""
+    step_shape = tuple(ds.shape[1:])
+    tile = _chunk_layout(ds)
+    if tile is not None and tile != step_shape and tile[-1] == step_shape[-1] and 0 <= t < ds.shape[0]:
+        out = np.zeros(step_shape, dtype=ds.dtype)
+        columns = np.zeros(step_shape[:-1], dtype=bool)
+        nbytes = int(np.prod(tile)) * ds.dtype.itemsize
+        for corner in itertools.product(*(range(0, s, c) for s, c in zip(step_shape, tile))):
+            offset = (t,) + corner
+            if ds.id.get_chunk_info_by_coord(offset).byte_offset is None:
+                continue  # never written: the fill value, 0 (`_chunk_layout` admits fill value 0 only)
+            data = _inflate_chunk(ds, offset, nbytes)
+            if data is None:
+                break  # HDF5 must decode it: the plain path below
+            block = data.view(ds.dtype).reshape(tile)
+            where = tuple(slice(o, o + c) for o, c in zip(corner, tile))
+            out[where] = block
+            columns[where[:-1]] = nonzero_rows(block.reshape(-1, tile[-1])).reshape(tile[:-1])
+        else:
+            return out, columns
+    step = read_step(ds, t)
+    return step, nonzero_rows(np.ascontiguousarray(step).reshape(-1, step_shape[-1])).reshape(step_shape[:-1])
 
 
 def read_steps(ds: h5py.Dataset, start: int, stop: int) -> np.ndarray:

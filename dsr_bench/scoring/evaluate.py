@@ -16,15 +16,19 @@ from __future__ import annotations
 
 import datetime as dt
 import hashlib
+import json
 import os
 import stat
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import h5py
 import numpy as np
 
+from dsr_bench.dataset.manifest import file_sha256
+from dsr_bench.dataset.pins import verify_scored
+from dsr_bench.dataset.scored import FRONT_FLOW_2D, FRONT_MASK, ScoredDigests
 from dsr_bench.errors import UserError
 from dsr_bench.engines import Engine
 from dsr_bench.parallel import run_in_order
@@ -67,8 +71,8 @@ def pin_warning(manifest: dict, split: str, data_dir: str | Path | None = None) 
             "to see which sequences differ")
 
 
-#: what a 2D-only prediction is scored against
-GT_2D = "cameras/front/scene_flow_2d"
+#: what a 2D-only prediction is scored against, and where
+GT_2D, GT_MASK_2D = FRONT_FLOW_2D, FRONT_MASK
 
 
 def no_2d_ground_truth(gt_path: str | Path) -> str:
@@ -85,7 +89,7 @@ def score_sequence(args: tuple[str, str, str]) -> tuple[str, list[str], dict | N
     from dsr_bench.scoring.metrics import motion_2d_error, motion_errors, sequence_scores
     from dsr_bench.scoring.predictions import check_prediction_header, is_2d_only
     from dsr_bench.dataset.sequence import SequenceReader
-    from dsr_bench.dataset.storage import read_step, read_steps
+    from dsr_bench.dataset.storage import read_step, read_step_and_columns, read_steps
 
     name, pred_path, gt_path = args
     problems: list[str] = []
@@ -101,6 +105,8 @@ def score_sequence(args: tuple[str, str, str]) -> tuple[str, list[str], dict | N
             if problems:
                 return name, problems, None
             steps = gt.num_steps
+            digests = ScoredDigests()  # the ground truth as scored, recomputed as it is read (dataset/scored.py)
+            digests.objects(gt.num_objects, gt.objects)
             if is_2d_only(pred):
                 if GT_2D not in gt:
                     return name, [no_2d_ground_truth(gt_path)], None
@@ -110,10 +116,11 @@ def score_sequence(args: tuple[str, str, str]) -> tuple[str, list[str], dict | N
                     if not np.all(np.isfinite(m2)):
                         problems.append(f"motion_2d[{t}]: NaN or inf")
                         continue
-                    values[t] = motion_2d_error(m2, gt.read(GT_2D, t), gt.read("cameras/front/mask", t))
+                    values[t] = motion_2d_error(m2, *_truth_2d(gt, t, digests))
                 if problems:
                     return name, problems, None
-                return name, [], {"motion_2d": values.tolist(), "has_2d": True, "has_3d": False}
+                return name, [], {"motion_2d": values.tolist(), "has_2d": True, "has_3d": False,
+                                  "scored_digests": digests.hexdigests()}
             num_slots = int(pred.attrs["num_slots"])
             n = gt.num_objects
             pred_mask = read_steps(pred["mask"], 0, steps)
@@ -126,8 +133,14 @@ def score_sequence(args: tuple[str, str, str]) -> tuple[str, list[str], dict | N
             pred_motion, gt_flow, gt_tsdf = pred["motion"], gt.dataset("scene_flow_3d"), gt.dataset("tsdf")
             for t in range(steps):
                 motion = read_step(pred_motion, t)
+                flow, columns = read_step_and_columns(gt_flow, t)
+                tsdf = read_step(gt_tsdf, t)
+                objects = np.flatnonzero(gt_mask[t] != 0)  # a bool volume's nonzero is 10x faster than a uint8 one's
+                digests.mask_step(t, gt_mask[t], objects)
+                digests.tsdf_step(t, tsdf, objects)
+                digests.flow_step(t, flow, columns)
                 with np.errstate(over="ignore", invalid="ignore"):
-                    errs = motion_errors(motion, read_step(gt_flow, t), read_step(gt_tsdf, t), gt_mask[t], n)
+                    errs = motion_errors(motion, flow, tsdf, gt_mask[t], n, object_index=objects)
                 # the full-volume sum is finite whenever the motion is, so the elementwise check runs only when not
                 if not np.isfinite(errs["motion_full"]) and not np.all(np.isfinite(motion)):
                     problems.append(f"motion[{t}]: NaN or inf")
@@ -139,11 +152,12 @@ def score_sequence(args: tuple[str, str, str]) -> tuple[str, list[str], dict | N
                     if not np.all(np.isfinite(m2)):
                         problems.append(f"motion_2d[{t}]: NaN or inf")
                         continue
-                    per_step["motion_2d"][t] = motion_2d_error(m2, gt.read(GT_2D, t),
-                                                               gt.read("cameras/front/mask", t))
+                    per_step["motion_2d"][t] = motion_2d_error(m2, *_truth_2d(gt, t, digests))
             if problems:
                 return name, problems, None
             visible = gt.read("visible_fraction") if "visible_fraction" in gt else None
+            if visible is not None:
+                digests.visible_fraction(visible)
             ious = sequence_scores(pred_mask, gt_mask, num_slots, n, visible)
     except READ_ERRORS as exc:
         return name, [f"unreadable or truncated: {type(exc).__name__}: {' '.join(str(exc).split())}"], None
@@ -156,7 +170,17 @@ def score_sequence(args: tuple[str, str, str]) -> tuple[str, list[str], dict | N
     out["iou_visible_objects"] = [x.tolist() for x in ious["iou_visible_objects"]]
     out["has_2d"] = has_2d
     out["has_3d"] = True
+    out["scored_digests"] = digests.hexdigests()
     return name, [], out
+
+
+def _truth_2d(gt, t: int, digests) -> tuple[np.ndarray, np.ndarray]:
+    """The front camera's 2D flow and mask at step t, fed to the scored digests as they are read."""
+    mask = gt.read(GT_MASK_2D, t)
+    flow = gt.read(GT_2D, t)
+    digests.mask_2d_step(t, mask)
+    digests.flow_2d_step(t, flow, mask)
+    return flow, mask
 
 
 def check_structure(pred_dir: Path, data_dir: Path, names: list[str]) -> tuple[dict[str, Path], list[tuple[str, str]]]:
@@ -269,13 +293,25 @@ def aggregate(per_sequence: dict[str, dict]) -> dict:
     return {"metrics": metrics, "per_step": per_step, "breakdowns": breakdowns, "per_sequence": per_sequence_means}
 
 
+def checksum_of(files: Mapping[str, str]) -> str:
+    """The predictions checksum: SHA-256 over the sorted lines `name:sha256` of the prediction files."""
+    h = hashlib.sha256()
+    for name in sorted(files):
+        h.update(f"{name}:{files[name]}\n".encode())
+    return h.hexdigest()
+
+
 def predictions_checksum(pred_dir: Path, names: list[str]) -> str:
     """SHA-256 over the sorted prediction files' names and SHA-256s."""
-    from dsr_bench.dataset.manifest import file_sha256
+    return checksum_of({name: file_sha256(pred_dir / f"{name}.h5") for name in names})
 
+
+def scored_checksum(truth: Mapping[str, Mapping[str, str]]) -> str:
+    """SHA-256 over the sorted lines `name:{field: digest}` (canonical JSON) of the scored sequences' recomputed
+    ground-truth digests (`dsr_bench.dataset.scored`): what the results were scored against."""
     h = hashlib.sha256()
-    for name in sorted(names):
-        h.update(f"{name}:{file_sha256(pred_dir / f'{name}.h5')}\n".encode())
+    for name in sorted(truth):
+        h.update(f"{name}:{json.dumps(dict(truth[name]), sort_keys=True)}\n".encode())
     return h.hexdigest()
 
 
@@ -309,19 +345,26 @@ def evaluate(pred_dir: str | Path, data_dir: str | Path, split: str | None = Non
     # in the order of jobs, whoever scores them: results bit-identical
     outcomes = (run_in_order(score_sequence, jobs, workers, progress) if engine is None
                 else engine.map(score_sequence, jobs, progress, describe=lambda job: job[0]))
-    scored = {}
+    scored, truth = {}, {}
     for name, found, values in outcomes:
         problems += [(f"{name}.h5", p) for p in found]
         if values is not None:
+            truth[name] = values.pop("scored_digests")
             scored[name] = values
-    evaluation = Evaluation(problems=problems, warnings=[warning] if warning else [])
+    # the ground truth as scored, recomputed while reading, against the toolkit's pin (never the files' attributes)
+    verified, verify_warnings = verify_scored(split, names, truth, data_dir)
+    warnings = [warning] if warning else verify_warnings
+    evaluation = Evaluation(problems=problems, warnings=warnings)
     if (problems and not allow_partial) or not scored:
         return evaluation
     meta = read_meta(pred_dir)[0]
+    files = {name: file_sha256(pred_dir / f"{name}.h5") for name in sorted(scored)}
     results = {
         "format": RESULTS_FORMAT, "version": 1, "method": meta.get("name", pred_dir.name), "meta": meta,
-        "split": split, "split_checksum": split_digest(manifest, split), "pinned": _pinned(manifest, split),
-        "predictions_checksum": predictions_checksum(pred_dir, sorted(scored)),
+        "split": split, "split_checksum": split_digest(manifest, split),
+        "pinned": warning is None and verified and _pinned(manifest, split),
+        "ground_truth_verified": verified, "ground_truth_sha256": scored_checksum(truth),
+        "predictions_checksum": checksum_of(files), "predictions_sha256": files,
         "toolkit_version": __version__, "date": dt.datetime.now(dt.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ"),
         "coverage": {"scored": len(scored), "expected": len(names), "partial": len(scored) < len(names)},
         **aggregate(scored),
