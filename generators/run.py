@@ -243,15 +243,25 @@ def prepare_run(plan: RunPlan) -> tuple[list[int], list[str]]:
 
     check_plan(plan)
     get_object_set(plan.config.objects, plan.config.object_root)  # fails fast on missing meshes
-    todo, skipped = [], []
+    todo, skipped, refused = [], [], []
     for index in plan.indices():
         path = plan.out / f"{sequence_name(index)}.h5"
         expected = _sequence_arguments(plan.generator_args(index), sequence_seed(plan.seed, index))
-        if needs_writing(path, expected, recorded_sequence_arguments,
-                         f"{path} was generated with different arguments; use another --out or delete the directory"):
+        try:
+            writing = needs_writing(path, expected, recorded_sequence_arguments, f"{path} was generated with "
+                                    "different arguments; use another --out or delete the directory")
+        except UserError as exc:  # every file in the way is named, not only the first
+            refused.append((path.name, str(exc)))
+            continue
+        if writing:
             todo.append(index)
         else:
             skipped.append(path.stem)
+    if refused:
+        others = [name for name, _ in refused[1:]]
+        more = (f" (also {', '.join(others[:5])}" + (f" and {len(others) - 5} more" if len(others) > 5 else "") + ")"
+                if others else "")
+        raise UserError(f"{len(refused)} existing file(s) in --out cannot be resumed: {refused[0][1]}{more}")
     try:
         plan.out.mkdir(parents=True, exist_ok=True)
     except OSError as exc:

@@ -295,6 +295,17 @@ def test_foreign_file_named_like_a_sequence_is_refused_not_overwritten(tmp_path,
     assert sorted(p.name for p in out.iterdir()) == ["seq_0002.h5"]
 
 
+def test_every_file_in_the_way_is_named_at_once(tmp_path, capsys, no_simulation):
+    out = tmp_path / "data"
+    out.mkdir()
+    for name, make in (("seq_0000.h5", _random_bytes), ("seq_0001.h5", _other_hdf5), ("seq_0003.h5", _random_bytes)):
+        make(out / name)
+    err = _refused(capsys, out)
+    assert "3 existing file(s) in --out cannot be resumed" in err and len(err.strip().splitlines()) == 1
+    assert f"{out / 'seq_0000.h5'} is not a dsr-bench sequence" in err and "also seq_0001.h5, seq_0003.h5" in err
+    assert sorted(p.name for p in out.iterdir()) == ["seq_0000.h5", "seq_0001.h5", "seq_0003.h5"]
+
+
 def test_atomic_directory_replaces_removes_on_error_and_is_cleaned_when_abandoned(tmp_path):
     from dsr_bench.atomic import atomic_directory, write_text
 

@@ -122,8 +122,10 @@ def import_official_command(
     """Convert the authors' release into our format, losslessly (see docs/format.md)."""
     from rich.progress import Progress
 
+    from dsr_bench.atomic import check_writable
     from dsr_bench.dataset.official import find_official_sequences, import_official, read_official_split
 
+    check_writable(dst, "DST")
     total = len(read_official_split(src, split)) if split else len(find_official_sequences(src))
     with Progress(transient=True) as bar:
         task = bar.add_task("importing", total=total)

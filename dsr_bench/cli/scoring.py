@@ -31,10 +31,12 @@ def predict(
     names the dataset directory and split for `evaluate` and `view`)."""
     from rich.progress import Progress
 
+    from dsr_bench.atomic import check_writable
     from dsr_bench.dataset.manifest import read_split
     from dsr_bench.models.predictors import load_predictor, predict_split
     from dsr_bench.scoring.predictions import record_source
 
+    check_writable(out)  # before the model is loaded and run
     predictor = load_predictor(model, checkpoint, device, weights=weights)
     split, names = read_split(data, split)
     with Progress(transient=True) as bar:
@@ -106,16 +108,18 @@ def evaluate(
     A progress bar (per sequence) shows on stderr when it is a terminal."""
     from rich.console import Console
 
-    from dsr_bench.atomic import write_text
+    from dsr_bench.atomic import check_writable, write_text
     from dsr_bench.engines import engine_from_options, slurm_options_given
-    from dsr_bench.errors import UserError
     from dsr_bench.memory import keep_freed_memory
     from dsr_bench.progress import progress_bar
-    from dsr_bench.scoring.evaluate import evaluate as run
+    from dsr_bench.scoring.evaluate import evaluate as run, require_predictions_dir
+    from dsr_bench.scoring.plots import steps_plot_path
     from dsr_bench.scoring.predictions import infer_source
 
-    if not pred_dir.is_dir():
-        raise UserError(f"predictions directory not found: {pred_dir}")
+    require_predictions_dir(pred_dir)
+    if out is not None:
+        check_writable(out, "--out", directory=False)  # before scoring, not after
+        check_writable(steps_plot_path(out), "--out", directory=False)
     engine = engine_from_options(ray, slurm, workers, slurm_options_given(slurm_partition, slurm_time, slurm_tasks,
                                                                           slurm_logs, slurm_local), "dsr-bench-evaluate")
     data, split, note = infer_source(pred_dir, data, split)
@@ -135,7 +139,8 @@ def evaluate(
         for where, message in evaluation.problems:
             typer.echo(f"  {_printable(str(pred_dir / where))}: {_printable(message)}", err=True)
     if evaluation.results is None:
-        console.print("[red]no score[/red]: fix the problems above, or score what is valid with --allow-partial")
+        console.print("[red]no score[/red]: " + ("no sequence could be scored; fix the problems above" if allow_partial
+                      else "fix the problems above, or score what is valid with --allow-partial"))
         raise typer.Exit(1)
     _print_results(evaluation.results)
     if out is not None:
@@ -154,25 +159,41 @@ def evaluate(
 
 @leaderboard_app.command("build")
 def leaderboard_build(root: Path = typer.Option(Path("leaderboard"), "--root", help="Leaderboard directory.")) -> None:
-    """Write leaderboard/README.md and leaderboard/index.html from entries/ and paper.json."""
+    """Write leaderboard/README.md and leaderboard/index.html from entries/, planning/ and paper.json. Every entry
+    file is validated first (schema, ranges, coverage, metrics against their per-step values, split pin); one that
+    fails is skipped with one warning line naming it and its problem, and the rest are built."""
     from dsr_bench.scoring.leaderboard import build
 
-    md, page = build(root)
+    md, page = build(root, warn=lambda line: typer.echo(f"warning: {_printable(line)}", err=True))
     typer.echo(f"wrote {md} and {page}")
 
 
 @leaderboard_app.command("add")
 def leaderboard_add(
-    results: Path = typer.Argument(..., help="Results JSON from `dsr-bench evaluate --out`."),
+    results: Path = typer.Argument(..., help="Results JSON from `dsr-bench evaluate --out` (or `dsr-bench plan`)."),
+    predictions: Optional[Path] = typer.Option(None, "--predictions", help="The predictions directory the results "
+                                               "scored: every number is recomputed from it."),
+    data: Optional[Path] = typer.Option(None, "--data", help="Dataset directory with the ground truth (default: the "
+                                        "one PRED_DIR/meta.json names, as for `dsr-bench evaluate`)."),
+    plans: Optional[Path] = typer.Option(None, "--plans", help="Planning results: the --out directory of "
+                                         "`dsr-bench plan`, its plan files rescored."),
+    tasks: Optional[str] = typer.Option(None, "--tasks", help="Planning results: the task directory or task set's "
+                                        "name (default: the set the results name, as data/<name>)."),
     root: Path = typer.Option(Path("leaderboard"), "--root", help="Leaderboard directory."),
     label: Optional[str] = typer.Option(None, "--label", help="Note shown with the row (e.g. 'short schedule')."),
 ) -> None:
-    """Validate a results file (split checksum, complete metrics) and add it, then rebuild the tables."""
+    """Recompute a results file and add it, then rebuild the tables. The leaderboard never reads a number from the
+    file: it scores --predictions again (`dsr-bench evaluate` on the results' split; planning results: rescores
+    --plans against the verified tasks) and refuses (one line, exit 2, nothing written) unless the recomputed
+    results are pinned, complete, a valid entry and equal to the file in every field but date; what it writes is
+    the recomputed results. An entry of the same method, split and predictions is replaced; any other gets its
+    own file."""
     from dsr_bench.scoring.leaderboard import add_entry, build
 
-    target = add_entry(results, root, label)
-    build(root)
-    typer.echo(f"added {target}; tables rebuilt")
+    target, replaced = add_entry(results, root, label, predictions=predictions, data=data, plans=plans, tasks=tasks)
+    build(root, warn=lambda line: typer.echo(f"warning: {_printable(line)}", err=True))
+    typer.echo(f"replaced {target} (the same method, split and predictions); tables rebuilt" if replaced else
+               f"added {target}; tables rebuilt")
 
 
 def register(app: typer.Typer) -> None:

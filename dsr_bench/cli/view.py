@@ -72,10 +72,9 @@ def _data_of(predictions: Path) -> Path:
     """The dataset directory that PREDICTIONS/meta.json names, said on stderr (a UserError naming the fix if none)."""
     from dsr_bench.scoring.predictions import META_NAME, meta_source
 
-    if not predictions.is_dir():
-        from dsr_bench.errors import UserError
+    from dsr_bench.scoring.evaluate import require_predictions_dir
 
-        raise UserError(f"predictions directory not found: {predictions}")
+    require_predictions_dir(predictions)
     data, _ = meta_source(predictions)
     typer.echo(f"data: {data} (from {predictions / META_NAME})", err=True)
     return data

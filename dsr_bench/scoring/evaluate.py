@@ -75,6 +75,17 @@ def pin_warning(manifest: dict, split: str, data_dir: str | Path | None = None) 
 GT_2D, GT_MASK_2D = FRONT_FLOW_2D, FRONT_MASK
 
 
+def require_predictions_dir(pred_dir: str | Path) -> Path:
+    """`pred_dir` as a Path when it is a directory, else a UserError saying what it is and what to give."""
+    path = Path(pred_dir)
+    if path.is_dir():
+        return path
+    if path.exists():
+        raise UserError(f"{path} is a file, not a predictions directory; give the directory that holds the "
+                        "predictions' .h5 files (one per sequence) and meta.json")
+    raise UserError(f"predictions directory not found: {path}; write one with `dsr-bench predict --out DIR`")
+
+
 def no_2d_ground_truth(gt_path: str | Path) -> str:
     """The problem of a 2D-only prediction scored against a sequence without the 2D ground truth."""
     return (f"a 2D-only prediction (motion_2d without mask and motion), but its ground truth {gt_path} has no "
@@ -172,6 +183,18 @@ def score_sequence(args: tuple[str, str, str]) -> tuple[str, list[str], dict | N
     out["has_3d"] = True
     out["scored_digests"] = digests.hexdigests()
     return name, [], out
+
+
+def _partial_2d_warning(scored: Mapping[str, dict]) -> list[str]:
+    """One line when some 3D predictions hold motion_2d and others do not: the 2D track's metric is then left out
+    (a mean over part of the sequences would not be the benchmark's)."""
+    has = {name: s["has_2d"] for name, s in sorted(scored.items()) if s.get("has_3d", True)}
+    without = [name for name, h in has.items() if not h]
+    if not without or len(without) == len(has):
+        return []
+    return [f"the 2D flow is not scored: {len(has) - len(without)} of {len(has)} 3D predictions hold motion_2d but "
+            f"{without[0]}.h5" + (f" and {len(without) - 1} more lack it" if len(without) > 1 else " lacks it")
+            + "; write motion_2d in every file to be scored on the 2D track too"]
 
 
 def _truth_2d(gt, t: int, digests) -> tuple[np.ndarray, np.ndarray]:
@@ -333,9 +356,7 @@ def evaluate(pred_dir: str | Path, data_dir: str | Path, split: str | None = Non
     from dsr_bench.dataset.manifest import load_manifest, read_split, split_digest
     from dsr_bench.scoring.predictions import read_meta
 
-    pred_dir, data_dir = Path(pred_dir), Path(data_dir)
-    if not pred_dir.is_dir():
-        raise UserError(f"predictions directory not found: {pred_dir}")
+    pred_dir, data_dir = require_predictions_dir(pred_dir), Path(data_dir)
     manifest = load_manifest(data_dir)
     split, names = read_split(data_dir, split)
     warning = pin_warning(manifest, split, data_dir)
@@ -353,7 +374,7 @@ def evaluate(pred_dir: str | Path, data_dir: str | Path, split: str | None = Non
             scored[name] = values
     # the ground truth as scored, recomputed while reading, against the toolkit's pin (never the files' attributes)
     verified, verify_warnings = verify_scored(split, names, truth, data_dir)
-    warnings = [warning] if warning else verify_warnings
+    warnings = ([warning] if warning else verify_warnings) + _partial_2d_warning(scored)
     evaluation = Evaluation(problems=problems, warnings=warnings)
     if (problems and not allow_partial) or not scored:
         return evaluation

@@ -123,12 +123,10 @@ def load_predictions(pred_dir: Path, seq: SequenceReader) -> dict:
     a 2D-only prediction: {motion_2d, metrics}."""
     import h5py
 
-    from dsr_bench.scoring.evaluate import score_sequence
+    from dsr_bench.scoring.evaluate import require_predictions_dir, score_sequence
     from dsr_bench.scoring.predictions import check_prediction_header
 
-    pred_dir = Path(pred_dir)
-    if not pred_dir.is_dir():
-        raise UserError(f"predictions directory not found: {pred_dir}")
+    pred_dir = require_predictions_dir(pred_dir)
     path = pred_dir / f"{seq.path.stem}.h5"
     if not path.is_file():
         raise UserError(f"no prediction file for {seq.path.stem} in {pred_dir} (expected {path.name})")
