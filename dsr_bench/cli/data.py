@@ -97,6 +97,8 @@ def info(
     console.print(table)
     for name, split in sorted(manifest.get("splits", {}).items()):  # unwrapped, to copy
         typer.echo(f"split {name}: {split['sequences']} sequences, checksum {split['content_sha256']}")
+    if manifest.get("splits"):
+        typer.echo("(checksums from the files' own digest attributes; `dsr-bench validate` recomputes them)")
 
 
 def manifest(data_dir: Path = typer.Argument(..., help="Dataset directory.")) -> None:
