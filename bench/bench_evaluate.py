@@ -2,7 +2,7 @@
 on exactly the same inputs, side by side.
 
     python bench/bench_evaluate.py --data DIR [--split S] [--num-sequences 8] [--model static] [--repeats 3]
-                                   [--official-repo PATH]
+                                   [--official-repo PATH] [--baseline-repo PATH]
 
 Writes predictions with a reference model, then runs, alternated (A, B, C, ... A, B, C, ...):
 - reading the arrays evaluate reads, step by step as it reads them, alone (the floor);
@@ -12,6 +12,10 @@ Writes predictions with a reference model, then runs, alternated (A, B, C, ... A
   `test.py` alone, in this process (torch on the CPU), timed over their calls only: the inputs
   are built untimed from the same files, logit_pred (1, K, Y, X, Z) the one-hot of our predicted
   slots with the LAST channel empty, mask_gt_argmax (1, Y, X, Z) our ground truth `mask_3d`.
+- only with `--baseline-repo PATH` (a checkout of another dsr-bench version, e.g. `git worktree add /tmp/base
+  dfc7742`, from before `evaluate` verified the ground truth it scores): `evaluate` of that checkout and of this
+  one, each in a fresh process of the same harness (imports untimed, its worker pool timed), on the same
+  predictions and data: the cost of a change, such as the scored digests (docs/evaluation.md).
 Prints the medians per sequence and the ratios; checks that the authors' values equal our
 `iou_unordered_official` / `iou_ordered_official` and prints the largest difference. Without
 `--official-repo` no comparison with the authors' code is made (and none is printed).
@@ -36,6 +40,35 @@ READ = "read files only"
 OURS = "dsr-bench evaluate, all cores"
 OURS_1 = "dsr-bench evaluate, 1 process"
 THEIRS = "authors' calc_iou_unordered + calc_iou_ordered"
+HERE = "evaluate, this checkout, own process"
+BASELINE = "evaluate, --baseline-repo, own process"
+#: one `evaluate` in a fresh interpreter whose dsr_bench is the checkout first on sys.path; prints its seconds
+_TIMED = """import sys, time
+sys.path.insert(0, sys.argv[1])
+import dsr_bench
+assert dsr_bench.__file__.startswith(sys.argv[1]), dsr_bench.__file__
+from dsr_bench.memory import keep_freed_memory
+from dsr_bench.scoring.evaluate import evaluate
+keep_freed_memory()
+t0 = time.perf_counter()
+evaluation = evaluate(sys.argv[2], sys.argv[3], "bench", workers=int(sys.argv[4]))
+seconds = time.perf_counter() - t0
+assert evaluation.results is not None, evaluation.problems[:3]
+print(seconds)
+"""
+
+
+def in_own_process(checkout: Path, pred: Path, data: Path, workers: int):
+    """A side that runs `evaluate` of `checkout` in a fresh interpreter and returns the seconds it measured."""
+    import subprocess
+
+    def run() -> float:
+        done = subprocess.run([sys.executable, "-c", _TIMED, str(checkout.resolve()), str(pred), str(data),
+                               str(workers)], capture_output=True, text=True, check=False)
+        if done.returncode:
+            raise RuntimeError(f"evaluate of {checkout} failed: {done.stderr.strip().splitlines()[-1:]}")
+        return float(done.stdout.strip().splitlines()[-1])
+    return run
 
 
 def read_only(pred_dir: Path, data_dir: Path, names: list[str]) -> None:
@@ -128,8 +161,16 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--num-sequences", type=int, default=8)
     parser.add_argument("--model", default="static")
     parser.add_argument("--repeats", type=int, default=3, help="runs of each side, alternated (default 3)")
+    parser.add_argument("--baseline-repo", type=Path, metavar="PATH",
+                        help="another dsr-bench checkout: time its evaluate beside this one's, each in its own process")
+    parser.add_argument("--workers", type=int, default=0, help="evaluate's workers in the --baseline-repo sides")
     add_official_args(parser, needs_env=False)
     args = parser.parse_args(argv)
+    if args.baseline_repo is not None and not (args.baseline_repo / "dsr_bench" / "scoring" / "evaluate.py").is_file():
+        from dsr_bench.errors import UserError
+
+        raise UserError(f"--baseline-repo {args.baseline_repo}: not a dsr-bench checkout (no "
+                        "dsr_bench/scoring/evaluate.py); make one with `git worktree add PATH COMMIT`")
 
     from dsr_bench.memory import keep_freed_memory
     from dsr_bench.scoring.evaluate import evaluate, score_sequence
@@ -171,15 +212,22 @@ def main(argv: list[str] | None = None) -> dict:
         side = None
         if functions:
             side = runs[THEIRS] = OfficialSide(functions, pred, data, names)
+        if args.baseline_repo is not None:
+            runs[HERE] = in_own_process(Path(__file__).resolve().parents[1], pred, data, args.workers)
+            runs[BASELINE] = in_own_process(args.baseline_repo, pred, data, args.workers)
         timings = alternate(runs, args.repeats)
 
         n = len(names)
         print(f"{n} sequences of {split} ({args.model} predictions); {os.cpu_count()} cores; "
               f"{args.repeats} runs of each side, alternated")
-        ratios = [(OURS_1, READ)]
+        ratios = [(OURS_1, READ)] + ([(HERE, BASELINE)] if args.baseline_repo is not None else [])
         if side:
             ratios = [(THEIRS, OURS), (THEIRS, OURS_1)] + ratios
         figures = report(timings, ratios, per=n, unit="sequence")
+        if args.baseline_repo is not None:
+            print(f"this checkout's evaluate over the baseline's: {100 * (figures[f'{HERE} / {BASELINE}'] - 1):+.1f}% "
+                  f"(medians; runs {', '.join(f'{v:.2f}' for v in timings[HERE])} s vs "
+                  f"{', '.join(f'{v:.2f}' for v in timings[BASELINE])} s)")
         print(f"dsr-bench at these medians, 400 sequences: {figures[OURS] * 400:.0f} s (all cores), "
               f"{figures[OURS_1] * 400:.0f} s (1 process)")
         metrics = results["ours"]["metrics"]

@@ -359,3 +359,24 @@ def test_bench_storage_restores_bit_for_bit_and_reports_where_the_bytes_go(tmp_p
     assert "cameras/front/points" in out["bytes"]["as stored"] and "cameras/front/points" not in out["bytes"]["current layout"]
     assert out["mb_per_step"]["current layout"] < out["mb_per_step"]["as stored"]
     assert set(out["read_seconds_per_step"]) == {"as stored", "current layout"}
+
+
+def test_bench_evaluate_times_a_baseline_checkout_beside_this_one(tmp_path, capsys):
+    """--baseline-repo: a bad path is one line; a checkout (here this one) is timed beside this one, alternated, and
+    the difference printed."""
+    import bench_evaluate
+
+    from dsr_bench.testing import write_synthetic_dataset
+
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(SystemExit) as exit_:
+        official.run_main(bench_evaluate.main, ["--data", str(tmp_path), "--baseline-repo", str(tmp_path / "empty")])
+    err = capsys.readouterr().err.strip()
+    assert exit_.value.code == 2 and "not a dsr-bench checkout" in err and "\n" not in err
+    data = write_synthetic_dataset(tmp_path / "data", num_sequences=1, num_steps=1)
+    repo = Path(__file__).resolve().parents[1]
+    out = bench_evaluate.main(["--data", str(data), "--model", "oracle", "--repeats", "1", "--workers", "1",
+                               "--baseline-repo", str(repo)])
+    printed = capsys.readouterr().out
+    assert len(out["timings"][bench_evaluate.BASELINE]) == 1 and out["timings"][bench_evaluate.HERE][0] > 0
+    assert "this checkout's evaluate over the baseline's:" in printed
