@@ -24,7 +24,11 @@ evaluator (`check_prediction_header`, `file_problem`, `read_meta`; nothing is re
   none of mask, motion and motion_2d;
 - a dataset whose bytes are not in the file itself: virtual datasets (other files' data, or zeros
   when their source is missing) and external raw storage (`external=`);
-- a dataset compressed with a filter other than gzip, shuffle, fletcher32 or lzf (plugins);
+- a dataset compressed with a filter other than gzip, shuffle, fletcher32 or lzf (plugins), a filter twice or
+  two compressors (gzip of gzip: a 7 kB file inflates to 1 GB);
+- a chunk layout that would cost the evaluator memory out of proportion to the data: more than
+  MAX_STEP_CHUNKS chunks per step (HDF5 keeps about 6.6 kB for each chunk one read touches, written or not),
+  or a chunk holding more bytes than the whole dataset (HDF5 inflates a chunk whole);
 - a shape or dtype other than the contract's, checked before any data is read, so memory stays
   bounded by the sequence's size.
 """
@@ -53,6 +57,11 @@ DATASETS = ("mask", "motion", "motion_2d")
 #: filters every h5py build decodes without a plugin
 FILTERS = {h5z.FILTER_DEFLATE: "gzip", h5z.FILTER_SHUFFLE: "shuffle", h5z.FILTER_FLETCHER32: "fletcher32",
            32000: "lzf"}
+#: the most chunks one step of a prediction dataset may span (what one step's read touches): HDF5 keeps about 6.6 kB
+#: per chunk a read touches, so a step's read costs at most ~7 MB beyond its data (reasonable layouts: 1-384)
+MAX_STEP_CHUNKS = 1024
+#: the fix named when a chunk layout is refused
+CHUNK_FIX = "write it with write_predictions, or in chunks of one step"
 META_NAME = "meta.json"
 META_MAX_BYTES = 1 << 20
 #: meta.json's known keys and the JSON types they must have
@@ -212,12 +221,44 @@ def _storage_problems(name: str, dset: h5py.Dataset) -> list[str]:
     if plist.get_external_count():
         raw = plist.get_external(0)[0]
         problems.append(f"{name}: stored in external raw file(s) ({_show(raw)}); write the arrays into the file itself")
+    codes = []
     for i in range(plist.get_nfilters()):
         code, _flags, _values, label = plist.get_filter(i)
+        codes.append(code)
         if code not in FILTERS:
             shown = f" ({_show(label)})" if label else ""
             problems.append(f"{name}: compressed with HDF5 filter {code}{shown}, which needs a plugin; "
                             f"use {', '.join(FILTERS.values())} or none")
+    repeated = sorted({FILTERS.get(c, str(c)) for c in codes if codes.count(c) > 1})
+    compressors = [FILTERS[c] for c in codes if c in (h5z.FILTER_DEFLATE, 32000)]
+    if repeated or len(compressors) > 1:
+        what = f"filter {' and '.join(repeated)} more than once" if repeated else " and ".join(compressors)
+        pipeline = " -> ".join(FILTERS.get(c, str(c)) for c in codes)
+        problems.append(f"{name}: compressed with {what} (filters {pipeline}); one compressor at most, each filter "
+                        "once: write it with write_predictions")
+    return problems
+
+
+def _chunk_problems(name: str, dset: h5py.Dataset) -> list[str]:
+    """A chunk layout that would cost the evaluator memory out of proportion to the data: more than
+    MAX_STEP_CHUNKS chunks per step (one step's read touches them all, and HDF5 keeps ~6.6 kB for each, written
+    or not), or a chunk holding more bytes than the dataset (possible when resizable; HDF5 inflates a chunk whole).
+    Reads the layout from the header only: the limits hold whatever the chunks hold, even nothing."""
+    chunks, shape = dset.chunks, dset.shape
+    if chunks is None or len(chunks) != len(shape) or not shape:
+        return []  # contiguous or compact: a read touches the bytes it selects
+    per_step = math.prod(-(-s // c) for s, c in zip(shape[1:], chunks[1:]))
+    problems = []
+    if per_step > MAX_STEP_CHUNKS:
+        total = -(-shape[0] // chunks[0]) * per_step
+        problems.append(f"{name}: chunks {chunks} split each step into {per_step} chunks ({total} in all), more "
+                        f"than the {MAX_STEP_CHUNKS} allowed (HDF5 keeps about 6.6 kB per chunk a read touches); "
+                        f"{CHUNK_FIX}")
+    itemsize = dset.id.get_type().get_size()
+    chunk_bytes, data_bytes = math.prod(chunks) * itemsize, math.prod(shape) * itemsize
+    if data_bytes and chunk_bytes > data_bytes:
+        problems.append(f"{name}: chunks {chunks} hold {chunk_bytes} bytes each, more than the whole dataset "
+                        f"{shape} ({data_bytes} bytes; HDF5 inflates a chunk whole); {CHUNK_FIX}")
     return problems
 
 
@@ -262,7 +303,7 @@ def _root_problems(f: h5py.File) -> tuple[list[str], set[str], set[str]]:
 
 def check_prediction_header(f: h5py.File, num_steps: int) -> list[str]:
     """Structural problems of an open prediction file for a sequence of `num_steps` pushes: the
-    root's members and links, num_slots, each dataset's shape, dtype, storage and filters. Reads no
+    root's members and links, num_slots, each dataset's shape, dtype, storage, filters and chunk layout. Reads no
     array data, so it is safe (and cheap) on any file."""
     links, present, found = _root_problems(f)
     has_3d = "mask" in present or "motion" in present
@@ -290,7 +331,7 @@ def check_prediction_header(f: h5py.File, num_steps: int) -> list[str]:
         if dtype is None or dtype not in dtypes:
             shown = "of an unsupported HDF5 type" if dtype is None else dtype
             problems.append(f"{name}: dtype {shown}, expected {' or '.join(map(str, dtypes))}")
-        problems += _storage_problems(name, dset)
+        problems += _storage_problems(name, dset) + _chunk_problems(name, dset)
     return problems
 
 
