@@ -199,3 +199,24 @@ def test_stacked_compressors_are_refused(tmp_path, second, text):
         problems = check_prediction_header(f, STEPS)
     assert problems == [f"mask: compressed with {text}; one compressor at most, each filter once: "
                         "write it with write_predictions"]
+
+
+@pytest.mark.parametrize("chunks", [(1,) + GRID_SHAPE, (STEPS,) + GRID_SHAPE])  # the fast reader's, and HDF5's own
+def test_a_gzip_bomb_is_unreadable_not_inflated(oracle, data, tmp_path, capsys, chunks):
+    """A chunk that inflates far beyond its size (a kilobyte to 200 MB) is refused before HDF5's decoder inflates it
+    whole: one problem line, no score, nothing written."""
+    import resource
+    import zlib
+
+    pred = tmp_path / "pred"
+    pred.mkdir()
+    for path in oracle.iterdir():
+        (pred / path.name).write_bytes(path.read_bytes())
+    arrays = _arrays(oracle / TARGET)
+    _declare(pred / TARGET, STEPS, {"mask": chunks}, arrays, compression="gzip")
+    with h5py.File(pred / TARGET, "r+") as f:
+        f["mask"].id.write_direct_chunk((0,) * 4, zlib.compress(bytes(200_000_000), 9))
+    before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    rc, lines, out = _evaluate(pred, data, capsys)
+    assert rc == 1 and len(lines) == 1 and "does not inflate to its" in lines[0] and not out.exists()
+    assert resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - before < 150_000  # kB: never the 200 MB

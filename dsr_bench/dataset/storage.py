@@ -165,14 +165,18 @@ def _chunk_layout(ds: h5py.Dataset) -> tuple[int, ...] | None:
 
 def _inflate_chunk(ds: h5py.Dataset, offset: tuple[int, ...], nbytes: int) -> np.ndarray | None:
     """The bytes (uint8, 1-D) of the chunk at `offset`, unshuffled when the dataset shuffles, or None where
-    HDF5 must decode it (a filter skipped for it, or bytes that are not one chunk's)."""
+    HDF5 must decode it (a filter skipped for it). A chunk that went through every filter but does not inflate to
+    exactly its chunk's bytes raises OSError: HDF5's own decoder would inflate it whole (a "gzip bomb" of a file
+    we did not write can inflate a kilobyte to gigabytes) before keeping a chunk's worth."""
     try:
         mask, raw = ds.id.read_direct_chunk(offset)
     except (OSError, KeyError, ValueError, RuntimeError):  # e.g. a chunk never written (fill value)
         return None
-    data = None if mask else inflate_exact(raw, nbytes)
-    if data is None:
+    if mask:
         return None
+    data = inflate_exact(raw, nbytes)
+    if data is None:
+        raise OSError(f"{ds.name}: chunk at {offset} does not inflate to its {nbytes} bytes")
     data = np.frombuffer(data, dtype=np.uint8)
     return unshuffle_bytes(data, ds.dtype.itemsize) if ds.shuffle else data
 
@@ -198,6 +202,38 @@ def _inflated_step(ds: h5py.Dataset, t: int, tile: tuple[int, ...]) -> np.ndarra
     return out
 
 
+def check_chunks_inflate(ds: h5py.Dataset, start: int, stop: int) -> None:
+    """Raise OSError unless every stored chunk of a deflated dataset that steps [start, stop) touch inflates to exactly
+    its chunk's bytes (for layouts HDF5 decodes itself: its gzip decoder inflates a chunk whole, however large,
+    before keeping a chunk's worth). A chunk is inflated once, never beyond its size; nothing is kept."""
+    if ds.chunks is None or ds.compression != "gzip" or stop <= start:
+        return
+    nbytes = int(np.prod(ds.chunks)) * ds.dtype.itemsize
+    first, last = start // ds.chunks[0] * ds.chunks[0], stop
+    for index in range(ds.id.get_num_chunks()):
+        info = ds.id.get_chunk_info(index)
+        if not first <= info.chunk_offset[0] < last:
+            continue
+        mask, raw = ds.id.read_direct_chunk(info.chunk_offset)
+        if ds.fletcher32:  # its checksum follows the deflated bytes
+            raw = raw[:-4]
+        if mask & (1 << _filter_position(ds, h5py.h5z.FILTER_DEFLATE)):  # stored as is
+            exact = len(raw) == nbytes
+        else:
+            exact = inflate_exact(raw, nbytes) is not None
+        if not exact:
+            raise OSError(f"{ds.name}: chunk at {tuple(info.chunk_offset)} does not inflate to its {nbytes} bytes")
+
+
+def _filter_position(ds: h5py.Dataset, filter_id: int) -> int:
+    """The position of a filter in a dataset's pipeline (the bit of a chunk's filter mask that says it was skipped)."""
+    plist = ds.id.get_create_plist()
+    for i in range(plist.get_nfilters()):
+        if plist.get_filter(i)[0] == filter_id:
+            return i
+    return 0
+
+
 def read_step(ds: h5py.Dataset, t: int) -> np.ndarray:
     """Step t (0 <= t < len) of a per-step dataset, shape ds.shape[1:]; read-only and without a copy where the
     step is one raw chunk inflated here (see `read_steps`)."""
@@ -206,6 +242,7 @@ def read_step(ds: h5py.Dataset, t: int) -> np.ndarray:
         step = _inflated_step(ds, t, tile)
         if step is not None:
             return step
+    check_chunks_inflate(ds, t, t + 1)
     return ds[t]
 
 
@@ -246,11 +283,15 @@ def read_steps(ds: h5py.Dataset, start: int, stop: int) -> np.ndarray:
     inflates beyond its size); any other layout, and any chunk HDF5 must decode, is read through h5py."""
     tile = _chunk_layout(ds)
     if tile is None or not 0 <= start <= stop <= ds.shape[0]:
+        check_chunks_inflate(ds, max(start, 0), min(stop, ds.shape[0]))
         return ds[start:stop]
     out = np.empty((stop - start,) + tuple(ds.shape[1:]), dtype=ds.dtype)
     for i, t in enumerate(range(start, stop)):
         step = _inflated_step(ds, t, tile)
-        out[i] = ds[t] if step is None else step
+        if step is None:
+            check_chunks_inflate(ds, t, t + 1)
+            step = ds[t]
+        out[i] = step
     return out
 
 
