@@ -2,6 +2,7 @@
 
 import base64
 import fcntl
+import hashlib
 import io
 import json
 import os
@@ -17,23 +18,53 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from dsr_bench.cli import main
 from dsr_bench.errors import UserError
-from dsr_bench.scoring.leaderboard import add_entry, build, check_entry
+from dsr_bench.scoring.entries import check_entry, entry_name
+from dsr_bench.scoring.leaderboard import add_entry, build
 
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def _results(split="procedural-novel-mini", checksum="c" * 64, **metrics):
-    base = {"motion_visible": 5.0, "motion_full": 0.08, "iou_unordered": 0.7, "iou_ordered": 0.6}
-    return {"format": "dsr-bench-results", "version": 1, "method": "MyNet", "split": split,
-            "split_checksum": checksum, "date": "2026-11-22T00:00:00Z",
-            "coverage": {"scored": 8, "expected": 8, "partial": False}, "metrics": {**base, **metrics}}
+SPLIT = "procedural-novel-mini"
+BASE = {"motion_visible": 5.0, "motion_full": 0.08, "iou_unordered": 0.7, "iou_ordered": 0.6}
+
+
+def _results(method="MyNet", split=SPLIT, checksum="c" * 64, per_step=None, **metrics):
+    """A valid entry as `evaluate` writes it (8 sequences, the board's pinned split): its per-step values `per_step`,
+    or two steps of each metric's value; metrics, per-sequence means and breakdowns from them by `aggregate`. A
+    2D-only entry: metrics (or per_step) motion_2d alone."""
+    from dsr_bench import __version__
+    from dsr_bench.scoring.evaluate import aggregate
+
+    two_d = set(metrics) == {"motion_2d"} or (per_step is not None and set(per_step) == {"motion_2d"})
+    steps = per_step or {k: [v, v] for k, v in (metrics if two_d else {**BASE, **metrics}).items()}
+    n = len(next(iter(steps.values())))
+    if two_d:
+        seq = {"motion_2d": steps["motion_2d"], "has_2d": True, "has_3d": False}
+    else:
+        seq = {**steps, "iou_unordered_official": steps["iou_unordered"], "iou_ordered_official": steps["iou_ordered"],
+               "motion_moved": [1.0] * n, "motion_static": [0.0] * n, "motion_2d": steps.get("motion_2d", [0.0] * n),
+               "iou_occluded_objects": [[] for _ in range(n)], "iou_visible_objects": [[0.5] for _ in range(n)],
+               "has_2d": "motion_2d" in steps, "has_3d": True}
+    return {"format": "dsr-bench-results", "version": 1, "method": method, "meta": {"name": method}, "split": split,
+            "split_checksum": checksum, "pinned": True, "toolkit_version": __version__,
+            "predictions_checksum": hashlib.sha256(method.encode()).hexdigest(), "date": "2026-11-22T00:00:00Z",
+            "coverage": {"scored": 8, "expected": 8, "partial": False},
+            **json.loads(json.dumps(aggregate({f"seq_{i:04d}": seq for i in range(8)})))}
+
+
+def _put(board, results, label=None):
+    """An entry file in the board (as `leaderboard add` writes one after recomputing it)."""
+    results = {**results, **({"label": label} if label else {})}
+    assert check_entry(results) == []
+    (board / "entries").mkdir(exist_ok=True)
+    (board / "entries" / entry_name(results)).write_text(json.dumps(results))
 
 
 def test_entries_are_checked(board, tmp_path):
     assert check_entry(_results()) == []
-    assert any("differs from the toolkit's" in p for p in check_entry(_results(checksum="d" * 64)))
+    assert any("is not this toolkit's pin" in p for p in check_entry(_results(checksum="d" * 64)))
+    assert check_entry({**_results(checksum="d" * 64), "toolkit_version": "0.1.0"}) == []  # an earlier pin's entry
     assert any("not one of the benchmark's named splits" in p for p in check_entry(_results(split="mine")))
     partial = _results()
     partial["coverage"]["partial"] = True
@@ -42,28 +73,20 @@ def test_entries_are_checked(board, tmp_path):
     del missing["metrics"]["iou_ordered"]
     assert any("iou_ordered" in p for p in check_entry(missing))
     path = tmp_path / "bad.json"
-    path.write_text(json.dumps(_results(checksum="e" * 64)))
-    with pytest.raises(UserError, match="cannot join the leaderboard"):
+    path.write_text(json.dumps(_results()))
+    with pytest.raises(UserError, match="recomputes every score from the predictions"):
         add_entry(path, board)
     assert not (board / "entries").exists()
 
 
 def _add(board, tmp_path, method, label=None, **metrics):
-    results = _results(**metrics)
-    results["method"] = method
-    path = tmp_path / f"{method}.json"
-    path.write_text(json.dumps(results))
-    assert main(["leaderboard", "add", str(path), "--root", str(board), *(["--label", label] if label else [])]) == 0
+    _put(board, _results(method, **metrics), label)
+    build(board)
 
 
 def test_build_tables_keep_paper_rows_apart_and_mark_the_best(board, tmp_path):
-    good = tmp_path / "good.json"
-    good.write_text(json.dumps(_results()))
-    other = _results(motion_visible=4.0, iou_unordered=0.5, iou_ordered=0.4)
-    other["method"] = "Other"
-    (tmp_path / "other.json").write_text(json.dumps(other))
-    assert main(["leaderboard", "add", str(good), "--root", str(board), "--label", "short schedule"]) == 0
-    assert main(["leaderboard", "add", str(tmp_path / "other.json"), "--root", str(board)]) == 0
+    _put(board, _results(), "short schedule")
+    _put(board, _results("Other", motion_visible=4.0, iou_unordered=0.5, iou_ordered=0.4))
     _add(board, tmp_path, "static", "reference (no training)", motion_visible=6.0, motion_full=0.07,
          iou_unordered=0.3, iou_ordered=0.2)
     md = (board / "README.md").read_text()
@@ -237,23 +260,14 @@ def _markdown_tables(md: str) -> dict[str, list[list[str]]]:
     return tables
 
 
-def _entry(board, tmp_path, method, metrics, per_step, label=None):
-    results = {**_results(**metrics), "method": method, "per_step": per_step}
-    path = tmp_path / f"{method}.json"
-    path.write_text(json.dumps(results))
-    add_entry(path, board, label)
-
-
 def test_real_headless_browser_shows_the_tables_marks_plots_links_and_sorts(board, tmp_path, chromium):
-    step = {"motion_visible": [5.0, 6.0], "motion_full": [0.08, 0.09], "iou_unordered": [0.7, 0.8],
-            "iou_ordered": [0.6, 0.7]}
-    _entry(board, tmp_path, "MyNet", {"motion_visible": 5.0, "motion_full": 0.08}, step, "short schedule")
-    _entry(board, tmp_path, "Other", {"motion_visible": 4.0, "motion_full": 0.09, "iou_unordered": 0.5,
-                                      "iou_ordered": 0.4}, {k: [v[1], v[0]] for k, v in step.items()})
-    _entry(board, tmp_path, "static", {"motion_visible": 6.0, "motion_full": 0.07, "iou_unordered": 0.3,
-                                       "iou_ordered": 0.2}, {k: [v[0]] * 2 for k, v in step.items()})
-    _entry(board, tmp_path, "oracle", {"motion_visible": 0.0, "motion_full": 0.0, "iou_unordered": 1.0,
-                                       "iou_ordered": 1.0}, {k: [0.0, 0.0] for k in step})
+    # per-step values whose means are the rows' metrics: MyNet 5, 0.08, 0.7, 0.6; Other 4, 0.09, 0.5, 0.4
+    _put(board, _results("MyNet", per_step={"motion_visible": [4.0, 6.0], "motion_full": [0.07, 0.09],
+                                            "iou_unordered": [0.6, 0.8], "iou_ordered": [0.5, 0.7]}), "short schedule")
+    _put(board, _results("Other", per_step={"motion_visible": [5.0, 3.0], "motion_full": [0.1, 0.08],
+                                            "iou_unordered": [0.6, 0.4], "iou_ordered": [0.5, 0.3]}))
+    _put(board, _results("static", motion_visible=6.0, motion_full=0.07, iou_unordered=0.3, iou_ordered=0.2))
+    _put(board, _results("oracle", motion_visible=0.0, motion_full=0.0, iou_unordered=1.0, iou_ordered=1.0))
     md, page = build(board)
     chromium.load(page.as_uri())
     seen = {t["heading"]: t for t in chromium.js(_SEEN)}
@@ -328,23 +342,14 @@ def test_real_headless_browser_shows_the_tables_marks_plots_links_and_sorts(boar
     assert order() == (["MyNet", "Other", "oracle", "static"], bold)
 
 
-def test_repository_leaderboard_builds(tmp_path):
-    root = tmp_path / "lb"
-    shutil.copytree(ROOT / "leaderboard", root)
-    md, _ = build(root)
-    assert "reported in the paper" in md.read_text()
-
-
 def test_entry_of_an_earlier_pin_is_shown_apart_and_unranked(board, tmp_path):
     """After a split is re-pinned, entries scored on its earlier version keep their own table and never win bold."""
-    good = tmp_path / "good.json"
-    good.write_text(json.dumps(_results()))
-    assert main(["leaderboard", "add", str(good), "--root", str(board)]) == 0
+    _put(board, _results())
     _add(board, tmp_path, "static", "reference (no training)", motion_visible=6.0, motion_full=0.09,
          iou_unordered=0.3, iou_ordered=0.2)
-    old = _results(checksum="0123456789ab" + "f" * 52, iou_ordered=0.9)
-    old["method"] = "OldNet"
-    (board / "entries" / "oldnet-procedural-novel-mini.json").write_text(json.dumps(old))
+    # scored by an earlier toolkit, whose pin of the split was another
+    old = {**_results("OldNet", checksum="0123456789ab" + "f" * 52, iou_ordered=0.9), "toolkit_version": "0.1.0"}
+    _put(board, old)
     md, _ = build(board)
     text = md.read_text()
     current = text.split("## procedural-novel-mini: 3D track (reproduced)")[1].split("## ")[0]
@@ -356,29 +361,26 @@ def test_entry_of_an_earlier_pin_is_shown_apart_and_unranked(board, tmp_path):
 
 
 def _results_2d(method, motion_2d, per_step=None):
-    results = {**_results(), "method": method, "metrics": {"motion_2d": motion_2d}, "breakdowns": {}}
-    if per_step is not None:
-        results["per_step"] = {"motion_2d": per_step}
-    return results
+    return _results(method, per_step={"motion_2d": per_step} if per_step else None,
+                    **({} if per_step else {"motion_2d": motion_2d}))
 
 
 def test_a_2d_only_entry_joins_the_2d_track_only(board, tmp_path):
     """Results holding motion_2d alone (a 2D-only submission) are a valid entry, a row of the 2D track's table
     (its grid the image's) and never an empty row of the 3D track's; a 3D entry with motion_2d sits in both."""
     assert check_entry(_results_2d("Flow2D", 3.0)) == []
-    assert check_entry({**_results_2d("Flow2D", 3.0), "metrics": {}}) == \
-        ["metrics missing: motion_visible, motion_full, iou_unordered, iou_ordered"]
+    assert check_entry({**_results_2d("Flow2D", 3.0), "metrics": {}}) == ["metrics is not an object of numbers"]
     assert check_entry({**_results_2d("Flow2D", 3.0), "metrics": {"motion_2d": None}}) == \
-        ["metrics missing: motion_2d (a 2D-only submission's metric)"]
-    assert any("iou_ordered" in p for p in check_entry({**_results(), "metrics": {"motion_visible": 1.0,
-                                                                                  "motion_2d": 2.0}}))
+        ["metrics.motion_2d is null, not a finite flow MSE >= 0"]
+    assert check_entry({**_results(), "metrics": {"motion_visible": 1.0, "motion_2d": 2.0}}) == \
+        ["metrics missing: motion_full, iou_unordered, iou_ordered (a 3D result holds all four; a 2D-only one "
+         "motion_2d alone)"]
     for method, value in (("Flow2D", 3.0), ("SE3Net", 5.0)):
-        path = tmp_path / f"{method}.json"
-        results = _results_2d(method, value, [value, value + 1])
+        results = _results_2d(method, value, [value - 1, value + 1])
         if method == "SE3Net":  # the image the model works on, as `predict` records it for an image-space model
             results["meta"] = {"parameters": {"image": [120, 160]}}
-        path.write_text(json.dumps(results))
-        assert main(["leaderboard", "add", str(path), "--root", str(board)]) == 0
+        _put(board, results)
+    build(board)
     tables = _markdown_tables((board / "README.md").read_text())
     assert "procedural-novel-mini: 3D track (reproduced)" not in tables  # only 2D-only entries: no 3D table
     two_d = tables["procedural-novel-mini: 2D track (reproduced)"]
@@ -395,27 +397,33 @@ def test_a_2d_only_entry_joins_the_2d_track_only(board, tmp_path):
     assert [(row[0], row[2]) for row in two_d[1:]] == [("Flow2D", "**3**"), ("SE3Net", "5 \u25bc"), ("static", "4")]
 
 
-def _plan_results(tmp_path, method, iou, pinned=True, partial=False):
-    path = tmp_path / f"plan-{method}.json"
-    path.write_text(json.dumps({"format": "dsr-bench-plan-results", "method": method, "task_set": "plan-novel-test",
-                                "pinned": pinned, "task_checksum": "0c14420b746c" + "0" * 52, "date": "2026-11-25T00:00:00Z",
-                                "coverage": {"expected": 100, "scored": 60 if partial else 100, "partial": partial},
-                                "metrics": {"iou": iou}}))
-    return path
+def _plan_results(method, iou, pinned=True, partial=False):
+    """Valid planning results on plan-novel-test (as `dsr-bench plan` writes them), every task scoring `iou`."""
+    from dsr_bench.planning.scoring import results
+    from dsr_bench.planning.tasks import pinned_checksums
+
+    scores = {"iou": iou, "iou_identity": 0.5, "iou_occupancy": 0.4, "start_iou": 0.3, "start_iou_identity": 0.3,
+              "start_iou_occupancy": 0.2, "iou_per_object": [0.25, 0.75], "seconds": 30.0}
+    checksum = pinned_checksums()["plan-novel-test"] if pinned else "0" * 64
+    r = results({f"task_{i:04d}": scores for i in range(60 if partial else 100)}, {"name": method, "description": "x"},
+                {"task_set": "plan-novel-test", "checksum": checksum}, 100, [], f"dsr-bench plan --model {method}",
+                {"candidates": 100})
+    return {**r, "date": "2026-11-25T00:00:00Z"}
 
 
 def test_planning_results_fill_the_planning_column_beside_the_papers(board, tmp_path):
-    assert main(["leaderboard", "add", str(_plan_results(tmp_path, "oracle", 0.61)), "--root", str(board)]) == 0
-    assert main(["leaderboard", "add", str(_plan_results(tmp_path, "dsr-cpu", 0.29)), "--root", str(board)]) == 0
-    assert sorted(p.name for p in (board / "planning").iterdir()) == ["dsr-cpu-plan-novel-test.json",
-                                                                       "oracle-plan-novel-test.json"]
+    (board / "planning").mkdir()
+    for method, iou in (("oracle", 0.61), ("dsr-cpu", 0.29)):
+        results = _plan_results(method, iou)
+        assert check_entry(results) == []
+        (board / "planning" / entry_name(results)).write_text(json.dumps(results))
+    build(board)
     md = (board / "README.md").read_text()
     section = md[md.index("## plan-novel-test: planning track (reproduced)"):]
     assert "| dsr-cpu (planning) |" in section and "0.290" in section and "100/100 tasks" in section
     assert "| DSR-Net | " in md and "0.720" in md  # the paper's planning IoU stays in its own table
-    for bad, why in ((_plan_results(tmp_path, "x", 0.5, pinned=False), "not this toolkit's pinned one"),
-                     (_plan_results(tmp_path, "y", 0.5, partial=True), "covers only part"),
-                     (_plan_results(tmp_path, "z", 1.5), r"metrics.iou must be a number in \[0, 1\]")):
-        with pytest.raises(UserError, match=why):
-            add_entry(bad, board)
-    assert len(list((board / "planning").iterdir())) == 2
+    for bad, why in ((_plan_results("x", 0.5, pinned=False), "not this toolkit's pinned one"),
+                     (_plan_results("y", 0.5, partial=True), "covers only part"),
+                     ({**_plan_results("z", 0.5), "metrics": {**_plan_results("z", 0.5)["metrics"], "iou": 1.5}},
+                      "metrics iou is not a number in [0, 1]")):
+        assert any(why in p for p in check_entry(bad)), check_entry(bad)

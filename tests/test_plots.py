@@ -4,11 +4,14 @@ table of reproduced rows."""
 
 import json
 import math
+from hashlib import sha256
 from pathlib import Path
 
 from PIL import Image
 
+from dsr_bench import __version__
 from dsr_bench.cli import main
+from dsr_bench.scoring.entries import step_mean
 from dsr_bench.scoring.leaderboard import build
 from dsr_bench.scoring.plots import (leaderboard_series, step_series, steps_plot_path, write_leaderboard_plot,
                                      write_steps_plot)
@@ -28,6 +31,10 @@ def _results(method="MyNet", per_step=True, **extra):
         results["per_step"] = {"iou_unordered": [0.7, 0.8, 0.6], "iou_ordered": [0.6, 0.7, None],
                                "motion_visible": [5.0, 6.0, 4.0], "motion_full": [0.08, 0.09, 0.07],
                                "motion_moved": [1.0, 2.0, 3.0], "motion_static": [0.0, 0.0, 0.0]}
+        # a valid leaderboard entry: each metric the mean of its per-step values, as `evaluate` computes it
+        results["metrics"] = {k: step_mean(results["per_step"][k]) for k in results["metrics"]}
+        results["breakdowns"].update(motion_moved_objects=2.0, motion_static_objects=0.0)
+    results.update(pinned=True, toolkit_version=__version__, predictions_checksum=sha256(method.encode()).hexdigest())
     return {**results, **extra}
 
 
@@ -127,7 +134,7 @@ def test_leaderboard_series_are_the_entries_per_step_values():
 def test_leaderboard_build_writes_and_shows_one_plot_per_table(board, tmp_path):
     _entry(board, _results("static"), "static")
     _entry(board, _results("MyNet"), "mynet")
-    old = _results("OldNet", split_checksum="0123456789ab" + "f" * 52)
+    old = _results("OldNet", split_checksum="0123456789ab" + "f" * 52, toolkit_version="0.1.0")  # an earlier pin
     _entry(board, old, "oldnet")
     (board / "plots").mkdir()
     (board / "plots" / "gone-3d.png").write_bytes(b"stale")  # a table that no longer exists

@@ -1,13 +1,15 @@
 """The leaderboard: results entries (one JSON per entry) and the tables built from them.
 
-leaderboard/entries/*.json are results files written by `dsr-bench evaluate` (plus an optional
-"label"); leaderboard/paper.json holds the paper's published numbers, always shown apart and
-marked "reported in the paper". A 2D-only entry (results holding motion_2d alone) joins the 2D track's
-table only. leaderboard/planning/*.json are results files of `dsr-bench plan` (complete runs on a pinned
-task set), shown in the planning IoU column. `build` writes leaderboard/README.md (a table per split and track,
-best per column in bold), a static, sortable leaderboard/index.html and, for each table of reproduced rows
-whose entries hold per-step values, leaderboard/plots/<split>-3d.png (-2d.png for the 2D track; an earlier
-version of a split: <split>-<checksum>-3d.png) comparing the rows step by step, shown under the table.
+leaderboard/entries/*.json are results of `dsr-bench evaluate` as `add` recomputed them from the predictions
+(plus an optional "label"), never a submitted file's numbers; leaderboard/planning/*.json likewise results of
+`dsr-bench plan` recomputed from the plan files (complete runs on a pinned task set), shown in the planning IoU
+column. `dsr_bench.scoring.entries` validates both before `add` writes and when `build` reads (a file that fails
+is skipped with one warning line). leaderboard/paper.json holds the paper's published numbers, always shown apart
+and marked "reported in the paper". A 2D-only entry (results holding motion_2d alone) joins the 2D track's table
+only. `build` writes leaderboard/README.md (a table per split and track, best per column in bold; every text
+cell escaped), a static, sortable leaderboard/index.html and, for each table of reproduced rows whose entries
+hold per-step values, leaderboard/plots/<split>-3d.png (-2d.png for the 2D track; an earlier version of a split:
+<split>-<checksum>-3d.png) comparing the rows step by step, shown under the table.
 """
 
 from __future__ import annotations
@@ -15,11 +17,15 @@ from __future__ import annotations
 import html
 import json
 import re
+import sys
+from collections.abc import Callable
 from pathlib import Path
 
 from dsr_bench.atomic import write_text
 from dsr_bench.constants import GRID_SHAPE, IMAGE_SHAPE
 from dsr_bench.errors import UserError
+from dsr_bench.scoring.entries import (PLAN_RESULTS_FORMAT, RESULTS_FORMAT, check_entry, entry_identity,
+                                       entry_name, first_difference, is_2d_only, markdown_cell, show)
 
 LOWER_IS_BETTER = {"motion_visible", "motion_full", "motion_2d"}
 TRACKS = {"3D": ("motion_visible", "motion_full", "iou_unordered", "iou_ordered"), "2D": ("motion_2d",)}
@@ -28,68 +34,138 @@ COLUMN_TITLES = {"motion_visible": "flow MSE visible (cm²)", "motion_full": "fl
                  "planning_iou": "planning IoU"}
 
 
-def _number(value) -> bool:
-    return isinstance(value, (int, float)) and not isinstance(value, bool)
-
-
-def is_2d_only(metrics: dict) -> bool:
-    """Whether a results file's metrics are a 2D-only submission's: none of the 3D track's, motion_2d present."""
-    from dsr_bench.scoring.evaluate import HEADLINE
-
-    return "motion_2d" in metrics and not any(k in metrics for k in HEADLINE)
-
-
-def check_entry(results: dict) -> list[str]:
-    """Problems that keep a results file off the leaderboard (empty list: it may join)."""
-    from dsr_bench.scoring.evaluate import HEADLINE, RESULTS_FORMAT
-    from dsr_bench.dataset.splits import SPLITS
-
-    problems = []
-    if results.get("format") != RESULTS_FORMAT:
-        return [f"not a dsr-bench results file (format {results.get('format')!r}); produce it with `dsr-bench evaluate`"]
-    metrics = results.get("metrics") if isinstance(results.get("metrics"), dict) else {}
-    if is_2d_only(metrics):  # a 2D-only submission: the 2D track's metric
-        if not _number(metrics.get("motion_2d")):
-            problems.append("metrics missing: motion_2d (a 2D-only submission's metric)")
-    else:
-        missing = [k for k in HEADLINE if not _number(metrics.get(k))]
-        if missing:
-            problems.append(f"metrics missing: {', '.join(missing)}")
-    if results.get("coverage", {}).get("partial"):
-        problems.append("partial evaluation (--allow-partial): the leaderboard needs every sequence of the split")
-    split = results.get("split")
-    if split not in SPLITS:
-        problems.append(f"split {split!r} is not one of the benchmark's named splits")
-    else:
-        expected = SPLITS[split].expected_digest
-        if expected is None:
-            problems.append(f"split {split!r} has no pinned checksum in this toolkit version; it cannot be ranked")
-        elif results.get("split_checksum") != expected:
-            problems.append(f"split checksum {str(results.get('split_checksum'))[:12]}... differs from the toolkit's "
-                            f"{expected[:12]}... for {split}: regenerate the split with `dsr-bench generate --split {split}`")
-    return problems
-
-
-def add_entry(results_path: str | Path, root: str | Path = "leaderboard", label: str | None = None) -> Path:
-    """Validate a results file and copy it into the leaderboard's entries."""
-    path = Path(results_path)
+def add_entry(results_path: str | Path, root: str | Path = "leaderboard", label: str | None = None,
+              predictions: str | Path | None = None, data: str | Path | None = None, plans: str | Path | None = None,
+              tasks: str | Path | None = None, workers: int = 0) -> tuple[Path, bool]:
+    """Recompute a results file from its predictions (`evaluate`) or plans (`planning.verify.recompute_results`),
+    refuse it (UserError, one line, nothing written) unless the recomputed results are pinned, complete, a valid
+    entry and equal to the file in every field but date, label and toolkit_version, and write the recomputed
+    results (plus `label`). Returns (the entry's file, whether it replaced the entry of the same method, split and
+    predictions)."""
+    path, root = Path(results_path), Path(root)
     try:
-        results = json.loads(path.read_text())
-    except (OSError, json.JSONDecodeError) as exc:
-        raise UserError(f"{path}: unreadable results file ({exc})") from None
-    if isinstance(results, dict) and results.get("format") == PLAN_RESULTS_FORMAT:
-        return _add_plan_entry(path, results, Path(root))
+        submitted = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise UserError(f"{path}: unreadable results file ({type(exc).__name__}); give the results JSON of "
+                        "`dsr-bench evaluate --out` or `dsr-bench plan`") from None
+    kind = submitted.get("format") if isinstance(submitted, dict) else None
+    if kind == PLAN_RESULTS_FORMAT:
+        recomputed = _recompute_plans(path, plans, tasks, root)
+        source, folder = "plans", "planning"
+    elif kind == RESULTS_FORMAT:
+        recomputed = _recompute_predictions(path, submitted, predictions, data, root, workers)
+        source, folder = "predictions", "entries"
+    else:
+        raise UserError(f"{path} is not a dsr-bench results file (format {show(kind)}); produce it with "
+                        "`dsr-bench evaluate --out` or `dsr-bench plan`")
+    difference = first_difference(submitted, recomputed, source)
+    if difference:
+        again = "`dsr-bench plan`" if source == "plans" else "`dsr-bench evaluate`"
+        raise UserError(f"{path}: {difference}; re-run {again} and add the results it writes")
+    entry = {**recomputed, **({"label": label} if label else {})}
+    # the file itself must be well formed too (its date, label and toolkit_version were not compared)
+    problems = check_entry(entry) or check_entry(submitted)
+    if problems:
+        raise UserError(f"{path} cannot join the leaderboard: {_first(problems)}")
+    target, replaced = _entry_path(root / folder, entry)
+    write_text(target, json.dumps(entry, indent=1, sort_keys=True) + "\n")
+    return target, replaced
+
+
+def _first(problems: list[str]) -> str:
+    return problems[0] + (f" (and {len(problems) - 1} more)" if len(problems) > 1 else "")
+
+
+def _recompute_predictions(path: Path, submitted: dict, predictions, data, root: Path, workers: int) -> dict:
+    """The results of `evaluate` on the predictions, on the file's split: pinned and complete, else UserError."""
+    from dsr_bench.atomic import check_writable
+    from dsr_bench.scoring.evaluate import evaluate
+    from dsr_bench.scoring.predictions import infer_source
+
+    if predictions is None:
+        raise UserError(f"{path}: the leaderboard recomputes every score from the predictions and never reads one "
+                        "from a results file; give --predictions PRED_DIR (the directory `dsr-bench evaluate` scored)")
+    split = submitted.get("split")
+    if not isinstance(split, str):
+        raise UserError(f"{path}: split is {show(split)}, not a split's name; produce the results with "
+                        "`dsr-bench evaluate`")
+    check_writable(root / "entries", "--root")
+    predictions = Path(predictions)
+    if not predictions.is_dir():
+        raise UserError(f"--predictions {predictions}: not a directory; give the predictions `dsr-bench evaluate` "
+                        "scored")
+    data, split, _ = infer_source(predictions, Path(data) if data is not None else None, split)
+    evaluation = evaluate(predictions, data, split, workers=workers)
+    if evaluation.results is None:
+        where, problem = evaluation.problems[0] if evaluation.problems else ("", "nothing scored")
+        raise UserError(f"{predictions}: {len(evaluation.problems)} problems (first: {where}: {problem}); run "
+                        f"`dsr-bench evaluate {predictions}` to see them all")
+    results = json.loads(json.dumps(evaluation.results))  # as a results file holds it
+    if results.get("pinned") is not True:
+        why = evaluation.warnings[0] if evaluation.warnings else f"split {split!r} is not pinned in this toolkit"
+        raise UserError(f"{path} cannot join the leaderboard: recomputed on {data}, its results are not pinned: {why}")
+    if results["coverage"]["partial"]:
+        raise UserError(f"{path} cannot join the leaderboard: the predictions cover only part of {split}")
+    return results
+
+
+def _recompute_plans(path: Path, plans, tasks, root: Path) -> dict:
+    """The planning results recomputed from the plan files and the verified tasks: pinned and complete, else
+    UserError."""
+    from dsr_bench.atomic import check_writable
+    from dsr_bench.planning.verify import recompute_results
+
+    if plans is None:
+        raise UserError(f"{path}: the leaderboard recomputes every planning score from the plan files and never reads "
+                        "one from a results file; give --plans PLANS_DIR (the --out directory of `dsr-bench plan`)")
+    check_writable(root / "planning", "--root")
+    results = json.loads(json.dumps(recompute_results(Path(plans), tasks)))
     problems = check_entry(results)
     if problems:
-        raise UserError(f"{path} cannot join the leaderboard: " + "; ".join(problems))
-    if label:
-        results["label"] = label
-    slug = re.sub(r"[^a-z0-9]+", "-", f"{results['method']}-{results['split']}".lower()).strip("-")
-    entries = Path(root) / "entries"
-    entries.mkdir(parents=True, exist_ok=True)
-    target = entries / f"{slug}.json"
-    write_text(target, json.dumps(results, indent=1, sort_keys=True) + "\n")
-    return target
+        raise UserError(f"{path} cannot join the leaderboard: recomputed from {plans}, {_first(problems)}")
+    return results
+
+
+def _entry_path(folder: Path, entry: dict) -> tuple[Path, bool]:
+    """Where an entry goes: the file already holding the same method, split and predictions (plans), replaced,
+    or its own new file (`entries.entry_name`)."""
+    identity = entry_identity(entry)
+    for existing in sorted(folder.glob("*.json")):
+        try:
+            old = json.loads(existing.read_text())
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError):
+            continue
+        if isinstance(old, dict) and entry_identity(old) == identity:
+            return existing, True
+    folder.mkdir(parents=True, exist_ok=True)
+    return folder / entry_name(entry), False
+
+
+def _read_valid(paths, kind: str, warn) -> list[tuple[Path, dict]]:
+    """The files that are valid entries of their kind (results or planning results); one warning line for each
+    that is not, naming the file and its (first) problem."""
+    valid = []
+    for path in paths:
+        try:
+            r = json.loads(path.read_text())
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+            warn(f"skipped {path}: unreadable ({type(exc).__name__})")
+            continue
+        problems = check_entry(r) if isinstance(r, dict) and r.get("format") == kind else \
+            [f"not a {kind} file (format {show(r.get('format') if isinstance(r, dict) else r)})"]
+        if problems:
+            warn(f"skipped {path}: {_printable(_first(problems))}")
+        else:
+            valid.append((path, r))
+    return valid
+
+
+def _printable(text: str) -> str:
+    return "".join(c if c.isprintable() else repr(c)[1:-1] for c in text)
+
+
+def _stderr(line: str) -> None:
+    print(f"warning: {line}", file=sys.stderr)
 
 
 def _kind(results: dict) -> str:
@@ -102,48 +178,20 @@ def _kind(results: dict) -> str:
     return "reproduced" if checksum == expected else f"reproduced on an earlier version of the split, {checksum[:12]}"
 
 
-#: Results of `dsr-bench plan` (the planning track), kept in leaderboard/planning/ and shown in the planning IoU column.
-PLAN_RESULTS_FORMAT = "dsr-bench-plan-results"
+def load_entries(root: str | Path = "leaderboard", warn: Callable[[str], None] | None = None) -> list[dict]:
+    """Every valid entry's results (entries/*.json, sorted by file name), each with its table's "kind" added; an
+    invalid file is skipped with one `warn` line (default: on stderr)."""
+    paths = sorted((Path(root) / "entries").glob("*.json"))
+    return [{**r, "kind": _kind(r)} for _, r in _read_valid(paths, RESULTS_FORMAT, warn or _stderr)]
 
 
-def _add_plan_entry(path: Path, results: dict, root: Path) -> Path:
-    """Copy a planning results file into leaderboard/planning/: only a complete run on a pinned task set."""
-    metrics = results.get("metrics") if isinstance(results.get("metrics"), dict) else {}
-    coverage = results.get("coverage") if isinstance(results.get("coverage"), dict) else {}
-    iou = metrics.get("iou")
-    problems = []
-    if not isinstance(iou, (int, float)) or isinstance(iou, bool) or not 0 <= iou <= 1:
-        problems.append(f"metrics.iou must be a number in [0, 1], got {iou!r}")
-    if results.get("pinned") is not True:
-        problems.append("its task set is not this toolkit's pinned one; plan on a pinned task set "
-                        "(`dsr-bench generate-plan-tasks --tasks plan-novel-test`)")
-    if coverage.get("partial") is not False:
-        problems.append("it covers only part of the task set; run `dsr-bench plan` on every task")
-    if not isinstance(results.get("method"), str) or not isinstance(results.get("task_set"), str):
-        problems.append("method and task_set must be strings")
-    if problems:
-        raise UserError(f"{path} cannot join the leaderboard: " + "; ".join(problems))
-    slug = re.sub(r"[^a-z0-9]+", "-", f"{results['method']}-{results['task_set']}".lower()).strip("-")
-    target = root / "planning" / f"{slug}.json"
-    target.parent.mkdir(parents=True, exist_ok=True)
-    write_text(target, json.dumps(results, indent=1, sort_keys=True) + "\n")
-    return target
-
-
-def load_entries(root: str | Path = "leaderboard") -> list[dict]:
-    """Every entry's results (entries/*.json, sorted by file name), each with its table's "kind" added."""
-    entries = []
-    for path in sorted((Path(root) / "entries").glob("*.json")):
-        r = json.loads(path.read_text())
-        entries.append({**r, "kind": _kind(r)})
-    return entries
-
-
-def load_rows(root: str | Path = "leaderboard") -> list[dict]:
-    """Flat rows (method, split, kind, metrics, date, checksum, label) of every entry and paper row."""
+def load_rows(root: str | Path = "leaderboard", warn: Callable[[str], None] | None = None,
+              entries: list[dict] | None = None) -> list[dict]:
+    """Flat rows (method, split, kind, metrics, date, checksum, label) of every valid entry (`entries`, default
+    `load_entries`), valid planning entry and paper row."""
     root = Path(root)
     rows = []
-    for r in load_entries(root):
+    for r in load_entries(root, warn) if entries is None else entries:
         kind = r["kind"]
         # the model's grid, or the image an image-space model works on (parameters "image"; a 2D-only entry
         # that names neither: the front camera's)
@@ -156,7 +204,8 @@ def load_rows(root: str | Path = "leaderboard") -> list[dict]:
                      **{k: v for k, v in r["metrics"].items()}})
     from dsr_bench.planning.scoring import leaderboard_rows
 
-    rows += leaderboard_rows(sorted((root / "planning").glob("*.json")), include_paper=False)  # paper.json has them
+    plans = _read_valid(sorted((root / "planning").glob("*.json")), PLAN_RESULTS_FORMAT, warn or _stderr)
+    rows += leaderboard_rows([path for path, _ in plans], include_paper=False)  # paper.json has them
     paper = root / "paper.json"
     if paper.exists():
         for r in json.loads(paper.read_text())["rows"]:
@@ -221,13 +270,14 @@ def _fmt(value, column) -> str:
     return f"{value:.3f}" if column.startswith(("iou", "planning")) else f"{value:.4g}"
 
 
-def build(root: str | Path = "leaderboard") -> tuple[Path, Path]:
-    """Write README.md and index.html of the leaderboard from its entries and paper rows."""
+def build(root: str | Path = "leaderboard", warn: Callable[[str], None] | None = None) -> tuple[Path, Path]:
+    """Write README.md and index.html of the leaderboard from its valid entries and paper rows; each entry file
+    that is not valid is skipped with one `warn` line naming it and its problem (default: on stderr)."""
     from dsr_bench.dataset.splits import SPLITS
 
     root = Path(root)
-    rows = load_rows(root)
-    entries = load_entries(root)
+    entries = load_entries(root, warn)
+    rows = load_rows(root, warn, entries)
     plotted: set[Path] = set()
     md = ["# dsr-bench leaderboard", "",
           "Built by `dsr-bench leaderboard build` from `entries/` (results of `dsr-bench evaluate`) and",
@@ -259,7 +309,9 @@ def build(root: str | Path = "leaderboard") -> tuple[Path, Path]:
                 classes = " ".join(k for k, on in (("best", top), ("worse", worse)) if on)
                 tds.append(f'<td data-v="{"" if r[c] != r[c] else r[c]}"{f" class={chr(34)}{classes}{chr(34)}" if classes else ""}>'
                            f"{html.escape(_fmt(r[c], c))}{f' {_WORSE_MARK}' if worse else ''}</td>")
-            md.append("| " + " | ".join([str(r["method"]), str(r["grid"]), *cells, str(r["label"]), str(r["date"]), str(r["checksum"])]) + " |")
+            md.append("| " + " | ".join([markdown_cell(r["method"]), markdown_cell(r["grid"]), *cells,
+                                         markdown_cell(r["label"]), markdown_cell(r["date"]),
+                                         markdown_cell(r["checksum"])]) + " |")
             html_rows.append(f"<tr><td>{html.escape(str(r['method']))}</td><td>{html.escape(str(r['grid']))}</td>{''.join(tds)}<td>{html.escape(str(r['label']))}"
                              f"</td><td>{html.escape(str(r['date']))}</td><td><code>{html.escape(str(r['checksum']))}</code>"
                              "</td></tr>")
