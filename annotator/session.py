@@ -4,7 +4,8 @@ The window (`annotator.window`), the CLI (`dsr-bench annotate`) and the benchmar
 mutating call is one undoable user action, and it is saved before the call returns, so killing the process loses
 nothing: its record is appended to `<work>/journal.jsonl` and fsync'd (cost independent of the history's length),
 and every COMPACT_RECORDS records, and on resume, the journal is folded into `<work>/state.json` (written
-atomically). `Session.open` resumes from both (`read_saved`).
+atomically). `Session.open` resumes from both (`read_saved`); both are bound to the capture and to each other, and
+read as files someone else may have written (`annotator.journal`).
 
 Poses are (7,) = (x, y, z, qx, qy, qz, qw) in the table frame, metres (`dsr_bench.geometry.pose_to_matrix`); unset
 poses read as NaN rows. Step s is observation s (0..T); push s moves the scene from step s to s + 1.
@@ -18,33 +19,30 @@ private operations (`_icp`, `_fit`, `_crop`, `_commit`) as an API of their own; 
 from __future__ import annotations
 
 import json
-import os
 import sys
 from collections import OrderedDict
 from dataclasses import dataclass
 from pathlib import Path
-from typing import NamedTuple
 
 import numpy as np
 
 from annotator import align
 from annotator.align import FitScore
+from annotator.journal import (JOURNAL_FILE, JOURNAL_FORMAT, STATE_FILE, Saved, append_record, capture_digest,
+                               check_file, read_saved, write_snapshot)
 from annotator.state import ACTION_KINDS, AnnotationState, StateError
-from dsr_bench.atomic import write_text
+from dsr_bench.atomic import check_writable
 from dsr_bench.dataset.capture import Capture, load_capture
 from dsr_bench.constants import RIG_PUSHER_RADIUS
 from dsr_bench.errors import UserError
 from dsr_bench.geometry import matrix_to_pose, pose_to_matrix
 
-__all__ = ["JOURNAL_FILE", "STATE_FILE", "WORK_DIRNAME", "FitScore", "Saved", "Session", "SnapScore", "read_saved"]
+__all__ = ["JOURNAL_FILE", "JOURNAL_FORMAT", "STATE_FILE", "WORK_DIRNAME", "FitScore", "Saved", "Session", "SnapScore",
+           "read_saved"]
 
 WORK_DIRNAME = "annotation"
-STATE_FILE = "state.json"
-#: The change journal next to state.json: a header line {"format": JOURNAL_FORMAT, "generation": g}, then one JSON
-#: record per change (`AnnotationState.record`), each appended and fsync'd before the call returns. It applies on
-#: top of the state.json whose "journal" is g (a state.json without it is generation 0 and has no journal).
-JOURNAL_FILE = "journal.jsonl"
-JOURNAL_FORMAT = "dsr-bench-annotation-journal"
+# state.json and the change journal next to it (journal.jsonl: a header binding it to state.json and the capture,
+# then one JSON record per change, each appended and fsync'd before the call returns): `annotator.journal`.
 #: The journal is folded into state.json after this many records (and when a session resumes from it).
 COMPACT_RECORDS = 500
 #: Crop radius around an object: its bounding sphere plus this margin (m).
@@ -107,67 +105,19 @@ class SnapScore(FitScore):
 
 
 def _nan_score(d: dict | None) -> FitScore | None:
+    """The FitScore of a stored score dict; None when there is none or it is not a whole score (then refitted)."""
     if d is None:
         return None
-    return FitScore.from_dict({k: (float("nan") if v is None else v) for k, v in d.items()})
-
-
-class Saved(NamedTuple):
-    """What `read_saved` found: the state (state.json with its journal replayed), its journal generation, the records
-    replayed, notes on records left out, and whether the journal file is the one of that generation (False: none,
-    or a stale one; new records must then go to a fresh journal)."""
-
-    state: AnnotationState
-    generation: int
-    replayed: int
-    notes: list[str]
-    journal_current: bool
-
-
-def _journal_lines(path: Path, generation: int) -> tuple[list[bytes], list[str], bool]:
-    """The complete record lines of the journal, notes on what was left out (a last line cut short by a crash), and
-    whether it is the journal of `generation` (another generation's is stale: its records are already in the
-    snapshot, and none are returned)."""
-    if not path.is_file():
-        return [], [], False
-    lines = path.read_bytes().split(b"\n")
-    tail = lines.pop()  # b"" when the file ends with a newline; else a record cut short
-    notes = [f"{path.name}: ignored its last record, cut short ({len(tail)} bytes; a crash mid-write)"] if tail else []
     try:
-        header = json.loads(lines[0]) if lines else None
-    except (json.JSONDecodeError, UnicodeDecodeError):
-        header = None
-    if not isinstance(header, dict) or header.get("format") != JOURNAL_FORMAT:
-        return [], notes + ([f"{path.name}: no journal header; its {len(lines) - 1} records are ignored"]
-                            if len(lines) > 1 else []), False
-    if header.get("generation") != generation:
-        return [], [], False
-    return lines[1:], notes, True
-
-
-def read_saved(work_dir: str | Path) -> Saved:
-    """The annotation state saved in a work directory: state.json with its journal's records replayed (see
-    `Saved`). A cut-short or unreadable record ends the replay (a crash mid-write leaves one), with a note. Raises
-    StateError (or a JSON error) when state.json is unreadable."""
-    work = Path(work_dir)
-    d = json.loads((work / STATE_FILE).read_text())
-    state = AnnotationState.from_dict(d)
-    generation = d.get("journal", 0) if isinstance(d.get("journal", 0), int) else 0
-    lines, notes, current = _journal_lines(work / JOURNAL_FILE, generation)
-    for k, line in enumerate(lines):
-        try:
-            state.replay(json.loads(line))
-        except (json.JSONDecodeError, UnicodeDecodeError, StateError) as exc:
-            notes.append(f"{JOURNAL_FILE}: record {k + 1} unreadable ({exc}); it and the {len(lines) - k - 1} after "
-                         "it are ignored")
-            return Saved(state, generation, k, notes, current)
-    return Saved(state, generation, len(lines), notes, current)
+        return FitScore.from_dict({k: (float("nan") if v is None else v) for k, v in d.items()})
+    except (KeyError, TypeError, ValueError):
+        return None
 
 
 class Session:
     """One capture being annotated (see the module docstring); create with `Session.open`."""
 
-    def __init__(self, capture: Capture, work_dir: Path, state: AnnotationState):
+    def __init__(self, capture: Capture, work_dir: Path, state: AnnotationState, capture_sha256: str | None = None):
         self.capture = capture
         self.work_dir = Path(work_dir)
         self.state = state
@@ -175,42 +125,41 @@ class Session:
         self._clouds: OrderedDict[int, tuple] = OrderedDict()
         self._generation = 0  # journal generation of the last snapshot written or read
         self._records = 0  # records in the journal since
+        self._capture_sha256 = capture_sha256 or capture_digest(capture)  # what state.json and the journal are bound to
+        self._state_sha256: str | None = None  # sha256 of the last state.json written or read
         self.notes: list[str] = []  # what resuming had to leave out (a journal's cut-short tail)
 
     # opening and saving ------------------------------------------------------------------------------------------
     @classmethod
     def open(cls, capture_dir: str | Path, work_dir: str | Path | None = None) -> Session:
         """Open a capture (validated) and resume `<work_dir>/state.json` plus its journal if present (default work
-        dir: `<capture_dir>/annotation/`). Raises UserError when the saved state is unreadable or belongs to another
-        capture. A journal whose last records are cut short (a crash mid-write) resumes without them, with a note
-        in `notes` (also printed to stderr)."""
+        dir: `<capture_dir>/annotation/`). Raises UserError (one line, nothing written) when the saved state is
+        unreadable or belongs to another capture, or the journal is not its own or is malformed
+        (`annotator.journal`). A journal whose last record is cut short (a crash mid-write) resumes without it,
+        with a note in `notes` (also printed to stderr)."""
         capture = load_capture(capture_dir)
         work = Path(work_dir) if work_dir is not None else capture.path / WORK_DIRNAME
         path = work / STATE_FILE
-        if not path.is_file():
-            session = cls(capture, work, AnnotationState(capture.name, capture.num_steps, capture.num_objects))
+        digest = capture_digest(capture)
+        check_file(work / JOURNAL_FILE, "journal")
+        if not check_file(path, "state"):
+            check_writable(work, "--work")
+            session = cls(capture, work, AnnotationState(capture.name, capture.num_steps, capture.num_objects), digest)
             session._write_snapshot()
             return session
         try:
-            saved = read_saved(work)
-        except (json.JSONDecodeError, UnicodeDecodeError, StateError) as exc:
+            saved = read_saved(work, capture, digest)
+        except (json.JSONDecodeError, UnicodeDecodeError, RecursionError, OSError, StateError) as exc:
             raise UserError(f"{path}: unreadable annotation state ({exc}); move it away to start afresh or give "
                             "another --work directory") from None
-        state, notes = saved.state, saved.notes
-        if state.capture != capture.name:
-            raise UserError(f"{path} belongs to capture {state.capture!r}, not {capture.name!r}; give another "
-                            f"--work directory for {capture.name!r}")
-        if (state.num_steps, state.num_objects) != (capture.num_steps, capture.num_objects):
-            raise UserError(f"{path} has {state.num_steps} pushes x {state.num_objects} objects but capture "
-                            f"{capture.name!r} has {capture.num_steps} x {capture.num_objects}; give another "
-                            "--work directory")
-        session = cls(capture, work, state)
-        session._generation = saved.generation
-        session.notes = notes
-        for note in notes:
+        session = cls(capture, work, saved.state, digest)
+        session._generation, session._state_sha256 = saved.generation, saved.state_sha256
+        session.notes = saved.notes
+        if saved.replayed or saved.notes or not saved.journal_current or not saved.bound:
+            check_writable(work, "--work")
+            session._write_snapshot()  # fold the journal in, start one (none yet, or a stale one), or bind them
+        for note in saved.notes:
             print(f"annotate: {note}", file=sys.stderr)
-        if saved.replayed or notes or not saved.journal_current:
-            session._write_snapshot()  # fold the journal in, or start one (none yet, or a stale one)
         return session
 
     @property
@@ -222,16 +171,11 @@ class Session:
         return self.work_dir / JOURNAL_FILE
 
     def _write_snapshot(self) -> None:
-        """Fold everything into state.json (atomic: temporary file, fsync, rename) under the next journal
-        generation, then start that generation's empty journal (atomic too). A crash between the two leaves a
-        journal of the old generation, which resume ignores: the snapshot already holds its records."""
-        self.work_dir.mkdir(parents=True, exist_ok=True)
+        """Fold everything into state.json under the next journal generation, bound to the capture's digest, then
+        start that generation's journal (`annotator.journal.write_snapshot`: both atomic)."""
         self._generation += 1
-        d = self.state.to_dict()
-        d["journal"] = self._generation
-        write_text(self.state_path, json.dumps(d, separators=(",", ":")), fsync=True)
-        header = {"format": JOURNAL_FORMAT, "generation": self._generation}
-        write_text(self.journal_path, json.dumps(header) + "\n", fsync=True)
+        self._state_sha256 = write_snapshot(self.work_dir, self.state, self._generation, self._capture_sha256,
+                                            self._state_sha256)
         self._records = 0
 
     def _save(self, kind: str, op=None) -> None:
@@ -241,11 +185,7 @@ class Session:
         if self._records >= COMPACT_RECORDS:
             self._write_snapshot()
             return
-        line = json.dumps(self.state.record(kind, op), separators=(",", ":")) + "\n"
-        with open(self.journal_path, "a", encoding="utf-8") as f:
-            f.write(line)
-            f.flush()
-            os.fsync(f.fileno())
+        append_record(self.journal_path, self.state.record(kind, op))
         self._records += 1
 
     # read-only views -------------------------------------------------------------------------------------------------

@@ -12,6 +12,11 @@ so both are exact. `to_dict` / `from_dict` give a JSON-able dict (poses as lists
 Journal records (`record` / `replay`): one JSON-able dict per change ("apply" with the operation, "undo", "redo",
 "select", "cursor"), each with the cursor, selection and action counts after it; replaying a state's records in
 order on the state they started from gives that state exactly (the session appends them to its journal file).
+
+Everything read back (`from_dict`, `replay`) is checked as a file someone else may have written: types (an integer
+is not true, a number not a string), ranges, poses of 7 finite numbers with a nonzero quaternion (`read_pose`),
+statuses that agree with the pose (unset <-> no pose), and, for a replayed operation, that its "before" side is this
+state's own; anything else is a StateError naming the cell or field.
 """
 
 from __future__ import annotations
@@ -32,6 +37,8 @@ ACTION_KINDS: tuple[str, ...] = ("pick", "place", "previous", "nudge", "snap", "
 MAX_HISTORY = 2000
 #: Journal record kinds: a new operation, undo, redo, a selection, a cursor move to a visited step.
 RECORD_KINDS: tuple[str, ...] = ("apply", "undo", "redo", "select", "cursor")
+#: Kinds of the undoable operations (the actions that change poses or steps).
+OPERATION_KINDS: tuple[str, ...] = tuple(k for k in ACTION_KINDS if k not in ("undo", "redo"))
 
 
 class StateError(ValueError):
@@ -55,9 +62,17 @@ class Entry:
         return out
 
     @classmethod
-    def from_json(cls, d: dict) -> Entry:
-        return cls(None if d["pose"] is None else [float(x) for x in d["pose"]], str(d["status"]), d.get("score"),
-                   _clean_carried(d.get("carried")))
+    def from_json(cls, d: Any, what: str = "a cell") -> Entry:
+        """An entry read from a file, every field checked (`read_pose`, `read_score`); StateError naming `what`."""
+        if not isinstance(d, dict) or "pose" not in d or "status" not in d:
+            raise StateError(f"{what} must be an object with pose, status and score")
+        status = d["status"]
+        if not isinstance(status, str) or status not in STATUSES:
+            raise StateError(f"{what}: unknown status {status!r} (one of {', '.join(STATUSES)})")
+        pose = read_pose(d["pose"], f"{what} pose")
+        if (pose is None) != (status == "unset"):
+            raise StateError(f"{what}: status {status!r} with {'no pose' if pose is None else 'a pose'}")
+        return cls(pose, status, read_score(d.get("score"), f"{what} score"), read_carried(d.get("carried"), what))
 
 
 @dataclass
@@ -75,10 +90,26 @@ class Operation:
                 "visited": [[s, b, a] for s, b, a in self.visited]}
 
     @classmethod
-    def from_json(cls, d: dict) -> Operation:
-        cells = [(int(s), int(i), Entry.from_json(b), Entry.from_json(a)) for s, i, b, a in d["cells"]]
-        return cls(str(d["kind"]), cells,
-                   (int(d["cursor"][0]), int(d["cursor"][1])), [(int(s), bool(b), bool(a)) for s, b, a in d["visited"]])
+    def from_json(cls, d: Any) -> Operation:
+        """An operation read from a file, every field's type checked (ranges: `AnnotationState.replay` and
+        `from_dict`); StateError naming what is wrong."""
+        if not isinstance(d, dict) or not all(k in d for k in ("kind", "cursor", "cells", "visited")):
+            raise StateError("an operation must be an object with kind, cursor, cells and visited")
+        if d["kind"] not in OPERATION_KINDS:
+            raise StateError(f"unknown operation kind {d['kind']!r}")
+        cursor, cells, visited = d["cursor"], d["cells"], d["visited"]
+        if not (isinstance(cursor, list) and len(cursor) == 2 and all(_is_int(c) for c in cursor)):
+            raise StateError(f"operation cursor {cursor!r} must be [step before, step after] (integers)")
+        if not isinstance(cells, list) or not all(isinstance(c, list) and len(c) == 4 and _is_int(c[0])
+                                                  and _is_int(c[1]) for c in cells):
+            raise StateError("operation cells must be [step, object, before, after] with integer step and object")
+        if not isinstance(visited, list) or not all(isinstance(v, list) and len(v) == 3 and _is_int(v[0])
+                                                    and isinstance(v[1], bool) and isinstance(v[2], bool)
+                                                    for v in visited):
+            raise StateError("operation visited flags must be [step, before, after] (integer, true/false, true/false)")
+        out = [(s, i, Entry.from_json(b, f"step {s} object {i + 1} before"),
+                Entry.from_json(a, f"step {s} object {i + 1} after")) for s, i, b, a in cells]
+        return cls(d["kind"], out, (cursor[0], cursor[1]), [(s, b, a) for s, b, a in visited])
 
 
 def _clean_carried(carried) -> dict | None:
@@ -89,6 +120,62 @@ def _clean_carried(carried) -> dict | None:
     if len(pose) != 7 or not all(math.isfinite(x) for x in pose):
         raise StateError("a carried-from record's pose must be 7 finite numbers")
     return {"step": int(carried["step"]), "pose": pose}
+
+
+def _is_int(value) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool)
+
+
+def _is_number(value) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+
+def read_pose(value, what: str) -> list[float] | None:
+    """A pose read from a file: null (unset) or 7 finite numbers (x, y, z, qx, qy, qz, qw) with a nonzero
+    quaternion; StateError naming `what` otherwise (a NaN or infinite pose never enters a state)."""
+    if value is None:
+        return None
+    if not isinstance(value, list) or len(value) != 7 or not all(_is_number(x) for x in value):
+        raise StateError(f"{what} must be null or 7 numbers (x, y, z, qx, qy, qz, qw), got {str(value)[:80]}")
+    try:
+        pose = [float(x) for x in value]
+    except OverflowError:
+        pose = [math.inf]
+    if not all(math.isfinite(x) for x in pose):
+        raise StateError(f"{what} {str(value)[:80]} is not finite (a pose is 7 finite numbers)")
+    if math.hypot(*pose[3:]) < 1e-6:
+        raise StateError(f"{what} has a zero quaternion (no rotation)")
+    return pose
+
+
+def read_score(value, what: str) -> dict | None:
+    """A fit score read from a file (`annotator.align.FitScore.as_dict`, NaN as null): null or an object of plain
+    values (null, true/false, numbers, strings) whose rmse, coverage and fitness, where given, are numbers or null;
+    StateError naming `what` otherwise."""
+    if value is None:
+        return None
+    ok = isinstance(value, dict) and all(isinstance(k, str) and (v is None or isinstance(v, (bool, int, float, str)))
+                                         for k, v in value.items()) \
+        and all(value.get(k) is None or _is_number(value[k]) for k in ("rmse", "coverage", "fitness"))
+    if not ok:
+        raise StateError(f"{what} must be null or a fit score {{rmse, coverage, fitness, accepted, reason, visible}}")
+    return dict(value)
+
+
+def read_carried(value, what: str) -> dict | None:
+    """A carried-from record read from a file: null or {"step": integer, "pose": 7 finite numbers}."""
+    if value is None:
+        return None
+    if not isinstance(value, dict) or not _is_int(value.get("step")) or value.get("pose") is None:
+        raise StateError(f"{what}: a carried-from record must be {{\"step\": s, \"pose\": [7 numbers]}} or null")
+    return {"step": value["step"], "pose": read_pose(value["pose"], f"{what} carried-from pose")}
+
+
+def _read_counts(value) -> dict[str, int]:
+    """Action counts read from a file: {kind: integer >= 0}."""
+    if not isinstance(value, dict) or not all(_is_int(v) and v >= 0 for v in value.values()):
+        raise StateError(f"counts must map action kinds ({', '.join(ACTION_KINDS)}) to integers >= 0")
+    return dict(value)
 
 
 def _clean_score(score: dict | None) -> dict | None:
@@ -207,29 +294,53 @@ class AnnotationState:
         return out
 
     def replay(self, record: Any) -> None:
-        """Re-apply one journal record (`record`); raises StateError when it cannot apply to this state."""
+        """Re-apply one journal record (`record`); raises StateError (naming what is wrong) when it is malformed or
+        cannot apply to this state: every field is checked (types, ranges, finite poses), and an operation's
+        "before" side (poses, statuses, visited flags, cursor) must be this state's own, so a record written on
+        another state (another capture's journal) does not apply."""
         try:
+            if not isinstance(record, dict) or record.get("kind") not in RECORD_KINDS:
+                raise StateError(f"unknown record kind {record.get('kind') if isinstance(record, dict) else record!r}"
+                                 f" (one of {', '.join(RECORD_KINDS)})")
             kind = record["kind"]
+            step, selected, counts = record.get("step"), record.get("selected"), record.get("counts")
+            if not (_is_int(step) and _is_int(selected) and 0 <= step <= self.num_steps
+                    and 0 <= selected < self.num_objects):
+                raise StateError(f"step {step!r} or selected object {selected!r} is not in this capture's steps "
+                                 f"0..{self.num_steps} and objects 0..{self.num_objects - 1}")
+            counts = _read_counts(counts)
             if kind == "apply":
-                op = Operation.from_json(record["op"])
-                t1 = self.num_steps + 1
-                if any(not (0 <= s < t1 and 0 <= i < self.num_objects) for s, i, _, _ in op.cells) \
-                        or any(not 0 <= s < t1 for s, _, _ in op.visited) or not 0 <= op.cursor[1] < t1:
-                    raise StateError("journal: an operation outside this capture's steps and objects")
+                op = Operation.from_json(record.get("op"))
+                self._check_applies(op)
                 self.apply(op)
             elif kind in ("undo", "redo") and (self.undo() if kind == "undo" else self.redo()) is None:
-                raise StateError(f"journal: nothing to {kind}")
-            elif kind not in RECORD_KINDS:
-                raise StateError(f"journal: unknown record {kind!r}")
-            step, selected = int(record["step"]), int(record["selected"])
-            if not (0 <= step <= self.num_steps and 0 <= selected < self.num_objects):
-                raise StateError(f"journal: step {step} or object {selected + 1} out of range")
+                raise StateError(f"nothing to {kind}")
             self.step, self.selected = step, selected
-            self.counts.update({str(k): int(v) for k, v in record["counts"].items()})
-        except StateError:
-            raise
+            self.counts.update(counts)
+        except StateError as exc:
+            raise StateError(f"journal: {exc}") from None
         except (KeyError, TypeError, ValueError, IndexError, AttributeError) as exc:
             raise StateError(f"journal: malformed record ({type(exc).__name__}: {exc})") from None
+
+    def _check_inside(self, op: Operation) -> Operation:
+        """`op`, or StateError unless it stays inside this capture's steps and objects."""
+        t1 = self.num_steps + 1
+        if any(not (0 <= s < t1 and 0 <= i < self.num_objects) for s, i, _, _ in op.cells) \
+                or any(not 0 <= s < t1 for s, _, _ in op.visited) or not all(0 <= c < t1 for c in op.cursor):
+            raise StateError("an operation outside this capture's steps and objects")
+        return op
+
+    def _check_applies(self, op: Operation) -> None:
+        """StateError unless `op` stays inside this capture's steps and objects and starts from this state."""
+        self._check_inside(op)
+        for s, i, before, _ in op.cells:
+            here = self.entry(s, i)
+            if (before.pose, before.status) != (here.pose, here.status):
+                raise StateError(f"its {op.kind} of step {s} object {i + 1} starts from a {before.status} pose this "
+                                 f"state does not hold (here: {here.status}): the record was written on another state")
+        if any(self.visited[s] != was for s, was, _ in op.visited) or op.cursor[0] != self.step:
+            raise StateError(f"its {op.kind} starts from another cursor or visited steps than this state's: the "
+                             "record was written on another state")
 
     # serialisation --------------------------------------------------------------------------------------------
     def to_dict(self) -> dict[str, Any]:
@@ -254,34 +365,32 @@ class AnnotationState:
         if d.get("version") != STATE_VERSION:
             raise StateError(f"state version {d.get('version')!r}; this annotator reads version {STATE_VERSION}")
         try:
-            state = cls(str(d["capture"]), int(d["num_steps"]), int(d["num_objects"]))
-            t1, n = state.num_steps + 1, state.num_objects
-            if len(d["poses"]) != t1 or any(len(r) != n for r in d["poses"]) or len(d["status"]) != t1 \
-                    or any(len(r) != n for r in d["status"]) or len(d["visited"]) != t1 or len(d["scores"]) != t1:
-                raise StateError(f"poses/status/visited do not have {t1} steps x {n} objects")
+            capture, steps, objects, poses = d["capture"], d["num_steps"], d["num_objects"], d["poses"]
+            if not (isinstance(capture, str) and _is_int(steps) and _is_int(objects) and steps >= 1 and objects >= 1):
+                raise StateError("capture must be a name and num_steps, num_objects integers >= 1")
+            t1, n = steps + 1, objects
+            rows = [d[k] for k in ("poses", "status", "scores")] + ([] if d.get("carried") is None else [d["carried"]])
+            if not all(isinstance(r, list) and len(r) == t1 and all(isinstance(c, list) and len(c) == n for c in r)
+                       for r in rows) or not isinstance(d["visited"], list) or len(d["visited"]) != t1:
+                raise StateError(f"poses/status/scores/visited do not have {t1} steps x {n} objects")
+            state = cls(capture, steps, objects)  # its arrays are no larger than the lists just read
+            carried = d.get("carried")  # absent in states written before carried-from records: all set by hand
             for s in range(t1):
                 for i in range(n):
-                    pose, status = d["poses"][s][i], d["status"][s][i]
-                    if status not in STATUSES:
-                        raise StateError(f"step {s} object {i + 1}: unknown status {status!r}")
-                    if pose is not None:
-                        pose = np.asarray(pose, dtype=np.float64)
-                        if pose.shape != (7,) or not np.all(np.isfinite(pose)):
-                            raise StateError(f"step {s} object {i + 1}: pose must be 7 finite numbers or null")
-                        state.poses[s, i] = pose
-                    state.status[s, i] = status
-                    state.scores[s][i] = d["scores"][s][i]
-                    # absent in states written before carried-from records: every pose then counts as set by hand
-                    carried = d.get("carried")
-                    state.carried[s][i] = None if carried is None else _clean_carried(carried[s][i])
-            state.visited = [bool(v) for v in d["visited"]]
-            state.step = int(d["step"])
-            state.selected = int(d["selected"])
-            if not (0 <= state.step < t1 and 0 <= state.selected < n):
-                raise StateError(f"current step {state.step} or selected object {state.selected + 1} out of range")
-            state.counts.update({str(k): int(v) for k, v in d.get("counts", {}).items()})
-            state.undo_stack = [Operation.from_json(o) for o in d.get("undo", [])]
-            state.redo_stack = [Operation.from_json(o) for o in d.get("redo", [])]
+                    state._set(s, i, Entry.from_json({"pose": poses[s][i], "status": d["status"][s][i],
+                                                      "score": d["scores"][s][i],
+                                                      "carried": None if carried is None else carried[s][i]},
+                                                     f"step {s} object {i + 1}"))
+            if not all(isinstance(v, bool) for v in d["visited"]):
+                raise StateError("visited must be true/false per step")
+            state.visited = list(d["visited"])
+            state.step, state.selected = d["step"], d["selected"]
+            if not (_is_int(state.step) and _is_int(state.selected) and 0 <= state.step < t1
+                    and 0 <= state.selected < n):
+                raise StateError(f"current step {state.step!r} or selected object {state.selected!r} out of range")
+            state.counts.update(_read_counts(d.get("counts", {})))
+            state.undo_stack = [state._check_inside(Operation.from_json(o)) for o in d.get("undo", [])]
+            state.redo_stack = [state._check_inside(Operation.from_json(o)) for o in d.get("redo", [])]
         except StateError:
             raise
         except (KeyError, TypeError, ValueError, IndexError) as exc:
