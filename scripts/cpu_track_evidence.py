@@ -94,7 +94,8 @@ def main() -> None:
             run(*cli, "evaluate", str(pred), "--data", str(args.data), "--out", str(scored))
         results[name] = json.loads(scored.read_text())
         if args.leaderboard:
-            run(*cli, "leaderboard", "add", str(scored), "--root", str(args.leaderboard))
+            run(*cli, "leaderboard", "add", str(scored), "--predictions", str(pred), "--data", str(args.data),
+                "--root", str(args.leaderboard))
     if args.leaderboard:
         run(*cli, "leaderboard", "build", "--root", str(args.leaderboard))
 

@@ -62,7 +62,8 @@ def main() -> None:
         if "motion_2d" not in results[name]["metrics"]:
             sys.exit(f"{scored}: no motion_2d score; the data needs the front camera's images")
         if args.leaderboard:
-            run(*cli, "leaderboard", "add", str(scored), "--root", str(args.leaderboard))
+            run(*cli, "leaderboard", "add", str(scored), "--predictions", str(pred), "--data", str(args.data),
+                "--root", str(args.leaderboard))
     if args.leaderboard:
         run(*cli, "leaderboard", "build", "--root", str(args.leaderboard))
 

@@ -39,8 +39,8 @@ def main() -> None:
             continue
         results[name] = json.loads(path.read_text())
         if args.leaderboard:
-            subprocess.run([sys.executable, "-m", "dsr_bench", "leaderboard", "add", str(path), "--root",
-                            str(args.leaderboard)], check=True)
+            subprocess.run([sys.executable, "-m", "dsr_bench", "leaderboard", "add", str(path), "--plans",
+                            str(args.plans / name), "--root", str(args.leaderboard)], check=True)
     per_task = {name: r["per_task"] for name, r in results.items()}
     first = next(iter(results.values()))
     per_task["no push"] = {task: {m: v[f"start_{m}"] for m in METRICS} for task, v in first["per_task"].items()}

@@ -107,7 +107,7 @@ def main() -> None:
         run("evaluate", str(pred), "--data", str(test), "--out", str(results))
         if args.leaderboard:
             window = "10-step" if model in HISTORY_MODELS else "single-step"
-            run("leaderboard", "add", str(results), "--label",
+            run("leaderboard", "add", str(results), "--predictions", str(pred), "--data", str(test), "--label",
                 f"short schedule: {single_steps} single-step + {multi_steps} {window} batches of "
                 f"{args.batch_size} on {args.train_sequences if args.train_data is None else data.name} sequences")
         return {"metrics": json.loads(results.read_text())["metrics"], "batches_stage1": single_steps,
