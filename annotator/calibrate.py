@@ -33,6 +33,8 @@ MIN_CORNERS = 6
 #: Largest accepted residuals (mm): on the board / between the cameras, and |median depth residual|.
 MAX_BOARD_MM = 3.0
 MAX_DEPTH_MM = 10.0
+#: Most squares a board may have along each side (a printable ChArUco board has a few dozen at most).
+MAX_SQUARES = 100
 
 
 @dataclass(frozen=True)
@@ -82,15 +84,19 @@ def parse_board(where: str, spec) -> Board:
     missing = [k for k in ("squares", "square_length", "marker_length", "dictionary", "offset") if k not in spec]
     if missing:
         raise UserError(f"{where}: board lacks {', '.join(missing)}; give {hint}")
-    try:
-        squares = tuple(int(s) for s in spec["squares"])
-        square, marker = float(spec["square_length"]), float(spec["marker_length"])
-        offset = tuple(float(v) for v in spec["offset"])
-    except (TypeError, ValueError):
-        raise UserError(f"{where}: board squares must be 2 integers, lengths numbers (m), offset 3 numbers; give "
-                        f"{hint}") from None
-    if len(squares) != 2 or min(squares) < 2 or len(offset) != 3 or not np.all(np.isfinite(offset)):
-        raise UserError(f"{where}: board squares must be [columns, rows] >= 2 and offset [x, y, z] (m); give {hint}")
+    from annotator.inputs import finite, numbers
+
+    squares = spec["squares"]
+    if not (isinstance(squares, list) and len(squares) == 2 and all(type(s) is int for s in squares)
+            and finite(spec["square_length"]) and finite(spec["marker_length"]) and numbers(spec["offset"], (3,))
+            and isinstance(spec["dictionary"], str) and isinstance(spec.get("legacy", False), bool)):
+        raise UserError(f"{where}: board squares must be 2 integers, lengths numbers (m), offset 3 numbers, dictionary "
+                        f"a name and legacy true/false; give {hint}")
+    squares = tuple(squares)
+    square, marker = float(spec["square_length"]), float(spec["marker_length"])
+    offset = tuple(float(v) for v in spec["offset"])
+    if not 2 <= min(squares) <= max(squares) <= MAX_SQUARES:
+        raise UserError(f"{where}: board squares must be [columns, rows], each 2..{MAX_SQUARES}; give {hint}")
     if not 0 < marker < square < 0.5:
         raise UserError(f"{where}: board marker_length {marker} must be smaller than square_length {square} (m, "
                         "measured on the print)")

@@ -42,6 +42,12 @@ def annotate(
 
     if allow_unchecked and export is None and bop is None:
         raise UserError("--allow-unchecked only applies to --export OUT.h5 or --bop DIR")
+    from dsr_bench.atomic import check_writable
+
+    if export is not None:  # before any work: the outputs can be written
+        check_writable(export, "--export", directory=False)
+    if bop is not None:
+        check_writable(bop, "--bop")
     session = Session.open(resolve_capture(capture, captures), work)
     if place is not None:
         from annotator.placement import place_step0

@@ -13,7 +13,9 @@ Steps are the numbers N sorted numerically and renumbered 0..T; every camera nee
 N. Images with distortion coefficients are undistorted (colour bilinear, depth nearest: a depth is never mixed
 with its neighbours) onto the same fx, fy, cx, cy. Extrinsics come from the rig file or from the ChArUco board
 (`annotator.calibrate`); the front camera must see the whole grid. Everything is checked before anything is
-written, and the capture is written atomically (`write_capture`).
+written, and the capture is written atomically (`write_capture`). The output is checked to be writable first, and
+every input before it is used (`annotator.inputs`): JSON values of the right type and range, PNG sizes from their
+headers, paths that stay inside SRC.
 
 A folder of RealSense `.bag` recordings instead (front.bag, back.bag) is the other form (`annotator.realsense`):
 `import_capture` dispatches on the folder's content; `load_rig` and `calibrate_cameras` serve both.
@@ -27,6 +29,8 @@ from pathlib import Path
 
 import numpy as np
 
+from annotator.inputs import MAX_IMAGE_SIDE, finite, image_side, inside, numbers, png_shape, resolved_inside
+from dsr_bench.atomic import check_writable
 from dsr_bench.dataset.capture import CaptureCamera, parse_camera, write_capture
 from dsr_bench.errors import UserError
 
@@ -43,15 +47,14 @@ def _rig_error(path: Path, message: str) -> UserError:
 
 
 def _number(path: Path, where: str, spec: dict, key: str, positive: bool = True) -> float:
-    try:
-        value = float(spec[key])
-    except KeyError:
-        raise _rig_error(path, f"{where} lacks {key!r}") from None
-    except (TypeError, ValueError):
-        raise _rig_error(path, f"{where} {key!r} must be a number") from None
-    if not np.isfinite(value) or (positive and value <= 0):
-        raise _rig_error(path, f"{where} {key!r} must be a finite{' positive' if positive else ''} number")
-    return value
+    """A rig file's number: a finite JSON number (not true / false, not a string such as "912"), positive if asked."""
+    if key not in spec:
+        raise _rig_error(path, f"{where} lacks {key!r}")
+    value = spec[key]
+    if not finite(value) or (positive and value <= 0):
+        raise _rig_error(path, f"{where} {key!r} must be a finite{' positive' if positive else ''} number (a JSON "
+                               f"number, not {json.dumps(value)[:40]})")
+    return float(value)
 
 
 def read_camera(path: Path, name: str, spec) -> tuple[CaptureCamera, np.ndarray | None, bool]:
@@ -62,20 +65,22 @@ def read_camera(path: Path, name: str, spec) -> tuple[CaptureCamera, np.ndarray 
         raise _rig_error(path, f"{where} must be an object with fx, fy, cx, cy, width, height, depth_scale")
     fx, fy = _number(path, where, spec, "fx"), _number(path, where, spec, "fy")
     cx, cy = _number(path, where, spec, "cx", False), _number(path, where, spec, "cy", False)
-    width, height = _number(path, where, spec, "width"), _number(path, where, spec, "height")
+    for key in ("width", "height"):
+        if not image_side(spec.get(key)):
+            raise _rig_error(path, f"{where} {key!r} must be a whole number of pixels 1..{MAX_IMAGE_SIDE}, got "
+                                   f"{json.dumps(spec.get(key))[:40]}")
+    width, height = spec["width"], spec["height"]
     scale = _number(path, where, spec, "depth_scale")
-    if width != int(width) or height != int(height):
-        raise _rig_error(path, f"{where} width and height must be whole pixels")
     dist = None
     if spec.get("distortion") is not None:
-        try:
-            dist = np.asarray(spec["distortion"], np.float64)
-        except (TypeError, ValueError):
-            dist = np.zeros(0)
-        if dist.shape != (5,) or not np.all(np.isfinite(dist)):
+        if not numbers(spec["distortion"], (5,)):
             raise _rig_error(path, f"{where} distortion must be OpenCV's 5 coefficients [k1, k2, p1, p2, k3]")
+        dist = np.asarray(spec["distortion"], np.float64)
         dist = None if not dist.any() else dist
     given = spec.get("extrinsics") is not None
+    if given and not numbers(spec["extrinsics"], (4, 4)):
+        raise _rig_error(path, f"{where} extrinsics must be a 4x4 matrix of numbers (camera-to-table, metres, "
+                               "row-major)")
     full = {"height": int(height), "width": int(width), "intrinsics": [[fx, 0, cx], [0, fy, cy], [0, 0, 1]],
             "extrinsics": spec["extrinsics"] if given else np.eye(4).tolist(), "depth_scale": scale}
     try:
@@ -103,6 +108,7 @@ def find_steps(src: Path, cameras: list[str]) -> tuple[list[int], dict[tuple[str
         step = int(m["step"])
         if (*key, step) in files:
             raise UserError(f"{src}: {files[(*key, step)].name} and {entry.name} are both step {step}; keep one")
+        resolved_inside(src, entry, "image", src)
         found[key].add(step)
         files[(*key, step)] = entry
     steps = sorted(set().union(*found.values()))
@@ -120,9 +126,15 @@ def find_steps(src: Path, cameras: list[str]) -> tuple[list[int], dict[tuple[str
 
 
 def read_image(path: Path, camera: CaptureCamera, kind: str) -> np.ndarray:
-    """A step image checked against the camera: colour (H, W, 3) uint8 RGB, depth (H, W) uint16 units."""
+    """A step image checked against the camera: colour (H, W, 3) uint8 RGB, depth (H, W) uint16 units. Its PNG
+    header is checked first (size, bit depth, colour type): an image of another size or type is refused before it is
+    decoded (a decoder allocates what the header declares)."""
     from PIL import Image
 
+    shape, dtype, depth, colour = png_shape(path)
+    ok = depth == 8 and colour in (2, 6) if kind == "color" else depth == 16 and colour == 0
+    if not ok or shape[:2] != (camera.height, camera.width):
+        _wrong_image(path, camera, kind, shape[:2] + (3,) if kind == "color" and colour == 6 else shape, dtype)
     try:
         with Image.open(path) as im:
             array = np.asarray(im)
@@ -133,10 +145,14 @@ def read_image(path: Path, camera: CaptureCamera, kind: str) -> np.ndarray:
     shape = (camera.height, camera.width, 3) if kind == "color" else (camera.height, camera.width)
     ok = array.shape == shape and (array.dtype == np.uint8 if kind == "color" else array.dtype == np.uint16)
     if not ok:
-        what = "an 8-bit RGB" if kind == "color" else "a 16-bit single-channel depth (uint16 units of depth_scale)"
-        raise UserError(f"{path}: expected {what} PNG of {camera.width}x{camera.height} (the rig file's "
-                        f"{camera.name!r} width x height), got shape {array.shape} {array.dtype}")
+        _wrong_image(path, camera, kind, array.shape, str(array.dtype))
     return array
+
+
+def _wrong_image(path: Path, camera: CaptureCamera, kind: str, shape: tuple, dtype: str):
+    what = "an 8-bit RGB" if kind == "color" else "a 16-bit single-channel depth (uint16 units of depth_scale)"
+    raise UserError(f"{path}: expected {what} PNG of {camera.width}x{camera.height} (the rig file's "
+                    f"{camera.name!r} width x height), got shape {tuple(shape)} {dtype}")
 
 
 def undistort_maps(camera: CaptureCamera, distortion: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -168,7 +184,9 @@ def read_objects(path: Path, src: Path, entries) -> list[tuple[str, np.ndarray, 
     for i, entry in enumerate(entries):
         if not isinstance(entry, dict) or not isinstance(entry.get("mesh"), str):
             raise _rig_error(path, f"object {i + 1} needs a 'mesh' path relative to {src}")
-        mesh_path = src / entry["mesh"]
+        if not isinstance(entry.get("name", ""), str) or not isinstance(entry.get("identity", {}), dict):
+            raise _rig_error(path, f"object {i + 1}: 'name' must be a string and 'identity' an object")
+        mesh_path = inside(src, entry["mesh"], f"object {i + 1} mesh", path)
         if not mesh_path.is_file():
             raise _rig_error(path, f"object {i + 1} mesh {entry['mesh']!r} not found under {src}")
         try:
@@ -187,17 +205,57 @@ def read_objects(path: Path, src: Path, entries) -> list[tuple[str, np.ndarray, 
 
 def load_rig(src: Path, rig: str | Path | None) -> tuple[Path, dict]:
     """(path, parsed JSON object) of the rig file (`rig`, default SRC/rig.json); UserError naming it and the fix."""
-    rig_path = Path(rig) if rig is not None else src / RIG_FILE
+    rig_path = Path(rig) if rig is not None else inside(src, RIG_FILE, "the rig file", src)
     if not rig_path.is_file():
         raise UserError(f"{rig_path}: no rig file; write one (cameras, board or extrinsics, objects: "
                         "docs/annotator.md, 'Real captures in') or give it with --rig")
     try:
         spec = json.loads(rig_path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+    except (json.JSONDecodeError, UnicodeDecodeError, RecursionError) as exc:
         raise _rig_error(rig_path, f"unreadable JSON ({exc})") from None
     if not isinstance(spec, dict):
         raise _rig_error(rig_path, 'expected {"cameras": {"front": {...}, "back": {...}}, "objects": [...], ...}')
+    if not isinstance(spec.get("name", ""), str):
+        raise _rig_error(rig_path, f"'name' must be a string (the capture's name), got {json.dumps(spec['name'])[:40]}")
     return rig_path, spec
+
+
+def default_file(src: Path, given: str | Path | None, name: str, what: str) -> Path:
+    """The file given on the command line, or SRC/`name` checked to stay inside SRC (not a link out of it)."""
+    return Path(given) if given is not None else inside(src, name, what, src)
+
+
+def check_out(out: Path, overwrite: bool) -> None:
+    """Refuse (one line) an existing `out` without --overwrite, and an `out` that cannot be written (the capture is
+    written as a temporary directory beside it, then renamed over it), before any work."""
+    if out.exists() and not overwrite:
+        raise UserError(f"{out} already exists; pass --overwrite to replace it or choose another --out")
+    check_writable(out, "--out")
+    if out.exists():
+        check_writable(out.parent, "--out")
+
+
+def board_images(rig_path: Path, src: Path, spec: dict, names: list[str]) -> dict[str, dict[str, Path]]:
+    """The rig file's board "images" per camera ({"color": path, "depth": path}, depth optional), each a file inside
+    SRC; {} without a board or images. Checked before any image is read."""
+    images = spec["board"].get("images") if isinstance(spec.get("board"), dict) else None
+    if not images:
+        return {}
+    hint = 'give {"color": PATH, "depth": PATH} (depth optional) or a colour image PATH, relative to the folder'
+    if not isinstance(images, dict) or any(n not in names for n in images):
+        raise _rig_error(rig_path, f"board images must map the rig's cameras ({', '.join(names)}) to images; {hint}")
+    out = {}
+    for n, given in images.items():
+        given = given if isinstance(given, dict) else {"color": given}
+        if "color" not in given or any(kind not in ("color", "depth") for kind in given):
+            raise _rig_error(rig_path, f"board images of camera {n!r}: {hint}")
+        out[n] = {kind: inside(src, rel, f"board image {kind!r} of camera {n!r}", rig_path)
+                  for kind, rel in given.items()}
+        for kind, path in out[n].items():
+            if not path.is_file():
+                raise _rig_error(rig_path, f"board image {kind!r}: {given[kind]!r} of camera {n!r} is not a file "
+                                           f"under {src}; {hint}")
+    return out
 
 
 def calibrate_cameras(rig_path: Path, spec: dict, cameras: dict[str, CaptureCamera], given: dict[str, bool],
@@ -233,10 +291,11 @@ def import_capture(src: str | Path, out: str | Path, *, rig: str | Path | None =
                    name: str | None = None, overwrite: bool = False) -> tuple[Path, dict]:
     """Import SRC, a folder of step PNGs (`import_png_folder`) or of RealSense bags (`annotator.realsense`), into the
     capture directory `out`; returns (out, calibration report)."""
-    src = Path(src)
+    src, out = Path(src), Path(out)
     if not src.is_dir():
         raise UserError(f"{src}: no such folder; give the folder of <camera>_color_<N>.png / _depth_<N>.png images or "
                         "of front.bag / back.bag recordings")
+    check_out(out, overwrite)
     has_bags = any(src.glob("*.bag"))
     has_pngs = any(IMAGE_PATTERN.match(p.name) for p in src.iterdir())
     if has_bags and has_pngs:
@@ -265,8 +324,7 @@ def import_png_folder(src: str | Path, out: str | Path, *, rig: str | Path | Non
     src, out = Path(src), Path(out)
     if not src.is_dir():
         raise UserError(f"{src}: no such folder; give the folder of <camera>_color_<N>.png / _depth_<N>.png images")
-    if out.exists() and not overwrite:
-        raise UserError(f"{out} already exists; pass --overwrite to replace it or choose another --out")
+    check_out(out, overwrite)
     rig_path, spec = load_rig(src, rig)
     if not isinstance(spec.get("cameras"), dict):
         raise _rig_error(rig_path, 'expected {"cameras": {"front": {...}, "back": {...}}, "objects": [...], ...}')
@@ -280,8 +338,9 @@ def import_png_folder(src: str | Path, out: str | Path, *, rig: str | Path | Non
     for n in names:
         cameras[n], distortion[n], given[n] = read_camera(rig_path, n, spec["cameras"][n])
     objects = read_objects(rig_path, src, spec.get("objects"))
+    board_files = board_images(rig_path, src, spec, names)
     steps, files = find_steps(src, names)
-    actions, pushes_world = read_pushes(Path(pushes) if pushes is not None else src / PUSHES_FILE, len(steps) - 1)
+    actions, pushes_world = read_pushes(default_file(src, pushes, PUSHES_FILE, "the push log"), len(steps) - 1)
 
     maps = {n: undistort_maps(cameras[n], distortion[n]) for n in names if distortion[n] is not None}
 
@@ -294,18 +353,11 @@ def import_png_folder(src: str | Path, out: str | Path, *, rig: str | Path | Non
                for n in names} for s in steps]
 
     def board_image(n: str) -> tuple[str, np.ndarray, np.ndarray]:
-        images = spec["board"].get("images", {}) or {}
-        if n not in images:
+        if n not in board_files:
             return str(files[(n, "color", steps[0])]), colors[0][n], depths[0][n]
-        given_files = images[n] if isinstance(images[n], dict) else {"color": images[n]}
-        for kind, rel in given_files.items():
-            if kind not in ("color", "depth") or not (src / str(rel)).is_file():
-                raise _rig_error(rig_path, f"board image {kind!r}: {rel!r} of camera {n!r} is not a file under {src}; "
-                                           'give {"color": PATH, "depth": PATH} (depth optional) or a colour image '
-                                           "PATH")
-        path = src / str(given_files["color"])
-        depth = (load(n, "depth", src / str(given_files["depth"])).astype(np.float64) * cameras[n].depth_scale
-                 if "depth" in given_files else np.zeros((cameras[n].height, cameras[n].width)))
+        path = board_files[n]["color"]
+        depth = (load(n, "depth", board_files[n]["depth"]).astype(np.float64) * cameras[n].depth_scale
+                 if "depth" in board_files[n] else np.zeros((cameras[n].height, cameras[n].width)))
         return str(path), load(n, "color", path), depth
 
     report = calibrate_cameras(rig_path, spec, cameras, given, board_image)

@@ -34,12 +34,11 @@ def _fail(path: Path, message: str) -> UserError:
 
 def pose_matrix(path: Path, where: str, value) -> np.ndarray:
     """A 4x4 object-to-table pose from a JSON value (4 rows of 4 numbers), checked (UserError naming `where`)."""
-    try:
-        m = np.asarray(value, dtype=np.float64)
-    except (TypeError, ValueError):
-        m = np.zeros(0)
-    if m.shape != (4, 4) or not np.all(np.isfinite(m)):
+    from annotator.inputs import numbers
+
+    if not numbers(value, (4, 4)):  # JSON numbers: true or "0.5" is refused, not converted
         raise _fail(path, f"{where}: a pose must be 4 rows of 4 finite numbers (object -> table, metres)")
+    m = np.asarray(value, dtype=np.float64)
     rot = m[:3, :3]
     if not np.allclose(m[3], [0, 0, 0, 1]):
         raise _fail(path, f"{where}: the pose's last row must be [0, 0, 0, 1]")
@@ -68,7 +67,7 @@ def read_placements(path: str | Path, session) -> dict[int, tuple[str, object]]:
         data = json.loads(path.read_text())
     except FileNotFoundError:
         raise UserError(f"--place {path}: no such file; give the JSON file of step 0's poses or picks") from None
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError, RecursionError) as exc:
         raise _fail(path, f"unreadable JSON ({exc})") from None
     objects = data.get("objects") if isinstance(data, dict) else None
     if not isinstance(objects, dict) or not objects:
@@ -82,12 +81,13 @@ def read_placements(path: str | Path, session) -> dict[int, tuple[str, object]]:
         if isinstance(value, dict):
             if set(value) != {"mesh", "cloud"}:
                 raise _fail(path, f"{where}: picks must be {{\"mesh\": [[x, y, z], ...], \"cloud\": [[x, y, z], ...]}}")
-            try:
-                mesh, cloud = (np.asarray(value[k], dtype=np.float64) for k in ("mesh", "cloud"))
-            except (TypeError, ValueError):
-                mesh = cloud = np.zeros(0)
-            if mesh.ndim != 2 or cloud.ndim != 2 or mesh.shape[1:] != (3,) or cloud.shape[1:] != (3,):
-                raise _fail(path, f"{where}: mesh and cloud must be lists of [x, y, z] points (metres)")
+            from annotator.inputs import numbers
+
+            if not all(isinstance(value[k], list) and value[k] and all(numbers(p, (3,)) for p in value[k])
+                       for k in ("mesh", "cloud")):
+                raise _fail(path, f"{where}: mesh and cloud must be lists of [x, y, z] points (finite numbers, "
+                                  "metres)")
+            mesh, cloud = (np.asarray(value[k], dtype=np.float64) for k in ("mesh", "cloud"))
             out[obj] = ("picks", (mesh, cloud))
         else:
             out[obj] = ("pose", pose_matrix(path, where, value))

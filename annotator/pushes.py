@@ -71,13 +71,12 @@ def push_to_action(start_xy, direction_xy, tolerance_deg: float = DIRECTION_TOLE
 
 
 def _vector(path: Path, where: str, value, size: int) -> np.ndarray:
-    try:
-        v = np.asarray(value, dtype=np.float64)
-    except (TypeError, ValueError):
-        v = np.zeros(0)
-    if v.shape != (size,) or not np.all(np.isfinite(v)):
+    """`size` finite JSON numbers (not true / false, not strings such as "0.4")."""
+    from annotator.inputs import numbers
+
+    if not numbers(value, (size,)):
         raise _fail(path, f"{where} must be {size} finite numbers")
-    return v
+    return np.asarray(value, dtype=np.float64)
 
 
 def read_pushes(path: str | Path, num_pushes: int, tolerance_deg: float = DIRECTION_TOLERANCE_DEG
@@ -91,7 +90,7 @@ def read_pushes(path: str | Path, num_pushes: int, tolerance_deg: float = DIRECT
                           "\"direction\": [dx, dy]}, ...]} (docs/annotator.md)")
     try:
         data = json.loads(path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+    except (json.JSONDecodeError, UnicodeDecodeError, RecursionError) as exc:
         raise _fail(path, f"unreadable JSON ({exc}); fix the file") from None
     entries = data.get("pushes") if isinstance(data, dict) else None
     if not isinstance(entries, list):

@@ -37,6 +37,7 @@ from pathlib import Path
 
 import numpy as np
 
+from annotator.inputs import MAX_IMAGE_SIDE, finite, image_side, is_number, numbers, resolved_inside
 from dsr_bench.errors import UserError
 
 #: A step's colour frame must lie this close (ms) to the step time, and its depth frame this close to the colour.
@@ -301,6 +302,10 @@ def _stream_info(reader, connections: dict, path: Path, prefix: str, what: str) 
     if not (k[0, 0] > 0 and k[1, 1] > 0 and msg.width > 0 and msg.height > 0 and np.all(np.isfinite(k))):
         raise _bag_error(path, f"the {what} stream's camera_info ({conn.topic}) has no intrinsics (K "
                                f"{k.ravel().tolist()}, {msg.width}x{msg.height}); re-record with a calibrated camera")
+    if not (image_side(int(msg.width)) and image_side(int(msg.height))):
+        raise _bag_error(path, f"the {what} stream's camera_info ({conn.topic}) declares {msg.width}x{msg.height} "
+                               f"pixels, over the {MAX_IMAGE_SIDE} px per side this importer takes; record at a "
+                               "RealSense resolution")
     k[0, 1], k[1, 0], k[2] = 0.0, 0.0, (0.0, 0.0, 1.0)
     return StreamInfo(int(msg.width), int(msg.height), k, model, coeffs)
 
@@ -382,6 +387,12 @@ def _decode(msg, stream: Stream, path: Path, kind: str) -> np.ndarray:
         raise _bag_error(path, f"a {kind} frame of {stream.topic} is {msg.width}x{msg.height}, its camera_info "
                                f"{info.width}x{info.height}; re-record without changing the resolution")
     data = np.frombuffer(bytes(msg.data), np.uint8)
+    known = encoding in COLOR_ENCODINGS if kind == "colour" else encoding in DEPTH_ENCODINGS  # else refused below
+    row = info.width * (COLOR_ENCODINGS[encoding][0] if kind == "colour" and known else 2)
+    if known and (not row <= int(msg.step) <= row * 4 or len(data) != info.height * int(msg.step)):
+        raise _bag_error(path, f"a {kind} frame of {stream.topic} holds {len(data)} bytes in rows of {msg.step}, not "
+                               f"{info.height} rows of at least {row} bytes ({info.width}x{info.height} {encoding}); "
+                               "re-record the camera")
     if kind == "colour":
         if encoding not in COLOR_ENCODINGS:
             raise _bag_error(path, f"colour encoding {encoding!r} of {stream.topic} is not one of "
@@ -424,8 +435,11 @@ def _times(path: Path, key: str, value, names: list[str], count: int | None) -> 
                         "for all cameras or one per bag")
     out = {}
     for n in names:
+        value = per[n]
         try:
-            t = np.asarray(per[n], np.float64).reshape(-1 if count is None else count)
+            if not (finite(value) or isinstance(value, list) and all(is_number(v) for v in value)):
+                raise TypeError("not JSON numbers")
+            t = np.asarray(value, np.float64).reshape(-1 if count is None else count)
         except (TypeError, ValueError):
             what = "a list of times (s)" if count is None else "one time (s)"
             raise UserError(f"--steps {path}: {key}{'' if len(per) == 1 else f' of {n}'} must be {what}, e.g. "
@@ -447,7 +461,7 @@ def read_step_times(path: Path, names: list[str]) -> tuple[dict[str, np.ndarray]
                         '{"step_times": [t0, t1, ...]} (' + _HINT + ")")
     try:
         data = json.loads(path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+    except (json.JSONDecodeError, UnicodeDecodeError, RecursionError) as exc:
         raise UserError(f"--steps {path}: unreadable JSON ({exc}); fix the file") from None
     if not isinstance(data, dict) or "step_times" not in data:
         raise UserError(f'--steps {path}: expected {{"step_times": [t0, t1, ...]}} (s, the bags\' header stamps; or '
@@ -535,7 +549,7 @@ def find_bags(src: Path) -> dict[str, Path]:
     optional, nothing else."""
     from annotator.importer import CAMERA_NAMES
 
-    bags = {p.stem: p for p in sorted(src.glob("*" + BAG_SUFFIX))}
+    bags = {p.stem: resolved_inside(src, p, "recording", src) for p in sorted(src.glob("*" + BAG_SUFFIX))}
     bad = [n for n in bags if n not in CAMERA_NAMES]
     if bad or "front" not in bags:
         listed = ", ".join(p.name for p in bags.values())
@@ -550,13 +564,12 @@ def import_bags(src: str | Path, out: str | Path, *, rig: str | Path | None = No
                 overwrite: bool = False) -> tuple[Path, dict]:
     """Import SRC's RealSense bags (module docstring) into the capture directory `out`; returns (out, calibration
     report). Everything is read and checked first (one-line UserErrors), then written at once."""
-    from annotator.importer import PUSHES_FILE, calibrate_cameras, load_rig, read_objects
+    from annotator.importer import PUSHES_FILE, calibrate_cameras, check_out, default_file, load_rig, read_objects
     from annotator.pushes import read_pushes
     from dsr_bench.dataset.capture import parse_camera, write_capture
 
     src, out = Path(src), Path(out)
-    if out.exists() and not overwrite:
-        raise UserError(f"{out} already exists; pass --overwrite to replace it or choose another --out")
+    check_out(out, overwrite)
     if not (math.isfinite(max_gap_ms) and max_gap_ms > 0):
         raise UserError(f"--max-gap-ms {max_gap_ms} must be a positive number of milliseconds")
     bags = find_bags(src)
@@ -572,14 +585,17 @@ def import_bags(src: str | Path, out: str | Path, *, rig: str | Path | None = No
             raise UserError(f"{rig_path}: camera {n!r} gives {', '.join(extra)}, but with bags the intrinsics, "
                             f"distortion and depth scale come from {bags[n].name}: keep only \"extrinsics\" (4x4 "
                             "camera-to-table, m)")
+        if entry.get("extrinsics") is not None and not numbers(entry["extrinsics"], (4, 4)):
+            raise UserError(f"{rig_path}: camera {n!r} extrinsics must be a 4x4 matrix of numbers (camera-to-table, "
+                            f"metres, row-major); see {_HINT}")
     if isinstance(spec.get("board"), dict) and spec["board"].get("images"):
         raise UserError(f"{rig_path}: board \"images\" are PNGs of the folder form; with bags give \"board_time\" (s) "
                         "in the steps file (the board alone on the table), or let the first step's frames be used")
     objects = read_objects(rig_path, src, spec.get("objects"))
-    steps_path = Path(steps) if steps is not None else src / STEPS_FILE
+    steps_path = default_file(src, steps, STEPS_FILE, "the steps file")
     step_times, board_times = read_step_times(steps_path, names)
     count = len(step_times["front"])
-    actions, pushes_world = read_pushes(Path(pushes) if pushes is not None else src / PUSHES_FILE, count - 1)
+    actions, pushes_world = read_pushes(default_file(src, pushes, PUSHES_FILE, "the push log"), count - 1)
 
     recordings = {n: open_recording(bags[n], n) for n in names}
     gap = max_gap_ms / 1000
