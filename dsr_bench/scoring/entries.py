@@ -129,7 +129,18 @@ def check_plan_entry(results: dict) -> list[str]:
     and complete."""
     from dsr_bench.planning.verify import check_results
 
-    p = check_results(results)
+    wrong = [k for k in ("method", "task_set", "split", "task_checksum", "split_checksum") if not isinstance(
+        results.get(k), str)]
+    if wrong:  # what check_results looks up by
+        return [f"{wrong[0]} is {show(results.get(wrong[0]))}, not a string; produce the results with `dsr-bench plan`"]
+    try:
+        p = check_results(results)
+    except (TypeError, ValueError, AttributeError, KeyError) as exc:  # a file the checker cannot read is not valid
+        return [f"malformed planning results ({type(exc).__name__}: {' '.join(str(exc).split())[:80]})"]
+    grid = (results.get("planner") or {}).get("grid") if isinstance(results.get("planner"), dict) else None
+    if grid is not None and not (isinstance(grid, list) and len(grid) == 3 and all(
+            isinstance(g, int) and not isinstance(g, bool) and g > 0 for g in grid)):
+        p.append(f"planner.grid is {show(grid)}, not a list of 3 positive integers")
     if results.get("pinned") is not True:
         p.append("its task set is not this toolkit's pinned one (pinned is not true); plan on a pinned task set "
                  "(`dsr-bench generate-plan-tasks --tasks plan-novel-test`)")
