@@ -176,17 +176,20 @@ def test_names_never_collide_and_are_escaped_in_the_tables(pinned, root, tmp_pat
     legacy = reference.rename(root / "entries" / "static-procedural-novel-mini.json")  # the repository's naming
     kept = legacy.read_bytes()
     hostile = "a|b <img src=x onerror=alert(1)>\n**0.999**"
-    for name, pred in (("Static!", static), ("static", pinned.parent / "oracle"), (hostile, static)):
+    for name, pred in (("Static!", static), (hostile, static)):
         rc, out, err = _add(root, _results(pred, pinned, name=name), tmp_path, capsys)
         assert rc == 0 and out.startswith("added "), err
+    # a reference row's name on other predictions: the no-motion yardstick would be spoofed
+    rc, out, err = _add(root, _results(pinned.parent / "oracle", pinned, name="static"), tmp_path, capsys)
+    assert rc == 2 and "named like the reference row 'static'" in err and len(err.strip().splitlines()) == 1
     assert legacy.read_bytes() == kept  # never overwritten by another method, nor by `static` on other predictions
-    assert len(list((root / "entries").iterdir())) == 4
+    assert len(list((root / "entries").iterdir())) == 3
     rc, out, _ = _add(root, _results(static, pinned), tmp_path, capsys, "--label", "reference (no training)")
     assert rc == 0 and out.startswith(f"replaced {legacy}")  # the same method, split and predictions: its own file
     md = (root / "README.md").read_text()
     table = md.split(f"## {SPLIT}: 3D track (reproduced)")[1].split("## ")[0]
     rows = [line for line in table.splitlines() if line.startswith("| ")]
-    assert len(rows) == 1 + 4 and len({line.replace("\\|", "").count("|") for line in rows}) == 1  # cells intact
+    assert len(rows) == 1 + 3 and len({line.replace("\\|", "").count("|") for line in rows}) == 1  # cells intact
     row = next(line for line in rows if "onerror" in line)
     assert row.startswith("| a\\|b &lt;img src=x onerror=alert(1)&gt; \\*\\*0.999\\*\\* |") and "<img" not in md
     assert "<img src=x" not in (root / "index.html").read_text()

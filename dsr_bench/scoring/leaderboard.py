@@ -24,6 +24,7 @@ from pathlib import Path
 from dsr_bench.atomic import write_text
 from dsr_bench.constants import GRID_SHAPE, IMAGE_SHAPE
 from dsr_bench.errors import UserError
+from dsr_bench.models.predictors import REFERENCE_MODELS
 from dsr_bench.scoring.entries import (PLAN_RESULTS_FORMAT, RESULTS_FORMAT, check_entry, entry_identity,
                                        entry_name, first_difference, is_2d_only, markdown_cell, show)
 
@@ -106,7 +107,45 @@ def _recompute_predictions(path: Path, submitted: dict, predictions, data, root:
         raise UserError(f"{path} cannot join the leaderboard: recomputed on {data}, its results are not pinned: {why}")
     if results["coverage"]["partial"]:
         raise UserError(f"{path} cannot join the leaderboard: the predictions cover only part of {split}")
+    reference = reference_model(results["method"])
+    if reference is not None:
+        check_reference_predictions(path, predictions, data, split, reference)
     return results
+
+
+#: the reference rows' methods, made by `dsr-bench predict --model NAME`: a table's yardsticks (static: the no-motion
+#: row every trained row is compared with), so a submission may carry such a name only with those very predictions
+REFERENCE_ROWS = REFERENCE_MODELS
+
+
+def reference_model(method: str) -> str | None:
+    """The reference model a method's name claims to be (case, spaces and punctuation aside), or None."""
+    name = re.sub(r"[^a-z0-9]", "", str(method).lower())
+    return name if name in REFERENCE_ROWS else None
+
+
+def check_reference_predictions(path: Path, predictions: Path, data: Path, split: str, model: str) -> None:
+    """UserError unless every prediction file holds exactly the arrays `dsr-bench predict --model MODEL` writes for
+    it (predicted again here): a reference row's name is the toolkit's to give, never a submitter's."""
+    import tempfile
+
+    import h5py
+    import numpy as np
+
+    from dsr_bench.dataset.manifest import read_split
+    from dsr_bench.models.predictors import load_predictor, predict_split
+
+    _, names = read_split(data, split)
+    with tempfile.TemporaryDirectory(prefix="dsr-bench-reference-") as tmp:
+        predict_split(load_predictor(model), data, names, tmp)
+        for name in names:
+            with h5py.File(Path(tmp) / f"{name}.h5", "r") as want, h5py.File(predictions / f"{name}.h5", "r") as got:
+                same = set(want) == set(got) and want.attrs.get("num_slots") == got.attrs.get("num_slots") and all(
+                    want[k].dtype == got[k].dtype and np.array_equal(want[k][()], got[k][()]) for k in want)
+            if not same:
+                raise UserError(f"{path}: its method is named like the reference row {model!r}, but "
+                                f"{predictions / (name + '.h5')} is not what `dsr-bench predict --model {model}` writes; "
+                                "give your method another name (meta.json's name)")
 
 
 def _recompute_plans(path: Path, plans, tasks, root: Path) -> dict:
