@@ -187,3 +187,14 @@ def test_every_shipped_pin_holds_the_scored_digests():
             assert scored is not None, f"{split}/{name} has no scored digests"
             assert {"objects", "mask_3d", "tsdf", "scene_flow_3d", "visible_fraction"} <= set(scored), (split, name)
             assert all(len(v) == 32 for v in scored.values())
+
+
+def test_an_entry_must_name_the_pinned_ground_truth_it_was_scored_on(clean, pinned, capsys, tmp_path):
+    """An entry's ground_truth_sha256 is checked against the pin's scored digests (by `add` and by `build`), so an
+    entry cannot claim the pinned split while holding the digest of other ground truth."""
+    from dsr_bench.scoring.entries import check_entry
+
+    results, _ = _evaluate(clean, pinned, capsys, tmp_path / "r.json")
+    assert check_entry(results) == []
+    forged = {**results, "ground_truth_sha256": "0" * 64}
+    assert any("ground_truth_sha256 is not that of the pinned" in p for p in check_entry(forged))

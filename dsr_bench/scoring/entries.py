@@ -340,6 +340,12 @@ def _check_split(r: dict) -> list[str]:
     seqs = r.get("per_sequence")
     if names and isinstance(seqs, dict) and set(seqs) != set(names):
         p.append(f"per_sequence names sequences that are not those of {split}")
+    if names and isinstance(r.get("ground_truth_sha256"), str) and isinstance(r.get("metrics"), dict):
+        from dsr_bench.scoring.evaluate import expected_scored_checksum
+
+        want = expected_scored_checksum(split, r["metrics"], sorted(names))
+        if want is not None and r["ground_truth_sha256"] != want:
+            p.append(f"ground_truth_sha256 is not that of the pinned {split}'s ground truth (the scored digests this toolkit pins)")
     return p
 
 

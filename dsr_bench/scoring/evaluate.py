@@ -329,6 +329,27 @@ def predictions_checksum(pred_dir: Path, names: list[str]) -> str:
     return checksum_of({name: file_sha256(pred_dir / f"{name}.h5") for name in names})
 
 
+def scored_fields(metrics: Mapping[str, float]) -> tuple[str, ...]:
+    """The scored ground-truth inputs (`dsr_bench.dataset.scored`) behind a results' metrics: the 3D ones for the
+    3D metrics, the 2D ones where the 2D flow is scored; what `ground_truth_sha256` covers."""
+    three_d = ("objects", "mask_3d", "tsdf", "scene_flow_3d", "visible_fraction") if "motion_full" in metrics else ()
+    two_d = ("objects", "mask_2d", "scene_flow_2d") if "motion_2d" in metrics else ()
+    return tuple(dict.fromkeys(three_d + two_d))
+
+
+def expected_scored_checksum(split: str, metrics: Mapping[str, float], names) -> str | None:
+    """The `ground_truth_sha256` that results with these metrics on the pinned sequences `names` of `split` have,
+    from the toolkit's pin; None where the pin holds no scored digests for them."""
+    from dsr_bench.dataset.splits import pinned_digests
+
+    sequences = (pinned_digests().get(split) or {}).get("sequences") or {}
+    fields = scored_fields(metrics)
+    if not all("scored" in sequences.get(name, {}) for name in names):
+        return None
+    return scored_checksum({name: {f: sequences[name]["scored"][f] for f in fields if f in sequences[name]["scored"]}
+                            for name in names})
+
+
 def scored_checksum(truth: Mapping[str, Mapping[str, str]]) -> str:
     """SHA-256 over the sorted lines `name:{field: digest}` (canonical JSON) of the scored sequences' recomputed
     ground-truth digests (`dsr_bench.dataset.scored`): what the results were scored against."""
@@ -380,15 +401,18 @@ def evaluate(pred_dir: str | Path, data_dir: str | Path, split: str | None = Non
         return evaluation
     meta = read_meta(pred_dir)[0]
     files = {name: file_sha256(pred_dir / f"{name}.h5") for name in sorted(scored)}
+    scores = aggregate(scored)
+    fields = scored_fields(scores["metrics"])
     results = {
         "format": RESULTS_FORMAT, "version": 1, "method": meta.get("name", pred_dir.name), "meta": meta,
         "split": split, "split_checksum": split_digest(manifest, split),
         "pinned": warning is None and verified and _pinned(manifest, split),
-        "ground_truth_verified": verified, "ground_truth_sha256": scored_checksum(truth),
+        "ground_truth_verified": verified,
+        "ground_truth_sha256": scored_checksum({name: {f: d[f] for f in fields if f in d} for name, d in truth.items()}),
         "predictions_checksum": checksum_of(files), "predictions_sha256": files,
         "toolkit_version": __version__, "date": dt.datetime.now(dt.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ"),
         "coverage": {"scored": len(scored), "expected": len(names), "partial": len(scored) < len(names)},
-        **aggregate(scored),
+        **scores,
     }
     evaluation.results = results
     return evaluation
