@@ -16,7 +16,7 @@ from pathlib import Path
 
 from dsr_bench.dataset.checks import (  # noqa: F401 - the per-sequence checks, importable from here as before
     FLOW_TOLERANCE, MASK_WARP_IOU, MIN_WARP_VOXELS, TSDF_SIGN_AGREEMENT, action_problems, content_problems,
-    mask_warp_iou, official_flow_bound, rotation_angle,
+    OFFICIAL_POSE_DRIFT, mask_warp_iou, rotation_angle, rounding_excess,
 )
 
 
