@@ -106,3 +106,24 @@ def test_nothing_scorable_with_allow_partial_does_not_advise_allow_partial(data,
     text = captured.out + captured.err
     assert "mixed submission" in text and "no sequence could be scored" in text
     assert "with --allow-partial" not in text
+
+
+def test_an_unwritable_leaderboard_is_refused_before_recomputing(tmp_path, immutable, capsys, monkeypatch):
+    """`leaderboard add --root` into an immutable leaderboard: one line, exit 2, before the predictions are scored."""
+    import json
+
+    import dsr_bench.scoring.evaluate as evaluate_module
+    from helpers import pin_split
+
+    data = write_synthetic_dataset(tmp_path / "data", num_sequences=1, num_steps=1, split="procedural-novel-mini")
+    pin_split(monkeypatch, data, "procedural-novel-mini")
+    pred = tmp_path / "static"
+    assert main(["predict", "--model", "static", "--data", str(data), "--out", str(pred)]) == 0
+    results = tmp_path / "results.json"
+    assert main(["evaluate", str(pred), "--out", str(results), "--workers", "1"]) == 0
+    assert json.loads(results.read_text())["pinned"] is True
+    monkeypatch.setattr(evaluate_module, "evaluate", lambda *a, **k: pytest.fail("scored before checking --root"))
+    err = _one_line_refusal(capsys, ["leaderboard", "add", str(results), "--predictions", str(pred),
+                                     "--root", str(immutable)])
+    assert f"--root {immutable / 'entries'}" in err and "cannot create files in" in err
+    assert list(immutable.iterdir()) == []
