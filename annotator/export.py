@@ -100,8 +100,8 @@ def export_sequence(session, out: str | Path, allow_unchecked: bool = False) -> 
     Refuses (UserError listing them) while any object at any step is not 'snapped' or 'confirmed', unless
     `allow_unchecked` (objects still 'unset' are refused always: they have no pose).
     """
-    from dsr_bench import __version__
-    from dsr_bench.constants import AXIS_ORDER, FLOW_COMPONENTS, GRID_BOUNDS, GRID_SHAPE, IMAGE_SHAPE, VOXEL_SIZE
+    from dsr_bench.constants import GRID_SHAPE, IMAGE_SHAPE
+    from dsr_bench.dataset.schema import sequence_header
     from dsr_bench.geometry.groundtruth import rigid_scene_flow_2d, rigid_scene_flow_3d
     from dsr_bench.dataset.digests import digest_attrs
     from dsr_bench.dataset.sequence import write_sequence
@@ -171,20 +171,15 @@ def export_sequence(session, out: str | Path, allow_unchecked: bool = False) -> 
         "action_counts": session.action_counts, "unchecked_allowed": bool(allow_unchecked and bad),
         "calibration": {name: cam.as_json() for name, cam in capture.cameras.items()},
     }
-    attrs = {
-        "sequence": capture.name, "seed": -1, "num_steps": steps, "num_objects": n,
-        "object_set": sets.pop() if len(sets) == 1 and "" not in sets else "annotated",
-        "policy": str(capture.source.get("policy", "recorded")),
-        "generator_args": {"annotator": ANNOTATOR_VERSION, "capture": capture.name},
-        "toolkit_version": __version__, "source": "annotated", "grid_bounds": GRID_BOUNDS.tolist(),
-        "grid_shape": list(GRID_SHAPE), "voxel_size": VOXEL_SIZE, "axis_order": AXIS_ORDER,
-        "flow_components": FLOW_COMPONENTS, "objects": identities,
-        "cameras": {"front": {"height": h, "width": w, "intrinsics": np.asarray(front.intrinsics).tolist(),
-                              "extrinsics": np.asarray(front.extrinsics).tolist(),
-                              "convention": "opencv, camera-to-world"}},
-        "tsdf_image_shape": [full.height, full.width], "annotation": annotation,
-        "mesh_frames": "capture mesh frames; poses map object frame -> world (table) frame",
-    }
+    attrs = sequence_header(
+        sequence=capture.name, seed=-1, num_steps=steps, num_objects=n,
+        object_set=sets.pop() if len(sets) == 1 and "" not in sets else "annotated",
+        policy=str(capture.source.get("policy", "recorded")),
+        generator_args={"annotator": ANNOTATOR_VERSION, "capture": capture.name}, source="annotated",
+        objects=identities, cameras={"front": front},
+        tsdf_image_shape=[full.height, full.width], annotation=annotation,
+        mesh_frames="capture mesh frames; poses map object frame -> world (table) frame",
+    )
     attrs.update(digest_attrs(arrays, identities))
     meshes = {i: capture.mesh(i) for i in range(n)}
     return write_sequence(out, arrays, attrs, meshes)

@@ -12,8 +12,8 @@ from pathlib import Path
 
 import numpy as np
 
-from dsr_bench import __version__
-from dsr_bench.constants import AXIS_ORDER, FLOW_COMPONENTS, GRID_BOUNDS, GRID_SHAPE, IMAGE_SHAPE, VOXEL_SIZE
+from dsr_bench.constants import GRID_SHAPE, IMAGE_SHAPE, VOXEL_SIZE
+from dsr_bench.dataset.schema import sequence_header
 from dsr_bench.geometry import make_camera, pixel_to_world, pose_to_matrix, voxel_points, world_to_pixel
 from dsr_bench.geometry.groundtruth import rigid_scene_flow_2d, rigid_scene_flow_3d
 from dsr_bench.dataset.sequence import write_sequence
@@ -135,15 +135,11 @@ def synthetic_arrays(num_steps: int = 3, num_objects: int = 2, seed: int = 0):
     }
     objects = [{"set": "synthetic", "category": "box", "model_id": f"box_{i}", "scale": 1.0,
                 "mesh_sha256": "", "half_extents": halves[i].tolist()} for i in range(num_objects)]
-    attrs = {
-        "sequence": f"synthetic_{seed:04d}", "seed": seed, "num_steps": num_steps, "num_objects": num_objects,
-        "object_set": "synthetic", "policy": "scripted", "generator_args": {"seed": seed, "steps": num_steps},
-        "toolkit_version": __version__, "source": "synthetic", "grid_bounds": GRID_BOUNDS.tolist(),
-        "grid_shape": list(GRID_SHAPE), "voxel_size": VOXEL_SIZE, "axis_order": AXIS_ORDER,
-        "flow_components": FLOW_COMPONENTS, "objects": objects,
-        "cameras": {"front": {"height": front.height, "width": front.width, "intrinsics": front.intrinsics.tolist(),
-                              "extrinsics": front.extrinsics.tolist(), "convention": "opencv, camera-to-world"}},
-    }
+    attrs = sequence_header(
+        sequence=f"synthetic_{seed:04d}", seed=seed, num_steps=num_steps, num_objects=num_objects,
+        object_set="synthetic", policy="scripted", generator_args={"seed": seed, "steps": num_steps},
+        source="synthetic", objects=objects, cameras={"front": front},
+    )
     meshes = {i: _box_mesh(halves[i]) for i in range(num_objects)}
     return arrays, attrs, meshes
 

@@ -12,12 +12,9 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
-from dsr_bench import __version__
 from dsr_bench.constants import (
-    AXIS_ORDER,
     DEFAULT_OBJECTS_PER_SCENE,
     DEFAULT_STEPS,
-    FLOW_COMPONENTS,
     GRID_BOUNDS,
     GRID_SHAPE,
     MIN_LARGE_SEPARATION,
@@ -25,9 +22,9 @@ from dsr_bench.constants import (
     MIN_VISIBLE_FRACTION,
     PUSH_TRAVEL,
     TSDF_IMAGE_SHAPE,
-    VOXEL_SIZE,
     WORKSPACE_CENTER,
 )
+from dsr_bench.dataset.schema import sequence_header
 from dsr_bench.geometry import direction_vector, pose_to_matrix, transform_points, world_to_pixel
 from dsr_bench.geometry.groundtruth import rigid_scene_flow_2d, rigid_scene_flow_3d
 
@@ -124,14 +121,6 @@ def drop_poses(rng: np.random.Generator, specs) -> np.ndarray:
     return poses
 
 
-def _camera_attrs(renderer) -> dict:
-    return {
-        name: {"height": cam.height, "width": cam.width, "intrinsics": cam.intrinsics.tolist(),
-               "extrinsics": cam.extrinsics.tolist(), "convention": "opencv, camera-to-world"}
-        for name, cam in renderer.cameras.items()
-    }
-
-
 def generate_episode(config: EpisodeConfig, object_set, seed: int, name: str) -> Episode:
     """Simulate and observe one sequence from its seed; raise SceneRejected if no scene works."""
     import time
@@ -195,16 +184,14 @@ def generate_episode(config: EpisodeConfig, object_set, seed: int, name: str) ->
             world.close()
         arrays = _assemble(observations, np.stack(poses), decisions, pushes, renderer)
         meshes = {i: spec.mesh() for i, spec in enumerate(specs)} if config.objects not in ("shapenet", "ycb") else {}
-        attrs = {
-            "sequence": name, "seed": int(seed), "num_steps": config.steps, "num_objects": len(specs),
-            "object_set": config.objects, "policy": config.policy, "generator_args": config.as_attrs(),
-            "toolkit_version": __version__, "pybullet_version": int(import_pybullet().getAPIVersion()),
-            "source": "simulation", "grid_bounds": GRID_BOUNDS.tolist(), "grid_shape": list(GRID_SHAPE),
-            "voxel_size": VOXEL_SIZE, "axis_order": AXIS_ORDER, "flow_components": FLOW_COMPONENTS,
-            "objects": [spec.identity() for spec in specs], "cameras": _camera_attrs(renderer),
-            "tsdf_image_shape": list(TSDF_IMAGE_SHAPE), "scene_attempts": attempt,
-            "mesh_frames": "object frame origin at the centre of mass; poses map object frame -> world",
-        }
+        attrs = sequence_header(
+            sequence=name, seed=int(seed), num_steps=config.steps, num_objects=len(specs), object_set=config.objects,
+            policy=config.policy, generator_args=config.as_attrs(), source="simulation",
+            objects=[spec.identity() for spec in specs], cameras=renderer.cameras,
+            versions={"pybullet_version": int(import_pybullet().getAPIVersion())},
+            tsdf_image_shape=list(TSDF_IMAGE_SHAPE), scene_attempts=attempt,
+            mesh_frames="object frame origin at the centre of mass; poses map object frame -> world",
+        )
         return Episode(arrays, attrs, meshes, attempt, timings)
     raise SceneRejected(f"{name}: no usable scene in {MAX_SCENE_ATTEMPTS} attempts (last: {last_reason})")
 

@@ -80,6 +80,22 @@ def test_backproject_inverts_project():
     assert np.allclose(z, 0.6) and np.allclose(uv, np.stack([u, v], -1).reshape(-1, 2))
 
 
+def test_camera_attrs_round_trip_through_json():
+    import json
+
+    from dsr_bench.geometry import Camera
+
+    cam = resized_camera(make_camera("back", 480, 640), 240, 320)
+    attrs = json.loads(json.dumps(cam.as_attrs()))  # as a sequence file stores it
+    assert attrs["convention"] == "opencv, camera-to-world" and (attrs["height"], attrs["width"]) == (240, 320)
+    back = Camera.from_attrs("back", attrs)
+    assert (back.name, back.height, back.width) == ("back", 240, 320)
+    assert type(back.height) is int and type(back.width) is int
+    assert np.array_equal(back.intrinsics, cam.intrinsics) and np.array_equal(back.extrinsics, cam.extrinsics)
+    assert back.as_attrs() == cam.as_attrs()
+    assert np.array_equal(back.ray_directions_world(), cam.ray_directions_world())
+
+
 def test_unknown_camera():
     with pytest.raises(ValueError, match="unknown camera 'side'"):
         make_camera("side", 10, 10)

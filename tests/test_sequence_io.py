@@ -9,6 +9,7 @@ import pytest
 from dsr_bench.constants import SCHEMA_VERSION
 from dsr_bench.dataset.schema import FIELDS, resolve_shape
 from dsr_bench.dataset.sequence import SequenceFormatError, SequenceReader, write_sequence
+from dsr_bench.errors import UserError
 from dsr_bench.testing import synthetic_arrays, write_synthetic_sequence
 
 
@@ -70,8 +71,32 @@ def test_reader_rejects_foreign_files(tmp_path):
         f["tsdf"] = np.zeros((2, 2, 2), np.float32)
     with pytest.raises(SequenceFormatError, match="import-official"):
         SequenceReader(official)
-    with pytest.raises(FileNotFoundError):
+    with pytest.raises(FileNotFoundError):  # callers that catch FileNotFoundError still do
         SequenceReader(tmp_path / "missing.h5")
+    with pytest.raises(UserError, match="sequence file not found: .*missing.h5; check the path"):
+        SequenceReader(tmp_path / "missing.h5")
+
+
+def test_sequence_header_is_the_required_attributes_in_order(synthetic):
+    from dsr_bench.dataset.schema import REQUIRED_ATTRS, sequence_header
+    from dsr_bench.geometry import make_camera
+
+    front = make_camera("front", 24, 32)
+    header = sequence_header(sequence="s", seed=3, num_steps=2, num_objects=1, object_set="set", policy="p",
+                             generator_args={"a": 1}, source="test", objects=[{"model_id": "m"}],
+                             cameras={"front": front}, versions={"tool_version": 7}, late=1, later=2)
+    required = [k for k in REQUIRED_ATTRS if k not in ("format", "schema_version")]
+    assert [k for k in header if k in REQUIRED_ATTRS] == required
+    keys = list(header)
+    assert keys[keys.index("toolkit_version") + 1] == "tool_version" and keys[-2:] == ["late", "later"]
+    assert header["cameras"] == {"front": front.as_attrs()} and header["grid_shape"] == [128, 128, 48]
+    with pytest.raises(ValueError, match="grid_shape"):
+        sequence_header(sequence="s", seed=3, num_steps=2, num_objects=1, object_set="set", policy="p",
+                        generator_args={}, source="test", objects=[], cameras={}, grid_shape=[1, 1, 1])
+    with SequenceReader(synthetic) as seq:  # a producer's file: the header as written, then format and version
+        written = [k for k in seq.attrs if k in REQUIRED_ATTRS]
+        assert written == ["format", "schema_version"] + required
+        assert seq.camera("front").as_attrs() == seq.cameras["front"]
 
 
 def test_reader_rejects_newer_schema(tmp_path, synthetic):

@@ -20,6 +20,7 @@ import h5py
 import numpy as np
 
 from dsr_bench.constants import GRID_SHAPE, PUSH_HEIGHT, PUSH_LENGTH
+from dsr_bench.dataset.schema import sequence_header
 from dsr_bench.errors import UserError
 
 #: name -> (shape, dtype) of each per-step dataset of the official release.
@@ -187,8 +188,6 @@ def convert_sequence(seq: OfficialSequence) -> tuple[dict, dict, dict]:
     outside 0..255, or 3D flow values that float32 cannot represent (the release's flow is
     integer-valued voxels).
     """
-    from dsr_bench import __version__
-    from dsr_bench.constants import AXIS_ORDER, FLOW_COMPONENTS, GRID_BOUNDS, VOXEL_SIZE
     from dsr_bench.geometry import direction_vector, make_camera, pixel_to_world
     from dsr_bench.geometry.tsdf import integrate_tsdf
 
@@ -274,20 +273,15 @@ def convert_sequence(seq: OfficialSequence) -> tuple[dict, dict, dict]:
     num_objects = arrays["object_poses"].shape[1]
     objects = [{"set": "official", "category": "unknown", "model_id": f"object_{i + 1}", "scale": 1.0,
                 "mesh_sha256": "", "is_large": False} for i in range(num_objects)]
-    attrs = {
-        "sequence": sequence_name(seq.seq_id), "seed": -1, "num_steps": T, "num_objects": num_objects,
-        "object_set": "official", "policy": "official", "generator_args": {"official_id": seq.seq_id},
-        "toolkit_version": __version__, "source": "official-import", "grid_bounds": GRID_BOUNDS.tolist(),
-        "grid_shape": list(GRID_SHAPE), "voxel_size": VOXEL_SIZE, "axis_order": AXIS_ORDER,
-        "flow_components": FLOW_COMPONENTS, "objects": objects,
-        "cameras": {"front": {"height": 240, "width": 320, "intrinsics": cam.intrinsics.tolist(),
-                              "extrinsics": cam.extrinsics.tolist(), "convention": "opencv, camera-to-world"}},
-        "official_id": seq.seq_id, "official_exact_fields": sorted(set(exact_fields)),
-        "official_dtypes": dtypes,
-        "official_files": [p.name for p in seq.files],
-        "official_notes": "tsdf[T] integrated from next/depth_image (960x1280) by dsr-bench; points[T] "
-                          "back-projected from next/depth_image_small; push_start/end derived from the action",
-    }
+    attrs = sequence_header(
+        sequence=sequence_name(seq.seq_id), seed=-1, num_steps=T, num_objects=num_objects, object_set="official",
+        policy="official", generator_args={"official_id": seq.seq_id}, source="official-import", objects=objects,
+        cameras={"front": cam},
+        official_id=seq.seq_id, official_exact_fields=sorted(set(exact_fields)), official_dtypes=dtypes,
+        official_files=[p.name for p in seq.files],
+        official_notes="tsdf[T] integrated from next/depth_image (960x1280) by dsr-bench; points[T] "
+                       "back-projected from next/depth_image_small; push_start/end derived from the action",
+    )
     return arrays, extras, attrs
 
 

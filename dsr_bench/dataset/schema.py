@@ -1,17 +1,23 @@
 """The sequence file schema: every dataset's shape, dtype, units and meaning, in one table.
 
 The writer, the reader, `dsr-bench validate` and DATASHEET.md's schema table all come from
-`SEQUENCE_SCHEMA`. Shapes use symbols: T pushes (T + 1 observations), N objects, H x W the image
+`SEQUENCE_SCHEMA`; every producer (the generator, the annotator's export, the official import, the test
+sequences) builds its root attributes with `sequence_header`. Shapes use symbols: T pushes (T + 1 observations), N objects, H x W the image
 size of the stored 2D data, and the grid (128, 128, 48) in (y, x, z) order.
 """
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
-from dsr_bench.constants import GRID_SHAPE, IMAGE_SHAPE, NUM_DIRECTIONS
+from dsr_bench import __version__
+from dsr_bench.constants import (
+    AXIS_ORDER, FLOW_COMPONENTS, GRID_BOUNDS, GRID_SHAPE, IMAGE_SHAPE, NUM_DIRECTIONS, VOXEL_SIZE,
+)
 
 GRID_SYMBOLS = ("Y", "X", "Z")
 GROUND_TRUTH, OBSERVATION = "ground truth", "observation"
@@ -89,6 +95,29 @@ REQUIRED_ATTRS: tuple[str, ...] = (
     "generator_args", "toolkit_version", "source", "grid_bounds", "grid_shape", "voxel_size", "axis_order",
     "flow_components", "objects", "cameras",
 )
+
+
+def sequence_header(*, sequence: str, seed: int, num_steps: int, num_objects: int, object_set: str, policy: str,
+                    generator_args: Mapping[str, Any], source: str, objects: list[dict], cameras: Mapping[str, Any],
+                    versions: Mapping[str, Any] | None = None, **extra: Any) -> dict[str, Any]:
+    """The root attributes of a sequence file, in the order they are written: `REQUIRED_ATTRS` (but `format` and
+    `schema_version`, which `write_sequence` adds), the toolkit version and the grid's constants filled in, the
+    versions of other tools that made it (`versions`, e.g. pybullet_version) right after toolkit_version, then
+    `extra` (a producer's own attributes) in the order given. `cameras`: name -> `dsr_bench.geometry.Camera`
+    (stored as `Camera.as_attrs`)."""
+    clash = sorted(set(extra) & set(REQUIRED_ATTRS) | set(versions or {}) & set(REQUIRED_ATTRS))
+    if clash:
+        raise ValueError(f"sequence_header: {clash} are required attributes, passed by their own arguments")
+    header: dict[str, Any] = {
+        "sequence": sequence, "seed": seed, "num_steps": num_steps, "num_objects": num_objects,
+        "object_set": object_set, "policy": policy, "generator_args": generator_args, "toolkit_version": __version__,
+        **(versions or {}),
+        "source": source, "grid_bounds": GRID_BOUNDS.tolist(), "grid_shape": list(GRID_SHAPE),
+        "voxel_size": VOXEL_SIZE, "axis_order": AXIS_ORDER, "flow_components": FLOW_COMPONENTS, "objects": objects,
+        "cameras": {name: camera.as_attrs() for name, camera in cameras.items()},
+    }
+    header.update(extra)
+    return header
 
 
 def resolve_shape(field: Field, num_steps: int, num_objects: int, image_shape: tuple[int, int] = IMAGE_SHAPE) -> tuple[int, ...]:

@@ -20,10 +20,16 @@ from dsr_bench.constants import FORMAT_NAME, READABLE_SCHEMA_VERSIONS, SCHEMA_VE
 from dsr_bench.dataset.schema import FIELDS, REQUIRED_ATTRS, check_array, dataset_path, resolve_shape
 from dsr_bench.dataset.storage import GZIP1, read_steps, write_array
 from dsr_bench.errors import UserError
+from dsr_bench.geometry import Camera
 
 
 class SequenceFormatError(UserError):
     """A file is not a readable sequence of this toolkit's format."""
+
+
+class SequenceNotFoundError(UserError, FileNotFoundError):
+    """No file at a sequence's path: a UserError (one line, exit 2), and a FileNotFoundError for callers that
+    catch that."""
 
 
 def _create_dataset(f: h5py.Group, name: str, array: np.ndarray) -> h5py.Dataset:
@@ -53,16 +59,12 @@ def derive_points(depth: np.ndarray, camera) -> np.ndarray:
 
 def _derivable_points(arrays: Mapping[str, np.ndarray], cameras: Mapping[str, dict]) -> list[str]:
     """The cameras' points that equal `derive_points` of their depth bit for bit (NaN payloads included)."""
-    from dsr_bench.geometry import Camera
-
     names = []
     for cam, spec in cameras.items():
         points, depth = arrays.get(points_name(cam)), arrays.get(f"cameras/{cam}/depth")
         if points is None or depth is None or np.asarray(points).dtype != np.float32:
             continue
-        camera = Camera(cam, int(spec["height"]), int(spec["width"]), np.array(spec["intrinsics"]),
-                        np.array(spec["extrinsics"]))
-        derived = derive_points(depth, camera)
+        derived = derive_points(depth, Camera.from_attrs(cam, spec))
         if derived.shape == np.shape(points) and np.array_equal(derived.view(np.uint32),
                                                                 np.ascontiguousarray(points).view(np.uint32)):
             names.append(points_name(cam))
@@ -155,7 +157,8 @@ class SequenceReader:
     def __init__(self, path: str | Path):
         self.path = Path(path)
         if not self.path.is_file():
-            raise FileNotFoundError(f"sequence file not found: {self.path}")
+            raise SequenceNotFoundError(f"sequence file not found: {self.path}; check the path, or generate or "
+                                        "import the dataset it belongs to")
         try:
             self._file = h5py.File(self.path, "r")
         except OSError as exc:
@@ -249,11 +252,7 @@ class SequenceReader:
 
     def camera(self, name: str = "front"):
         """The `dsr_bench.geometry.Camera` of a stored camera."""
-        from dsr_bench.geometry import Camera
-
-        spec = self.cameras[name]
-        return Camera(name, int(spec["height"]), int(spec["width"]), np.array(spec["intrinsics"]),
-                      np.array(spec["extrinsics"]))
+        return Camera.from_attrs(name, self.cameras[name])
 
     def mesh(self, index: int) -> tuple[np.ndarray, np.ndarray] | None:
         """Vertices and faces of object `index` (0-based) in its mesh frame, if embedded."""

@@ -12,6 +12,10 @@ import numpy as np
 from dsr_bench.constants import CAMERA_HFOV, CAMERAS
 from dsr_bench.geometry.transforms import apply_matrix, rigid_inverse, transform_points, vector_norm
 
+#: The `convention` a sequence file's camera attributes state (`Camera.as_attrs`).
+CAMERA_CONVENTION = "opencv, camera-to-world"
+
+
 @dataclass(frozen=True)
 class Camera:
     """A pinhole camera: intrinsics (3x3, pixels) and camera-to-world extrinsics (4x4, OpenCV)."""
@@ -21,6 +25,19 @@ class Camera:
     width: int
     intrinsics: np.ndarray
     extrinsics: np.ndarray
+
+    def as_attrs(self) -> dict:
+        """The camera as a sequence file stores it under its `cameras` attribute (JSON: size, intrinsics,
+        camera-to-world extrinsics, the convention); `Camera.from_attrs` reads it back."""
+        return {"height": int(self.height), "width": int(self.width),
+                "intrinsics": np.asarray(self.intrinsics).tolist(), "extrinsics": np.asarray(self.extrinsics).tolist(),
+                "convention": CAMERA_CONVENTION}
+
+    @classmethod
+    def from_attrs(cls, name: str, spec: dict) -> Camera:
+        """The camera `name` of a sequence file's `cameras` attribute (`as_attrs`'s dict)."""
+        return cls(name, int(spec["height"]), int(spec["width"]), np.array(spec["intrinsics"]),
+                   np.array(spec["extrinsics"]))
 
     def ray_directions_world(self) -> np.ndarray:
         """World-frame ray directions (H, W, 3) with unit camera z (so t along a ray = z-depth)."""
