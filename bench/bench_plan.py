@@ -31,7 +31,7 @@ def main() -> None:
 
     from dsr_bench.planning.planners import make_planner
     from dsr_bench.planning.runner import run_plan
-    from dsr_bench.planning.scoring import score_plan
+    from dsr_bench.planning.results import score_plan
     from dsr_bench.planning.tasks import load_manifest, read_task
     from generators.planning import SimEnvironment, generate_tasks
 

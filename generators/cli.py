@@ -1,5 +1,6 @@
-"""The generator's `dsr-bench` commands: `generate` (pushing sequences) and `generate-captures` (simulated
-two-camera RGB-D captures, the annotator's input), registered through the `dsr_bench.commands` entry point."""
+"""The generator's `dsr-bench` commands, registered through the `dsr_bench.commands` entry point: `generate`
+(pushing sequences), `generate-captures` (simulated two-camera RGB-D captures, the annotator's input), and the
+planning track's `generate-plan-tasks` and `plan` (`generators.planning` makes the tasks and runs the plans)."""
 
 from __future__ import annotations
 
@@ -129,7 +130,85 @@ def generate_captures(
                   f"({objects}, {steps} pushes, {objects_per_scene} objects, noise {noise})")
 
 
+def generate_plan_tasks(
+    tasks: str = typer.Option("plan-novel-test", "--tasks", help="Task set: plan-novel-test (100) | plan-novel-mini (4)."),
+    out: Path | None = typer.Option(None, "--out", "-o", help="Directory to write (default data/<task set>)."),
+    workers: int = typer.Option(1, "--workers", "-w", help="Parallel worker processes."),
+    num_tasks: int | None = typer.Option(None, "--num-tasks", "-n", help="Only the first N tasks of the set."),
+    pin: bool = typer.Option(False, "--pin", hidden=True, help="Maintainers: record the complete set's checksum "
+                             "and task digests in dsr_bench/planning/task_pins.json."),
+) -> None:
+    """Simulate planning tasks (start scene + 3 heuristic pushes -> target) and write them with tasks.json."""
+    from rich.progress import Progress
+
+    from dsr_bench.errors import UserError
+    from dsr_bench.planning.tasks import get_task_set, pinned_checksums
+    from generators.planning import generate_tasks
+
+    spec = get_task_set(tasks)
+    out = out or Path("data") / tasks
+    with Progress(transient=True) as bar:
+        job = bar.add_task(f"generate-plan-tasks {tasks}", total=num_tasks or spec.num_tasks)
+        manifest = generate_tasks(tasks, out, workers, num_tasks, progress=lambda: bar.advance(job))
+    if pin:
+        from dsr_bench.planning.tasks import pin_task_set
+
+        if num_tasks not in (None, spec.num_tasks):
+            raise UserError("--pin needs the complete set: drop --num-tasks")
+        typer.echo(f"pinned {tasks} in {pin_task_set(manifest)}")
+    pin = pinned_checksums().get(tasks)
+    state = ("matches the pin" if pin == manifest["checksum"] else "differs from the pin" if pin and not num_tasks
+             else "not pinned" if not pin else "a prefix of the set (not comparable with the pin)")
+    typer.echo(f"{out}: {len(manifest['tasks'])} tasks of {tasks}; checksum {manifest['checksum']} ({state})")
+
+
+def plan(
+    model: str = typer.Option(..., "--model", help="random | oracle | dsr | single | nowarp | 3dflow"),
+    tasks: str = typer.Option("plan-novel-test", "--tasks", help="Task directory, or a task set's name "
+                              "(data/<name>)."),
+    out: Path = typer.Option(..., "--out", "-o", help="Directory for the plan files and results.json."),
+    candidates: int = typer.Option(100, "--candidates", "-c", help="Candidate actions per step (the paper: 100)."),
+    workers: int = typer.Option(1, "--workers", "-w", help="Parallel worker processes (one task each)."),
+    seed: int = typer.Option(0, "--seed", help="Seed of the candidate sampling (with each task's seed)."),
+    checkpoint: Path | None = typer.Option(None, "--checkpoint", help="A learned model's checkpoint (default: "
+                                              "the shipped CPU-track weights)."),
+    device: str = typer.Option("cpu", "--device", help="cpu or cuda (learned models)."),
+    num_tasks: int | None = typer.Option(None, "--num-tasks", "-n", help="Only the first N tasks (partial "
+                                            "results)."),
+) -> None:
+    """Plan 3 pushes per task with MPC (sample candidates, score by the paper's cost, execute the best in pybullet),
+    write a plan file per task and results.json (final-vs-target voxel IoU per task and mean). Every task file is
+    checked against this toolkit's pin first (a task that differs: a warning, results not pinned); a rerun keeps the
+    plan files of the same run, rescored from their final states, and plans the others again."""
+    from rich.progress import Progress
+
+    from generators.planning import plan_tasks
+
+    with Progress(transient=True) as bar:
+        job = bar.add_task(f"plan {model}", total=num_tasks or _size(tasks))
+        r = plan_tasks(model, tasks, out, candidates, workers, seed, checkpoint, device, num_tasks,
+                       progress=lambda: bar.advance(job), warn=lambda line: typer.echo(f"warning: {line}", err=True))
+    m = r["metrics"]
+    typer.echo(f"{r['method']} on {r['task_set']} ({r['coverage']['scored']}/{r['coverage']['expected']} tasks"
+               f"{', pinned' if r['pinned'] else ''}): IoU {m['iou']:.4f} (start {m['start_iou']:.4f}), occupancy IoU "
+               f"{m['iou_occupancy']:.4f}; {m['tasks_per_minute'] or 0:.2f} tasks/min per worker; "
+               f"results in {out / 'results.json'}")
+
+
+def _size(tasks: str) -> int | None:
+    """The number of tasks in a task directory (None if it cannot be read: `plan_tasks` says why)."""
+    from dsr_bench.errors import UserError
+    from dsr_bench.planning.tasks import resolve_tasks
+
+    try:
+        return len(resolve_tasks(tasks)[1]["tasks"])
+    except UserError:
+        return None
+
+
 def register(app: typer.Typer) -> None:
     """Add the generator's commands to the `dsr-bench` CLI (the `dsr_bench.commands` entry point)."""
     app.command("generate")(generate)
     app.command("generate-captures")(generate_captures)
+    app.command("generate-plan-tasks")(generate_plan_tasks)
+    app.command("plan")(plan)

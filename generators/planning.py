@@ -1,7 +1,7 @@
 """The planning track's simulator side (`dsr_bench.planning` has the rest, and never imports this module):
-making planning tasks, the pybullet `SimEnvironment` plans run in (and the oracle's true next states), and the
-commands `dsr-bench generate-plan-tasks` and `dsr-bench plan`, registered through the `dsr_bench.commands`
-entry point.
+making planning tasks, the pybullet `SimEnvironment` plans run in (and the oracle's true next states), and running
+plans (`plan_tasks`). The commands `dsr-bench generate-plan-tasks` and `dsr-bench plan` that call them live with the
+generator's other commands in `generators.cli`.
 
 A task: a scene generated as a sequence (`generators.episode.generate_episode`, the same seeding, so a task
 is a pure function of its seed: bit for bit on any machine) with PLAN_STEPS pushes of the heuristic policy;
@@ -18,7 +18,6 @@ from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
-import typer
 
 from dsr_bench.errors import UserError
 
@@ -217,7 +216,7 @@ def _plan_job(job: tuple) -> tuple[str, dict, str | None]:
     its stored final state (`dsr_bench.planning.verify.plan_scores`), anything else is planned (again)."""
     from dsr_bench.planning.plans import plan_arrays, write_plan
     from dsr_bench.planning.runner import run_plan
-    from dsr_bench.planning.scoring import score_plan
+    from dsr_bench.planning.results import score_plan
     from dsr_bench.planning.tasks import read_task
 
     task_path, out, model, checkpoint, device, candidates, seed, batch, name, ground_truth = job
@@ -289,7 +288,7 @@ def plan_tasks(model: str, tasks: str, out: Path, candidates: int, workers: int 
                checkpoint: Path | None = None, device: str = "cpu", num_tasks: int | None = None,
                batch: int | None = None, progress=None, warn=None) -> dict:
     """Run a planner on a task directory (or a named set's data/<name>), write one plan file per task and
-    OUT/results.json; return the results (`dsr_bench.planning.scoring.results`). The tasks are verified first
+    OUT/results.json; return the results (`dsr_bench.planning.results.build_results`). The tasks are verified first
     (`dsr_bench.planning.verify.verify_tasks`: a task that differs from the pin is one line to `warn` and makes
     the results unpinned). Plan files already in `out` made for the same task with the same planner, candidates
     and seed are kept and rescored from their final states (a rerun resumes); an invalid one is planned again
@@ -300,7 +299,7 @@ def plan_tasks(model: str, tasks: str, out: Path, candidates: int, workers: int 
     from dsr_bench.parallel import run_in_order
     from dsr_bench.planning.planners import PLANNER_NAMES, make_planner
     from dsr_bench.planning.protocol import DEFAULT_BATCH
-    from dsr_bench.planning.scoring import results
+    from dsr_bench.planning.results import build_results
     from dsr_bench.planning.verify import verify_tasks
     from dsr_bench.atomic import check_writable
 
@@ -352,85 +351,7 @@ def plan_tasks(model: str, tasks: str, out: Path, candidates: int, workers: int 
     parameters = {"candidates": candidates, "seed": seed, "lambda": _lambda(), "steps": _steps(),
                   "hardware": f"{os.cpu_count()} CPU cores", "workers": workers}
     # the checksum recomputed from the task files (tasks.json is never trusted); a prefix of a named set is partial
-    out_results = results(per_task, planner, {"task_set": verified.task_set, "checksum": verified.checksum},
-                          verified.expected, [out / f"{name}.h5" for name in per_task], command, parameters)
+    out_results = build_results(per_task, planner, {"task_set": verified.task_set, "checksum": verified.checksum},
+                                verified.expected, [out / f"{name}.h5" for name in per_task], command, parameters)
     write_text(out / "results.json", json.dumps(out_results, indent=1, sort_keys=True) + "\n")
     return out_results
-
-
-# --- commands -----------------------------------------------------------------------------------------------
-def generate_plan_tasks(
-    tasks: str = typer.Option("plan-novel-test", "--tasks", help="Task set: plan-novel-test (100) | plan-novel-mini (4)."),
-    out: Path | None = typer.Option(None, "--out", "-o", help="Directory to write (default data/<task set>)."),
-    workers: int = typer.Option(1, "--workers", "-w", help="Parallel worker processes."),
-    num_tasks: int | None = typer.Option(None, "--num-tasks", "-n", help="Only the first N tasks of the set."),
-    pin: bool = typer.Option(False, "--pin", hidden=True, help="Maintainers: record the complete set's checksum "
-                             "and task digests in dsr_bench/planning/task_pins.json."),
-) -> None:
-    """Simulate planning tasks (start scene + 3 heuristic pushes -> target) and write them with tasks.json."""
-    from rich.progress import Progress
-
-    from dsr_bench.planning.tasks import get_task_set, pinned_checksums
-
-    spec = get_task_set(tasks)
-    out = out or Path("data") / tasks
-    with Progress(transient=True) as bar:
-        job = bar.add_task(f"generate-plan-tasks {tasks}", total=num_tasks or spec.num_tasks)
-        manifest = generate_tasks(tasks, out, workers, num_tasks, progress=lambda: bar.advance(job))
-    if pin:
-        from dsr_bench.planning.tasks import pin_task_set
-
-        if num_tasks not in (None, spec.num_tasks):
-            raise UserError("--pin needs the complete set: drop --num-tasks")
-        typer.echo(f"pinned {tasks} in {pin_task_set(manifest)}")
-    pin = pinned_checksums().get(tasks)
-    state = ("matches the pin" if pin == manifest["checksum"] else "differs from the pin" if pin and not num_tasks
-             else "not pinned" if not pin else "a prefix of the set (not comparable with the pin)")
-    typer.echo(f"{out}: {len(manifest['tasks'])} tasks of {tasks}; checksum {manifest['checksum']} ({state})")
-
-
-def plan(
-    model: str = typer.Option(..., "--model", help="random | oracle | dsr | single | nowarp | 3dflow"),
-    tasks: str = typer.Option("plan-novel-test", "--tasks", help="Task directory, or a task set's name "
-                              "(data/<name>)."),
-    out: Path = typer.Option(..., "--out", "-o", help="Directory for the plan files and results.json."),
-    candidates: int = typer.Option(100, "--candidates", "-c", help="Candidate actions per step (the paper: 100)."),
-    workers: int = typer.Option(1, "--workers", "-w", help="Parallel worker processes (one task each)."),
-    seed: int = typer.Option(0, "--seed", help="Seed of the candidate sampling (with each task's seed)."),
-    checkpoint: Path | None = typer.Option(None, "--checkpoint", help="A learned model's checkpoint (default: "
-                                              "the shipped CPU-track weights)."),
-    device: str = typer.Option("cpu", "--device", help="cpu or cuda (learned models)."),
-    num_tasks: int | None = typer.Option(None, "--num-tasks", "-n", help="Only the first N tasks (partial "
-                                            "results)."),
-) -> None:
-    """Plan 3 pushes per task with MPC (sample candidates, score by the paper's cost, execute the best in pybullet),
-    write a plan file per task and results.json (final-vs-target voxel IoU per task and mean). Every task file is
-    checked against this toolkit's pin first (a task that differs: a warning, results not pinned); a rerun keeps the
-    plan files of the same run, rescored from their final states, and plans the others again."""
-    from rich.progress import Progress
-
-    with Progress(transient=True) as bar:
-        job = bar.add_task(f"plan {model}", total=num_tasks or _size(tasks))
-        r = plan_tasks(model, tasks, out, candidates, workers, seed, checkpoint, device, num_tasks,
-                       progress=lambda: bar.advance(job), warn=lambda line: typer.echo(f"warning: {line}", err=True))
-    m = r["metrics"]
-    typer.echo(f"{r['method']} on {r['task_set']} ({r['coverage']['scored']}/{r['coverage']['expected']} tasks"
-               f"{', pinned' if r['pinned'] else ''}): IoU {m['iou']:.4f} (start {m['start_iou']:.4f}), occupancy IoU "
-               f"{m['iou_occupancy']:.4f}; {m['tasks_per_minute'] or 0:.2f} tasks/min per worker; "
-               f"results in {out / 'results.json'}")
-
-
-def _size(tasks: str) -> int | None:
-    """The number of tasks in a task directory (None if it cannot be read: `plan_tasks` says why)."""
-    from dsr_bench.planning.tasks import resolve_tasks
-
-    try:
-        return len(resolve_tasks(tasks)[1]["tasks"])
-    except UserError:
-        return None
-
-
-def register(app: typer.Typer) -> None:
-    """Add the planning commands to the `dsr-bench` CLI (the `dsr_bench.commands` entry point)."""
-    app.command("generate-plan-tasks")(generate_plan_tasks)
-    app.command("plan")(plan)

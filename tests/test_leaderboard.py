@@ -399,15 +399,15 @@ def test_a_2d_only_entry_joins_the_2d_track_only(board, tmp_path):
 
 def _plan_results(method, iou, pinned=True, partial=False):
     """Valid planning results on plan-novel-test (as `dsr-bench plan` writes them), every task scoring `iou`."""
-    from dsr_bench.planning.scoring import results
+    from dsr_bench.planning.results import build_results
     from dsr_bench.planning.tasks import pinned_checksums
 
     scores = {"iou": iou, "iou_identity": 0.5, "iou_occupancy": 0.4, "start_iou": 0.3, "start_iou_identity": 0.3,
               "start_iou_occupancy": 0.2, "iou_per_object": [0.25, 0.75], "seconds": 30.0}
     checksum = pinned_checksums()["plan-novel-test"] if pinned else "0" * 64
-    r = results({f"task_{i:04d}": scores for i in range(60 if partial else 100)}, {"name": method, "description": "x"},
-                {"task_set": "plan-novel-test", "checksum": checksum}, 100, [], f"dsr-bench plan --model {method}",
-                {"candidates": 100})
+    r = build_results({f"task_{i:04d}": scores for i in range(60 if partial else 100)},
+                      {"name": method, "description": "x"}, {"task_set": "plan-novel-test", "checksum": checksum}, 100,
+                      [], f"dsr-bench plan --model {method}", {"candidates": 100})
     return {**r, "date": "2026-11-25T00:00:00Z"}
 
 

@@ -200,7 +200,7 @@ def test_tasks_are_reproducible_from_their_seed(one_task):
 def test_random_planner_from_the_cli_end_to_end(one_task, tmp_path, capsys):
     from dsr_bench.cli import main
     from dsr_bench.planning.plans import read_plan
-    from dsr_bench.planning.scoring import leaderboard_rows
+    from dsr_bench.scoring.leaderboard import planning_rows
 
     out = tmp_path / "random"
     assert main(["plan", "--model", "random", "--tasks", str(one_task), "--out", str(out)]) == 0
@@ -221,7 +221,7 @@ def test_random_planner_from_the_cli_end_to_end(one_task, tmp_path, capsys):
     else:  # a plan file opens in the viewer: target, candidates, chosen push, states
         assert main(["view", str(out / "task_0000.h5"), "--save", str(tmp_path / "plan.rrd")]) == 0
         assert (tmp_path / "plan.rrd").stat().st_size > 0
-    rows = leaderboard_rows([out / "results.json"])
+    rows = planning_rows([out / "results.json"])
     assert rows[0]["method"] == "random (planning)" and rows[0]["planning_iou"] == per_task["iou"]
     assert {r["planning_iou"] for r in rows[1:]} == {0.72, 0.31, 0.32}
 

@@ -13,7 +13,7 @@
   seconds (S,) f8                        planning time per step (simulation of the push excluded)
 
 Root attributes: format, version, task, task_file, task_ground_truth_sha256, planner, description, candidates,
-seed, lambda, toolkit_version, and the scores (`dsr_bench.planning.scoring.score_plan`): iou, iou_occupancy,
+seed, lambda, toolkit_version, and the scores (`dsr_bench.planning.results.score_plan`): iou, iou_occupancy,
 iou_identity, start_iou, start_iou_identity,
 start_iou_occupancy, iou_per_object (JSON), seconds. The stored scores are a record for people, never read back: a
 rerun and `dsr_bench.planning.verify` recompute them from states/mask_3d[-1] and the verified task.

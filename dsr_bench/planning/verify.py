@@ -9,7 +9,7 @@ verified").
                      target states), and its scores are recomputed from its stored final state and the task's
                      verified start and target (the stored `iou` and the like are never read)
   recompute_results  a `dsr-bench plan --out DIR` directory: the results JSON recomputed, in exactly the format of
-                     `dsr_bench.planning.scoring.results`, so a caller compares it field by field with DIR/results.json
+                     `dsr_bench.planning.results.build_results`, so a caller compares it field by field with DIR/results.json
   check_results      schema, types, ranges and consistency of a planning results dict, one short phrase per problem
   differences        the fields where two results dicts differ
 
@@ -130,7 +130,7 @@ def _dataset(path: Path, f, name: str) -> np.ndarray:
 
 
 def plan_scores(path: str | Path, task, digest: str, same: Mapping | None = None) -> tuple[dict, dict]:
-    """The scores of a plan file (`dsr_bench.planning.scoring.score_plan` keys and `seconds`), recomputed from its
+    """The scores of a plan file (`dsr_bench.planning.results.score_plan` keys and `seconds`), recomputed from its
     stored final state and `task`'s start and target (a task read by `read_task`, `digest` its verified
     ground-truth digest), and the file's attributes. UserError (one line) unless the file is a plan of `task`
     (its name, task file, task digest, start and target states), of the track's shapes, and, for each key of
@@ -141,7 +141,7 @@ def plan_scores(path: str | Path, task, digest: str, same: Mapping | None = None
     from dsr_bench.constants import GRID_SHAPE
     from dsr_bench.planning.plans import read_plan_attrs
     from dsr_bench.planning.protocol import PLAN_STEPS
-    from dsr_bench.planning.scoring import score_plan
+    from dsr_bench.planning.results import score_plan
 
     path = Path(path)
     try:
@@ -191,7 +191,7 @@ def _read_results_json(plans_dir: Path) -> dict:
         raise UserError(f"{plans_dir} has no results.json; {fix}") from None
     except (OSError, UnicodeDecodeError, ValueError) as exc:
         raise UserError(f"{path}: unreadable ({type(exc).__name__}); {fix}") from None
-    from dsr_bench.planning.scoring import RESULTS_FORMAT
+    from dsr_bench.planning.results import RESULTS_FORMAT
 
     if not isinstance(r, dict) or r.get("format") != RESULTS_FORMAT or not isinstance(r.get("per_task"), dict):
         raise UserError(f"{path}: not a dsr-bench planning results file with per_task; {fix}")
@@ -201,12 +201,12 @@ def _read_results_json(plans_dir: Path) -> dict:
 def recompute_results(plans_dir: Path, tasks: str | Path | None = None) -> dict:
     """The results of a `dsr-bench plan --out plans_dir` run recomputed from its plan files and the verified tasks
     (`tasks`: a task directory or a task set's name, as `plan --tasks`; default: the task set results.json names,
-    as data/<name>), in the format of `dsr_bench.planning.scoring.results`. results.json is read only for the
+    as data/<name>), in the format of `dsr_bench.planning.results.build_results`. results.json is read only for the
     self-reported fields (module doc). UserError (one line): an unreadable file, a plan file that is not a plan of
     its task, a plan missing from or extra to results.json's per_task, plans that are not a prefix of the tasks
     (what --num-tasks plans) or not of one run."""
     from dsr_bench.planning.protocol import PLAN_STEPS
-    from dsr_bench.planning.scoring import results
+    from dsr_bench.planning.results import build_results
     from dsr_bench.planning.tasks import TASK_SETS, read_task
 
     plans_dir = Path(plans_dir)
@@ -257,7 +257,7 @@ def recompute_results(plans_dir: Path, tasks: str | Path | None = None) -> dict:
     reported = submitted.get("parameters") if isinstance(submitted.get("parameters"), dict) else {}
     parameters = {"candidates": _plain(run["candidates"]), "seed": _plain(run["seed"]), "lambda": _plain(run["lambda"]),
                   "steps": PLAN_STEPS, "hardware": reported.get("hardware"), "workers": reported.get("workers")}
-    out = results(per_task, planner, {"task_set": verified.task_set, "checksum": verified.checksum}, verified.expected,
+    out = build_results(per_task, planner, {"task_set": verified.task_set, "checksum": verified.checksum}, verified.expected,
                   [plans_dir / f"{name}.h5" for name in planned], submitted.get("command"), parameters)
     for key in ("toolkit_version", "date"):  # self-reported
         out[key] = submitted.get(key)
@@ -304,7 +304,7 @@ def check_results(results: dict) -> list[str]:
     per_task and partial, task_set known, task_checksum and split_checksum equal, `pinned` true exactly when the
     checksum is this toolkit's pin of task_set (another set's pin under its name is a problem), per_task keys a
     prefix of the set's task names. An empty list: nothing found (the scores still need `recompute_results`)."""
-    from dsr_bench.planning.scoring import RESULTS_FORMAT
+    from dsr_bench.planning.results import RESULTS_FORMAT
     from dsr_bench.planning.tasks import TASK_SETS, pinned_checksums, task_name
 
     if not isinstance(results, dict):

@@ -241,16 +241,41 @@ def load_rows(root: str | Path = "leaderboard", warn: Callable[[str], None] | No
                      "grid": "x".join(str(int(g)) for g in grid),
                      "date": r.get("date", "")[:10], "checksum": r.get("split_checksum", "")[:12],
                      **{k: v for k, v in r["metrics"].items()}})
-    from dsr_bench.planning.scoring import leaderboard_rows
-
     plans = _read_valid(sorted((root / "planning").glob("*.json")), PLAN_RESULTS_FORMAT, warn or _stderr)
-    rows += leaderboard_rows([path for path, _ in plans], include_paper=False)  # paper.json has them
+    rows += planning_rows([path for path, _ in plans], include_paper=False)  # paper.json has them
     paper = root / "paper.json"
     if paper.exists():
         for r in json.loads(paper.read_text())["rows"]:
             rows.append({"method": r["method"], "split": r["split"], "kind": "reported in the paper",
                          "grid": "x".join(map(str, GRID_SHAPE)),
                          "label": r.get("source", ""), "date": "2020", "checksum": "", **r["metrics"]})
+    return rows
+
+
+#: Leaderboard rows of the paper (Sec. 4.3), planning IoU over its 100 simulated targets.
+PLANNING_PAPER_ROWS = (("DSR-Net", 0.72), ("SE3-Net (planning)", 0.31), ("SE3Pose-Net (planning)", 0.32))
+
+
+def planning_rows(results_files: list[str | Path], include_paper: bool = True) -> list[dict]:
+    """Rows for the leaderboard's planning column, in `load_rows`'s shape (method, split, kind, label, grid, date,
+    checksum, planning_iou): one per results file of `dsr-bench plan` (`dsr_bench.planning.results.build_results`;
+    kind "reproduced" when its task set matches the pin), and the paper's three rows."""
+    rows = []
+    for path in results_files:
+        r = json.loads(Path(path).read_text())
+        # the planner's model grid where the results record it (a learned planner); "-" for oracle and random
+        grid = "x".join(str(int(g)) for g in (r.get("planner") or {}).get("grid") or ()) or "-"
+        kind = "reproduced" if r.get("pinned") else f"task set not pinned ({r.get('task_checksum', '')[:12]})"
+        partial = r["coverage"]["partial"]
+        rows.append({"method": f"{r['method']} (planning)", "split": r["task_set"], "kind": kind,
+                     "label": f"{r['coverage']['scored']}/{r['coverage']['expected']} tasks"
+                              + (" (partial)" if partial else ""),
+                     "grid": grid, "date": r.get("date", "")[:10], "checksum": r.get("task_checksum", "")[:12],
+                     "planning_iou": r["metrics"]["iou"]})
+    if include_paper:
+        rows += [{"method": m, "split": "ycb-test", "kind": "reported in the paper", "label": "Sec. 4.3",
+                  "grid": "x".join(map(str, GRID_SHAPE)),
+                  "date": "2020", "checksum": "", "planning_iou": v} for m, v in PLANNING_PAPER_ROWS]
     return rows
 
 

@@ -6,7 +6,8 @@ target's:
 - `iou_identity`: object i against object i (the simulator knows the ids): a swap of two objects counts 0;
 - `iou_occupancy`: the occupied voxels (any object) against the target's;
 - the same three for the start state (`start_iou`, ...): what not pushing at all would score. The results JSON ("dsr-bench-plan-results") has the means, per-task values, the task
-set's checksum and whether it matches the pin, the plans' checksum and the exact command.
+set's checksum and whether it matches the pin, the plans' checksum and the exact command (`build_results`); the
+leaderboard's planning rows are made from it by `dsr_bench.scoring.leaderboard.planning_rows`.
 """
 
 from __future__ import annotations
@@ -21,8 +22,6 @@ import numpy as np
 from dsr_bench.planning.cost import matched_iou, object_iou, occupancy_iou
 
 RESULTS_FORMAT = "dsr-bench-plan-results"
-#: Leaderboard rows of the paper (Sec. 4.3), planning IoU over its 100 simulated targets.
-PAPER_ROWS = (("DSR-Net", 0.72), ("SE3-Net (planning)", 0.31), ("SE3Pose-Net (planning)", 0.32))
 
 
 def score_plan(final: np.ndarray, start: np.ndarray, target: np.ndarray, num_objects: int) -> dict:
@@ -44,7 +43,7 @@ def plans_checksum(paths: list[Path]) -> str:
     return h.hexdigest()
 
 
-def results(per_task: Mapping[str, dict], planner: Mapping, manifest: Mapping, expected: int, plan_paths: list[Path],
+def build_results(per_task: Mapping[str, dict], planner: Mapping, manifest: Mapping, expected: int, plan_paths: list[Path],
             command: str, parameters: Mapping) -> dict:
     """The results JSON of a planning run (`dsr-bench plan`): means over the tasks scored (in name order), per task
     values. `manifest`: {"task_set", "checksum"}, the checksum recomputed from the task files
@@ -69,29 +68,3 @@ def results(per_task: Mapping[str, dict], planner: Mapping, manifest: Mapping, e
         "coverage": {"scored": len(per_task), "expected": expected, "partial": len(per_task) < expected},
         "metrics": metrics, "per_task": {k: dict(v) for k, v in sorted(per_task.items())},
     }
-
-
-def leaderboard_rows(results_files: list[str | Path], include_paper: bool = True) -> list[dict]:
-    """Rows for the leaderboard's planning column, in `dsr_bench.scoring.leaderboard.load_rows`'s shape (method,
-    split, kind, label, grid, date, checksum, planning_iou): one per results file of `dsr-bench plan` (kind
-    "reproduced" when its task set matches the pin), and the paper's three rows."""
-    import json
-
-    from dsr_bench.constants import GRID_SHAPE
-
-    rows = []
-    for path in results_files:
-        r = json.loads(Path(path).read_text())
-        # the planner's model grid where the results record it (a learned planner); "-" for oracle and random
-        grid = "x".join(str(int(g)) for g in (r.get("planner") or {}).get("grid") or ()) or "-"
-        kind = "reproduced" if r.get("pinned") else f"task set not pinned ({r.get('task_checksum', '')[:12]})"
-        partial = r["coverage"]["partial"]
-        rows.append({"method": f"{r['method']} (planning)", "split": r["task_set"], "kind": kind,
-                     "label": f"{r['coverage']['scored']}/{r['coverage']['expected']} tasks" + (" (partial)" if partial else ""),
-                     "grid": grid, "date": r.get("date", "")[:10], "checksum": r.get("task_checksum", "")[:12],
-                     "planning_iou": r["metrics"]["iou"]})
-    if include_paper:
-        rows += [{"method": m, "split": "ycb-test", "kind": "reported in the paper", "label": "Sec. 4.3",
-                  "grid": "x".join(map(str, GRID_SHAPE)),
-                  "date": "2020", "checksum": "", "planning_iou": v} for m, v in PAPER_ROWS]
-    return rows
