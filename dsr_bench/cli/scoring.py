@@ -10,13 +10,13 @@ import typer
 
 from dsr_bench.cli.engine_options import (RayAddress, Slurm, SlurmLocal, SlurmLogs, SlurmPartition, SlurmTasks,
                                          SlurmTime)
+from dsr_bench.models import registry
 
 leaderboard_app = typer.Typer(help="Build the leaderboard tables or add a results entry.", no_args_is_help=True)
 
 
 def predict(
-    model: str = typer.Option(..., "--model", help="oracle | static | push | dsr | single | nowarp | gtwarp | 3dflow | 2dflow | se3net | "
-                                "se3posenet"),
+    model: str = typer.Option(..., "--model", help=registry.help_text()),
     data: Path = typer.Option(..., "--data", help="Dataset directory."),
     out: Path = typer.Option(..., "--out", "-o", help="Predictions directory to write."),
     split: Optional[str] = typer.Option(None, "--split", help="Split to predict (default: the only one)."),

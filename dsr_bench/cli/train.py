@@ -8,10 +8,12 @@ from typing import Optional, Tuple
 
 import typer
 
+from dsr_bench.models import registry
+
 
 def train(
-    model: str = typer.Option("dsr", "--model", help="dsr | single | nowarp | gtwarp | 3dflow (the 3D track) or "
-                              "2dflow | se3net | se3posenet (the 2D track: front-camera images)"),
+    model: str = typer.Option("dsr", "--model", help=f"{registry.help_text(registry.VOXEL)} (the 3D track) or "
+                              f"{registry.help_text(registry.IMAGE)} (the 2D track: front-camera images)"),
     stage: Optional[str] = typer.Option(None, "--stage", help="cube-single | cube-multi | shapenet-multi (any data "
                                         "set); not with --track cpu, whose recipe has its own two stages"),
     data: Path = typer.Option(..., "--data", help="Dataset directory (e.g. generated with --split cube-train)."),
@@ -56,18 +58,15 @@ def train(
 ) -> None:
     """Train a reference model for one stage of the paper's curriculum (torchrun for multi-GPU)."""
     from dsr_bench.errors import UserError
-    from dsr_bench.models.config import MODEL_NAMES
-    from dsr_bench.models.image_config import IMAGE_MODEL_NAMES
 
-    if model in IMAGE_MODEL_NAMES:
+    kind = registry.model_entry(model, registry.VOXEL, registry.IMAGE).kind  # the trainable kinds
+    if kind == registry.IMAGE:
         given = [flag for flag, value in (("--stage", stage), ("--init", init), ("--resume", resume), ("--window", window),
                                           ("--val-split", val_split), ("--epochs", epochs)) if value is not None]
         if given:
             raise UserError(f"{given[0]} is not an option of the 2D track's models (single-step, one stage); drop it")
         _train_image(model, data, out, track, split, batch_size, lr, seed, device, workers, single_batches, quiet)
         return
-    if model not in MODEL_NAMES:
-        raise UserError(f"--model {model!r}: choose one of {', '.join(MODEL_NAMES + IMAGE_MODEL_NAMES)}")
     from dsr_bench.models.training.config import TrainConfig
     from dsr_bench.models.training.trainer import train as run
 

@@ -5,11 +5,10 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass, fields
 
 from dsr_bench.constants import GRID_SHAPE, NUM_MASK_SLOTS
+from dsr_bench.models import registry
 
-MODEL_NAMES = ("dsr", "single", "nowarp", "gtwarp", "3dflow")
-
-_VARIANTS = {"dsr": {"history": "warp"}, "single": {"history": "none"}, "nowarp": {"history": "nowarp"},
-             "gtwarp": {"history": "gtwarp"}, "3dflow": {"history": "none", "motion": "flow"}}
+#: The 3D track's learned models: the voxel entries of `dsr_bench.models.registry`, each a set of the switches below.
+MODEL_NAMES = registry.names(registry.VOXEL)
 
 
 def check_known_keys(cls, data: dict, what: str) -> None:
@@ -79,12 +78,13 @@ class ModelConfig:
 
     @classmethod
     def for_model(cls, name: str, **overrides) -> ModelConfig:
-        """The configuration of a named reference model (overrides: any other field)."""
-        if name not in _VARIANTS:
+        """The configuration of a named reference model (its registry entry's switches; overrides: any other field)."""
+        entry = registry.MODELS.get(name)
+        if entry is None or entry.kind != registry.VOXEL:
             raise ValueError(f"unknown model {name!r}; choose from {', '.join(MODEL_NAMES)}")
         if "grid" in overrides:
             overrides["grid"] = tuple(int(g) for g in overrides["grid"])
-        return cls(name=name, **{**_VARIANTS[name], **overrides})
+        return cls(name=name, **{**entry.variant, **overrides})
 
     def as_dict(self) -> dict:
         """Plain types only (JSON and torch.load(weights_only=True) safe)."""

@@ -10,16 +10,13 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass
 
 from dsr_bench.constants import IMAGE_SHAPE, NUM_MASK_SLOTS
+from dsr_bench.models import registry
 from dsr_bench.models.config import check_known_keys
 
-IMAGE_MODEL_NAMES = ("2dflow", "se3net", "se3posenet")
+#: The 2D track's models: the image entries of `dsr_bench.models.registry`.
+IMAGE_MODEL_NAMES = registry.names(registry.IMAGE)
 #: What each model is, in one line (predictions' meta.json, the leaderboard).
-IMAGE_MODEL_DESCRIPTIONS = {
-    "2dflow": "2DFlow: per-pixel 3D flow from a 2D encoder-decoder (Byravan and Fox 2017's flow baseline)",
-    "se3net": "SE3-Net: K masks and K rigid motions from image and action, flow blended (Byravan and Fox 2017)",
-    "se3posenet": "SE3Pose-Net: masks and poses from the image, a pose-space transition under the action, "
-                  "flow from the poses (Byravan et al. 2018)",
-}
+IMAGE_MODEL_DESCRIPTIONS = {name: registry.MODELS[name].description for name in IMAGE_MODEL_NAMES}
 
 
 @dataclass(frozen=True)

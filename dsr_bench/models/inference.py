@@ -11,18 +11,14 @@ import torch
 from dsr_bench.dataset.sequence import SequenceReader
 from dsr_bench.constants import GRID_SHAPE
 from dsr_bench.errors import UserError
+from dsr_bench.models import registry
 from dsr_bench.models.config import ModelConfig
 from dsr_bench.models.dsr_net import DSRNet, batchnorm_statistics
 from dsr_bench.models.labels import slot_labels
 from dsr_bench.models.training.checkpoints import load_checkpoint, load_weights, torch_device
 
-_DESCRIPTIONS = {
-    "dsr": "DSR-Net: history forward-warped by the predicted motion",
-    "single": "SingleStep: DSR-Net without history",
-    "nowarp": "NoWarp: DSR-Net with the history not warped",
-    "gtwarp": "GTWarp (oracle): history warped with the ground-truth flow",
-    "3dflow": "3DFlow: per-voxel flow from a 3D conv decoder, no history",
-}
+#: What each model is, in one line (predictions' meta.json, the leaderboard): `dsr_bench.models.registry`.
+_DESCRIPTIONS = {name: entry.description for name, entry in registry.MODELS.items()}
 
 
 class ModelPredictor:

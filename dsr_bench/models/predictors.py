@@ -19,15 +19,17 @@ from dsr_bench.constants import FREE_HEIGHT, GRID_SHAPE, MAX_OBJECTS_PER_SCENE, 
 from dsr_bench.atomic import write_text
 from dsr_bench.errors import UserError
 from dsr_bench.dataset.sequence import SequenceReader
+from dsr_bench.models import registry
 
-LEARNED_MODELS = ("dsr", "single", "nowarp", "gtwarp", "3dflow")
-#: The 2D track's learned models (`models.image_nets`): their predictions hold motion_2d only.
-IMAGE_MODELS = ("2dflow", "se3net", "se3posenet")
-REFERENCE_MODELS = ("oracle", "static", "push")
+#: The names of each kind of model, from the one table of models (`dsr_bench.models.registry`): the 3D track's
+#: learned models, the 2D track's (`models.image_nets`: their predictions hold motion_2d only), the references.
+LEARNED_MODELS = registry.names(registry.VOXEL)
+IMAGE_MODELS = registry.names(registry.IMAGE)
+REFERENCE_MODELS = registry.names(registry.REFERENCE)
 #: How far the `push` yardstick moves every object voxel along the push (m): about how far the pushed
 #: object moves (10.2-10.7 cm in the authors' and our cube scenes, bench/bench_fidelity.py).
 PUSH_YARDSTICK_DISTANCE = 0.10
-MODEL_NAMES = REFERENCE_MODELS + LEARNED_MODELS + IMAGE_MODELS
+MODEL_NAMES = registry.names()
 
 
 class Predictor(Protocol):
@@ -119,53 +121,59 @@ def shipped_weights(model: str) -> Path | None:
 
 def load_predictor(model: str, checkpoint: Path | None = None, device: str = "cpu", weights: Path | None = None,
                    official_bn: bool | None = None) -> Predictor:
-    """The predictor `model`: a learned model needs a dsr-bench `checkpoint` or the authors' released
-    `weights` (dsr.pth ... 3dflow.pth). official_bn: BatchNorm with batch statistics (the official
-    code's way) or running statistics (eval); None: batch statistics for the authors' weights, eval
-    mode for a dsr-bench checkpoint."""
-    if model in REFERENCE_MODELS + IMAGE_MODELS and weights is not None:
+    """The predictor `model` (an entry of `dsr_bench.models.registry`, whose kind chooses the loader): a learned
+    model needs a dsr-bench `checkpoint` or the authors' released `weights` (dsr.pth ... 3dflow.pth). official_bn:
+    BatchNorm with batch statistics (the official code's way) or running statistics (eval); None: batch statistics
+    for the authors' weights, eval mode for a dsr-bench checkpoint."""
+    entry = registry.model_entry(model)
+    if entry.kind != registry.VOXEL and weights is not None:
         raise UserError(f"--weights is for the authors' released models ({', '.join(LEARNED_MODELS)}), not --model {model}")
-    if model == "oracle":
-        return OraclePredictor()
-    if model == "static":
-        return StaticPredictor()
-    if model == "push":
-        return PushPredictor()
-    if model in IMAGE_MODELS:
-        return _load_image_predictor(model, checkpoint, device)
-    if model in LEARNED_MODELS:
-        if checkpoint is not None and weights is not None:
-            raise UserError("pass either --checkpoint (a dsr-bench checkpoint) or --weights (the authors' file), not both")
-        if weights is not None:
-            from dsr_bench.models.inference import load_official_predictor
-
-            return load_official_predictor(model, Path(weights), device, True if official_bn is None else official_bn)
-        shipped = checkpoint is None
-        if shipped:
-            checkpoint = shipped_weights(model)
-            if checkpoint is None:
-                raise UserError(f"--model {model} needs --checkpoint CKPT (train one with `dsr-bench train`) "
-                                f"or --weights FILE (the authors' {model}.pth)")
-        if not Path(checkpoint).is_file():
-            raise UserError(f"checkpoint not found: {checkpoint}")
-        from dsr_bench.dataset.manifest import file_sha256
-        from dsr_bench.models.inference import load_predictor as load_learned
-
-        predictor = (load_learned(model, Path(checkpoint), device) if official_bn is None
-                     else load_learned(model, Path(checkpoint), device, official_bn))
-        predictor.weights = {"source": "dsr-bench, shipped CPU-track weights" if shipped else "dsr-bench",
-                             "file": Path(checkpoint).name,
-                             "sha256": file_sha256(checkpoint),
-                             "batchnorm": "batch statistics (official)" if official_bn else "running statistics (eval)"}
-        return predictor
-    raise UserError(f"--model {model!r}: choose one of {', '.join(MODEL_NAMES)}")
+    return _LOADERS[entry.kind](entry, checkpoint, device, weights, official_bn)
 
 
-def _load_image_predictor(model: str, checkpoint: Path | None, device: str) -> Predictor:
+def _load_reference(entry: registry.ModelEntry, checkpoint: Path | None, device: str, weights: Path | None,
+                    official_bn: bool | None) -> Predictor:
+    """A reference predictor (no weights; a --checkpoint is not read)."""
+    return entry.make_predictor()
+
+
+def _load_voxel(entry: registry.ModelEntry, checkpoint: Path | None, device: str, weights: Path | None,
+                official_bn: bool | None) -> Predictor:
+    """A 3D-track model from the authors' `weights`, a dsr-bench `checkpoint`, or the shipped CPU-track weights."""
+    model = entry.name
+    if checkpoint is not None and weights is not None:
+        raise UserError("pass either --checkpoint (a dsr-bench checkpoint) or --weights (the authors' file), not both")
+    if weights is not None:
+        from dsr_bench.models.inference import load_official_predictor
+
+        return load_official_predictor(model, Path(weights), device, True if official_bn is None else official_bn)
+    shipped = checkpoint is None
+    if shipped:
+        checkpoint = shipped_weights(model)
+        if checkpoint is None:
+            raise UserError(f"--model {model} needs --checkpoint CKPT (train one with `dsr-bench train`) "
+                            f"or --weights FILE (the authors' {model}.pth)")
+    if not Path(checkpoint).is_file():
+        raise UserError(f"checkpoint not found: {checkpoint}")
+    from dsr_bench.dataset.manifest import file_sha256
+    from dsr_bench.models.inference import load_predictor as load_learned
+
+    predictor = (load_learned(model, Path(checkpoint), device) if official_bn is None
+                 else load_learned(model, Path(checkpoint), device, official_bn))
+    predictor.weights = {"source": "dsr-bench, shipped CPU-track weights" if shipped else "dsr-bench",
+                         "file": Path(checkpoint).name,
+                         "sha256": file_sha256(checkpoint),
+                         "batchnorm": "batch statistics (official)" if official_bn else "running statistics (eval)"}
+    return predictor
+
+
+def _load_image(entry: registry.ModelEntry, checkpoint: Path | None, device: str, weights: Path | None,
+                official_bn: bool | None) -> Predictor:
     """A 2D-track predictor from `checkpoint`, or from the shipped CPU-track weights."""
     from dsr_bench.dataset.manifest import file_sha256
     from dsr_bench.models.image_inference import load_image_predictor
 
+    model = entry.name
     shipped = checkpoint is None
     checkpoint = shipped_weights(model) if shipped else Path(checkpoint)
     if checkpoint is None:
@@ -176,6 +184,10 @@ def _load_image_predictor(model: str, checkpoint: Path | None, device: str) -> P
     predictor.weights = {"source": "dsr-bench, shipped CPU-track weights" if shipped else "dsr-bench",
                          "file": checkpoint.name, "sha256": file_sha256(checkpoint)}
     return predictor
+
+
+#: how each kind of model is loaded (`registry.KINDS`)
+_LOADERS = {registry.REFERENCE: _load_reference, registry.VOXEL: _load_voxel, registry.IMAGE: _load_image}
 
 
 def predict_split(predictor: Predictor, data_dir: str | Path, names: list[str], out: str | Path,
