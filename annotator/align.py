@@ -188,7 +188,7 @@ def sample_surface(vertices: np.ndarray, faces: np.ndarray, spacing: float = SAM
     return SurfaceSamples(points, normals[which], centre, radius)
 
 
-def posed(samples: SurfaceSamples, transform: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def posed_samples(samples: SurfaceSamples, transform: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """World points and normals (S, 3) of the samples at a 4x4 object-to-world transform."""
     rot, t = transform[:3, :3], transform[:3, 3]
     return samples.points @ rot.T + t, samples.normals @ rot.T
@@ -248,7 +248,7 @@ def fit_score(samples: SurfaceSamples, transform: np.ndarray, crop: np.ndarray, 
     `with_fitness=False` skips the fitness (reported as NaN), for fast screening."""
     from scipy.spatial import cKDTree
 
-    pts, nrm = posed(samples, transform)
+    pts, nrm = posed_samples(samples, transform)
     vis = visible_samples(pts, nrm, views)
     nvis = int(vis.sum())
     if len(crop) == 0 or nvis == 0:
@@ -336,7 +336,7 @@ def icp(samples: SurfaceSamples, crop: np.ndarray, start: np.ndarray, views: Seq
     floor = 2 * inlier_distance
     it = 0
     for it in range(1, iterations + 1):
-        pts, nrm = posed(fit_samples, current)
+        pts, nrm = posed_samples(fit_samples, current)
         vis = visible_samples(pts, nrm, views)
         d, j = tree.query(pts[vis], distance_upper_bound=dist)
         ok = np.isfinite(d)

@@ -49,6 +49,8 @@ def annotate(
     if bop is not None:
         check_writable(bop, "--bop")
     session = Session.open(resolve_capture(capture, captures), work)
+    for note in session.notes:  # e.g. a journal record a crash cut short, resumed without it
+        typer.echo(f"annotate: {note}", err=True)
     if place is not None:
         from annotator.placement import place_step0
 

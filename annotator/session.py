@@ -19,7 +19,6 @@ private operations (`_icp`, `_fit`, `_crop`, `_commit`) as an API of their own; 
 from __future__ import annotations
 
 import json
-import sys
 from collections import OrderedDict
 from dataclasses import dataclass
 from pathlib import Path
@@ -136,7 +135,7 @@ class Session:
         dir: `<capture_dir>/annotation/`). Raises UserError (one line, nothing written) when the saved state is
         unreadable or belongs to another capture, or the journal is not its own or is malformed
         (`annotator.journal`). A journal whose last record is cut short (a crash mid-write) resumes without it,
-        with a note in `notes` (also printed to stderr)."""
+        with a note in `notes` (the library prints nothing: `dsr-bench annotate` prints them)."""
         capture = load_capture(capture_dir)
         work = Path(work_dir) if work_dir is not None else capture.path / WORK_DIRNAME
         path = work / STATE_FILE
@@ -158,8 +157,6 @@ class Session:
         if saved.replayed or saved.notes or not saved.journal_current or not saved.bound:
             check_writable(work, "--work")
             session._write_snapshot()  # fold the journal in, start one (none yet, or a stale one), or bind them
-        for note in saved.notes:
-            print(f"annotate: {note}", file=sys.stderr)
         return session
 
     @property
@@ -580,7 +577,7 @@ class Session:
 
     def _near_push(self, obj: int, pose: np.ndarray, source: int, step: int) -> bool:
         """Whether the pusher passed within its radius + PUSH_CONTACT_MARGIN of the object (xy) between steps."""
-        pts, _ = align.posed(self.samples(obj), pose_to_matrix(pose))
+        pts, _ = align.posed_samples(self.samples(obj), pose_to_matrix(pose))
         pts = pts[:, :2]
         for a, b in self.capture.pushes_world[source:step, :, :2]:
             ab = b - a
@@ -699,7 +696,7 @@ class Session:
         above = self.cloud(step)[0]
         above = points = above[above[:, 2] > align.TABLE_MARGIN]
         if others and len(points):
-            surfaces = np.vstack([align.posed(self.samples(k), pose_to_matrix(p))[0] for k, p in others])
+            surfaces = np.vstack([align.posed_samples(self.samples(k), pose_to_matrix(p))[0] for k, p in others])
             d, _ = cKDTree(surfaces).query(points, distance_upper_bound=EXPLAINED_DISTANCE)
             points = points[~np.isfinite(d)]
         if len(points) < align.MIN_CORRESPONDENCES:
@@ -749,7 +746,7 @@ class Session:
         step = self._step(step)
         points, colors, _ = self.cloud(step)
         grey = np.repeat(colors.mean(1, keepdims=True), 3, axis=1) * 0.5 + 0.1
-        surfaces = [align.posed(self.samples(i), pose_to_matrix(p))[0]
+        surfaces = [align.posed_samples(self.samples(i), pose_to_matrix(p))[0]
                     for i in range(self.num_objects) if (p := self.state.pose(step, i)) is not None]
         if not surfaces:
             return grey

@@ -1,7 +1,8 @@
 """The `dsr-bench` command line: a typer app assembled from the library's command modules
 (`dsr_bench.cli.data`, `.scoring`, `.view`, `.train`) and the commands that the packages above the
 library register through the `dsr_bench.commands` entry point (`generators.cli`: generate,
-generate-captures, generate-plan-tasks, plan; `annotator.cli`: annotate, import-capture). The library never imports those packages itself.
+generate-captures, generate-plan-tasks, plan; `annotator.cli`: annotate, import-capture). The library never
+imports those packages itself.
 Each command module defines `register(app)` and imports heavy libraries inside its commands, so
 `dsr-bench --help` is fast."""
 
