@@ -18,7 +18,8 @@ every input before it is used (`annotator.inputs`): JSON values of the right typ
 headers, paths that stay inside SRC.
 
 A folder of RealSense `.bag` recordings instead (front.bag, back.bag) is the other form (`annotator.realsense`):
-`import_capture` dispatches on the folder's content; `load_rig` and `calibrate_cameras` serve both.
+`import_capture` dispatches on the folder's content; what both forms share (the rig file, the board calibration,
+undistortion) is `annotator.rig`.
 """
 
 from __future__ import annotations
@@ -30,7 +31,8 @@ from pathlib import Path
 import numpy as np
 
 from annotator.inputs import MAX_IMAGE_SIDE, finite, image_side, inside, numbers, png_shape, resolved_inside
-from dsr_bench.atomic import check_writable
+from annotator.rig import (PUSHES_FILE, calibrate_cameras, check_out, default_file, load_rig, read_objects, rig_error,
+                           undistort, undistort_maps)
 from dsr_bench.dataset.capture import CaptureCamera, parse_camera, write_capture
 from dsr_bench.errors import UserError
 
@@ -38,21 +40,15 @@ from dsr_bench.errors import UserError
 CAMERA_NAMES = ("front", "back")
 #: File names of the step images: <camera>_<color|depth>_<N>.png.
 IMAGE_PATTERN = re.compile(r"^(?P<camera>[A-Za-z0-9]+)_(?P<kind>color|depth)_(?P<step>\d+)\.png$")
-RIG_FILE = "rig.json"
-PUSHES_FILE = "pushes.json"
-
-
-def _rig_error(path: Path, message: str) -> UserError:
-    return UserError(f"{path}: {message}; see docs/annotator.md, 'Real captures in'")
 
 
 def _number(path: Path, where: str, spec: dict, key: str, positive: bool = True) -> float:
     """A rig file's number: a finite JSON number (not true / false, not a string such as "912"), positive if asked."""
     if key not in spec:
-        raise _rig_error(path, f"{where} lacks {key!r}")
+        raise rig_error(path, f"{where} lacks {key!r}")
     value = spec[key]
     if not finite(value) or (positive and value <= 0):
-        raise _rig_error(path, f"{where} {key!r} must be a finite{' positive' if positive else ''} number (a JSON "
+        raise rig_error(path, f"{where} {key!r} must be a finite{' positive' if positive else ''} number (a JSON "
                                f"number, not {json.dumps(value)[:40]})")
     return float(value)
 
@@ -62,31 +58,31 @@ def read_camera(path: Path, name: str, spec) -> tuple[CaptureCamera, np.ndarray 
     camera without extrinsics gets the identity until the board calibrates it."""
     where = f"camera {name!r}"
     if not isinstance(spec, dict):
-        raise _rig_error(path, f"{where} must be an object with fx, fy, cx, cy, width, height, depth_scale")
+        raise rig_error(path, f"{where} must be an object with fx, fy, cx, cy, width, height, depth_scale")
     fx, fy = _number(path, where, spec, "fx"), _number(path, where, spec, "fy")
     cx, cy = _number(path, where, spec, "cx", False), _number(path, where, spec, "cy", False)
     for key in ("width", "height"):
         if not image_side(spec.get(key)):
-            raise _rig_error(path, f"{where} {key!r} must be a whole number of pixels 1..{MAX_IMAGE_SIDE}, got "
+            raise rig_error(path, f"{where} {key!r} must be a whole number of pixels 1..{MAX_IMAGE_SIDE}, got "
                                    f"{json.dumps(spec.get(key))[:40]}")
     width, height = spec["width"], spec["height"]
     scale = _number(path, where, spec, "depth_scale")
     dist = None
     if spec.get("distortion") is not None:
         if not numbers(spec["distortion"], (5,)):
-            raise _rig_error(path, f"{where} distortion must be OpenCV's 5 coefficients [k1, k2, p1, p2, k3]")
+            raise rig_error(path, f"{where} distortion must be OpenCV's 5 coefficients [k1, k2, p1, p2, k3]")
         dist = np.asarray(spec["distortion"], np.float64)
         dist = None if not dist.any() else dist
     given = spec.get("extrinsics") is not None
     if given and not numbers(spec["extrinsics"], (4, 4)):
-        raise _rig_error(path, f"{where} extrinsics must be a 4x4 matrix of numbers (camera-to-table, metres, "
+        raise rig_error(path, f"{where} extrinsics must be a 4x4 matrix of numbers (camera-to-table, metres, "
                                "row-major)")
     full = {"height": int(height), "width": int(width), "intrinsics": [[fx, 0, cx], [0, fy, cy], [0, 0, 1]],
             "extrinsics": spec["extrinsics"] if given else np.eye(4).tolist(), "depth_scale": scale}
     try:
         camera = parse_camera(path, name, full)
     except UserError as exc:
-        raise _rig_error(path, str(exc).split(": ", 1)[-1] + " (extrinsics: camera-to-table, metres, row-major)") \
+        raise rig_error(path, str(exc).split(": ", 1)[-1] + " (extrinsics: camera-to-table, metres, row-major)") \
             from None
     return camera, dist, given
 
@@ -155,86 +151,6 @@ def _wrong_image(path: Path, camera: CaptureCamera, kind: str, shape: tuple, dty
                     f"{camera.name!r} width x height), got shape {tuple(shape)} {dtype}")
 
 
-def undistort_maps(camera: CaptureCamera, distortion: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """OpenCV remap tables (H, W) float32 x, y: for each undistorted pixel (same intrinsics, no distortion), where
-    it lies in the distorted image."""
-    import cv2
-
-    k = np.asarray(camera.intrinsics, np.float64)
-    return cv2.initUndistortRectifyMap(k, distortion, None, k, (camera.width, camera.height), cv2.CV_32FC1)
-
-
-def undistort(image: np.ndarray, maps: tuple[np.ndarray, np.ndarray], nearest: bool) -> np.ndarray:
-    """An image resampled through `undistort_maps` (bilinear, or nearest for depth); pixels from outside the image
-    become 0 (black, no depth)."""
-    import cv2
-
-    flags = cv2.INTER_NEAREST if nearest else cv2.INTER_LINEAR
-    return cv2.remap(image, maps[0], maps[1], flags, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
-
-
-def read_objects(path: Path, src: Path, entries) -> list[tuple[str, np.ndarray, np.ndarray, dict]]:
-    """(name, vertices (V, 3) m, faces (F, 3), identity) of the rig file's "objects" (meshes relative to SRC)."""
-    import trimesh
-
-    if not isinstance(entries, list) or not entries:
-        raise _rig_error(path, 'needs "objects": [{"name": ..., "mesh": "meshes/can.ply"}, ...] (meshes in metres, '
-                               "relative to the folder)")
-    out = []
-    for i, entry in enumerate(entries):
-        if not isinstance(entry, dict) or not isinstance(entry.get("mesh"), str):
-            raise _rig_error(path, f"object {i + 1} needs a 'mesh' path relative to {src}")
-        if not isinstance(entry.get("name", ""), str) or not isinstance(entry.get("identity", {}), dict):
-            raise _rig_error(path, f"object {i + 1}: 'name' must be a string and 'identity' an object")
-        mesh_path = inside(src, entry["mesh"], f"object {i + 1} mesh", path)
-        if not mesh_path.is_file():
-            raise _rig_error(path, f"object {i + 1} mesh {entry['mesh']!r} not found under {src}")
-        try:
-            mesh = trimesh.load(mesh_path, force="mesh", process=False)
-            vertices, faces = np.asarray(mesh.vertices, np.float64), np.asarray(mesh.faces, np.int64)
-        except Exception as exc:  # trimesh raises many types for corrupt files
-            raise _rig_error(path, f"object {i + 1} mesh {entry['mesh']!r} is unreadable ({exc})") from None
-        size = float(np.linalg.norm(vertices.max(0) - vertices.min(0))) if len(vertices) else 0.0
-        if len(faces) < 4 or not 0.005 < size < 1.0:
-            raise _rig_error(path, f"object {i + 1} mesh {entry['mesh']!r} is not an object in metres (diagonal "
-                                   f"{size:.4g}, {len(faces)} triangles); rescale it to metres")
-        identity = dict(entry.get("identity", {}))
-        out.append((str(entry.get("name", mesh_path.stem)), vertices, faces, identity))
-    return out
-
-
-def load_rig(src: Path, rig: str | Path | None) -> tuple[Path, dict]:
-    """(path, parsed JSON object) of the rig file (`rig`, default SRC/rig.json); UserError naming it and the fix."""
-    rig_path = Path(rig) if rig is not None else inside(src, RIG_FILE, "the rig file", src)
-    if not rig_path.is_file():
-        raise UserError(f"{rig_path}: no rig file; write one (cameras, board or extrinsics, objects: "
-                        "docs/annotator.md, 'Real captures in') or give it with --rig")
-    try:
-        spec = json.loads(rig_path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError, RecursionError) as exc:
-        raise _rig_error(rig_path, f"unreadable JSON ({exc})") from None
-    if not isinstance(spec, dict):
-        raise _rig_error(rig_path, 'expected {"cameras": {"front": {...}, "back": {...}}, "objects": [...], ...}')
-    if not isinstance(spec.get("name", ""), str):
-        raise _rig_error(rig_path, f"'name' must be a string (the capture's name), got {json.dumps(spec['name'])[:40]}")
-    return rig_path, spec
-
-
-def default_file(src: Path, given: str | Path | None, name: str, what: str) -> Path:
-    """The file given on the command line, or SRC/`name` checked to stay inside SRC (not a link out of it)."""
-    return Path(given) if given is not None else inside(src, name, what, src)
-
-
-def check_out(out: Path, overwrite: bool) -> None:
-    """Refuse (one line) an existing `out` without --overwrite, and an `out` that cannot be written (the capture is
-    written as a temporary directory beside it, then renamed over it), before any work."""
-    if out.exists() and not overwrite:
-        raise UserError(f"{out} already exists; pass --overwrite to replace it or choose another --out")
-    check_writable(out, "--out")
-    if out.exists():
-        check_writable(out.parent, "--out")
-
-
 def board_images(rig_path: Path, src: Path, spec: dict, names: list[str]) -> dict[str, dict[str, Path]]:
     """The rig file's board "images" per camera ({"color": path, "depth": path}, depth optional), each a file inside
     SRC; {} without a board or images. Checked before any image is read."""
@@ -243,47 +159,19 @@ def board_images(rig_path: Path, src: Path, spec: dict, names: list[str]) -> dic
         return {}
     hint = 'give {"color": PATH, "depth": PATH} (depth optional) or a colour image PATH, relative to the folder'
     if not isinstance(images, dict) or any(n not in names for n in images):
-        raise _rig_error(rig_path, f"board images must map the rig's cameras ({', '.join(names)}) to images; {hint}")
+        raise rig_error(rig_path, f"board images must map the rig's cameras ({', '.join(names)}) to images; {hint}")
     out = {}
     for n, given in images.items():
         given = given if isinstance(given, dict) else {"color": given}
         if "color" not in given or any(kind not in ("color", "depth") for kind in given):
-            raise _rig_error(rig_path, f"board images of camera {n!r}: {hint}")
+            raise rig_error(rig_path, f"board images of camera {n!r}: {hint}")
         out[n] = {kind: inside(src, rel, f"board image {kind!r} of camera {n!r}", rig_path)
                   for kind, rel in given.items()}
         for kind, path in out[n].items():
             if not path.is_file():
-                raise _rig_error(rig_path, f"board image {kind!r}: {given[kind]!r} of camera {n!r} is not a file "
+                raise rig_error(rig_path, f"board image {kind!r}: {given[kind]!r} of camera {n!r} is not a file "
                                            f"under {src}; {hint}")
     return out
-
-
-def calibrate_cameras(rig_path: Path, spec: dict, cameras: dict[str, CaptureCamera], given: dict[str, bool],
-                      board_image) -> dict:
-    """Calibrate (in place) the cameras whose extrinsics were not `given` from the rig file's board, check the
-    residuals and that the front camera sees the whole grid; returns the calibration report (`annotator.calibrate`).
-    board_image(name) -> (where: the image named in errors, colour (H, W, 3) uint8 RGB undistorted, depth (H, W) m
-    aligned to it, 0 = none) of the board seen by that camera."""
-    from annotator.calibrate import board_view, calibration_residuals, check_grid_visible, check_residuals, parse_board
-
-    report: dict = {"extrinsics": {n: "rig file" if given[n] else "board" for n in cameras}}
-    need_board = [n for n in cameras if not given[n]]
-    if need_board:
-        if "board" not in spec:
-            raise _rig_error(rig_path, f"camera(s) {', '.join(need_board)} have no 'extrinsics' (4x4 camera-to-table, "
-                                       "m) and there is no 'board' to calibrate them from: give either")
-        board = parse_board(str(rig_path), spec["board"])
-        views, calib_depth = {}, {}
-        for n in need_board:
-            where, image, calib_depth[n] = board_image(n)
-            views[n] = board_view(image, cameras[n].intrinsics, board, f"{where} ({rig_path} board)")
-            cameras[n] = CaptureCamera(n, cameras[n].height, cameras[n].width, cameras[n].intrinsics,
-                                       views[n].extrinsics, cameras[n].depth_scale)
-        report.update(calibration_residuals({n: cameras[n].camera for n in need_board}, views, calib_depth, board))
-        report["board"] = dict(spec["board"])
-        check_residuals(f"{rig_path} board", report)
-    check_grid_visible(f"{rig_path} camera 'front'", cameras["front"].camera)
-    return report
 
 
 def import_capture(src: str | Path, out: str | Path, *, rig: str | Path | None = None,
@@ -327,11 +215,11 @@ def import_png_folder(src: str | Path, out: str | Path, *, rig: str | Path | Non
     check_out(out, overwrite)
     rig_path, spec = load_rig(src, rig)
     if not isinstance(spec.get("cameras"), dict):
-        raise _rig_error(rig_path, 'expected {"cameras": {"front": {...}, "back": {...}}, "objects": [...], ...}')
+        raise rig_error(rig_path, 'expected {"cameras": {"front": {...}, "back": {...}}, "objects": [...], ...}')
     names = list(spec["cameras"])
     bad = [n for n in names if n not in CAMERA_NAMES]
     if bad or "front" not in names:
-        raise _rig_error(rig_path, f"camera names {names} must be 'front' (the view models see; required) and "
+        raise rig_error(rig_path, f"camera names {names} must be 'front' (the view models see; required) and "
                                    f"'back': rename {', '.join(map(repr, bad)) or 'one of them'}")
     names = [n for n in CAMERA_NAMES if n in names]
     cameras, distortion, given = {}, {}, {}

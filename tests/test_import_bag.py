@@ -244,7 +244,7 @@ def test_align_depth_registers_a_tilted_plane_without_holes():
     """A plane seen by an 480 x 848 depth camera registered to a 720 x 1280 colour camera 15 mm and 0.7 degrees
     away: the colour camera's z of the plane at every covered pixel (no holes: each depth pixel's footprint is
     splatted), the nearer surface where two overlap."""
-    from annotator.realsense import Recording, Stream, StreamInfo, align_depth
+    from annotator.bag import Recording, Stream, StreamInfo, align_depth
 
     color_k = _true_camera("front").intrinsics
     depth_cam = _depth_camera("front", Camera("front", *SHAPE, color_k, np.eye(4)))
@@ -279,7 +279,7 @@ def test_align_depth_registers_a_tilted_plane_without_holes():
 
 
 def test_distortion_models_round_trip_and_inverse_brown_matches_opencv():
-    from annotator.realsense import StreamInfo, _raw_of_ideal, ideal_rays, undistortion_maps
+    from annotator.bag import StreamInfo, _raw_of_ideal, ideal_rays, undistortion_maps
 
     k = _true_camera("front").intrinsics
     h, w = 72, 128
@@ -302,7 +302,8 @@ def test_distortion_models_round_trip_and_inverse_brown_matches_opencv():
 
 
 def test_step_times_pick_the_nearest_frames_per_camera_and_refuse_ambiguity(tmp_path):
-    from annotator.realsense import Recording, Stream, StreamInfo, pick_frames, read_step_times
+    from annotator.bag import Recording, Stream, StreamInfo
+    from annotator.realsense import pick_frames, read_step_times
     from dsr_bench.errors import UserError
 
     path = tmp_path / "steps.json"
@@ -329,7 +330,7 @@ def test_step_times_pick_the_nearest_frames_per_camera_and_refuse_ambiguity(tmp_
 
 
 def test_images_decode_bgr_padded_rows_and_big_endian_depth():
-    from annotator.realsense import Stream, StreamInfo, _decode
+    from annotator.bag import Stream, StreamInfo, _decode
     from dsr_bench.errors import UserError
 
     store = _store()
