@@ -127,7 +127,8 @@ def load_predictor(model: str, checkpoint: Path | None = None, device: str = "cp
     for the authors' weights, eval mode for a dsr-bench checkpoint."""
     entry = registry.model_entry(model)
     if entry.kind != registry.VOXEL and weights is not None:
-        raise UserError(f"--weights is for the authors' released models ({', '.join(LEARNED_MODELS)}), not --model {model}")
+        raise UserError(f"--weights is for the authors' released models ({', '.join(LEARNED_MODELS)}), "
+                        f"not --model {model}")
     return _LOADERS[entry.kind](entry, checkpoint, device, weights, official_bn)
 
 

@@ -32,10 +32,14 @@ from dsr_bench.dataset.scored import FRONT_FLOW_2D, FRONT_MASK, ScoredDigests
 from dsr_bench.errors import UserError
 from dsr_bench.engines import Engine
 from dsr_bench.parallel import run_in_order
+from dsr_bench.scoring.metrics import (METRICS, OBJECT_IOUS, TRACKS, Sequence3D, Step2D, Step3D, compute_sequence,
+                                       compute_step, metric_keys)
 from dsr_bench.scoring.predictions import META_TYPES
 
 RESULTS_FORMAT = "dsr-bench-results"
-HEADLINE = ("motion_visible", "motion_full", "iou_unordered", "iou_ordered")
+#: the metric whose value is finite whenever the predicted motion is (a sum over the full volume): a step's
+#: elementwise check for NaN or inf runs only when it is not
+FINITE_WITNESS = "motion_full"
 META_KEYS = tuple(META_TYPES)
 #: errors h5py raises on a damaged or hostile file
 READ_ERRORS = (OSError, KeyError, ValueError, TypeError, RuntimeError)
@@ -94,10 +98,9 @@ def no_2d_ground_truth(gt_path: str | Path) -> str:
 
 def score_sequence(args: tuple[str, str, str]) -> tuple[str, list[str], dict | None]:
     """Check and score one sequence, args = (name, prediction file, ground-truth file): returns
-    (name, problems, per-step values or None). Used by `evaluate` and by the viewer's plots.
-    A 2D-only prediction (motion_2d alone) gets the 2D flow's values only: per-step "motion_2d",
-    "has_2d" True and "has_3d" False, no 3D flow and no IoU."""
-    from dsr_bench.scoring.metrics import motion_2d_error, motion_errors, sequence_scores
+    (name, problems, per-step values or None): every metric of `metrics.METRICS` that its tracks score, by key.
+    Used by `evaluate` and by the viewer's plots. A 2D-only prediction (motion_2d alone) gets the 2D track's
+    values only: "has_2d" True and "has_3d" False, no 3D flow and no IoU."""
     from dsr_bench.scoring.predictions import check_prediction_header, is_2d_only
     from dsr_bench.dataset.sequence import SequenceReader
     from dsr_bench.dataset.storage import read_step, read_step_and_columns, read_steps
@@ -118,69 +121,57 @@ def score_sequence(args: tuple[str, str, str]) -> tuple[str, list[str], dict | N
             steps = gt.num_steps
             digests = ScoredDigests()  # the ground truth as scored, recomputed as it is read (dataset/scored.py)
             digests.objects(gt.num_objects, gt.objects)
-            if is_2d_only(pred):
-                if GT_2D not in gt:
-                    return name, [no_2d_ground_truth(gt_path)], None
-                values = np.full(steps, np.nan)
-                for t in range(steps):
-                    m2 = read_step(pred["motion_2d"], t)
-                    if not np.all(np.isfinite(m2)):
-                        problems.append(f"motion_2d[{t}]: NaN or inf")
-                        continue
-                    values[t] = motion_2d_error(m2, *_truth_2d(gt, t, digests))
-                if problems:
-                    return name, problems, None
-                return name, [], {"motion_2d": values.tolist(), "has_2d": True, "has_3d": False,
-                                  "scored_digests": digests.hexdigests()}
-            num_slots = int(pred.attrs["num_slots"])
-            n = gt.num_objects
-            pred_mask = read_steps(pred["mask"], 0, steps)
-            if int(pred_mask.max(initial=0)) > num_slots:
-                problems.append(f"mask: slot id {int(pred_mask.max())} > num_slots {num_slots}")
-            per_step = {k: np.full(steps, np.nan) for k in ("motion_visible", "motion_full", "motion_moved",
-                                                            "motion_static", "motion_2d")}
+            has_3d = not is_2d_only(pred)
+            if not has_3d and GT_2D not in gt:
+                return name, [no_2d_ground_truth(gt_path)], None
             has_2d = "motion_2d" in pred and GT_2D in gt
-            gt_mask = gt.read("mask_3d", slice(0, steps))
-            pred_motion, gt_flow, gt_tsdf = pred["motion"], gt.dataset("scene_flow_3d"), gt.dataset("tsdf")
+            per_step = {k: np.full(steps, np.nan) for k in metric_keys(TRACKS if has_3d else ("2D",), scope="step")}
+            if has_3d:
+                num_slots = int(pred.attrs["num_slots"])
+                n = gt.num_objects
+                pred_mask = read_steps(pred["mask"], 0, steps)
+                if int(pred_mask.max(initial=0)) > num_slots:
+                    problems.append(f"mask: slot id {int(pred_mask.max())} > num_slots {num_slots}")
+                gt_mask = gt.read("mask_3d", slice(0, steps))
+                pred_motion, gt_flow, gt_tsdf = pred["motion"], gt.dataset("scene_flow_3d"), gt.dataset("tsdf")
             for t in range(steps):
-                motion = read_step(pred_motion, t)
-                flow, columns = read_step_and_columns(gt_flow, t)
-                tsdf = read_step(gt_tsdf, t)
-                objects = np.flatnonzero(gt_mask[t] != 0)  # a bool volume's nonzero is 10x faster than a uint8 one's
-                digests.mask_step(t, gt_mask[t], objects)
-                digests.tsdf_step(t, tsdf, objects)
-                digests.flow_step(t, flow, columns)
-                with np.errstate(over="ignore", invalid="ignore"):
-                    errs = motion_errors(motion, flow, tsdf, gt_mask[t], n, object_index=objects)
-                # the full-volume sum is finite whenever the motion is, so the elementwise check runs only when not
-                if not np.isfinite(errs["motion_full"]) and not np.all(np.isfinite(motion)):
-                    problems.append(f"motion[{t}]: NaN or inf")
-                    continue
-                for k, v in errs.items():
-                    per_step[k][t] = v
+                if has_3d:
+                    motion = read_step(pred_motion, t)
+                    flow, columns = read_step_and_columns(gt_flow, t)
+                    tsdf = read_step(gt_tsdf, t)
+                    # a bool volume's nonzero is 10x faster than a uint8 one's
+                    objects = np.flatnonzero(gt_mask[t] != 0)
+                    digests.mask_step(t, gt_mask[t], objects)
+                    digests.tsdf_step(t, tsdf, objects)
+                    digests.flow_step(t, flow, columns)
+                    with np.errstate(over="ignore", invalid="ignore"):
+                        values = compute_step("3D", Step3D(motion, flow, tsdf, gt_mask[t], n, objects))
+                    if not np.isfinite(values[FINITE_WITNESS]) and not np.all(np.isfinite(motion)):
+                        problems.append(f"motion[{t}]: NaN or inf")
+                        continue
+                    for k, v in values.items():
+                        per_step[k][t] = v
                 if has_2d:
                     m2 = read_step(pred["motion_2d"], t)
                     if not np.all(np.isfinite(m2)):
                         problems.append(f"motion_2d[{t}]: NaN or inf")
                         continue
-                    per_step["motion_2d"][t] = motion_2d_error(m2, *_truth_2d(gt, t, digests))
+                    for k, v in compute_step("2D", Step2D(m2, *_truth_2d(gt, t, digests))).items():
+                        per_step[k][t] = v
             if problems:
                 return name, problems, None
-            visible = gt.read("visible_fraction") if "visible_fraction" in gt else None
-            if visible is not None:
-                digests.visible_fraction(visible)
-            ious = sequence_scores(pred_mask, gt_mask, num_slots, n, visible)
+            if has_3d:
+                visible = gt.read("visible_fraction") if "visible_fraction" in gt else None
+                if visible is not None:
+                    digests.visible_fraction(visible)
+                whole = compute_sequence(Sequence3D(pred_mask, gt_mask, num_slots, n, visible))
     except READ_ERRORS as exc:
         return name, [f"unreadable or truncated: {type(exc).__name__}: {' '.join(str(exc).split())}"], None
     out = {k: v.tolist() for k, v in per_step.items()}
-    out["iou_unordered"] = ious["iou_unordered"].tolist()
-    out["iou_ordered"] = ious["iou_ordered"].tolist()
-    out["iou_unordered_official"] = ious["iou_unordered_official"].tolist()
-    out["iou_ordered_official"] = ious["iou_ordered_official"].tolist()
-    out["iou_occluded_objects"] = [x.tolist() for x in ious["iou_occluded_objects"]]
-    out["iou_visible_objects"] = [x.tolist() for x in ious["iou_visible_objects"]]
+    if has_3d:
+        out.update({k: v.tolist() if isinstance(v, np.ndarray) else [x.tolist() for x in v] for k, v in whole.items()})
     out["has_2d"] = has_2d
-    out["has_3d"] = True
+    out["has_3d"] = has_3d
     out["scored_digests"] = digests.hexdigests()
     return name, [], out
 
@@ -271,16 +262,20 @@ def _mean(values) -> float:
 
 
 def aggregate(per_sequence: dict[str, dict]) -> dict:
-    """Official averaging (over sequences per step index, then over steps) and the breakdowns. When every
-    sequence is 2D-only (`score_sequence`'s "has_3d" False), the metrics, per-step values and per-sequence
-    means hold "motion_2d" alone and the breakdowns are empty; a mix of 3D and 2D-only sequences is a UserError."""
+    """Official averaging (over sequences per step index, then over steps) of every metric of `metrics.METRICS` the
+    sequences' tracks score, each reported where its role says, and the breakdowns. When every sequence is 2D-only
+    (`score_sequence`'s "has_3d" False), the metrics, per-step values and per-sequence means hold the 2D track's alone
+    and the breakdowns are empty; the 2D track of 3D sequences is scored when every one holds it; a mix of 3D and
+    2D-only sequences is a UserError."""
     seqs = list(per_sequence.values())
     only_2d = {name: not s.get("has_3d", True) for name, s in sorted(per_sequence.items())}
     if len(set(only_2d.values())) > 1:
         raise UserError(mixed_problem(next(f"{n}.h5" for n, v in only_2d.items() if not v),
                                       next(f"{n}.h5" for n, v in only_2d.items() if v)))
     two_d = all(only_2d.values())
-    steps = max(len(s["motion_2d" if two_d else "iou_unordered"]) for s in seqs)
+    tracks = ("2D",) if two_d else ("3D",) + (("2D",) if all(s["has_2d"] for s in seqs) else ())
+    keys = metric_keys(tracks)
+    steps = max(len(s[keys[0]]) for s in seqs)
 
     def by_step(key):
         table = np.full((len(seqs), steps), np.nan)
@@ -289,28 +284,15 @@ def aggregate(per_sequence: dict[str, dict]) -> dict:
         with np.errstate(all="ignore"):
             return [_mean(table[:, t]) for t in range(steps)]
 
-    if two_d:
-        per_step = {"motion_2d": by_step("motion_2d")}
-        metrics = {"motion_2d": _mean(per_step["motion_2d"])}
-        with np.errstate(all="ignore"):
-            means = {name: {"motion_2d": _mean(s["motion_2d"])} for name, s in sorted(per_sequence.items())}
-        return {"metrics": metrics, "per_step": per_step, "breakdowns": {}, "per_sequence": means}
-    per_step = {k: by_step(k) for k in ("motion_visible", "motion_full", "iou_unordered", "iou_ordered",
-                                         "motion_moved", "motion_static", "iou_unordered_official",
-                                         "iou_ordered_official")}
-    metrics = {k: _mean(per_step[k]) for k in HEADLINE + ("iou_unordered_official", "iou_ordered_official")}
-    if all(s["has_2d"] for s in seqs):
-        per_step["motion_2d"] = by_step("motion_2d")
-        metrics["motion_2d"] = _mean(per_step["motion_2d"])
-    occluded = [v for s in seqs for step in s["iou_occluded_objects"] for v in step]
-    visible = [v for s in seqs for step in s["iou_visible_objects"] for v in step]
-    breakdowns = {
-        "iou_occluded_objects": _mean(occluded) if occluded else None, "occluded_object_steps": len(occluded),
-        "iou_visible_objects": _mean(visible) if visible else None, "visible_object_steps": len(visible),
-        "motion_moved_objects": _mean(per_step["motion_moved"]),
-        "motion_static_objects": _mean(per_step["motion_static"]),
-    }
-    headline = HEADLINE + (("motion_2d",) if "motion_2d" in metrics else ())
+    per_step = {k: by_step(k) for k in keys}
+    metrics = {k: _mean(per_step[k]) for k in metric_keys(tracks, ("headline", "official"))}
+    breakdowns = {}
+    if not two_d:
+        for values, count in OBJECT_IOUS:  # per-object IoUs, pooled over every object and step
+            pooled = [v for s in seqs for step in s[values] for v in step]
+            breakdowns.update({values: _mean(pooled) if pooled else None, count: len(pooled)})
+        breakdowns.update({m.breakdown: _mean(per_step[m.key]) for m in METRICS if m.breakdown and m.track in tracks})
+    headline = metric_keys(tracks, ("headline",))
     with np.errstate(all="ignore"):  # each sequence's mean over its steps: what paired comparisons need
         per_sequence_means = {name: {k: _mean(s[k]) for k in headline} for name, s in sorted(per_sequence.items())}
     return {"metrics": metrics, "per_step": per_step, "breakdowns": breakdowns, "per_sequence": per_sequence_means}

@@ -13,6 +13,7 @@ Scores are averaged over sequences per step index, then over step indices.
 from __future__ import annotations
 
 import itertools
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -198,3 +199,151 @@ def sequence_scores(pred_mask: np.ndarray, gt_mask: np.ndarray, num_slots: int, 
             "iou_visible_objects": visible,
             "iou_unordered_official": np.array([official_iou(ov) for ov in overlaps]),
             "iou_ordered_official": np.array([official_iou(ov, rows, cols) for ov in overlaps])}
+
+
+# --- The table of metrics ----------------------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class Step3D:
+    """What a 3D metric sees of one step: the predicted motion (3, Y, X, Z) voxels (float16/32), the ground-truth
+    flow (3, Y, X, Z), TSDF and object labels (Y, X, Z), the number of objects and the flat indices of the labels'
+    non-zero voxels."""
+
+    motion: np.ndarray
+    flow: np.ndarray
+    tsdf: np.ndarray
+    gt_mask: np.ndarray
+    num_objects: int
+    objects: np.ndarray
+
+
+@dataclass(frozen=True)
+class Sequence3D:
+    """What a per-sequence 3D metric sees: predicted slots and ground-truth objects (T, Y, X, Z), the slot and
+    object counts, and each object's visible fraction per step (T, N) where the sequence has it."""
+
+    pred_mask: np.ndarray
+    gt_mask: np.ndarray
+    num_slots: int
+    num_objects: int
+    visible_fraction: np.ndarray | None
+
+
+@dataclass(frozen=True)
+class Step2D:
+    """What a 2D metric sees of one step: the predicted and ground-truth 2D flow (H, W, 3) metres and the front
+    camera's object labels (H, W)."""
+
+    motion_2d: np.ndarray
+    flow_2d: np.ndarray
+    mask_2d: np.ndarray
+
+
+def step_motion(step: Step3D) -> dict[str, float]:
+    """The four motion errors of one step in one pass (`motion_errors`)."""
+    return motion_errors(step.motion, step.flow, step.tsdf, step.gt_mask, step.num_objects, object_index=step.objects)
+
+
+def sequence_ious(seq: Sequence3D) -> dict[str, np.ndarray]:
+    """The mask IoUs of one sequence (`sequence_scores`): the ordered ones need all its steps at once."""
+    return sequence_scores(seq.pred_mask, seq.gt_mask, seq.num_slots, seq.num_objects, seq.visible_fraction)
+
+
+def step_motion_2d(step: Step2D) -> float:
+    return motion_2d_error(step.motion_2d, step.flow_2d, step.mask_2d)
+
+
+TRACKS = ("3D", "2D")
+#: where a metric's mean lands in the results: "headline" in metrics, per_step and per_sequence (the leaderboard's
+#: columns); "official" in metrics and per_step (the authors' definition beside ours); "breakdown" in per_step, and
+#: its mean in breakdowns[Metric.breakdown]
+ROLES = ("headline", "official", "breakdown")
+
+
+@dataclass(frozen=True)
+class Metric:
+    """One metric: its key in the results, its track ("3D": scored from mask and motion, "2D": from motion_2d), how
+    it is computed and where its mean is reported.
+
+    step: a function of one step (`Step3D`, or `Step2D` on the 2D track) giving the metric's value there, or a dict
+    of values by key when one pass computes several metrics (then each of them names the same function); sequence:
+    instead, a function of the whole sequence (`Sequence3D`) giving its per-step values (T,) (or a dict of them,
+    plus any per-object lists it keeps). Either way the value of a step with nothing to score is NaN. Aggregation is
+    the official one for every metric: the mean over sequences at each step index, then over step indices
+    (`evaluate.aggregate`). title: its row in `dsr-bench evaluate`'s table ("" for none)."""
+
+    key: str
+    track: str
+    role: str
+    title: str = ""
+    lower_is_better: bool = True
+    step: Callable | None = None
+    sequence: Callable | None = None
+    breakdown: str = ""
+
+    def __post_init__(self):
+        if self.track not in TRACKS or self.role not in ROLES:
+            raise ValueError(f"metric {self.key!r}: track one of {', '.join(TRACKS)}, role one of {', '.join(ROLES)}")
+        if (self.step is None) == (self.sequence is None) or (self.sequence is not None and self.track != "3D"):
+            raise ValueError(f"metric {self.key!r}: give step, or sequence (3D track only), not both")
+        if (self.role == "breakdown") != bool(self.breakdown):
+            raise ValueError(f"metric {self.key!r}: a breakdown metric (and only one) names its breakdowns key")
+
+
+#: Every metric of the benchmark, in the order of the results' keys (docs/evaluation.md; adding one: "Adding a
+#: metric" there). Every list of metric keys (evaluate's results, its table, the leaderboard entries' checks)
+#: comes from here.
+METRICS: tuple[Metric, ...] = (
+    Metric("motion_visible", "3D", "headline", "flow MSE, visible surface (cm²)", step=step_motion),
+    Metric("motion_full", "3D", "headline", "flow MSE, full volume (cm²)", step=step_motion),
+    Metric("iou_unordered", "3D", "headline", "mask IoU, unordered", False, sequence=sequence_ious),
+    Metric("iou_ordered", "3D", "headline", "mask IoU, ordered", False, sequence=sequence_ious),
+    Metric("motion_moved", "3D", "breakdown", step=step_motion, breakdown="motion_moved_objects"),
+    Metric("motion_static", "3D", "breakdown", step=step_motion, breakdown="motion_static_objects"),
+    Metric("iou_unordered_official", "3D", "official", lower_is_better=False, sequence=sequence_ious),
+    Metric("iou_ordered_official", "3D", "official", lower_is_better=False, sequence=sequence_ious),
+    Metric("motion_2d", "2D", "headline", "2D flow MSE, visible (cm²)", step=step_motion_2d),
+)
+#: the per-object IoUs `sequence_ious` keeps beside its metrics: pooled over every object and step, they are the
+#: breakdowns of mostly occluded and visible objects
+OBJECT_IOUS = (("iou_occluded_objects", "occluded_object_steps"), ("iou_visible_objects", "visible_object_steps"))
+
+
+def metric_keys(tracks=TRACKS, roles=ROLES, scope: str | None = None) -> tuple[str, ...]:
+    """The keys of the metrics of these tracks and roles (computed per "step" or per "sequence": either without
+    `scope`), in the table's order."""
+    return tuple(m.key for m in METRICS if m.track in tracks and m.role in roles
+                 and (scope is None or getattr(m, scope) is not None))
+
+
+def compute_step(track: str, inputs) -> dict[str, float]:
+    """Every per-step metric of `track` on one step's inputs (`Step3D` or `Step2D`), by key: each function once."""
+    values: dict[str, float] = {}
+    for function, keys in _grouped(track, "step"):
+        _collect(values, function(inputs), keys)
+    return values
+
+
+def compute_sequence(inputs: Sequence3D) -> dict[str, np.ndarray]:
+    """Every per-sequence metric (and what its function keeps beside, e.g. OBJECT_IOUS) of one sequence, by key."""
+    values: dict = {}
+    for function, keys in _grouped("3D", "sequence"):
+        _collect(values, function(inputs), keys)
+    return values
+
+
+def _grouped(track: str, scope: str) -> list[tuple[Callable, list[str]]]:
+    """The distinct functions of a track's metrics of one scope ("step", "sequence"), each with its metrics' keys."""
+    groups: dict[Callable, list[str]] = {}
+    for m in METRICS:
+        function = getattr(m, scope)
+        if m.track == track and function is not None:
+            groups.setdefault(function, []).append(m.key)
+    return list(groups.items())
+
+
+def _collect(values: dict, out, keys: list[str]) -> None:
+    if isinstance(out, dict):
+        values.update(out)
+    else:
+        values[keys[0]] = out
