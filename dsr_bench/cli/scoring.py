@@ -50,15 +50,15 @@ def _print_results(results: dict) -> None:
     from rich.console import Console
     from rich.table import Table
 
+    from dsr_bench.scoring.metrics import METRICS, TRACKS
+
     m, b = results["metrics"], results.get("breakdowns") or {}
     table = Table(title=f"{results['method']} on {results['split']} ({results['coverage']['scored']}/"
                         f"{results['coverage']['expected']} sequences{'' if 'motion_visible' in m else ', 2D-only'})")
     table.add_column("metric")
     table.add_column("value", justify="right")
-    titles = (("motion_visible", "flow MSE, visible surface (cm²)"), ("motion_full", "flow MSE, full volume (cm²)"),
-              ("iou_unordered", "mask IoU, unordered"), ("iou_ordered", "mask IoU, ordered"),
-              ("motion_2d", "2D flow MSE, visible (cm²)"))
-    rows = [(title, m[key]) for key, title in titles if key in m]
+    titled = [metric for metric in METRICS if metric.title]  # the table of metrics' order
+    rows = [(metric.title, m[metric.key]) for metric in titled if metric.key in m]
     if b:
         rows += [(f"IoU of mostly occluded objects ({b['occluded_object_steps']})", b["iou_occluded_objects"]),
                  (f"IoU of visible objects ({b['visible_object_steps']})", b["iou_visible_objects"]),
@@ -68,7 +68,9 @@ def _print_results(results: dict) -> None:
         table.add_row(name, "-" if value is None or value != value else f"{value:.4f}")
     Console().print(table)
     steps = results["per_step"]
-    keys = [k for k in ("iou_unordered", "iou_ordered", "motion_visible", "motion_full", "motion_2d") if k in steps]
+    # per step: each track's metrics, those where higher is better (the IoUs) first
+    keys = [metric.key for metric in sorted(titled, key=lambda metric: (TRACKS.index(metric.track),
+                                                                        metric.lower_is_better)) if metric.key in steps]
     per = Table(title="per step index")
     per.add_column("step")
     for key in keys:

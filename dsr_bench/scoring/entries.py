@@ -27,14 +27,16 @@ import json
 import math
 import re
 
+from dsr_bench.scoring.metrics import METRICS, OBJECT_IOUS, metric_keys
+
 RESULTS_FORMAT = "dsr-bench-results"
 PLAN_RESULTS_FORMAT = "dsr-bench-plan-results"
-HEADLINE = ("motion_visible", "motion_full", "iou_unordered", "iou_ordered")
-OFFICIAL = ("iou_unordered_official", "iou_ordered_official")
+#: the keys of the table of metrics (`dsr_bench.scoring.metrics.METRICS`): the 3D track's headline and official ones
+HEADLINE = metric_keys(("3D",), ("headline",))
+OFFICIAL = metric_keys(("3D",), ("official",))
 #: per-step values that have no metric of their own (the moved/static breakdowns are their means)
-STEP_ONLY = ("motion_moved", "motion_static")
-BREAKDOWNS = ("iou_occluded_objects", "occluded_object_steps", "iou_visible_objects", "visible_object_steps",
-              "motion_moved_objects", "motion_static_objects")
+STEP_ONLY = metric_keys(roles=("breakdown",))
+BREAKDOWNS = tuple(key for pair in OBJECT_IOUS for key in pair) + tuple(m.breakdown for m in METRICS if m.breakdown)
 #: fields never compared between a submitted and a recomputed results file
 UNCOMPARED = ("date", "label", "toolkit_version")
 #: the order in which `first_difference` looks (the rest after these, sorted)
@@ -226,7 +228,7 @@ def _check_track(r: dict, metrics: dict) -> list[str]:
         if missing:
             return [f"metrics missing: {', '.join(missing)} (a 3D result holds all four; a 2D-only one motion_2d "
                     "alone)"]
-        allowed = set(HEADLINE + OFFICIAL + ("motion_2d",))
+        allowed = set(HEADLINE + OFFICIAL + metric_keys(("2D",)))
         seq_keys = HEADLINE + (("motion_2d",) if "motion_2d" in metrics else ())
     unknown = sorted(set(metrics) - allowed) + sorted(set(steps) - allowed - set(STEP_ONLY))
     if unknown:

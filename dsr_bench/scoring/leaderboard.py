@@ -27,12 +27,12 @@ from dsr_bench.errors import UserError
 from dsr_bench.models.predictors import REFERENCE_MODELS
 from dsr_bench.scoring.entries import (PLAN_RESULTS_FORMAT, RESULTS_FORMAT, check_entry, entry_identity,
                                        entry_name, first_difference, is_2d_only, markdown_cell, show)
+from dsr_bench.scoring.metrics import METRICS, TRACKS as METRIC_TRACKS, metric_keys
 
-LOWER_IS_BETTER = {"motion_visible", "motion_full", "motion_2d"}
-TRACKS = {"3D": ("motion_visible", "motion_full", "iou_unordered", "iou_ordered"), "2D": ("motion_2d",)}
-COLUMN_TITLES = {"motion_visible": "flow MSE visible (cm²)", "motion_full": "flow MSE full (cm²)",
-                 "iou_unordered": "IoU unordered", "iou_ordered": "IoU ordered", "motion_2d": "2D flow MSE (cm²)",
-                 "planning_iou": "planning IoU"}
+#: each track's columns: its headline metrics (`dsr_bench.scoring.metrics.METRICS`), titled and ranked as they say
+TRACKS = {track: metric_keys((track,), ("headline",)) for track in METRIC_TRACKS}
+LOWER_IS_BETTER = {m.key for m in METRICS if m.role == "headline" and m.lower_is_better}
+COLUMN_TITLES = {**{m.key: m.column for m in METRICS if m.column}, "planning_iou": "planning IoU"}
 
 
 def add_entry(results_path: str | Path, root: str | Path = "leaderboard", label: str | None = None,

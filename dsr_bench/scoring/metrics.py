@@ -270,7 +270,8 @@ class Metric:
     instead, a function of the whole sequence (`Sequence3D`) giving its per-step values (T,) (or a dict of them,
     plus any per-object lists it keeps). Either way the value of a step with nothing to score is NaN. Aggregation is
     the official one for every metric: the mean over sequences at each step index, then over step indices
-    (`evaluate.aggregate`). title: its row in `dsr-bench evaluate`'s table ("" for none)."""
+    (`evaluate.aggregate`). title: its row in `dsr-bench evaluate`'s table; column: its column in the leaderboard's
+    table of its track (a headline metric's; "" for none)."""
 
     key: str
     track: str
@@ -280,6 +281,7 @@ class Metric:
     step: Callable | None = None
     sequence: Callable | None = None
     breakdown: str = ""
+    column: str = ""
 
     def __post_init__(self):
         if self.track not in TRACKS or self.role not in ROLES:
@@ -288,21 +290,27 @@ class Metric:
             raise ValueError(f"metric {self.key!r}: give step, or sequence (3D track only), not both")
         if (self.role == "breakdown") != bool(self.breakdown):
             raise ValueError(f"metric {self.key!r}: a breakdown metric (and only one) names its breakdowns key")
+        if bool(self.column) != (self.role == "headline"):
+            raise ValueError(f"metric {self.key!r}: a headline metric (and only one) names its leaderboard column")
 
 
 #: Every metric of the benchmark, in the order of the results' keys (docs/evaluation.md; adding one: "Adding a
 #: metric" there). Every list of metric keys (evaluate's results, its table, the leaderboard entries' checks)
 #: comes from here.
 METRICS: tuple[Metric, ...] = (
-    Metric("motion_visible", "3D", "headline", "flow MSE, visible surface (cm²)", step=step_motion),
-    Metric("motion_full", "3D", "headline", "flow MSE, full volume (cm²)", step=step_motion),
-    Metric("iou_unordered", "3D", "headline", "mask IoU, unordered", False, sequence=sequence_ious),
-    Metric("iou_ordered", "3D", "headline", "mask IoU, ordered", False, sequence=sequence_ious),
+    Metric("motion_visible", "3D", "headline", "flow MSE, visible surface (cm²)", step=step_motion,
+           column="flow MSE visible (cm²)"),
+    Metric("motion_full", "3D", "headline", "flow MSE, full volume (cm²)", step=step_motion,
+           column="flow MSE full (cm²)"),
+    Metric("iou_unordered", "3D", "headline", "mask IoU, unordered", False, sequence=sequence_ious,
+           column="IoU unordered"),
+    Metric("iou_ordered", "3D", "headline", "mask IoU, ordered", False, sequence=sequence_ious, column="IoU ordered"),
     Metric("motion_moved", "3D", "breakdown", step=step_motion, breakdown="motion_moved_objects"),
     Metric("motion_static", "3D", "breakdown", step=step_motion, breakdown="motion_static_objects"),
     Metric("iou_unordered_official", "3D", "official", lower_is_better=False, sequence=sequence_ious),
     Metric("iou_ordered_official", "3D", "official", lower_is_better=False, sequence=sequence_ious),
-    Metric("motion_2d", "2D", "headline", "2D flow MSE, visible (cm²)", step=step_motion_2d),
+    Metric("motion_2d", "2D", "headline", "2D flow MSE, visible (cm²)", step=step_motion_2d,
+           column="2D flow MSE (cm²)"),
 )
 #: the per-object IoUs `sequence_ious` keeps beside its metrics: pooled over every object and step, they are the
 #: breakdowns of mostly occluded and visible objects
