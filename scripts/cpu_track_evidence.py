@@ -32,6 +32,8 @@ from pathlib import Path
 
 import numpy as np
 
+from dsr_bench.atomic import check_writable, write_text
+
 METRICS = ("motion_visible", "motion_full", "iou_unordered", "iou_ordered")
 REFERENCES = ("static", "push", "oracle")
 PAIRS = (("dsr", "nowarp"), ("dsr", "single"), ("nowarp", "single"), ("gtwarp", "dsr"))
@@ -51,9 +53,9 @@ def paired(a: dict, b: dict, metric: str) -> dict:
 
 def torch_config(path: Path) -> dict:
     """The model_config of a weights file."""
-    import torch
+    from dsr_bench.models.training.checkpoints import read_weights
 
-    return torch.load(path, map_location="cpu", weights_only=True)["model_config"]
+    return read_weights(path)["model_config"]
 
 
 def predict_with_history(weights: Path, model: str, history: str, data: Path, out: Path) -> None:
@@ -82,6 +84,8 @@ def main() -> None:
     parser.add_argument("--history-variants", action="store_true")
     parser.add_argument("--controls", nargs="*", default=[])
     args = parser.parse_args()
+    if args.out:  # before the work: the results can be written
+        check_writable(args.out, "--out", directory=False)
 
     cli = [sys.executable, "-m", "dsr_bench"]
     results = {}
@@ -152,7 +156,7 @@ def main() -> None:
             print(f"{name:>16} " + " ".join(f"{m} {v['mean']:+.4f} +- {v['se']:.4f}" for m, v in row.items()))
     if args.out:
         args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text(json.dumps(summary, indent=1) + "\n")
+        write_text(args.out, json.dumps(summary, indent=1) + "\n")
 
 
 if __name__ == "__main__":

@@ -28,6 +28,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+from dsr_bench.atomic import check_writable, write_text
+
 REFERENCES = ("static", "push", "oracle")
 
 
@@ -48,6 +50,8 @@ def main() -> None:
     parser.add_argument("--out", type=Path)
     parser.add_argument("--leaderboard", type=Path)
     args = parser.parse_args()
+    if args.out:  # before the work: the results can be written
+        check_writable(args.out, "--out", directory=False)
 
     cli = [sys.executable, "-m", "dsr_bench"]
     results = {}
@@ -92,7 +96,7 @@ def main() -> None:
         print(f"{key:>24} {value['mean']:+8.3f} ± {value['se']:.3f}")
     if args.out:
         args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text(json.dumps(summary, indent=1) + "\n")
+        write_text(args.out, json.dumps(summary, indent=1) + "\n")
 
 
 if __name__ == "__main__":

@@ -18,6 +18,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+from dsr_bench.atomic import check_writable, write_text
+
 METRICS = ("iou", "iou_identity", "iou_occupancy")
 
 
@@ -30,6 +32,8 @@ def main() -> None:
     parser.add_argument("--out", type=Path)
     parser.add_argument("--leaderboard", type=Path)
     args = parser.parse_args()
+    if args.out:  # before the work: the results can be written
+        check_writable(args.out, "--out", directory=False)
 
     results = {}
     for name in args.planners:
@@ -67,7 +71,7 @@ def main() -> None:
                        check=True)
     if args.out:
         args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text(json.dumps(summary, indent=1) + "\n")
+        write_text(args.out, json.dumps(summary, indent=1) + "\n")
 
 
 if __name__ == "__main__":

@@ -33,6 +33,8 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
+from dsr_bench.atomic import check_writable, write_text
+
 HISTORY_MODELS = ("dsr", "nowarp", "gtwarp")
 
 
@@ -67,6 +69,7 @@ def main() -> None:
     args = parser.parse_args()
 
     out = args.out
+    check_writable(out, "--out")  # before the work
     out.mkdir(parents=True, exist_ok=True)
     started = time.time()
     data = args.train_data or out / "train"
@@ -133,7 +136,7 @@ def main() -> None:
                "seconds": time.time() - started, "metrics": rows,
                "batches": {m: [d["batches_stage1"], d["batches_stage2"]] for m, d in done.items()},
                "ordering_dsr_nowarp_single_holds": verdict}
-    (out / "short_schedule.json").write_text(json.dumps(summary, indent=1) + "\n")
+    write_text(out / "short_schedule.json", json.dumps(summary, indent=1) + "\n")
     print(f"summary: {out / 'short_schedule.json'}")
 
 

@@ -302,21 +302,23 @@ def step_chunks(shape: tuple[int, ...]) -> tuple[int, ...] | None:
     return (1,) + tuple(shape[1:])
 
 
-def write_array(f: h5py.Group, name: str, array: np.ndarray) -> h5py.Dataset:
+def write_array(f: h5py.Group, name: str, array: np.ndarray, level: int = 1) -> h5py.Dataset:
     """Create dataset `name` from a C-contiguous array in this format's layout (see the module's text): chunks of
     one step, deflate level 1; the grids of `TILED_GRIDS` in (Y, X) tiles with all-zero tiles not written. Numeric
     chunks are compressed here and written raw (the same stored array and filter pipeline as h5py's own write;
-    only the compressed bytes differ)."""
+    only the compressed bytes differ). `level`: another deflate level (a copy shipped over a slow link:
+    scripts/slim_dataset.py); the files the toolkit writes use 1."""
+    gzip = GZIP1 if level == 1 else {"compression": "gzip", "compression_opts": level}
     chunks = step_chunks(array.shape)
     tiled = name in TILED_GRIDS and tuple(array.shape[-3:]) == GRID_SHAPE
     shuffle = name.rsplit("/", 1)[-1] in SHUFFLED and not name.startswith("official/") and array.dtype.itemsize > 1
     if chunks is not None and tiled:
         chunks = chunks[:-3] + (GRID_TILE, GRID_TILE, GRID_SHAPE[2])
     if chunks is None or array.dtype.kind not in "fiu":
-        return f.create_dataset(name, data=array, chunks=chunks, track_times=False, **(GZIP1 if chunks else {}))
-    deflate = _DEFLATE or _deflate_sparse
+        return f.create_dataset(name, data=array, chunks=chunks, track_times=False, **(gzip if chunks else {}))
+    deflate = (_DEFLATE or _deflate_sparse) if level == 1 else (lambda data: zlib.compress(data, level))
     ds = f.create_dataset(name, shape=array.shape, dtype=array.dtype, chunks=chunks, track_times=False,
-                          shuffle=shuffle, fillvalue=0, **GZIP1)
+                          shuffle=shuffle, fillvalue=0, **gzip)
     tile = chunks[1:]
     corners = list(itertools.product(*(range(0, s, c) for s, c in zip(array.shape[1:], tile))))
     for t in range(array.shape[0]):
