@@ -2,7 +2,7 @@
 
 From the capture's front camera: colour, depth and world points at the benchmark's image size (IMAGE_SHAPE,
 `stored_camera`), and the TSDF of its full-resolution depth image; from the poses and
-meshes: amodal `mask_3d` (voxel centres inside each mesh's solid, `generators.render.SceneRenderer.amodal_mask`),
+meshes: amodal `mask_3d` (voxel centres inside each mesh's solid, `dsr_bench.render.SceneRenderer.amodal_mask`),
 `scene_flow_3d` and `scene_flow_2d` (`dsr_bench.geometry.groundtruth`), the heightmap of the posed meshes, the front view's
 visible instance mask (rendered ids where the measured depth agrees) and visible fractions. Actions and pushes
 come from the capture. Attributes carry "source": "annotated" and an "annotation" record: annotator and state
@@ -43,13 +43,13 @@ def _renderer(capture, front):
 
 def renderer_for(capture, cameras: dict):
     """A SceneRenderer of the capture's meshes with the given cameras {name: Camera}."""
-    from generators.render import SceneRenderer
+    from dsr_bench.render import create_renderer
 
     objects = []
     for i, obj in enumerate(capture.objects):
         color = obj.identity.get("color", (0.6, 0.6, 0.6))
         objects.append(SimpleNamespace(parts=_parts(*capture.mesh(i)), color=tuple(float(c) for c in color)))
-    return SceneRenderer(objects, cameras=dict(cameras))
+    return create_renderer(objects, cameras=dict(cameras))
 
 
 def stored_camera(camera, shape: tuple[int, int]):

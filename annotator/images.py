@@ -1,7 +1,7 @@
 """Image helpers of the annotator's panel: object colours, mesh silhouettes and their outlines on colour images.
 
 Pure numpy (PIL for resizing, scipy for the outline): no window, no Session. Silhouettes are rasterised with the
-generator's exact rasteriser (`generators.raster`), the one that renders every generated image.
+library's exact rasteriser (`dsr_bench.render.raster`), the one that renders every generated image.
 """
 
 from __future__ import annotations
@@ -79,11 +79,11 @@ def silhouette_masks(camera: Camera, meshes: Sequence[tuple[np.ndarray, np.ndarr
 
     Pixel (v, u) is inside object i when its centre (integer u, v, as in `Camera.ray_directions_world`) lies in
     the projection of one of mesh i's triangles in front of the camera (their part in front, `clip_near`),
-    ignoring the other objects: the pixels whose ray hits the mesh. Rasterised with `generators.raster`
+    ignoring the other objects: the pixels whose ray hits the mesh. Rasterised with `dsr_bench.render.raster`
     (a centre exactly on a triangle's edge belongs to one side, by its rule). Unset poses (NaN rows) give empty
     silhouettes.
     """
-    from generators.raster import rasterize
+    from dsr_bench.render.raster import rasterize
 
     h, w = camera.height, camera.width
     to_camera = rigid_inverse(camera.extrinsics)

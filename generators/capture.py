@@ -1,6 +1,6 @@
 """Simulated two-camera RGB-D captures: the annotator's demo, test fixtures and accuracy yardstick.
 
-simulate (generators.episode, both cameras) -> ideal renders (generators.render) -> sensor model -> capture
+simulate (generators.episode, both cameras) -> ideal renders (dsr_bench.render) -> sensor model -> capture
 directory (dsr_bench.dataset.capture.write_capture). The sensor model imitates an active-stereo RealSense (D415-like):
 
 - depth comes from a disparity d = f b / z (f the focal length in pixels, b the stereo baseline): matching noise of
@@ -233,7 +233,7 @@ def generate_capture(out: Path, *, name: str, seed: int, objects: str = "procedu
     """
     from generators.episode import EpisodeConfig, generate_episode
     from generators.objects import get_object_set
-    from generators.render import SceneRenderer
+    from dsr_bench.render import create_renderer
 
     model = get_sensor_model(noise)
     if object_set is None:
@@ -250,7 +250,7 @@ def generate_capture(out: Path, *, name: str, seed: int, objects: str = "procedu
     pushes = np.stack([episode.arrays["push_start"], episode.arrays["push_end"]], axis=1)
 
     rng = np.random.default_rng(np.random.SeedSequence(int(seed), spawn_key=(_NOISE_STREAM,)))
-    renderer = SceneRenderer(specs, cameras=CAPTURE_CAMERAS, image_shape=image_shape)
+    renderer = create_renderer(specs, cameras=CAPTURE_CAMERAS, image_shape=image_shape)
     true_cams = {n: _capture_camera(make_camera(n, *image_shape), DEPTH_SCALE) for n in CAPTURE_CAMERAS}
     stored = {n: perturb_calibration(c, rng, model) for n, c in true_cams.items()}
     colors: list[dict[str, np.ndarray]] = []

@@ -1,6 +1,6 @@
 """One simulated pushing sequence: sample a scene, push T times, observe T + 1 times.
 
-simulate (generators.physics) -> observe (generators.render) -> arrays in the sequence schema.
+simulate (generators.physics) -> observe (dsr_bench.render) -> arrays in the sequence schema.
 Everything random is drawn from one numpy Generator seeded with the sequence seed, and the world is
 rebuilt for every scene attempt, so a sequence is a pure function of (arguments, sequence seed).
 """
@@ -127,7 +127,7 @@ def generate_episode(config: EpisodeConfig, object_set, seed: int, name: str) ->
 
     from generators.physics import PushWorld, import_pybullet
     from generators.policy import make_policy
-    from generators.render import SceneRenderer
+    from dsr_bench.render import create_renderer
 
     rng = np.random.default_rng(seed)
     # wall seconds per phase, and process CPU seconds ("<phase>_cpu": all threads, e.g. open3d's)
@@ -136,7 +136,7 @@ def generate_episode(config: EpisodeConfig, object_set, seed: int, name: str) ->
     for attempt in range(1, MAX_SCENE_ATTEMPTS + 1):
         specs = object_set.sample(rng, config.objects_per_scene)
         large = [i for i, s in enumerate(specs) if s.is_large]
-        renderer = SceneRenderer(specs, cameras=config.cameras)
+        renderer = create_renderer(specs, cameras=config.cameras)
         world = PushWorld(specs)
         try:
             t0, c0 = time.perf_counter(), time.process_time()

@@ -120,7 +120,7 @@ def task_objects(task) -> list:
 
 
 class SimEnvironment:
-    """A task's world in pybullet (`generators.physics.PushWorld`) observed by `generators.render.SceneRenderer`:
+    """A task's world in pybullet (`generators.physics.PushWorld`) observed by `dsr_bench.render.SceneRenderer`:
     `reset(task)` builds it at the start poses, `step(action)` pushes and observes, `current_mask()` and
     `simulate(actions)` are the oracle's callbacks (true next states, the world restored after each)."""
 
@@ -134,11 +134,11 @@ class SimEnvironment:
 
     def reset(self, task):
         from generators.physics import PushWorld
-        from generators.render import SceneRenderer
+        from dsr_bench.render import create_renderer
 
         self.close()
         objects = task_objects(task)
-        self.world, self.renderer = PushWorld(objects), SceneRenderer(objects)
+        self.world, self.renderer = PushWorld(objects), create_renderer(objects)
         for i, pose in enumerate(task.arrays["start/object_poses"]):
             self.world.set_pose(i, pose)
         # contacts without moving anything: pybullet's restoreState does not clear contact manifolds that a saved

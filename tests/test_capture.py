@@ -159,11 +159,11 @@ def test_stored_calibration_differs_slightly_from_the_truth(captures):
 
 def _ideal_depth(cap, step: int, camera: str) -> np.ndarray:
     """Ray-cast z-depth of the capture's meshes at their true poses, with the true calibration."""
-    from generators.render import SceneRenderer
+    from dsr_bench.render import create_renderer
 
     objects = [SimpleNamespace(parts=[SimpleNamespace(vertices=v, faces=f)], color=(0.5, 0.5, 0.5))
                for v, f in (cap.mesh(i) for i in range(cap.num_objects))]
-    renderer = SceneRenderer(objects, cameras=(camera,), image_shape=(480, 640))
+    renderer = create_renderer(objects, cameras=(camera,), image_shape=(480, 640))
     scene, ids = renderer.scene(cap.truth_poses()[step])
     return renderer.render_camera(scene, ids, camera).depth
 

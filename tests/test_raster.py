@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from generators import raster
+from dsr_bench.render import raster
 
 trimesh = pytest.importorskip("trimesh")
 

@@ -66,7 +66,7 @@ def test_tsdf_is_the_authors_definition_at_voxel_corners():
 
     import trimesh
 
-    from generators.render import SceneRenderer
+    from dsr_bench.render import create_renderer
 
     box = trimesh.creation.box(extents=[0.06, 0.05, 0.07])
     spec = SimpleNamespace(parts=[SimpleNamespace(vertices=np.asarray(box.vertices), faces=np.asarray(box.faces))],
@@ -74,7 +74,7 @@ def test_tsdf_is_the_authors_definition_at_voxel_corners():
     pose = np.array([[0.52, 0.03, 0.035, 0.0, 0.0, np.sin(0.3), np.cos(0.3)]])
     for shape in ((960, 1280), (480, 640)):
         cam = make_camera("front", *shape)
-        renderer = SceneRenderer([spec], cameras={"front": cam})
+        renderer = create_renderer([spec], cameras={"front": cam})
         depth = renderer.render_camera(*renderer.scene(pose), "front").depth
         ours = integrate_tsdf(depth, cam)
         theirs = _authors_tsdf(depth.astype(np.float64), cam)

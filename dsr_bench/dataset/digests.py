@@ -4,7 +4,7 @@ A sequence's arrays fall in two groups (`dsr_bench.dataset.schema.Field.group`):
 - ground truth (poses, actions, pushes, amodal masks, 3D flow, the policy's choices, and the object
   list): what scores a model. Pinned bit for bit: any difference is a different benchmark.
 - observations (images, depth, TSDF, heightmap, visible fractions, 2D ground truth, anything else):
-  what the cameras render. The generator renders them exactly (`generators.raster`: the same bits on
+  what the cameras render. The generator renders them exactly (`dsr_bench.render`: the same bits on
   every x86-64 CPU with FMA), but they are pinned to a tolerance (`within_tolerance`), so that a
   last-bit difference of a renderer, library or CPU is reported as such and never as a changed
   benchmark.

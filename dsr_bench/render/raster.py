@@ -1,6 +1,7 @@
 """Exact triangle rasterisation in numpy: the same bits on every x86-64 CPU.
 
-Every observation of the generator (images, depth, TSDF, heightmap, amodal voxels) comes from here.
+Every rendered observation comes from here: the generator's images, depth, TSDF, heightmap and amodal
+voxels, and the annotator's exported masks and outlines.
 Only IEEE-754 operations that are correctly rounded by definition are used (+, -, *, /, sqrt,
 comparisons, min / max), each written out in a fixed order: no BLAS, no transcendental functions,
 no float reductions whose order could depend on the SIMD width, no ray tracer that picks its code

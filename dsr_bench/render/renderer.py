@@ -1,6 +1,6 @@
 """Observations of a scene of posed object meshes: images, TSDF, heightmap and amodal voxels.
 
-Rendering is exact rasterisation of the object meshes (`generators.raster`) over an analytic table
+Rendering is exact rasterisation of the object meshes (`dsr_bench.render.raster`) over an analytic table
 plane: z-depth, instance masks and world points come from the same pixel-centre samples, and the
 same bits on every x86-64 CPU (no ray tracer that picks its code path by instruction set, no BLAS,
 no transcendental function). Amodal occupancy counts surface crossings of each object's closed
@@ -20,15 +20,13 @@ from dsr_bench.cache import FrozenCache, camera_key
 from dsr_bench.constants import (
     GRID_BOUNDS,
     GRID_SHAPE,
-    IMAGE_SHAPE,
     MASK_SUBSAMPLES,
-    TSDF_IMAGE_SHAPE,
     VOXEL_SAMPLE_OFFSET,
     VOXEL_SIZE,
 )
-from dsr_bench.geometry import Camera, make_camera, pose_to_matrix, transform_points
+from dsr_bench.geometry import Camera, pose_to_matrix, transform_points
 from dsr_bench.geometry.tsdf import ProjectiveTSDF
-from generators import raster
+from dsr_bench.render import raster
 
 TABLE_COLOR = np.array([0.78, 0.74, 0.66])
 _LIGHT = np.array([0.3, -0.5, 0.81])
@@ -107,7 +105,8 @@ def _build_table_view(camera: Camera) -> tuple[np.ndarray, np.ndarray, np.ndarra
         t = np.where(dirs[:, 2] < 0, (0.0 - origin[2]) / dirs[:, 2], np.inf)
     x = origin[0] + dirs[:, 0] * t
     y = origin[1] + dirs[:, 1] * t
-    on_table = (t > 0) & (np.abs(x - TABLE_CENTRE[0]) <= TABLE_HALF_SIZE) & (np.abs(y - TABLE_CENTRE[1]) <= TABLE_HALF_SIZE)
+    on_table = ((t > 0) & (np.abs(x - TABLE_CENTRE[0]) <= TABLE_HALF_SIZE)
+                & (np.abs(y - TABLE_CENTRE[1]) <= TABLE_HALF_SIZE))
     depth = np.where(on_table, t, np.inf)
     shade = np.full(len(depth), _shade(np.abs(LIGHT_DIRECTION[2])))
     return rays, depth, shade
@@ -135,21 +134,20 @@ _Z_SUBSAMPLES = GRID_BOUNDS[2, 0] + VOXEL_SIZE * (
 
 
 class SceneRenderer:
-    """Renders the benchmark's observations of a fixed set of objects at any poses.
+    """Renders the benchmark's observations of a fixed set of objects at any poses (made by
+    `dsr_bench.render.create_renderer`, which names the cameras).
 
     objects: sequence of ObjectSpec-like items with `.parts` (each `.vertices` (V,3) m, `.faces` (F,3))
-    and `.color` (RGB 0..1); cameras: names of the benchmark's cameras ('front', optionally 'back') at
-    `image_shape`, or a dict name -> `dsr_bench.geometry.Camera` (e.g. a capture's calibrated cameras).
+    and `.color` (RGB 0..1); cameras: name -> `dsr_bench.geometry.Camera` of the images ('front' for the
+    visible fractions); tsdf_camera: the camera whose fine depth image the TSDF is fused from.
     """
 
-    def __init__(self, objects, cameras: tuple[str, ...] | dict[str, Camera] = ("front",), image_shape=IMAGE_SHAPE,
-                 tsdf_image_shape=TSDF_IMAGE_SHAPE):
+    def __init__(self, objects, cameras: dict[str, Camera], tsdf_camera: Camera):
         self.parts = [[(np.asarray(p.vertices, np.float64), np.asarray(p.faces, np.int64)) for p in obj.parts]
                       for obj in objects]
         self.colors = np.array([obj.color for obj in objects], dtype=np.float64).reshape(-1, 3)
-        self.cameras: dict[str, Camera] = dict(cameras) if isinstance(cameras, dict) else {
-            name: make_camera(name, *image_shape) for name in cameras}
-        self.tsdf_camera = make_camera("front", *tsdf_image_shape)
+        self.cameras: dict[str, Camera] = dict(cameras)
+        self.tsdf_camera = tsdf_camera
         self._tsdf = ProjectiveTSDF(self.tsdf_camera)
         self._palette = np.vstack([TABLE_COLOR, self.colors])
 
@@ -219,7 +217,8 @@ class SceneRenderer:
         points[~valid] = np.nan
         h, w = camera.height, camera.width
         return CameraImages(color=color.astype(np.uint8).reshape(h, w, 3), depth=depth.reshape(h, w),
-                            mask=instance.astype(np.uint8).reshape(h, w), points=points.astype(np.float32).reshape(h, w, 3))
+                            mask=instance.astype(np.uint8).reshape(h, w),
+                            points=points.astype(np.float32).reshape(h, w, 3))
 
     def tsdf(self, scene: PosedScene) -> np.ndarray:
         """Front-view TSDF (Y, X, Z) float32 from a fine z-depth image (TSDF_IMAGE_SHAPE, float32)."""
