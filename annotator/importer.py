@@ -33,11 +33,13 @@ import numpy as np
 from annotator.inputs import MAX_IMAGE_SIDE, finite, image_side, inside, numbers, png_shape, resolved_inside
 from annotator.rig import (PUSHES_FILE, calibrate_cameras, check_out, default_file, load_rig, read_objects, rig_error,
                            undistort, undistort_maps)
+from dsr_bench.constants import CAMERAS, MODEL_CAMERA
 from dsr_bench.dataset.capture import CaptureCamera, parse_camera, write_capture
 from dsr_bench.errors import UserError
 
-#: Camera names a rig may use: `front` (the view models see) and `back` (for annotation only).
-CAMERA_NAMES = ("front", "back")
+#: Camera names a rig may use: the benchmark's cameras (`dsr_bench.constants.CAMERAS`), `front` (MODEL_CAMERA, the
+#: view models see) required, the others (`back`) for annotation only.
+CAMERA_NAMES = tuple(CAMERAS)
 #: File names of the step images: <camera>_<color|depth>_<N>.png.
 IMAGE_PATTERN = re.compile(r"^(?P<camera>[A-Za-z0-9]+)_(?P<kind>color|depth)_(?P<step>\d+)\.png$")
 
@@ -218,9 +220,10 @@ def import_png_folder(src: str | Path, out: str | Path, *, rig: str | Path | Non
         raise rig_error(rig_path, 'expected {"cameras": {"front": {...}, "back": {...}}, "objects": [...], ...}')
     names = list(spec["cameras"])
     bad = [n for n in names if n not in CAMERA_NAMES]
-    if bad or "front" not in names:
-        raise rig_error(rig_path, f"camera names {names} must be 'front' (the view models see; required) and "
-                                   f"'back': rename {', '.join(map(repr, bad)) or 'one of them'}")
+    if bad or MODEL_CAMERA not in names:
+        others = ", ".join(repr(n) for n in CAMERA_NAMES if n != MODEL_CAMERA)
+        raise rig_error(rig_path, f"camera names {names} must be {MODEL_CAMERA!r} (the view models see; required) and "
+                                  f"{others}: rename {', '.join(map(repr, bad)) or 'one of them'}")
     names = [n for n in CAMERA_NAMES if n in names]
     cameras, distortion, given = {}, {}, {}
     for n in names:

@@ -61,11 +61,16 @@ AHEAD_DISTANCE: float = 0.04
 # --- Cameras ---------------------------------------------------------------------------------
 #: Horizontal field of view (rad), RealSense D415-like.
 CAMERA_HFOV: float = float(np.deg2rad(69.4))
-#: Camera placements: position, look-at target, up vector (world, m).
+#: The cameras of the benchmark, one entry each: position, look-at target, up vector (world, m). Every list of
+#: camera names (generate --cameras, simulated captures, a real rig's cameras) is this table's, in its order; adding
+#: a camera: DATASHEET.md, "Adding a camera".
 CAMERAS: dict[str, dict[str, tuple[float, float, float]]] = {
     "front": {"eye": (0.5, -0.7, 0.3), "target": (0.5, 0.0, 0.0), "up": (0.0, 0.3, 0.7)},
     "back": {"eye": (0.5, 0.7, 0.3), "target": (0.5, 0.0, 0.0), "up": (0.0, -0.3, 0.7)},
 }
+#: The camera the models see (the 2D track's images and the predictions' motion_2d): required in every sequence,
+#: capture and rig; the others are optional views.
+MODEL_CAMERA: str = "front"
 #: Image size (height, width) of the stored 2D data.
 IMAGE_SHAPE: tuple[int, int] = (240, 320)
 #: Depth image size used to integrate the TSDF (2 mm pixels at the far edge of the grid).

@@ -24,13 +24,15 @@ from pathlib import Path
 
 import numpy as np
 
+from dsr_bench.constants import CAMERAS
 from dsr_bench.dataset.capture import CaptureCamera, write_capture
 from dsr_bench.errors import UserError
 from dsr_bench.geometry import Camera, make_camera
 
 #: Image size (height, width) of simulated captures: the RealSense's common 640 x 480 mode.
 CAPTURE_IMAGE_SHAPE: tuple[int, int] = (480, 640)
-CAPTURE_CAMERAS: tuple[str, ...] = ("front", "back")
+#: Cameras of a simulated capture: every camera of the benchmark (`dsr_bench.constants.CAMERAS`), in its order.
+CAPTURE_CAMERAS: tuple[str, ...] = tuple(CAMERAS)
 #: Metres per depth unit of the 16-bit depth PNGs (RealSense default).
 DEPTH_SCALE: float = 0.001
 #: Spawn key of the sensor-noise stream (independent of the episode's stream from the same seed).

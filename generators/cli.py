@@ -11,8 +11,10 @@ import typer
 
 from dsr_bench.cli.engine_options import (RayAddress, Slurm, SlurmLocal, SlurmLogs, SlurmPartition, SlurmTasks,
                                          SlurmTime)
+from dsr_bench.constants import CAMERAS, MODEL_CAMERA
+from generators.objects import OBJECT_SET_NAMES
 
-OBJECT_SETS_HELP = "cube | shapenet | ycb | procedural | procedural-novel"
+OBJECT_SETS_HELP = " | ".join(OBJECT_SET_NAMES)
 
 
 def generate(
@@ -25,7 +27,8 @@ def generate(
     steps: Optional[int] = typer.Option(None, "--steps", help="Pushes per sequence (default 10)."),
     objects_per_scene: Optional[int] = typer.Option(None, "--objects-per-scene", help="Objects per scene, 1-5 (default 4)."),
     policy: Optional[str] = typer.Option(None, "--policy", help="heuristic (the paper's) or random."),
-    cameras: str = typer.Option("front", "--cameras", help="front, or front,back for the rig's second view."),
+    cameras: str = typer.Option(MODEL_CAMERA, "--cameras", help=f"{MODEL_CAMERA}, or {','.join(CAMERAS)} for the rig's "
+                                "second view."),
     workers: Optional[int] = typer.Option(None, "--workers", "-w", help="Parallel worker processes (default 1; "
                                           "with --ray local the CPUs of its Ray, with --slurm those of each task)."),
     shard: Optional[str] = typer.Option(None, "--shard", help="Generate only shard i of n (i/n), e.g. in a SLURM "
@@ -100,8 +103,7 @@ def generate(
 def generate_captures(
     out: Path = typer.Option(..., "--out", "-o", help="Directory to write captures/seq_0000/, seq_0001/, ... into."),
     num: int = typer.Option(1, "--num-sequences", "-n", help="Captures to generate."),
-    objects: str = typer.Option("procedural", "--objects", help="Object set: cube | shapenet | ycb | procedural | "
-                                                                "procedural-novel."),
+    objects: str = typer.Option("procedural", "--objects", help=f"Object set: {OBJECT_SETS_HELP}."),
     steps: int = typer.Option(10, "--steps", help="Pushes per capture (T; T + 1 steps of images)."),
     objects_per_scene: int = typer.Option(4, "--objects-per-scene", help="Objects per scene, 1-5."),
     seed: int = typer.Option(0, "--seed", help="Base seed; capture i uses a seed derived from it and i."),

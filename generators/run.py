@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from dsr_bench.constants import MAX_OBJECTS_PER_SCENE
+from dsr_bench.constants import CAMERAS, MAX_OBJECTS_PER_SCENE, MODEL_CAMERA
 from dsr_bench.dataset.splits import sequence_name, sequence_seed
 from dsr_bench.atomic import check_writable
 from dsr_bench.engines import Engine, LocalEngine
@@ -77,13 +77,14 @@ def parse_shard(text: str) -> tuple[int, int]:
 
 def plan_from_arguments(*, objects: str | None = None, num_sequences: int | None = None, out: Path | None = None,
                         split: str | None = None, seed: int | None = None, steps: int | None = None,
-                        objects_per_scene: int | None = None, policy: str | None = None, cameras: str = "front",
+                        objects_per_scene: int | None = None, policy: str | None = None, cameras: str = MODEL_CAMERA,
                         workers: int = 1, shard: str = "0/1", object_root: Path | None = None) -> RunPlan:
     """The run that `dsr-bench generate`'s arguments ask for (None: not given). A named `split` fixes the object
     set, size, seed, steps, objects per scene and policy (giving any of them too is refused) and --out defaults
     to data/<split>; without it --objects, --num-sequences and --out are needed and the rest take their defaults
-    (seed 0, DEFAULT_STEPS, DEFAULT_OBJECTS_PER_SCENE, the heuristic policy). `cameras`: 'front' or
-    'front,back'; `shard`: 'i/n'. The plan is not checked yet (`check_plan`, `prepare_run`)."""
+    (seed 0, DEFAULT_STEPS, DEFAULT_OBJECTS_PER_SCENE, the heuristic policy). `cameras`: names of
+    `constants.CAMERAS`, comma-separated, MODEL_CAMERA among them ('front' or 'front,back'); `shard`: 'i/n'.
+    The plan is not checked yet (`check_plan`, `prepare_run`)."""
     from dsr_bench.constants import DEFAULT_OBJECTS_PER_SCENE, DEFAULT_STEPS
     from dsr_bench.dataset.splits import get_split
 
@@ -127,9 +128,9 @@ def check_plan(plan: RunPlan) -> None:
     check_scene_arguments(plan.num_sequences, cfg.steps, cfg.objects_per_scene)
     if cfg.policy not in ("heuristic", "random"):
         raise UserError(f"--policy {cfg.policy!r}: choose heuristic or random")
-    bad = [c for c in cfg.cameras if c not in ("front", "back")]
-    if bad or "front" not in cfg.cameras:
-        raise UserError(f"--cameras {','.join(cfg.cameras)!r}: use front or front,back")
+    bad = [c for c in cfg.cameras if c not in CAMERAS]
+    if bad or MODEL_CAMERA not in cfg.cameras:
+        raise UserError(f"--cameras {','.join(cfg.cameras)!r}: use {MODEL_CAMERA} or {','.join(CAMERAS)}")
     if plan.workers < 1:
         raise UserError(f"--workers {plan.workers}: must be at least 1")
     check_writable(plan.out)

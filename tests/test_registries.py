@@ -98,3 +98,41 @@ def test_model_help_is_the_table(capsys, monkeypatch):
     assert main(["train", "--help"]) == 0
     assert ("dsr | single | nowarp | gtwarp | 3dflow (the 3D track) or 2dflow | se3net | se3posenet (the 2D track: "
             "front-camera images)") in capsys.readouterr().out
+
+
+def test_camera_names_are_the_constants_table():
+    """Generate, simulated captures and a real rig's cameras take their names from dsr_bench.constants.CAMERAS."""
+    pytest.importorskip("pybullet")  # generators.episode: the simulator
+    from annotator.importer import CAMERA_NAMES
+    from dsr_bench.constants import CAMERAS, MODEL_CAMERA
+    from generators.capture import CAPTURE_CAMERAS
+
+    assert tuple(CAMERAS) == CAPTURE_CAMERAS == CAMERA_NAMES == ("front", "back") and MODEL_CAMERA == "front"
+
+
+def test_a_new_camera_is_one_entry(monkeypatch, tmp_path):
+    """DATASHEET.md, 'Adding a camera': an entry of constants.CAMERAS is a camera of generate --cameras and of
+    make_camera, and the error lists it; the model camera stays required."""
+    pytest.importorskip("pybullet")
+    from dsr_bench.constants import CAMERAS
+    from dsr_bench.geometry import make_camera
+    from generators.run import check_plan, plan_from_arguments
+
+    monkeypatch.setitem(CAMERAS, "left", {"eye": (1.2, 0.0, 0.3), "target": (0.5, 0.0, 0.0), "up": (-0.3, 0.0, 0.7)})
+    args = {"objects": "cube", "num_sequences": 1, "out": tmp_path / "d"}
+    check_plan(plan_from_arguments(**args, cameras="front,left"))
+    assert make_camera("left", 24, 32).extrinsics[:3, 3].tolist() == [1.2, 0.0, 0.3]
+    with pytest.raises(UserError, match=r"^--cameras 'left': use front or front,back,left$"):
+        check_plan(plan_from_arguments(**args, cameras="left"))
+
+
+def test_object_set_names_are_the_objects_table(capsys, monkeypatch):
+    from generators.objects import OBJECT_SET_NAMES, OBJECT_SETS, get_object_set
+
+    assert OBJECT_SET_NAMES == tuple(OBJECT_SETS) == ("cube", "shapenet", "ycb", "procedural", "procedural-novel")
+    monkeypatch.setitem(OBJECT_SETS, "boxes", ("generators.objects.builtin:CubeSet", False))
+    assert get_object_set("boxes").sample(__import__("numpy").random.default_rng(0), 1)[0].category
+    monkeypatch.setenv("COLUMNS", "400")
+    for command in ("generate", "generate-captures"):
+        assert main([command, "--help"]) == 0
+        assert "Object set: cube | shapenet | ycb | procedural | procedural-novel." in capsys.readouterr().out

@@ -11,9 +11,18 @@ import numpy as np
 from dsr_bench.errors import UserError
 from generators.objects.spec import ObjectSpec, Part
 
-OBJECT_SET_NAMES: tuple[str, ...] = ("cube", "shapenet", "ycb", "procedural", "procedural-novel")
+#: The object sets, one entry each: name -> (its class, "module:Class", imported on use; whether it reads meshes
+#: from --object-root, which it checks when made). Every list of object-set names is this table's, in its order.
+OBJECT_SETS: dict[str, tuple[str, bool]] = {
+    "cube": ("generators.objects.builtin:CubeSet", False),
+    "shapenet": ("generators.objects.external:ShapeNetSet", True),
+    "ycb": ("generators.objects.external:YCBSet", True),
+    "procedural": ("generators.objects.builtin:ProceduralSet", False),
+    "procedural-novel": ("generators.objects.builtin:ProceduralNovelSet", False),
+}
+OBJECT_SET_NAMES: tuple[str, ...] = tuple(OBJECT_SETS)
 
-__all__ = ["OBJECT_SET_NAMES", "ObjectSet", "ObjectSpec", "Part", "get_object_set"]
+__all__ = ["OBJECT_SETS", "OBJECT_SET_NAMES", "ObjectSet", "ObjectSpec", "Part", "get_object_set"]
 
 
 class ObjectSet(Protocol):
@@ -24,16 +33,11 @@ class ObjectSet(Protocol):
 
 def get_object_set(name: str, object_root: str | Path | None = None) -> ObjectSet:
     """The named object set; external sets are checked for their meshes here, before any work."""
-    from generators.objects import builtin
+    from importlib import import_module
 
-    if name == "cube":
-        return builtin.CubeSet()
-    if name == "procedural":
-        return builtin.ProceduralSet()
-    if name == "procedural-novel":
-        return builtin.ProceduralNovelSet()
-    if name in ("shapenet", "ycb"):
-        from generators.objects import external
-
-        return external.open_external_set(name, object_root)
-    raise UserError(f"--objects {name!r} is not an object set; choose one of: {', '.join(OBJECT_SET_NAMES)}")
+    if name not in OBJECT_SETS:
+        raise UserError(f"--objects {name!r} is not an object set; choose one of: {', '.join(OBJECT_SET_NAMES)}")
+    where, meshes = OBJECT_SETS[name]
+    module, _, attr = where.partition(":")
+    cls = getattr(import_module(module), attr)
+    return cls(object_root) if meshes else cls()
