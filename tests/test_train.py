@@ -175,3 +175,26 @@ def test_bad_actions_read_in_a_worker_give_one_line(tmp_path, capsys):
         err = capsys.readouterr().err.strip()
         assert err == (f"error: {data / 'seq_0000.h5'}: action: direction outside 0..7 (values 9..9); "
                        "check it with `dsr-bench validate`"), workers
+
+
+@pytest.mark.parametrize("field, value, message", [
+    ("stage_name", None, "--stage is needed on the full track"),
+    ("bn_recalibration", -1, "--bn-recalibration -1: must be >= 0"),
+    ("max_steps", 0, "--max-steps 0: must be at least 1"),
+    ("max_seconds", 0.0, "--max-minutes 0.0: must be positive"),
+    ("max_seconds", -60.0, "--max-minutes -1.0: must be positive"),
+    ("workers", -1, "--workers and --checkpoint-every must be >= 0"),
+    ("checkpoint_every", -2, "--workers and --checkpoint-every must be >= 0"),
+    ("log_every", 0, "log_every 0: must be at least 1"),
+    ("init", "a.pt", "--resume continues a run with its own weights; drop --init"),
+])
+def test_train_config_checks_its_own_values(tmp_path, field, value, message):
+    from dsr_bench.errors import UserError
+    from dsr_bench.models.training.config import TrainConfig
+
+    base = dict(model_name="dsr", stage_name="cube-single", data=tmp_path, out=tmp_path / "run")
+    if field == "init":
+        base["resume"] = tmp_path / "last.pt"
+    TrainConfig(**base)  # the defaults are valid
+    with pytest.raises(UserError, match=message):
+        TrainConfig(**{**base, field: value})

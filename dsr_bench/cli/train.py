@@ -78,16 +78,7 @@ def train(
         return
     if track != "full":
         raise UserError(f"--track {track!r}: choose full or cpu")
-    if stage is None:
-        raise UserError("--stage is needed on the full track: cube-single, cube-multi or shapenet-multi")
-    if max_steps is not None and max_steps < 1:
-        raise UserError(f"--max-steps {max_steps}: must be at least 1")
-    if max_minutes is not None and max_minutes <= 0:
-        raise UserError(f"--max-minutes {max_minutes}: must be positive")
-    if workers < 0 or checkpoint_every < 0:
-        raise UserError("--workers and --checkpoint-every must be >= 0")
-    if resume is not None and init is not None:
-        raise UserError("--resume continues a run with its own weights; drop --init")
+    # TrainConfig checks its own values (--stage, --max-steps, --max-minutes, --workers, --resume with --init)
     config = TrainConfig(model_name=model, stage_name=stage, data=data, out=out, split=split, val_split=val_split,
                          epochs=epochs, batch_size=batch_size, lr=lr, window=window, max_steps=max_steps,
                          max_seconds=None if max_minutes is None else max_minutes * 60, init=init, resume=resume,

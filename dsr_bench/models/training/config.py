@@ -1,10 +1,13 @@
 """What one training run is told: `TrainConfig`, built by `dsr-bench train` from its options (or by
-a script) and passed to `dsr_bench.models.training.trainer.train`. Torch-free."""
+a script) and passed to `dsr_bench.models.training.trainer.train`; it checks its own values (one-line
+UserErrors naming the option). Torch-free."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+
+from dsr_bench.errors import UserError
 
 
 @dataclass(frozen=True)
@@ -81,3 +84,17 @@ class TrainConfig:
                 object.__setattr__(self, name, Path(value))
         if self.grid is not None:
             object.__setattr__(self, "grid", tuple(int(g) for g in self.grid))
+        if not self.stage_name:
+            raise UserError("--stage is needed on the full track: cube-single, cube-multi or shapenet-multi")
+        if self.bn_recalibration < 0:
+            raise UserError(f"--bn-recalibration {self.bn_recalibration}: must be >= 0")
+        if self.max_steps is not None and self.max_steps < 1:
+            raise UserError(f"--max-steps {self.max_steps}: must be at least 1")
+        if self.max_seconds is not None and not self.max_seconds > 0:
+            raise UserError(f"--max-minutes {self.max_seconds / 60}: must be positive")
+        if self.workers < 0 or self.checkpoint_every < 0:
+            raise UserError("--workers and --checkpoint-every must be >= 0")
+        if self.log_every < 1:
+            raise UserError(f"log_every {self.log_every}: must be at least 1")
+        if self.resume is not None and self.init is not None:
+            raise UserError("--resume continues a run with its own weights; drop --init")
