@@ -6,8 +6,9 @@
 WEIGHTS: a `dsr-bench train --track cpu` file, which keeps the training's moving averages beside the
 recalibrated statistics, or a stage-1 file (`.stage1.pt`: weights after single-step windows only, whose
 moving averages never saw a state; --as-model dsr runs them as DSR-Net, the state carried, and
---train-data recalibrates them on --recalibration batches of whole training sequences). Each sequence is run from its first push with the state carried (warped) from
-step to step, as `dsr-bench predict` runs it, under:
+--train-data recalibrates them on --recalibration batches of whole training sequences). Each sequence is
+run from its first push with the state carried (warped) from step to step, as `dsr-bench predict` runs it,
+under:
 
 - eval, moving averages: the running statistics training left (momentum 0.1 over its last batches);
 - eval, recalibrated: the statistics `recalibrate_batchnorm` re-estimated on whole sequences (what
@@ -61,7 +62,8 @@ def rollout(net, data: dict, batch_size: int, batch_statistics: bool) -> tuple[n
 
 def main() -> None:
     from dsr_bench.constants import VOXEL2_TO_CM2
-    from dsr_bench.models import DSRNet, ModelConfig
+    from dsr_bench.models import DSRNet, ModelConfig, registry
+    from dsr_bench.models.training.checkpoints import read_weights
     from dsr_bench.models.training.cpu_track import pooled_split
 
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -78,8 +80,8 @@ def main() -> None:
     if args.out:  # before the work: the results can be written
         check_writable(args.out, "--out", directory=False)
 
-    payload = torch.load(args.weights, weights_only=True)
-    config = ModelConfig.from_dict(payload["model_config"])
+    weights = read_weights(args.weights, kind=registry.VOXEL)
+    payload, config = dict(weights.payload), weights.config
     if args.as_model:
         config = ModelConfig.for_model(args.as_model, grid=config.grid, width=config.width,
                                        voxel_factor=config.voxel_factor, init=config.init)
@@ -106,8 +108,7 @@ def main() -> None:
         state = dict(payload["model"])
         if not moving and not batch and recalibrated is not None:
             state = recalibrated
-        elif not moving and not batch and "stages" in payload and "multi" not in payload["stages"] \
-                and payload.get("format", "").endswith("stage1"):
+        elif not moving and not batch and weights.role == "stage1":
             print(f"{args.weights}: a stage-1 file and no --train-data to recalibrate on; skipping '{label}'")
             continue
         if moving:

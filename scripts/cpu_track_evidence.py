@@ -53,9 +53,9 @@ def paired(a: dict, b: dict, metric: str) -> dict:
 
 def torch_config(path: Path) -> dict:
     """The model_config of a weights file."""
-    import torch
+    from dsr_bench.models.training.checkpoints import read_weights
 
-    return torch.load(path, map_location="cpu", weights_only=True)["model_config"]
+    return read_weights(path)["model_config"]
 
 
 def predict_with_history(weights: Path, model: str, history: str, data: Path, out: Path) -> None:

@@ -139,6 +139,7 @@ def test_train_track_cpu_from_the_cli_then_predict_and_evaluate(tmp_path, monkey
             "--bn-recalibration", "1", "--quiet"]
     assert main(args) == 0
     state = torch.load(weights, weights_only=True)
+    assert (state["format"], state["model_type"], state["role"]) == ("dsr-bench-weights", "dsr", "weights")
     assert state["model_config"]["voxel_factor"] == 4 and state["model_config"]["width"] == 2
     assert state["model_config"]["grid"] == [32, 32, 16] and state["model_config"]["init"] == "zero-motion"
     assert all(v.dtype == torch.float16 for v in state["model"].values() if v.is_floating_point())
@@ -168,6 +169,7 @@ def test_train_track_cpu_from_the_cli_then_predict_and_evaluate(tmp_path, monkey
     (["--single-batches", "0"], "at least 1"),
     (["--track", "gpu"], "choose full or cpu"),
     (["--batch-size", "1"], "needs at least 2"),
+    (["--bn-recalibration", "-1"], "--bn-recalibration -1: must be >= 0"),
 ])
 def test_train_track_cpu_errors(tmp_path, capsys, extra, message):
     data = write_synthetic_dataset(tmp_path / "data", num_sequences=1, num_steps=2, split="train")

@@ -14,7 +14,7 @@ from dsr_bench.cli import main  # noqa: E402
 from dsr_bench.models import rigid  # noqa: E402
 from dsr_bench.models.image_config import IMAGE_MODEL_NAMES, ImageModelConfig  # noqa: E402
 from dsr_bench.models.image_nets import ImageNet, flow_at  # noqa: E402
-from dsr_bench.models.training.image_track import flow_loss, training_loss  # noqa: E402
+from dsr_bench.models.training.image_track import flow_loss, image_step  # noqa: E402
 from dsr_bench.testing import write_synthetic_dataset  # noqa: E402
 
 SMALL = dict(width=4, hidden=16)
@@ -115,13 +115,16 @@ def test_losses_fall_when_fitting_a_push(name):
     batch = _batch()
     losses = []
     for _ in range(40):
-        loss, terms = training_loss(net, batch)
-        optimizer.zero_grad()
-        loss.backward()
-        optimizer.step()
+        (terms,) = image_step(net, batch, optimizer, "cpu")  # the 2D track's step in the one loop
+        assert all(isinstance(v, float) for v in terms.values())  # read once, at the step's end
+        extra = net.config.pose_consistency * terms["consistency"] if "consistency" in terms else 0.0
+        assert terms["total"] == pytest.approx(terms["flow"] + extra, rel=1e-6)
         losses.append(terms["flow"])
     assert losses[0] == pytest.approx(9.0, rel=1e-3)  # 3 cm on every object pixel, none predicted: 9 cm^2
     assert np.mean(losses[-5:]) < 0.5 * losses[0]
+    batch["flow"][0, 0, 0, 0] = float("nan")
+    with pytest.raises(FloatingPointError, match="loss is nan"):
+        image_step(net, batch, optimizer, "cpu")
 
 
 def test_flow_loss_weighs_object_and_table_pixels_separately():

@@ -289,7 +289,7 @@ def test_slot_labels_put_the_background_slot_at_zero():
 
 
 def test_checkpoint_round_trip(tmp_path):
-    from dsr_bench.models.training.checkpoints import load_checkpoint, save_checkpoint
+    from dsr_bench.models.training.checkpoints import WEIGHTS_FORMAT, read_weights, save_checkpoint
     from dsr_bench.models.training.schedules import STAGES
 
     cfg = ModelConfig.for_model("nowarp", grid=TINY)
@@ -298,19 +298,20 @@ def test_checkpoint_round_trip(tmp_path):
     sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda e: 0.5 ** e)
     path = save_checkpoint(tmp_path / "c.pt", net, opt, sched, cfg, STAGES["cube-single"], 2, 7, 40)
     assert not list(tmp_path.glob(".*tmp*"))  # no temporary file left behind
-    state = load_checkpoint(path)  # weights_only=True inside
+    state = read_weights(path, role="checkpoint")  # weights_only=True inside
     assert state["epoch"] == 2 and state["batch_index"] == 7 and state["step"] == 40 and state["git"]
-    assert ModelConfig.from_dict(state["model_config"]) == cfg
+    assert (state["format"], state.version, state.model_type, state.role) == (WEIGHTS_FORMAT, 2, "nowarp", "checkpoint")
+    assert state.config == cfg and ModelConfig.from_dict(state["model_config"]) == cfg
     again = DSRNet(cfg)
     again.load_state_dict(state["model"])
     for a, b in zip(net.state_dict().values(), again.state_dict().values()):
         assert torch.equal(a, b)
     (tmp_path / "bad.pt").write_bytes(b"junk")
     with pytest.raises(UserError, match="not a loadable"):
-        load_checkpoint(tmp_path / "bad.pt")
+        read_weights(tmp_path / "bad.pt")
     torch.save({"weights": torch.zeros(1)}, tmp_path / "other.pt")
     with pytest.raises(UserError, match="not a dsr-bench checkpoint"):
-        load_checkpoint(tmp_path / "other.pt")
+        read_weights(tmp_path / "other.pt")
 
 
 def test_window_sampler_resumes_and_splits_ranks():

@@ -2,13 +2,26 @@
 their names (help texts, error messages, the lists other modules keep) is derived from it; a new entry is
 reachable everywhere without another edit."""
 
+import re
+import textwrap
+from pathlib import Path
 from types import MappingProxyType
 
+import numpy as np
 import pytest
 
 from dsr_bench.cli import main
 from dsr_bench.errors import UserError
 from dsr_bench.models import registry
+
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _doc_blocks(path: str, heading: str) -> list[str]:
+    """The python code blocks of a docs section, dedented (an entry is shown at its indentation in the table)."""
+    section = (ROOT / path).read_text().split(f"\n## {heading}\n", 1)[1].split("\n## ", 1)[0]
+    return [textwrap.dedent(b) for b in re.findall(r"^```python\n(.*?)^```", section, re.M | re.S)]
 
 
 def _with_models(monkeypatch, *entries):
@@ -110,20 +123,29 @@ def test_camera_names_are_the_constants_table():
     assert tuple(CAMERAS) == CAPTURE_CAMERAS == CAMERA_NAMES == ("front", "back") and MODEL_CAMERA == "front"
 
 
-def test_a_new_camera_is_one_entry(monkeypatch, tmp_path):
-    """DATASHEET.md, 'Adding a camera': an entry of constants.CAMERAS is a camera of generate --cameras and of
-    make_camera, and the error lists it; the model camera stays required."""
+def test_docs_adding_a_camera_works_as_written(monkeypatch, tmp_path):
+    """docs/format.md, 'Adding a camera': its entry of constants.CAMERAS is a camera of generate --cameras (written,
+    validated, read back), of make_camera and of the error's choices; the model camera stays required."""
     pytest.importorskip("pybullet")
     from dsr_bench.constants import CAMERAS
+    from dsr_bench.dataset.sequence import SequenceReader
     from dsr_bench.geometry import make_camera
     from generators.run import check_plan, plan_from_arguments
 
-    monkeypatch.setitem(CAMERAS, "left", {"eye": (1.2, 0.0, 0.3), "target": (0.5, 0.0, 0.0), "up": (-0.3, 0.0, 0.7)})
-    args = {"objects": "cube", "num_sequences": 1, "out": tmp_path / "d"}
-    check_plan(plan_from_arguments(**args, cameras="front,left"))
-    assert make_camera("left", 24, 32).extrinsics[:3, 3].tolist() == [1.2, 0.0, 0.3]
-    with pytest.raises(UserError, match=r"^--cameras 'left': use front or front,back,left$"):
-        check_plan(plan_from_arguments(**args, cameras="left"))
+    [block] = _doc_blocks("docs/format.md", "Adding a camera")
+    [(name, spec)] = eval("{" + block.strip() + "}").items()
+    monkeypatch.setitem(CAMERAS, name, spec)
+    assert make_camera(name, 24, 32).extrinsics[:3, 3].tolist() == list(spec["eye"])
+    with pytest.raises(UserError, match=rf"^--cameras '{name}': use front or front,back,{name}$"):
+        check_plan(plan_from_arguments(objects="cube", num_sequences=1, out=tmp_path / "d", cameras=name))
+    out = tmp_path / "data"
+    assert main(["generate", "--objects", "cube", "-n", "1", "--steps", "1", "--cameras", f"front,{name}",
+                 "--out", str(out)]) == 0
+    assert main(["validate", str(out)]) == 0
+    with SequenceReader(out / "seq_0000.h5") as seq:
+        assert seq.camera(name).extrinsics[:3, 3].tolist() == list(spec["eye"])
+        mask = seq.read(f"cameras/{name}/mask", 0)
+        assert mask.shape == (240, 320) and set(range(1, 5)) <= set(mask.reshape(-1).tolist())  # it sees the cubes
 
 
 def test_object_set_names_are_the_objects_table(capsys, monkeypatch):
@@ -131,8 +153,86 @@ def test_object_set_names_are_the_objects_table(capsys, monkeypatch):
 
     assert OBJECT_SET_NAMES == tuple(OBJECT_SETS) == ("cube", "shapenet", "ycb", "procedural", "procedural-novel")
     monkeypatch.setitem(OBJECT_SETS, "boxes", ("generators.objects.builtin:CubeSet", False))
-    assert get_object_set("boxes").sample(__import__("numpy").random.default_rng(0), 1)[0].category
+    assert get_object_set("boxes").sample(np.random.default_rng(0), 1)[0].category
     monkeypatch.setenv("COLUMNS", "400")
     for command in ("generate", "generate-captures"):
         assert main([command, "--help"]) == 0
         assert "Object set: cube | shapenet | ycb | procedural | procedural-novel." in capsys.readouterr().out
+
+
+def test_docs_adding_a_model_works_as_written(monkeypatch):
+    """docs/models.md, 'Adding a model': its entry is a model of ModelConfig whose network runs a step and warps its
+    history, load_predictor asks for its checkpoint, and --weights refuses it (no released weights)."""
+    torch = pytest.importorskip("torch")
+    from dsr_bench.models.config import ModelConfig
+    from dsr_bench.models.dsr_net import DSRNet
+    from dsr_bench.models.predictors import load_predictor
+
+    [block] = _doc_blocks("docs/models.md", "Adding a model")
+    entry = eval(block.strip().rstrip(","), vars(registry))
+    _with_models(monkeypatch, entry)
+    config = ModelConfig.for_model(entry.name, grid=(32, 32, 16), voxel_factor=4, width=4)
+    assert (config.history, config.motion) == ("warp", "flow")
+    net = DSRNet(config).eval()
+    with torch.no_grad():
+        tsdf, action = torch.zeros(1, 32, 32, 16), torch.zeros(1, 8, 32, 32)
+        action[0, 2, 16, 16] = 1
+        out = net(tsdf, action, net.initial_state(1, "cpu"))
+        assert out["motion"].shape == (1, 3, 32, 32, 16) and net.next_state(out).shape[1] == config.state_channels
+    with pytest.raises(UserError, match=f"^--model {entry.name} needs --checkpoint CKPT"):
+        load_predictor(entry.name)
+    released = r"\(dsr, single, nowarp, gtwarp, 3dflow\)"
+    with pytest.raises(UserError, match=rf"^--weights is for the authors' released models {released}, not --model "
+                                        rf"{entry.name}$"):
+        load_predictor(entry.name, weights=Path("3dflow.pth"))
+
+
+def _epe_by_hand(data: Path, names) -> float:
+    """The docs' example metric of a zero-motion prediction, computed here without the metric's code: the ground
+    truth's flow length (cm) over the visible surface's object voxels, averaged per step index, then over steps."""
+    from dsr_bench.constants import TSDF_SURFACE_LOW
+    from dsr_bench.dataset.sequence import SequenceReader
+
+    table = []
+    for name in names:
+        with SequenceReader(data / f"{name}.h5") as seq:
+            row = []
+            for t in range(seq.num_steps):
+                flow, tsdf, mask = seq.read("scene_flow_3d", t), seq.read("tsdf", t), seq.read("mask_3d", t)
+                band = (mask > 0) & (tsdf > TSDF_SURFACE_LOW) & (tsdf < 0)
+                band[..., 0] = False
+                row.append(np.linalg.norm(flow[:, band].astype(np.float64), axis=0).mean() * 0.4 if band.any()
+                           else np.nan)
+            table.append(row)
+    return float(np.mean(np.nanmean(np.array(table), axis=0)))
+
+
+def test_docs_adding_a_metric_works_as_written(monkeypatch, tmp_path, capsys):
+    """docs/evaluation.md, 'Adding a metric': its function and entry give a headline metric that evaluate scores
+    (metrics, per_step, per_sequence, the table's row) with the value computed by hand, every other number the same."""
+    from dsr_bench.models.predictors import load_predictor, predict_split
+    from dsr_bench.scoring import evaluate as evaluation, metrics
+    from dsr_bench.testing import write_synthetic_dataset
+
+    function, entry = _doc_blocks("docs/evaluation.md", "Adding a metric")
+    scope = dict(vars(metrics))
+    exec(function, scope)
+    metric = eval(entry.strip().rstrip(","), scope)
+    data = write_synthetic_dataset(tmp_path / "data", num_sequences=2, num_steps=3)
+    names = ["seq_0000", "seq_0001"]
+    predict_split(load_predictor("static"), data, names, tmp_path / "pred")
+    before = evaluation.evaluate(tmp_path / "pred", data, workers=1).results
+    monkeypatch.setattr(metrics, "METRICS", metrics.METRICS + (metric,))
+    monkeypatch.setattr(evaluation, "METRICS", metrics.METRICS)
+    after = evaluation.evaluate(tmp_path / "pred", data, workers=1).results
+    key = metric.key
+    assert after["metrics"][key] == pytest.approx(_epe_by_hand(data, names), rel=1e-6)
+    assert after["metrics"][key] > 0 and len(after["per_step"][key]) == 3
+    assert set(after["per_sequence"]["seq_0001"]) == set(before["per_sequence"]["seq_0001"]) | {key}
+    for part in ("metrics", "per_step", "per_sequence", "breakdowns"):
+        drop = (lambda d: {k: v for k, v in d.items() if k != key})
+        cut = {n: drop(v) for n, v in after[part].items()} if part == "per_sequence" else drop(after[part])
+        assert cut == before[part], part
+    monkeypatch.setenv("COLUMNS", "200")
+    assert main(["evaluate", str(tmp_path / "pred"), "--data", str(data), "--workers", "1"]) == 0
+    assert metric.title in capsys.readouterr().out

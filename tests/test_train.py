@@ -30,6 +30,8 @@ def test_train_resume_exactly_predict_evaluate(data, tmp_path):
     first = torch.load(resumed / "last.pt", weights_only=True)
     assert first["step"] == 1 and first["batch_index"] == 1 and first["model_config"]["name"] == "dsr"
     assert first["model_config"]["grid"] == [128, 128, 48] and first["stage"]["name"] == "cube-single"
+    assert (first["format"], first["model_type"], first["role"]) == ("dsr-bench-weights", "dsr", "checkpoint")
+    assert first["data"]["dir"] == "data" and first["data"]["sequences"] == 2  # a name, never a local path
     assert _train(data, resumed, "--max-steps", "2", "--resume", str(resumed / "last.pt")) == 0
     a = torch.load(straight / "last.pt", weights_only=True)
     b = torch.load(resumed / "last.pt", weights_only=True)

@@ -70,8 +70,6 @@ def train(
     from dsr_bench.models.training.config import TrainConfig
     from dsr_bench.models.training.trainer import train as run
 
-    if bn_recalibration < 0:
-        raise UserError(f"--bn-recalibration {bn_recalibration}: must be >= 0")
     if track == "cpu":
         _train_cpu(model, stage, data, out, split, batch_size, lr, window, seed, workers, bn_recalibration,
                    3000 if single_batches is None else single_batches, multi_batches, init, same_windows, quiet)

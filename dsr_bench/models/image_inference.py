@@ -10,8 +10,9 @@ import torch
 
 from dsr_bench.dataset.sequence import SequenceReader
 from dsr_bench.errors import UserError
+from dsr_bench.models import registry
 from dsr_bench.models.image_config import IMAGE_MODEL_DESCRIPTIONS
-from dsr_bench.models.training.checkpoints import torch_device
+from dsr_bench.models.training.checkpoints import read_weights, torch_device
 
 
 class ImagePredictor:
@@ -23,7 +24,8 @@ class ImagePredictor:
         config = net.config
         self.name = config.name if config.image_factor == 1 else f"{config.name}-cpu"
         self.num_slots = None if config.name == "2dflow" else config.num_slots - 1  # 2DFlow has no masks
-        factor = "" if config.image_factor == 1 else f" (CPU track: {config.image_shape[0]} x {config.image_shape[1]} input)"
+        height, width = config.image_shape
+        factor = "" if config.image_factor == 1 else f" (CPU track: {height} x {width} input)"
         self.description = IMAGE_MODEL_DESCRIPTIONS[config.name] + factor
         #: the image the network sees (height, width), recorded in the predictions' meta.json
         self.image = config.image_shape
@@ -63,9 +65,8 @@ class ImagePredictor:
 
 
 def load_image_predictor(model: str, checkpoint: Path, device: str = "cpu") -> ImagePredictor:
-    """A predictor from a `dsr-bench train --model 2dflow|se3net|se3posenet` weights file."""
-    from dsr_bench.models.training.image_track import load_image_weights
-
+    """A predictor from a `dsr-bench train --model 2dflow|se3net|se3posenet` weights file (any version of the
+    one weights format, `training.checkpoints`)."""
     dev = torch_device(device)
-    net, _ = load_image_weights(Path(checkpoint), model, map_location=dev)
-    return ImagePredictor(net, dev)
+    weights = read_weights(Path(checkpoint), dev, kind=registry.IMAGE, model=model)
+    return ImagePredictor(weights.network(dev), dev)

@@ -15,7 +15,7 @@ from dsr_bench.models import registry
 from dsr_bench.models.config import ModelConfig
 from dsr_bench.models.dsr_net import DSRNet, batchnorm_statistics
 from dsr_bench.models.labels import slot_labels
-from dsr_bench.models.training.checkpoints import load_checkpoint, load_weights, torch_device
+from dsr_bench.models.training.checkpoints import read_weights, torch_device
 
 #: What each model is, in one line (predictions' meta.json, the leaderboard): `dsr_bench.models.registry`.
 _DESCRIPTIONS = {name: entry.description for name, entry in registry.MODELS.items()}
@@ -129,15 +129,11 @@ class ModelPredictor:
 
 def load_predictor(model: str, checkpoint: Path, device: str = "cpu", official_bn: bool = False,
                    bf16: bool = False) -> ModelPredictor:
-    """A predictor from a `dsr-bench train` checkpoint (loaded with weights_only=True)."""
+    """A predictor from a dsr-bench weights file of a 3D-track model (any role and version of the one weights
+    format, `training.checkpoints`: a run's last.pt, a CPU-track weights file, the shipped weights)."""
     dev = torch_device(device)
-    state = load_checkpoint(Path(checkpoint), map_location=dev)
-    config = ModelConfig.from_dict(state["model_config"])
-    if config.name != model:
-        raise UserError(f"{checkpoint} holds a {config.name!r} model, not {model!r}; pass --model {config.name}")
-    net = DSRNet(config).to(dev)
-    load_weights(net, state, checkpoint, model=f"the {model!r} model")
-    return ModelPredictor(net, dev, official_bn, bf16)
+    return ModelPredictor(read_weights(Path(checkpoint), dev, kind=registry.VOXEL, model=model).network(dev), dev,
+                          official_bn, bf16)
 
 
 def load_official_predictor(model: str, weights: Path, device: str = "cpu", official_bn: bool = True,

@@ -126,8 +126,8 @@ def load_predictor(model: str, checkpoint: Path | None = None, device: str = "cp
     BatchNorm with batch statistics (the official code's way) or running statistics (eval); None: batch statistics
     for the authors' weights, eval mode for a dsr-bench checkpoint."""
     entry = registry.model_entry(model)
-    if entry.kind != registry.VOXEL and weights is not None:
-        raise UserError(f"--weights is for the authors' released models ({', '.join(LEARNED_MODELS)}), "
+    if weights is not None and not entry.released:
+        raise UserError(f"--weights is for the authors' released models ({', '.join(registry.released())}), "
                         f"not --model {model}")
     return _LOADERS[entry.kind](entry, checkpoint, device, weights, official_bn)
 

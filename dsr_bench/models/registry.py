@@ -30,13 +30,15 @@ KINDS = (REFERENCE, VOXEL, IMAGE)
 class ModelEntry:
     """One model: its name (`--model NAME`, the name saved with its weights), kind, one-line description
     (the predictions' meta.json and the leaderboard; a reference predictor's is its class's docstring),
-    the ModelConfig switches of a voxel model and the predictor class of a reference one."""
+    the ModelConfig switches of a voxel model, the predictor class of a reference one, and whether the authors
+    released weights for it (a voxel model: `predict --weights`, `models.official_weights`)."""
 
     name: str
     kind: str
     description: str = ""
     variant: Mapping[str, str] = field(default_factory=dict)
     predictor: str = ""
+    released: bool = False
 
     def __post_init__(self):
         if self.kind not in KINDS:
@@ -45,6 +47,8 @@ class ModelEntry:
             raise ValueError(f"model {self.name!r}: a reference model names its predictor class, no other does")
         if self.variant and self.kind != VOXEL:
             raise ValueError(f"model {self.name!r}: only a voxel model has ModelConfig switches (variant)")
+        if self.released and self.kind != VOXEL:
+            raise ValueError(f"model {self.name!r}: the authors released weights of voxel models only")
         object.__setattr__(self, "variant", MappingProxyType(dict(self.variant)))
 
     def make_predictor(self):
@@ -61,12 +65,14 @@ MODELS: Mapping[str, ModelEntry] = MappingProxyType({entry.name: entry for entry
     ModelEntry("oracle", REFERENCE, predictor=f"{_PREDICTORS}:OraclePredictor"),
     ModelEntry("static", REFERENCE, predictor=f"{_PREDICTORS}:StaticPredictor"),
     ModelEntry("push", REFERENCE, predictor=f"{_PREDICTORS}:PushPredictor"),
-    ModelEntry("dsr", VOXEL, "DSR-Net: history forward-warped by the predicted motion", {"history": "warp"}),
-    ModelEntry("single", VOXEL, "SingleStep: DSR-Net without history", {"history": "none"}),
-    ModelEntry("nowarp", VOXEL, "NoWarp: DSR-Net with the history not warped", {"history": "nowarp"}),
-    ModelEntry("gtwarp", VOXEL, "GTWarp (oracle): history warped with the ground-truth flow", {"history": "gtwarp"}),
+    ModelEntry("dsr", VOXEL, "DSR-Net: history forward-warped by the predicted motion", {"history": "warp"},
+               released=True),
+    ModelEntry("single", VOXEL, "SingleStep: DSR-Net without history", {"history": "none"}, released=True),
+    ModelEntry("nowarp", VOXEL, "NoWarp: DSR-Net with the history not warped", {"history": "nowarp"}, released=True),
+    ModelEntry("gtwarp", VOXEL, "GTWarp (oracle): history warped with the ground-truth flow", {"history": "gtwarp"},
+               released=True),
     ModelEntry("3dflow", VOXEL, "3DFlow: per-voxel flow from a 3D conv decoder, no history",
-               {"history": "none", "motion": "flow"}),
+               {"history": "none", "motion": "flow"}, released=True),
     ModelEntry("2dflow", IMAGE, "2DFlow: per-pixel 3D flow from a 2D encoder-decoder (Byravan and Fox 2017's flow "
                                 "baseline)"),
     ModelEntry("se3net", IMAGE, "SE3-Net: K masks and K rigid motions from image and action, flow blended (Byravan "
@@ -74,6 +80,11 @@ MODELS: Mapping[str, ModelEntry] = MappingProxyType({entry.name: entry for entry
     ModelEntry("se3posenet", IMAGE, "SE3Pose-Net: masks and poses from the image, a pose-space transition under the "
                                     "action, flow from the poses (Byravan et al. 2018)"),
 )})
+
+
+def released() -> tuple[str, ...]:
+    """The models whose weights the authors released (`predict --weights`), in the table's order."""
+    return tuple(name for name, entry in MODELS.items() if entry.released)
 
 
 def names(*kinds: str) -> tuple[str, ...]:

@@ -2,9 +2,9 @@
 
 The model (`ModelConfig.voxel_factor` = 4: a 32 x 32 x 16 grid, channel counts halved: `width` 2) sees
 the split's sequences pooled once (`models.coarse`; kept in memory and cached on disk, see
-`pooled_split`). Training is the trainer's loop unit (`train_windows`: the matched loss, the matching
-carried from step to step, the state warped between steps) on windows drawn at random (any sequence,
-any start, with replacement, from the recipe's seed):
+`pooled_split`). Training is the one loop (`loop.fit` over `trainer.train_step`: the matched loss, the
+matching carried from step to step, the state warped between steps) on windows drawn at random (any
+sequence, any start, with replacement, from the recipe's seed):
 
 1. stage 1, single-step windows (`single_batches`), learning rate `lr`;
 2. stage 2, whole windows of `window` steps with the state carried (`multi_batches`) at `multi_lr`;
@@ -17,15 +17,14 @@ history, the initial weights and the windows come from the same seed), so its we
 the result (`<out>.stage1.pt`) and `init` starts another of these models from them, skipping stage 1.
 Then precise BatchNorm (`trainer.recalibrate_batchnorm`): the running statistics are re-estimated on
 `bn_recalibration` batches of whole windows with the state carried, as prediction runs, so that eval
-mode does not diverge along a sequence (docs/models.md, BatchNorm). The result is a weights-only file
-(fp16 weights, `model_config`, the recipe and the data it saw), loaded with `weights_only=True` by
-`dsr-bench predict --checkpoint` like any checkpoint.
+mode does not diverge along a sequence (docs/models.md, BatchNorm). The result is a weights file
+(`checkpoints`: role "weights", fp16, the recipe, each stage's record and the data it saw; the stage-1
+file: role "stage1"), read by `dsr-bench predict --checkpoint` like any checkpoint.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from functools import partial
@@ -34,14 +33,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from dsr_bench.atomic import atomic_path
 from dsr_bench.errors import UserError
-from dsr_bench.models import coarse
+from dsr_bench.models import coarse, registry
 from dsr_bench.models.config import ModelConfig
-from dsr_bench.models.training.checkpoints import half, trained_split_checksum, write_weights_file  # noqa: F401
+from dsr_bench.models.training.checkpoints import data_provenance, half, read_weights, save_weights
 from dsr_bench.models.training.split_cache import cached_split
-
-CPU_CHECKPOINT_FORMAT = "dsr-bench-cpu-weights"
 
 
 @dataclass(frozen=True)
@@ -69,8 +65,10 @@ class CpuRecipe:
         if min(self.single_batches, self.batch_size, self.window) < 1 or self.multi_batches < 0:
             raise UserError("--single-batches, --batch-size and --window must be at least 1, --multi-batches >= 0")
         if self.batch_size < 2:
-            raise UserError(f"--batch-size {self.batch_size}: the CPU track needs at least 2 (on its grid BatchNorm in the "
-                            "SE(3) head sees one voxel per sample, so training statistics need two samples)")
+            raise UserError(f"--batch-size {self.batch_size}: the CPU track needs at least 2 (on its grid BatchNorm "
+                            "in the SE(3) head sees one voxel per sample, so training statistics need two samples)")
+        if self.bn_recalibration < 0:
+            raise UserError(f"--bn-recalibration {self.bn_recalibration}: must be >= 0")
         if self.init is not None and not self.multi_batches:
             raise UserError("--init starts stage 2 from stage-1 weights; give --multi-batches >= 1")
 
@@ -124,28 +122,13 @@ def draw_windows(data: dict[str, np.ndarray], batches: int, window: int, batch_s
 # --- training -----------------------------------------------------------------------------------------
 def _stage(net, data, batches: int, window: int, recipe: CpuRecipe, lr: float, seed: int, label: str,
            report: Callable[[str], None]) -> dict:
-    """Train `batches` windows of `window` steps; returns the mean loss terms of the first and last tenth."""
-    from dsr_bench.models.training.trainer import train_windows
+    """Train `batches` windows of `window` steps (`loop.fit`); returns the stage's record."""
+    from dsr_bench.models.training.loop import fit
+    from dsr_bench.models.training.trainer import train_step
 
-    optimizer = torch.optim.Adam(net.parameters(), lr=lr, betas=(0.9, 0.95))
-    halve = {int(batches * 0.5), int(batches * 0.75)}
     windows = draw_windows(data, batches, window, recipe.batch_size, seed, tuple(net.config.grid))
-    net.train()
-    start, records = time.perf_counter(), []
-    for b, (_, terms, _) in enumerate(train_windows(net, windows, optimizer, "cpu")):
-        records.append([np.mean([t[k] for t in terms]) for k in ("total", "motion", "mask")])
-        if b + 1 in halve:
-            for group in optimizer.param_groups:
-                group["lr"] /= 2
-        if (b + 1) % 100 == 0 or b + 1 == batches:
-            recent = np.mean(records[-100:], 0)
-            report(f"{label}: batch {b + 1}/{batches}, loss {recent[0]:.4f} (motion {recent[1]:.4f}, mask "
-                   f"{recent[2]:.4f}), {time.perf_counter() - start:.0f} s")
-    tenth = max(1, batches // 10)
-    first, last = np.mean(records[:tenth], 0), np.mean(records[-tenth:], 0)
-    return {"batches": batches, "window": window, "lr": lr, "seconds": round(time.perf_counter() - start, 1),
-            "loss_first_tenth": [round(float(v), 5) for v in first],
-            "loss_last_tenth": [round(float(v), 5) for v in last]}
+    record = fit(partial(train_step, device="cpu"), net, windows, batches, lr, label, report)
+    return {**record, "window": window}
 
 
 def stage1_path(out: Path) -> Path:
@@ -156,24 +139,27 @@ def stage1_path(out: Path) -> Path:
 def _load_stage1(net, path: Path, recipe: CpuRecipe) -> dict:
     """Load stage-1 weights into `net` (a model of the same architecture, by the same stage-1 recipe);
     returns that run's stage-1 record, marked with where it came from."""
-    from dsr_bench.models.training.checkpoints import load_weights
-
     if not path.is_file():
-        raise UserError(f"--init {path}: not found; it is the .stage1.pt file a CPU-track run writes beside its weights")
-    state = torch.load(path, map_location="cpu", weights_only=True)
-    if not isinstance(state, dict) or state.get("format") != CPU_CHECKPOINT_FORMAT + "-stage1":
-        raise UserError(f"--init {path}: not the stage-1 weights of a CPU-track run (a .stage1.pt file)")
+        raise UserError(f"--init {path}: not found; it is the .stage1.pt file a CPU-track run writes beside its "
+                        "weights")
+    try:
+        state = read_weights(path, kind=registry.VOXEL, role="stage1")
+    except UserError as exc:
+        raise UserError(f"--init {exc}") from None
+    if not isinstance(state.get("recipe"), dict) or not isinstance(state.get("stages"), dict) \
+            or "single" not in state["stages"]:
+        raise UserError(f"--init {path}: a stage-1 file without its recipe and stage record")
     theirs = {k: v for k, v in state["recipe"].items() if k not in ("model_name", "multi_batches", "multi_lr", "init",
                                                                      "bn_recalibration", "window", "same_windows")}
     ours = {k: v for k, v in dataclasses.asdict(recipe).items() if k in theirs}
     if theirs != ours:
-        differ = sorted(k for k in theirs if theirs[k] != ours[k])
+        differ = sorted(k for k in theirs if theirs[k] != ours.get(k))
         raise UserError(f"--init {path}: stage 1 ran with other settings ({', '.join(differ)}); use the same ones")
-    saved = ModelConfig.from_dict(state["model_config"])
+    saved = state.config
     if (saved.grid, saved.width, saved.motion, saved.voxel_factor) != (net.config.grid, net.config.width,
                                                                        net.config.motion, net.config.voxel_factor):
         raise UserError(f"--init {path}: a {saved.name!r} network of another architecture than {net.config.name!r}")
-    load_weights(net, state, path, model=f"the {net.config.name!r} model")
+    state.load_into(net)
     return {**state["stages"]["single"], "from": path.name, "model": saved.name}
 
 
@@ -191,16 +177,15 @@ def train_cpu(recipe: CpuRecipe, data_dir: Path, split: str | None, out: Path, w
     count, steps = data["action"].shape[:2]
     if recipe.window > steps:
         raise UserError(f"--window {recipe.window}: the sequences have {steps} pushes")
+    provenance = data_provenance(data_dir, split, count)
     torch.manual_seed(recipe.seed)
     net = DSRNet(config)
     history = config.history != "none"
     if recipe.init is None:
         stages = {"single": _stage(net, data, recipe.single_batches, 1, recipe, recipe.lr, recipe.seed,
                                    f"{config.name} stage 1", report)}
-        stage1 = {"format": CPU_CHECKPOINT_FORMAT + "-stage1", "model_config": config.as_dict(),
-                  "model": net.state_dict(), "recipe": dataclasses.asdict(recipe), "stages": dict(stages)}
-        with atomic_path(stage1_path(out)) as tmp:
-            torch.save(stage1, tmp)
+        save_weights(stage1_path(out), config, net.state_dict(), "stage1", data=provenance,
+                     recipe=dataclasses.asdict(recipe), stages=dict(stages))
     else:
         stages = {"single": _load_stage1(net, Path(recipe.init), recipe)}
     if recipe.multi_batches:
@@ -216,6 +201,6 @@ def train_cpu(recipe: CpuRecipe, data_dir: Path, split: str | None, out: Path, w
         passes = recalibrate_batchnorm(net, windows, "cpu")
     net.eval()
     # the training's moving averages, which recalibration replaced, are kept (scripts/batchnorm_modes.py)
-    return write_weights_file(out, CPU_CHECKPOINT_FORMAT, config.as_dict(), net.state_dict(), data_dir, split, count,
-                              recipe=dataclasses.asdict(recipe), stages=stages, bn_recalibration_passes=passes,
-                              bn_moving_averages=half(moving))
+    return save_weights(out, config, net.state_dict(), "weights", fp16=True, data=provenance,
+                        recipe=dataclasses.asdict(recipe), stages=stages, bn_recalibration_passes=passes,
+                        bn_moving_averages=half(moving))

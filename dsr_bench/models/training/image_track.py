@@ -2,8 +2,9 @@
 
 The split's sequences are reduced once to the network's resolution (`image_split`, cached like the CPU
 track's pooled volumes) and single steps are drawn at random (any sequence, any push, with replacement,
-from the recipe's seed): `batches` batches of `batch_size`, Adam (betas 0.9, 0.95) at `lr`, halved at 50%
-and again at 75% of the batches (the CPU track's step decay). The models are single-step, as in their papers.
+from the recipe's seed): `batches` batches of `batch_size` through the one loop (`loop.fit` over `image_step`:
+Adam (betas 0.9, 0.95) at `lr`, halved at 50% and again at 75% of the batches, the CPU track's step decay).
+The models are single-step, as in their papers.
 
 The loss (`flow_loss`, cm^2): the squared error of the predicted flow summed over its components,
 averaged over the pixels that see an object (what the benchmark scores), plus the same average over
@@ -13,14 +14,14 @@ SE3Pose-Net adds its pose-consistency term (Byravan et al. 2018): the poses its 
 image against the poses its transition predicted (translations in cm^2, rotations as the squared
 Frobenius norm of their difference), weighted by `ImageModelConfig.pose_consistency`.
 
-The result is a weights-only file (fp16 weights, `model_config`, the recipe, the first and last tenth's
-losses and the data it saw), loaded with `weights_only=True` by `dsr-bench predict --checkpoint`.
+The result is a weights file (`checkpoints`: role "weights", fp16, the recipe, the first and last tenth's
+losses and the data it saw), read by `dsr-bench predict --checkpoint`.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import time
+import math
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from functools import partial
@@ -31,10 +32,9 @@ import torch
 
 from dsr_bench.errors import UserError
 from dsr_bench.models.image_config import IMAGE_MODEL_NAMES, ImageModelConfig
-from dsr_bench.models.training.checkpoints import read_weights_only, torch_device, write_weights_file
+from dsr_bench.models.training.checkpoints import data_provenance, save_weights, torch_device
 from dsr_bench.models.training.split_cache import cached_split
 
-IMAGE_CHECKPOINT_FORMAT = "dsr-bench-image-weights"
 M2_TO_CM2 = 1e4
 
 
@@ -109,30 +109,40 @@ def pose_consistency(net, batch: dict, out: dict) -> torch.Tensor:
     return (translation + rotation).mean()
 
 
-def training_loss(net, batch: dict) -> tuple[torch.Tensor, dict[str, float]]:
-    """The loss of one batch and its terms (floats)."""
+def training_loss(net, batch: dict) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+    """The loss of one batch and its terms (detached 0-dim tensors: nothing is read to the host here)."""
     from dsr_bench.models.image_nets import flow_at
 
     out = net(batch["points"], batch["valid"], batch["action"])
     flow = flow_at(out, batch["points"], batch["valid"])
     loss = flow_loss(flow, batch["flow"], batch["mask"], batch["valid"])
-    terms = {"flow": float(loss.detach())}
+    terms = {"flow": loss.detach()}
     if "next_poses" in out and net.config.pose_consistency:
         consistency = pose_consistency(net, batch, out)
-        terms["consistency"] = float(consistency.detach())
+        terms["consistency"] = consistency.detach()
         loss = loss + net.config.pose_consistency * consistency
-    terms["total"] = float(loss.detach())
+    terms["total"] = loss.detach()
     return loss, terms
 
 
-def _to(batch: dict, device: torch.device) -> dict:
-    return {k: v.to(device, non_blocking=True) for k, v in batch.items()}
+def image_step(net, batch: dict, optimizer, device) -> list[dict]:
+    """The 2D track's training step (a single time step): forward, loss, backward, optimiser step, then the
+    terms read once (floats); a non-finite loss is a FloatingPointError."""
+    loss, terms = training_loss(net, {k: v.to(device, non_blocking=True) for k, v in batch.items()})
+    optimizer.zero_grad(set_to_none=True)
+    loss.backward()
+    optimizer.step()
+    row = dict(zip(terms, torch.stack(list(terms.values())).tolist()))  # the one read
+    if not math.isfinite(row["total"]):
+        raise FloatingPointError(f"loss is {row['total']}; lower the learning rate (--lr)")
+    return [row]
 
 
 def train_image_model(recipe: ImageRecipe, data_dir: Path, split: str | None, out: Path, device: str = "cpu",
                       workers: int = 1, report: Callable[[str], None] = print) -> Path:
     """Train one 2D-track model by `recipe` on DATA_DIR's split and write its weights file to `out`."""
     from dsr_bench.models.image_nets import ImageNet
+    from dsr_bench.models.training.loop import fit
 
     dev = torch_device(device)
     config = recipe.model_config()
@@ -140,55 +150,11 @@ def train_image_model(recipe: ImageRecipe, data_dir: Path, split: str | None, ou
     out.parent.mkdir(parents=True, exist_ok=True)
     data = image_split(data_dir, split, recipe.image_factor, workers,
                        lambda i, n: report(f"reducing {i}/{n}") if i % 50 == 0 or i == n else None)
-    count = data["action"].shape[0]
     torch.manual_seed(recipe.seed)
     net = ImageNet(config).to(dev)
-    optimizer = torch.optim.Adam(net.parameters(), lr=recipe.lr, betas=(0.9, 0.95))
-    halve = {int(recipe.batches * 0.5), int(recipe.batches * 0.75)}
-    net.train()
-    start, records = time.perf_counter(), []
-    for b, batch in enumerate(draw_steps(data, recipe.batches, recipe.batch_size, recipe.seed)):
-        loss, terms = training_loss(net, _to(batch, dev))
-        optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        optimizer.step()
-        records.append(terms)
-        if b + 1 in halve:
-            for group in optimizer.param_groups:
-                group["lr"] /= 2
-        if (b + 1) % 100 == 0 or b + 1 == recipe.batches:
-            recent = {k: np.mean([r[k] for r in records[-100:]]) for k in terms}
-            shown = ", ".join(f"{k} {v:.3f}" for k, v in recent.items() if k != "total")
-            report(f"{config.name}: batch {b + 1}/{recipe.batches}, loss {recent['total']:.3f} ({shown}), "
-                   f"{time.perf_counter() - start:.0f} s")
-    tenth = max(1, recipe.batches // 10)
-    summary = {"seconds": round(time.perf_counter() - start, 1),
-               "loss_first_tenth": {k: round(float(np.mean([r[k] for r in records[:tenth]])), 4) for k in records[0]},
-               "loss_last_tenth": {k: round(float(np.mean([r[k] for r in records[-tenth:]])), 4) for k in records[0]}}
+    steps = draw_steps(data, recipe.batches, recipe.batch_size, recipe.seed)
+    summary = fit(partial(image_step, device=dev), net, steps, recipe.batches, recipe.lr, config.name, report)
     net.eval()
-    return write_weights_file(out, IMAGE_CHECKPOINT_FORMAT, config.as_dict(), net.cpu().state_dict(), data_dir, split,
-                              count, recipe=dataclasses.asdict(recipe), training=summary)
-
-
-def load_image_weights(path: Path, model: str | None = None, map_location="cpu"):
-    """An `ImageNet` (eval mode, fp32) from a weights file of `train_image_model`; UserError if the file is not
-    one, or holds another model than `model`."""
-    from dsr_bench.models.image_nets import ImageNet
-
-    path = Path(path)
-    state = read_weights_only(path, map_location)
-    if not isinstance(state, dict) or state.get("format") != IMAGE_CHECKPOINT_FORMAT:
-        raise UserError(f"{path}: not a 2D-track weights file; train one with "
-                        "`dsr-bench train --model 2dflow|se3net|se3posenet`")
-    try:
-        config = ImageModelConfig.from_dict(state["model_config"])
-    except (TypeError, ValueError, KeyError) as exc:
-        raise UserError(f"{path}: unusable model_config ({exc})") from None
-    if model is not None and config.name != model:
-        raise UserError(f"{path} holds a {config.name!r} model, not {model!r}; pass --model {config.name}")
-    net = ImageNet(config)
-    try:
-        net.load_state_dict({k: v.float() if v.is_floating_point() else v for k, v in state["model"].items()})
-    except RuntimeError as exc:
-        raise UserError(f"{path}: weights do not fit the {config.name!r} model ({str(exc).splitlines()[0][:160]})") from None
-    return net.eval(), state
+    return save_weights(out, config, net.cpu().state_dict(), "weights", fp16=True,
+                        data=data_provenance(data_dir, split, data["action"].shape[0]),
+                        recipe=dataclasses.asdict(recipe), training=summary)

@@ -6,8 +6,8 @@ scratch), `cube-multi` (windows of 10, 20 epochs, fine-tuning) and `shapenet-mul
 (0.9, 0.95), batch 12 per GPU. Learning rates per epoch are the official piecewise-constant
 tables (`scratch`: 1e-5 for 2 warm-up epochs, 1e-3, 5e-4, 2e-4, 5e-5, 1e-5; `finetune`: 5e-4,
 2e-4, 5e-5, 1e-5); `--schedule paper` takes the paper's instead (appendix: 1e-3 halved every 5
-epochs from scratch, 1e-4 halved every 3 when fine-tuning). Windows do not overlap (stride = window), as in the official data loader. Any
-stage may run on any dataset directory (e.g. the procedural sets instead of ShapeNet).
+epochs from scratch, 1e-4 halved every 3 when fine-tuning). Windows do not overlap (stride = window), as in
+the official data loader. Any stage may run on any dataset directory (e.g. the procedural sets instead of ShapeNet).
 """
 
 from __future__ import annotations

@@ -13,10 +13,11 @@ import numpy as np
 import torch
 
 from dsr_bench.errors import UserError
+from dsr_bench.models import registry
 from dsr_bench.models.config import ModelConfig
 from dsr_bench.models.data import SequenceWindowDataset
 from dsr_bench.models.dsr_net import DSRNet
-from dsr_bench.models.training.checkpoints import load_checkpoint, load_weights, set_rng_state, torch_device
+from dsr_bench.models.training.checkpoints import Weights, read_weights, set_rng_state, torch_device
 from dsr_bench.models.training.config import TrainConfig
 from dsr_bench.models.training.loaders import WindowSampler, check_objects, make_loaders, open_windows
 from dsr_bench.models.training.schedules import StageConfig, stage_for
@@ -46,6 +47,7 @@ class Run:
     start_epoch: int = 0
     start_batch: int = 0  # batches of start_epoch already consumed
     step: int = 0  # batches trained so far (all epochs)
+    provenance: dict | None = None  # the data trained on, as the checkpoints record it (`data_provenance`)
 
     @property
     def distributed(self) -> bool:
@@ -76,14 +78,14 @@ def start_processes(config: TrainConfig) -> tuple[int, int, torch.device]:
     return rank, world, dev
 
 
-def resolve_stage(config: TrainConfig) -> tuple[StageConfig, dict | None]:
+def resolve_stage(config: TrainConfig) -> tuple[StageConfig, Weights | None]:
     """The stage to train and the checkpoint to resume (None for a new run). A resumed run keeps its
     stage (and model), but for `config.epochs`."""
     if config.resume is None:
         return stage_for(config.model_name, config.stage_name, epochs=config.epochs, batch_size=config.batch_size,
                          lr=config.lr, window=config.window, schedule=config.schedule), None
-    checkpoint = load_checkpoint(config.resume)
-    saved, stage_name = ModelConfig.from_dict(checkpoint["model_config"]), checkpoint.get("stage", {}).get("name")
+    checkpoint = read_weights(config.resume, kind=registry.VOXEL, role="checkpoint")
+    saved, stage_name = checkpoint.config, checkpoint["stage"].get("name")
     if saved.name != config.model_name or stage_name != config.stage_name:
         raise UserError(f"{config.resume} is a {saved.name!r} run of stage {stage_name!r}; "
                         f"resume it with --model {saved.name} --stage {stage_name}")
@@ -105,10 +107,10 @@ def seed_everything(seed: int, deterministic: bool, device: torch.device) -> Non
         torch.backends.cudnn.benchmark = True
 
 
-def model_config_for(config: TrainConfig, checkpoint: dict | None, data_grid: tuple[int, int, int]) -> ModelConfig:
+def model_config_for(config: TrainConfig, checkpoint: Weights | None, data_grid: tuple[int, int, int]) -> ModelConfig:
     """The model's configuration (a resumed run's own), on the data's grid."""
     if checkpoint is not None:
-        model_config = ModelConfig.from_dict(checkpoint["model_config"])
+        model_config = checkpoint.config
     else:
         try:
             model_config = ModelConfig.for_model(config.model_name, grid=data_grid)
@@ -125,8 +127,8 @@ def build_model(config: TrainConfig, model_config: ModelConfig, device: torch.de
     if config.channels_last:
         net.to_channels_last()
     if config.init is not None and not resuming:
-        load_weights(net, load_checkpoint(config.init, map_location=device), config.init,
-                     fix="check --model and --grid-size")
+        init = read_weights(config.init, map_location=device, kind=registry.VOXEL)
+        init.load_into(net, fix="check --model and --grid-size")
     return net
 
 
@@ -142,10 +144,10 @@ def make_scheduler(optimizer: torch.optim.Optimizer, stage: StageConfig) -> torc
     return torch.optim.lr_scheduler.LambdaLR(optimizer, lambda e: stage.lr_at(e) / stage.lr_at(0))
 
 
-def restore(checkpoint: dict, source, net: DSRNet, optimizer, scheduler) -> tuple[int, int, int]:
+def restore(checkpoint: Weights, net: DSRNet, optimizer, scheduler) -> tuple[int, int, int]:
     """Load a resumed run's weights, optimiser, schedule and RNG states; returns its position
     (epoch, batches of that epoch consumed, step)."""
-    load_weights(net, checkpoint, source, fix="check --model and --grid-size")
+    checkpoint.load_into(net, fix="check --model and --grid-size")
     optimizer.load_state_dict(checkpoint["optimizer"])
     scheduler.load_state_dict(checkpoint["scheduler"])
     set_rng_state(checkpoint["rng"])
@@ -177,7 +179,7 @@ def prepare(config: TrainConfig) -> Run:
     net = build_model(config, model_config, device, resuming=checkpoint is not None)
     optimizer = make_optimizer(net, stage, device)
     scheduler = make_scheduler(optimizer, stage)
-    position = (0, 0, 0) if checkpoint is None else restore(checkpoint, config.resume, net, optimizer, scheduler)
+    position = (0, 0, 0) if checkpoint is None else restore(checkpoint, net, optimizer, scheduler)
     model, train_model = wrap(net, world > 1, device, config.compile_model)
     return Run(config, rank, world, device, stage, model_config, dataset, sampler, loader, val_loader, net, model,
                train_model, optimizer, scheduler, *position)

@@ -17,6 +17,7 @@ import json
 import math
 import time
 from collections.abc import Iterable, Iterator
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -27,8 +28,9 @@ from dsr_bench.errors import UserError
 from dsr_bench.models.dsr_net import batchnorm_layers, batchnorm_statistics
 from dsr_bench.models.labels import slot_labels
 from dsr_bench.models.loss import MaskIdError, check_ids, dsr_loss
-from dsr_bench.models.training.checkpoints import git_hash, save_checkpoint, unwrap
+from dsr_bench.models.training.checkpoints import data_provenance, git_hash, save_checkpoint, unwrap
 from dsr_bench.models.training.config import TrainConfig
+from dsr_bench.models.training.loop import WindowError, run_steps
 from dsr_bench.models.training.setup import Run, prepare
 
 __all__ = ["TrainConfig", "WindowError", "recalibrate_batchnorm", "train", "train_step", "train_windows", "validate",
@@ -79,28 +81,13 @@ def train_step(model, batch: dict, optimizer, device, bf16: bool = False, determ
     return logs
 
 
-class WindowError(Exception):
-    """A window `train_windows` could not train: an object id beyond the model's slots or a
-    non-finite loss (`cause`); `index` counts the windows from 1, `sequences` names the batch's."""
-
-    def __init__(self, index: int, sequences: list[str] | None, cause: Exception):
-        super().__init__(f"batch {index}: {cause}")
-        self.index, self.sequences, self.cause = index, sequences, cause
-
-
 def train_windows(model, batches: Iterable[dict], optimizer, device, *, bf16: bool = False,
                   deterministic: bool = False, mask_reduction: str = "sum",
                   start: int = 0) -> Iterator[tuple[dict, list[dict], float]]:
-    """The loop's unit of work over any source of window batches: `train_step` on each in turn,
-    yielding (batch, its loss terms per step, seconds the step took). A window that cannot be
-    trained raises `WindowError` (numbered from `start` + 1)."""
-    for index, batch in enumerate(batches, start + 1):
-        t0 = time.perf_counter()
-        try:
-            terms = train_step(model, batch, optimizer, device, bf16, deterministic, mask_reduction)
-        except (MaskIdError, FloatingPointError) as exc:
-            raise WindowError(index, batch.get("sequence"), exc) from None
-        yield batch, terms, time.perf_counter() - t0
+    """The loop (`loop.run_steps`) with `train_step` as its step: yields (batch, its loss terms per step,
+    seconds the step took); a window that cannot be trained raises `WindowError` (numbered from `start` + 1)."""
+    step = partial(train_step, device=device, bf16=bf16, deterministic=deterministic, mask_reduction=mask_reduction)
+    return run_steps(step, model, batches, optimizer, start=start)
 
 
 def window_record(terms: list[dict]) -> dict:
@@ -233,6 +220,10 @@ class RunLog:
         self.file.write(json.dumps(record) + "\n")
         self.file.flush()
 
+    def note(self, record: dict) -> None:
+        """A record of the run that is neither a batch nor an epoch (the BatchNorm recalibration)."""
+        self._write(record)
+
     def window(self, record: dict) -> None:
         """A batch's record (TensorBoard every `log_every` steps)."""
         self._write(record)
@@ -258,8 +249,7 @@ def _save(run: Run, epoch: int, batch_index: int) -> None:
     if run.rank == 0:
         config = run.config
         save_checkpoint(run.latest, run.model, run.optimizer, run.scheduler, run.model_config, run.stage, epoch,
-                        batch_index, run.step, {"data": str(config.data), "split": run.dataset.split,
-                                                "seed": config.seed, "world_size": run.world})
+                        batch_index, run.step, {"data": run.provenance, "seed": config.seed, "world_size": run.world})
 
 
 def _train_epoch(run: Run, log: RunLog | None, budget: TimeBudget, epoch: int, first: int) -> bool:
@@ -335,7 +325,7 @@ def _recalibrate(run: Run, log: RunLog | None) -> None:
     passes = recalibrate_batchnorm(run.model, islice(loader, config.bn_recalibration), run.device, config.bf16,
                                    config.deterministic)
     if log is not None:
-        log._write({"step": run.step, "bn_recalibration": {"window": int(window), "batch_size": batch,
+        log.note({"step": run.step, "bn_recalibration": {"window": int(window), "batch_size": batch,
                                                            "forward_passes": passes}})
 
 
@@ -366,6 +356,8 @@ def train(config: TrainConfig) -> Path:
     run = prepare(config)
     config.out.mkdir(parents=True, exist_ok=True)
     log = RunLog(run) if run.rank == 0 else None
+    if run.rank == 0:  # what the checkpoints record of the data (its directory's name, never a local path)
+        run.provenance = data_provenance(config.data, run.dataset.split, len(run.dataset.num_objects))
     budget = TimeBudget(config.max_seconds, run)
     try:
         for epoch in range(run.start_epoch, run.stage.epochs):
