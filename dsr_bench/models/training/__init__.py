@@ -1,4 +1,5 @@
 """Training the reference models (needs torch): the paper's curriculum as data (`schedules`), what
-a run is told (`config.TrainConfig`), checkpoints (`checkpoints`), the run's setup (`setup`: model,
-optimiser, scheduler, resume) and data (`loaders`: windows, sampler, DataLoaders), and the loop
-(`trainer`: `train(config)`, `train_step`, `validate`)."""
+a run is told (`config.TrainConfig`), the one weights format (`checkpoints`), the run's setup
+(`setup`: model, optimiser, scheduler, resume) and data (`loaders`: windows, sampler, DataLoaders),
+the one loop (`loop`) and the full track's run of it (`trainer`: `train(config)`, `train_step`,
+`validate`); the CPU-sized recipes (`cpu_track`, `image_track`)."""
