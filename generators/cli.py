@@ -133,7 +133,8 @@ def generate_captures(
 
 
 def generate_plan_tasks(
-    tasks: str = typer.Option("plan-novel-test", "--tasks", help="Task set: plan-novel-test (100) | plan-novel-mini (4)."),
+    tasks: str = typer.Option("plan-novel-test", "--tasks",
+                              help="Task set: plan-novel-test (100) | plan-novel-mini (4)."),
     out: Path | None = typer.Option(None, "--out", "-o", help="Directory to write (default data/<task set>)."),
     workers: int = typer.Option(1, "--workers", "-w", help="Parallel worker processes."),
     num_tasks: int | None = typer.Option(None, "--num-tasks", "-n", help="Only the first N tasks of the set."),

@@ -2,8 +2,9 @@
 
 The writer, the reader, `dsr-bench validate` and DATASHEET.md's schema table all come from
 `SEQUENCE_SCHEMA`; every producer (the generator, the annotator's export, the official import, the test
-sequences) builds its root attributes with `sequence_header`. Shapes use symbols: T pushes (T + 1 observations), N objects, H x W the image
-size of the stored 2D data, and the grid (128, 128, 48) in (y, x, z) order.
+sequences) builds its root attributes with `sequence_header`. Shapes use symbols: T pushes (T + 1
+observations), N objects, H x W the image size of the stored 2D data, and the grid (128, 128, 48) in (y, x, z)
+order.
 """
 
 from __future__ import annotations

@@ -43,8 +43,8 @@ def plans_checksum(paths: list[Path]) -> str:
     return h.hexdigest()
 
 
-def build_results(per_task: Mapping[str, dict], planner: Mapping, manifest: Mapping, expected: int, plan_paths: list[Path],
-            command: str, parameters: Mapping) -> dict:
+def build_results(per_task: Mapping[str, dict], planner: Mapping, manifest: Mapping, expected: int,
+                  plan_paths: list[Path], command: str, parameters: Mapping) -> dict:
     """The results JSON of a planning run (`dsr-bench plan`): means over the tasks scored (in name order), per task
     values. `manifest`: {"task_set", "checksum"}, the checksum recomputed from the task files
     (`dsr_bench.planning.verify.verify_tasks`), never a tasks.json's; `pinned` is whether it is this toolkit's pin."""

@@ -9,7 +9,8 @@ verified").
                      target states), and its scores are recomputed from its stored final state and the task's
                      verified start and target (the stored `iou` and the like are never read)
   recompute_results  a `dsr-bench plan --out DIR` directory: the results JSON recomputed, in exactly the format of
-                     `dsr_bench.planning.results.build_results`, so a caller compares it field by field with DIR/results.json
+                     `dsr_bench.planning.results.build_results`, so a caller compares it field by field with
+                     DIR/results.json
   check_results      schema, types, ranges and consistency of a planning results dict, one short phrase per problem
   differences        the fields where two results dicts differ
 
@@ -257,8 +258,9 @@ def recompute_results(plans_dir: Path, tasks: str | Path | None = None) -> dict:
     reported = submitted.get("parameters") if isinstance(submitted.get("parameters"), dict) else {}
     parameters = {"candidates": _plain(run["candidates"]), "seed": _plain(run["seed"]), "lambda": _plain(run["lambda"]),
                   "steps": PLAN_STEPS, "hardware": reported.get("hardware"), "workers": reported.get("workers")}
-    out = build_results(per_task, planner, {"task_set": verified.task_set, "checksum": verified.checksum}, verified.expected,
-                  [plans_dir / f"{name}.h5" for name in planned], submitted.get("command"), parameters)
+    out = build_results(per_task, planner, {"task_set": verified.task_set, "checksum": verified.checksum},
+                        verified.expected, [plans_dir / f"{name}.h5" for name in planned], submitted.get("command"),
+                        parameters)
     for key in ("toolkit_version", "date"):  # self-reported
         out[key] = submitted.get(key)
     return out
