@@ -153,12 +153,13 @@ def test_tiled_grids_round_trip_bit_for_bit_and_read_steps_agrees(tmp_path):
         assert not read_step(f["tsdf"], 1).flags.writeable
 
 
-def test_a_chunk_that_inflates_beyond_its_size_is_left_to_hdf5(tmp_path):
+def test_a_chunk_that_inflates_beyond_its_size_is_refused_not_inflated(tmp_path):
     """A file we did not write: a raw chunk whose stream holds more (or fewer) bytes than the chunk is never inflated
-    past its size by the fast reader; h5py decides, as it would without the fast path."""
+    past its size, by the fast reader nor by HDF5's decoder (which would inflate it whole first): reading that step
+    raises OSError naming the chunk; the other steps read as h5py decodes them."""
     import zlib
 
-    from dsr_bench.dataset.storage import inflate_exact, read_step
+    from dsr_bench.dataset.storage import inflate_exact, read_step, read_steps
 
     big = zlib.compress(bytes(10_000_000))
     assert inflate_exact(big, 4096) is None and inflate_exact(zlib.compress(bytes(4096)), 4096) == bytes(4096)
@@ -166,9 +167,13 @@ def test_a_chunk_that_inflates_beyond_its_size_is_left_to_hdf5(tmp_path):
         ds = f.create_dataset("x", shape=(2, 32, 32), dtype=np.float32, chunks=(1, 32, 32), compression="gzip")
         ds.id.write_direct_chunk((0, 0, 0), big)
         ds[1] = 1.0
+        spanning = f.create_dataset("y", shape=(2, 32, 32), dtype=np.float32, chunks=(2, 32, 32), compression="gzip")
+        spanning.id.write_direct_chunk((0, 0, 0), big)  # a layout HDF5 decodes itself
     with h5py.File(tmp_path / "f.h5", "r") as f:
         assert np.array_equal(read_step(f["x"], 1), np.ones((32, 32), np.float32))
-        assert np.array_equal(read_step(f["x"], 0), f["x"][0])
+        for read in (lambda: read_step(f["x"], 0), lambda: read_steps(f["x"], 0, 2), lambda: read_step(f["y"], 1)):
+            with pytest.raises(OSError, match="does not inflate to its"):
+                read()
 
 
 def test_read_steps_equals_h5py_for_every_layout(tmp_path):
