@@ -243,4 +243,3 @@ def import_bags(src: str | Path, out: str | Path, *, rig: str | Path | None = No
                             depths=[{n: f[n].depth for n in names} for f in frames], actions=actions,
                             pushes_world=pushes_world, objects=objects, source=source, overwrite=overwrite)
     return written, report
-

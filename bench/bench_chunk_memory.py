@@ -26,7 +26,6 @@ import tempfile
 from pathlib import Path
 
 import h5py
-import numpy as np
 
 from dsr_bench.constants import GRID_SHAPE, IMAGE_SHAPE
 from dsr_bench.scoring.predictions import MAX_STEP_CHUNKS

@@ -145,5 +145,6 @@ def main() -> None:
     print(f"  by --help of the app and of its {len(helps) - 1} commands: {', '.join(help_loaded) or 'none'}")
     print(f"  by the cube run: {', '.join(cube_loaded) or 'none'}")
 
+
 if __name__ == "__main__":
     main()

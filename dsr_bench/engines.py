@@ -30,6 +30,7 @@ from dsr_bench.parallel import as_finished, in_order, run_in_order
 
 INSTALL = "pip install 'dsr-bench[cluster]'"
 
+
 class JobFailed(UserError):
     """A job failed on a Ray worker or in a SLURM array task: the message names the job, the error and where the
     whole traceback is."""

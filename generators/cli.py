@@ -99,7 +99,6 @@ def generate(
     console.print(table)
 
 
-
 def generate_captures(
     out: Path = typer.Option(..., "--out", "-o", help="Directory to write captures/seq_0000/, seq_0001/, ... into."),
     num: int = typer.Option(1, "--num-sequences", "-n", help="Captures to generate."),

@@ -30,7 +30,6 @@ import subprocess
 import sys
 from pathlib import Path
 
-import numpy as np
 
 from dsr_bench.atomic import check_writable, write_text
 

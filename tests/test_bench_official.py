@@ -150,7 +150,7 @@ def test_the_authors_functions_as_described_give_our_official_iou(fake_repo, num
         ours = official_iou(overlap(pred[t], gt[t], 4, num_objects))
         assert np.isclose(functions["calc_iou_unordered"](logits[t], gts[t])[0], ours)
     scores = sequence_scores(pred, gt, 4, num_objects)
-    assert np.allclose([functions["calc_iou_unordered"](l, g)[0] for l, g in zip(logits, gts)],
+    assert np.allclose([functions["calc_iou_unordered"](lg, g)[0] for lg, g in zip(logits, gts)],
                        scores["iou_unordered_official"])
     assert np.isclose(functions["calc_iou_ordered"](logits, gts)[0], scores["iou_ordered_official"].mean())
 

@@ -14,7 +14,7 @@ from dsr_bench.dataset.manifest import build_manifest, write_manifest
 from dsr_bench.dataset.scored import SCORED_FIELDS, ScoredDigests, file_scored_digests, nonzero_rows
 from dsr_bench.dataset.splits import pinned_digests
 from dsr_bench.dataset.storage import read_step_and_columns
-from dsr_bench.scoring.evaluate import evaluate, score_sequence
+from dsr_bench.scoring.evaluate import score_sequence
 from dsr_bench.testing import write_synthetic_dataset
 from helpers import pin_split
 

@@ -219,6 +219,7 @@ def test_split_resume_parallel_and_foreign_destination(imported, tmp_path, capsy
     assert sorted(done) == ["seq_0000", "seq_0007"] and (dst / "seq_0001.h5").stat().st_mtime_ns == before
     assert list(dst.glob(".*tmp*")) == [live]
     live.unlink()
+
     # the resumed import holds exactly the uninterrupted one's content and records; the files' bytes are not
     # compared (a full-suite run once saw seq_0007's bytes differ with identical arrays and attributes)
     def records(manifest):

@@ -22,7 +22,7 @@ def _brute_force(points: np.ndarray, faces: np.ndarray, height: int, width: int)
         for v in range(height):
             for u in range(width):
                 ok = True
-                for k, (x, y) in enumerate(((i1, i2), (i2, i0), (i0, i1))):
+                for x, y in ((i1, i2), (i2, i0), (i0, i1)):
                     lo, hi = min(x, y), max(x, y)
                     du, dv = points[hi] - points[lo]
                     e = du * (v - points[lo][1]) - dv * (u - points[lo][0])

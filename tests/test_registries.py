@@ -229,8 +229,11 @@ def test_docs_adding_a_metric_works_as_written(monkeypatch, tmp_path, capsys):
     assert after["metrics"][key] == pytest.approx(_epe_by_hand(data, names), rel=1e-6)
     assert after["metrics"][key] > 0 and len(after["per_step"][key]) == 3
     assert set(after["per_sequence"]["seq_0001"]) == set(before["per_sequence"]["seq_0001"]) | {key}
+
+    def drop(d):
+        return {k: v for k, v in d.items() if k != key}
+
     for part in ("metrics", "per_step", "per_sequence", "breakdowns"):
-        drop = (lambda d: {k: v for k, v in d.items() if k != key})
         cut = {n: drop(v) for n, v in after[part].items()} if part == "per_sequence" else drop(after[part])
         assert cut == before[part], part
     monkeypatch.setenv("COLUMNS", "200")

@@ -91,7 +91,6 @@ def pinned_digests() -> dict[str, dict]:
     return pins["splits"]
 
 
-
 def get_split(name: str) -> Split:
     """The named split, or a UserError listing the known names."""
     if name not in SPLITS:

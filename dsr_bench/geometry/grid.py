@@ -14,6 +14,7 @@ import numpy as np
 
 from dsr_bench.constants import GRID_BOUNDS, GRID_SHAPE, VOXEL_SAMPLE_OFFSET, VOXEL_SIZE
 
+
 def axis_samples(axis: int, count: int | None = None) -> np.ndarray:
     """Sample coordinates (metres) of the voxels along world axis 0 (x), 1 (y) or 2 (z), increasing."""
     n = GRID_SHAPE[[1, 0, 2][axis]] if count is None else count

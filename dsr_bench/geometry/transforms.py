@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
+
 def quat_to_matrix(quat_xyzw: np.ndarray) -> np.ndarray:
     """Rotation matrices (..., 3, 3) from unit quaternions (..., 4) in (x, y, z, w) order."""
     q = np.asarray(quat_xyzw, dtype=np.float64)

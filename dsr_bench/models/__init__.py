@@ -10,7 +10,8 @@ Submodules that need torch (`dsr_net`, `data`, `training`, ...) are imported on 
 
 from dsr_bench.models.config import MODEL_NAMES, ModelConfig
 
-__all__ = ["MODEL_NAMES", "DSRNet", "ModelConfig"]
+# DSRNet comes from __getattr__ below (torch imported on use), which ruff cannot see.
+__all__ = ["MODEL_NAMES", "DSRNet", "ModelConfig"]  # noqa: F822
 
 
 def __getattr__(name: str):

@@ -206,8 +206,8 @@ class SceneRenderer:
         on_face = face >= 0
         instance = np.where(on_face, ids[np.where(on_face, face, 0)], 0)
         normals = scene.normals[np.where(on_face, face, 0)]
-        l = LIGHT_DIRECTION
-        cos = normals[:, 0] * l[0] + normals[:, 1] * l[1] + normals[:, 2] * l[2]
+        light = LIGHT_DIRECTION
+        cos = normals[:, 0] * light[0] + normals[:, 1] * light[1] + normals[:, 2] * light[2]
         shade = np.where(on_face, _shade(np.abs(cos)), table_shade)
         color = self._palette[instance] * shade[:, None]
         color[~valid] = 0.0

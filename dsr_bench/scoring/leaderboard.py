@@ -298,6 +298,7 @@ def _tables(rows: list[dict]):
 
 _WORSE_MARK = "\u25bc"
 
+
 #: Rows that bound the benchmark from above: never "best" (ground truth as predictions, or a model
 #: warped with the ground-truth flow).
 def is_oracle(method: str) -> bool:

@@ -135,7 +135,8 @@ def view_plan(path: str | Path, save: str | Path | None = None, web: bool = Fals
     try:
         arrays, attrs = read_plan(path)
     except (OSError, KeyError, ValueError) as exc:
-        raise UserError(f"{path}: unreadable plan file ({type(exc).__name__}); rerun `dsr-bench plan` for its task")
+        raise UserError(f"{path}: unreadable plan file ({type(exc).__name__}); rerun `dsr-bench plan` for its "
+                        "task") from exc
     rec = rr.RecordingStream(APP_ID, recording_id=f"plan-{attrs.get('task', path.stem)}")
     if save is not None:
         save = Path(save)
