@@ -9,7 +9,7 @@ from typing import Optional
 
 import typer
 
-from dsr_bench.cli.engine_options import (RayAddress, Slurm, SlurmLocal, SlurmLogs, SlurmPartition, SlurmTasks,
+from dsr_bench.engine_options import (RayAddress, Slurm, SlurmLocal, SlurmLogs, SlurmPartition, SlurmTasks,
                                          SlurmTime)
 from dsr_bench.constants import CAMERAS, MODEL_CAMERA
 from generators.objects import OBJECT_SET_NAMES
@@ -25,7 +25,8 @@ def generate(
     split: Optional[str] = typer.Option(None, "--split", help="A named benchmark split (sets objects, size, seed)."),
     seed: Optional[int] = typer.Option(None, "--seed", help="Base seed; sequence i uses a seed derived from it and i."),
     steps: Optional[int] = typer.Option(None, "--steps", help="Pushes per sequence (default 10)."),
-    objects_per_scene: Optional[int] = typer.Option(None, "--objects-per-scene", help="Objects per scene, 1-5 (default 4)."),
+    objects_per_scene: Optional[int] = typer.Option(None, "--objects-per-scene", help="Objects per scene, 1-5 "
+                                                    "(default 4)."),
     policy: Optional[str] = typer.Option(None, "--policy", help="heuristic (the paper's) or random."),
     cameras: str = typer.Option(MODEL_CAMERA, "--cameras", help=f"{MODEL_CAMERA}, or {','.join(CAMERAS)} for the rig's "
                                 "second view."),
@@ -45,7 +46,8 @@ def generate(
     """Simulate pushing sequences (pybullet) and write them with ground truth, a manifest and splits: here, on a Ray
     cluster (--ray) or in a SLURM job array (--slurm), with the same arrays whichever."""
     from rich.console import Console
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+    from rich.progress import (BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn,
+                               TimeRemainingColumn)
     from rich.table import Table
 
     from dsr_bench.engines import engine_from_options, slurm_options_given
@@ -60,8 +62,8 @@ def generate(
     if shard is not None and (ray is not None or slurm):
         raise UserError(f"--shard {shard} with {'--ray' if ray is not None else '--slurm'}: the engine splits the run "
                         "itself; drop --shard")
-    engine = engine_from_options(ray, slurm, workers, slurm_options_given(slurm_partition, slurm_time, slurm_tasks,
-                                                                          slurm_logs, slurm_local), "dsr-bench-generate")
+    slurm_given = slurm_options_given(slurm_partition, slurm_time, slurm_tasks, slurm_logs, slurm_local)
+    engine = engine_from_options(ray, slurm, workers, slurm_given, "dsr-bench-generate")
     total = len(plan.indices())
     todo, skipped = prepare_run(plan)
     with Progress(TextColumn("[bold]generate"), BarColumn(), MofNCompleteColumn(),
@@ -95,7 +97,8 @@ def generate(
         table.add_row("split file", f"splits/{plan.split}.txt")
         table.add_row("split checksum", split_digest(manifest, plan.split))
     else:
-        table.add_row("manifest", "not written yet: other shards missing; run `dsr-bench manifest DIR` when all are done")
+        table.add_row("manifest",
+                      "not written yet: other shards missing; run `dsr-bench manifest DIR` when all are done")
     console.print(table)
 
 
@@ -158,9 +161,9 @@ def generate_plan_tasks(
         if num_tasks not in (None, spec.num_tasks):
             raise UserError("--pin needs the complete set: drop --num-tasks")
         typer.echo(f"pinned {tasks} in {pin_task_set(manifest)}")
-    pin = pinned_checksums().get(tasks)
-    state = ("matches the pin" if pin == manifest["checksum"] else "differs from the pin" if pin and not num_tasks
-             else "not pinned" if not pin else "a prefix of the set (not comparable with the pin)")
+    pinned = pinned_checksums().get(tasks)
+    state = ("matches the pin" if pinned == manifest["checksum"] else "differs from the pin" if pinned and not num_tasks
+             else "not pinned" if not pinned else "a prefix of the set (not comparable with the pin)")
     typer.echo(f"{out}: {len(manifest['tasks'])} tasks of {tasks}; checksum {manifest['checksum']} ({state})")
 
 

@@ -192,7 +192,7 @@ def test_every_shipped_pin_holds_the_scored_digests():
 def test_an_entry_must_name_the_pinned_ground_truth_it_was_scored_on(clean, pinned, capsys, tmp_path):
     """An entry's ground_truth_sha256 is checked against the pin's scored digests (by `add` and by `build`), so an
     entry cannot claim the pinned split while holding the digest of other ground truth."""
-    from dsr_bench.scoring.entries import check_entry
+    from dsr_bench.leaderboard.entries import check_entry
 
     results, _ = _evaluate(clean, pinned, capsys, tmp_path / "r.json")
     assert check_entry(results) == []

@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 
 from dsr_bench.cli import main
-from dsr_bench.scoring.entries import check_entry, entry_name, first_difference, markdown_cell
+from dsr_bench.leaderboard.entries import check_entry, entry_name, first_difference, markdown_cell
 from dsr_bench.scoring.evaluate import evaluate
 from dsr_bench.testing import write_synthetic_dataset
 from helpers import pin_split
@@ -242,7 +242,7 @@ def test_the_repository_leaderboard_is_valid_and_builds_unchanged(tmp_path):
     board = tmp_path / "lb"
     shutil.copytree(ROOT / "leaderboard", board)
     warnings = []
-    from dsr_bench.scoring.leaderboard import build
+    from dsr_bench.leaderboard.board import build
 
     md, page = build(board, warn=warnings.append)
     assert warnings == []

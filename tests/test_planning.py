@@ -200,7 +200,7 @@ def test_tasks_are_reproducible_from_their_seed(one_task):
 def test_random_planner_from_the_cli_end_to_end(one_task, tmp_path, capsys):
     from dsr_bench.cli import main
     from dsr_bench.planning.plans import read_plan
-    from dsr_bench.scoring.leaderboard import planning_rows
+    from dsr_bench.leaderboard.board import planning_rows
 
     out = tmp_path / "random"
     assert main(["plan", "--model", "random", "--tasks", str(one_task), "--out", str(out)]) == 0

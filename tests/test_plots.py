@@ -11,8 +11,8 @@ from PIL import Image
 
 from dsr_bench import __version__
 from dsr_bench.cli import main
-from dsr_bench.scoring.entries import step_mean
-from dsr_bench.scoring.leaderboard import build
+from dsr_bench.leaderboard.entries import step_mean
+from dsr_bench.leaderboard.board import build
 from dsr_bench.scoring.plots import (leaderboard_series, step_series, steps_plot_path, write_leaderboard_plot,
                                      write_steps_plot)
 from dsr_bench.testing import write_synthetic_dataset

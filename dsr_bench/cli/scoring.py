@@ -8,7 +8,7 @@ from typing import Optional
 
 import typer
 
-from dsr_bench.cli.engine_options import (RayAddress, Slurm, SlurmLocal, SlurmLogs, SlurmPartition, SlurmTasks,
+from dsr_bench.engine_options import (RayAddress, Slurm, SlurmLocal, SlurmLogs, SlurmPartition, SlurmTasks,
                                          SlurmTime)
 from dsr_bench.models import registry
 
@@ -122,8 +122,8 @@ def evaluate(
     if out is not None:
         check_writable(out, "--out", directory=False)  # before scoring, not after
         check_writable(steps_plot_path(out), "--out", directory=False)
-    engine = engine_from_options(ray, slurm, workers, slurm_options_given(slurm_partition, slurm_time, slurm_tasks,
-                                                                          slurm_logs, slurm_local), "dsr-bench-evaluate")
+    slurm_given = slurm_options_given(slurm_partition, slurm_time, slurm_tasks, slurm_logs, slurm_local)
+    engine = engine_from_options(ray, slurm, workers, slurm_given, "dsr-bench-evaluate")
     data, split, note = infer_source(pred_dir, data, split)
     if note:
         typer.echo(_printable(note), err=True)
@@ -164,7 +164,7 @@ def leaderboard_build(root: Path = typer.Option(Path("leaderboard"), "--root", h
     """Write leaderboard/README.md and leaderboard/index.html from entries/, planning/ and paper.json. Every entry
     file is validated first (schema, ranges, coverage, metrics against their per-step values, split pin); one that
     fails is skipped with one warning line naming it and its problem, and the rest are built."""
-    from dsr_bench.scoring.leaderboard import build
+    from dsr_bench.leaderboard.board import build
 
     md, page = build(root, warn=lambda line: typer.echo(f"warning: {_printable(line)}", err=True))
     typer.echo(f"wrote {md} and {page}")
@@ -190,7 +190,7 @@ def leaderboard_add(
     results are pinned, complete, a valid entry and equal to the file in every field but date; what it writes is
     the recomputed results. An entry of the same method, split and predictions is replaced; any other gets its
     own file."""
-    from dsr_bench.scoring.leaderboard import add_entry, build
+    from dsr_bench.leaderboard.board import add_entry, build
 
     target, replaced = add_entry(results, root, label, predictions=predictions, data=data, plans=plans, tasks=tasks)
     build(root, warn=lambda line: typer.echo(f"warning: {_printable(line)}", err=True))

@@ -63,7 +63,7 @@ def best_matching(scores: torch.Tensor) -> torch.Tensor:
         rows = torch.arange(n, device=scores.device).expand_as(perms)
         totals = scores[:, rows, perms].sum(-1)  # (B, P): sum_i scores[b, i, perm[i]]
         return perms[totals.argmax(1)]
-    from dsr_bench.scoring.metrics import assignment
+    from dsr_bench.matching import assignment
 
     out = np.empty((b, n), dtype=np.int64)
     for i, s in enumerate(scores.double().cpu().numpy()):

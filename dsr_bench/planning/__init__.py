@@ -12,6 +12,6 @@ Modules (numpy, h5py and torch only: no simulator; the simulator side is `genera
   learned    a batch of candidate actions through a DSR-Net-like model against one state
   runner     the MPC loop over an `Environment` (observe, sample, score, execute), one plan per task
   plans      the plan file (every observation, candidate set, cost and chosen action)
-  results    final-vs-target voxel IoU per task, the results JSON (its leaderboard rows: scoring.leaderboard)
+  results    final-vs-target voxel IoU per task, the results JSON (its leaderboard rows: dsr_bench.leaderboard.board)
   verify     nothing trusted: tasks against the pin, plans against their tasks, results recomputed and checked
 """

@@ -16,7 +16,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from dsr_bench import matching
 from dsr_bench.constants import VOXEL_SIZE
+from dsr_bench.matching import assignment, overlap
 from dsr_bench.planning.protocol import COST_LAMBDA, MATCH_TIE_BREAK, UNMATCHED_POSITION_MSE
 
 _CM_PER_VOXEL = VOXEL_SIZE * 100.0
@@ -51,8 +53,6 @@ def plan_cost(pred: np.ndarray, target: np.ndarray, num_slots: int, num_objects:
               target_centroids: np.ndarray | None = None) -> CostTerms:
     """The cost of predicted next masks `pred` (Y, X, Z) uint8 (slot ids 1..num_slots) against the target's
     amodal masks (Y, X, Z) uint8 (object ids 1..num_objects); see the module doc."""
-    from dsr_bench.scoring.metrics import assignment, overlap
-
     ov = overlap(pred, target, num_slots, num_objects)
     pc, _ = centroids(pred, num_slots)
     tc = centroids(target, num_objects)[0] if target_centroids is None else target_centroids
@@ -76,8 +76,6 @@ def plan_cost(pred: np.ndarray, target: np.ndarray, num_slots: int, num_objects:
 def object_iou(final: np.ndarray, target: np.ndarray, num_objects: int) -> np.ndarray:
     """Per-object voxel IoU (N,) of two amodal states with the same object ids (final vs target of a task):
     object i against object i, no matching. An object absent from both counts 1."""
-    from dsr_bench.scoring.metrics import overlap
-
     ov = overlap(final, target, num_objects, num_objects)
     inter, union = np.diag(ov.inter), np.diag(ov.union)
     return np.where(union > 0, inter / np.maximum(union, 1), 1.0)
@@ -85,12 +83,10 @@ def object_iou(final: np.ndarray, target: np.ndarray, num_objects: int) -> np.nd
 
 def matched_iou(final: np.ndarray, target: np.ndarray, num_objects: int) -> float:
     """Mean voxel IoU of two amodal states under the best one-to-one matching of their ids (Hungarian on IoU), as
-    the benchmark's mask IoU (`dsr_bench.scoring.metrics.matched_iou`: unmatched non-empty ids count 0)."""
-    from dsr_bench.scoring import metrics
-
-    ov = metrics.overlap(final, target, num_objects, num_objects)
-    rows, cols = metrics.assignment(ov.iou)
-    return metrics.matched_iou(ov, rows, cols)[0]
+    the benchmark's mask IoU (`dsr_bench.matching.matched_iou`: unmatched non-empty ids count 0)."""
+    ov = overlap(final, target, num_objects, num_objects)
+    rows, cols = assignment(ov.iou)
+    return matching.matched_iou(ov, rows, cols)[0]
 
 
 def occupancy_iou(final: np.ndarray, target: np.ndarray) -> float:

@@ -5,9 +5,11 @@ target's:
   matching of final and target objects (Hungarian on IoU), as the benchmark's mask IoU and the cost match;
 - `iou_identity`: object i against object i (the simulator knows the ids): a swap of two objects counts 0;
 - `iou_occupancy`: the occupied voxels (any object) against the target's;
-- the same three for the start state (`start_iou`, ...): what not pushing at all would score. The results JSON ("dsr-bench-plan-results") has the means, per-task values, the task
-set's checksum and whether it matches the pin, the plans' checksum and the exact command (`build_results`); the
-leaderboard's planning rows are made from it by `dsr_bench.scoring.leaderboard.planning_rows`.
+- the same three for the start state (`start_iou`, ...): what not pushing at all would score.
+
+The results JSON ("dsr-bench-plan-results") has the means, per-task values, the task set's checksum and whether it
+matches the pin, the plans' checksum and the exact command (`build_results`); the leaderboard's planning rows are
+made from it by `dsr_bench.leaderboard.board.planning_rows`.
 """
 
 from __future__ import annotations
@@ -44,7 +46,7 @@ def plans_checksum(paths: list[Path]) -> str:
 
 
 def build_results(per_task: Mapping[str, dict], planner: Mapping, manifest: Mapping, expected: int,
-                  plan_paths: list[Path], command: str, parameters: Mapping) -> dict:
+                  plan_paths: list[Path], command: str | None, parameters: Mapping) -> dict:
     """The results JSON of a planning run (`dsr-bench plan`): means over the tasks scored (in name order), per task
     values. `manifest`: {"task_set", "checksum"}, the checksum recomputed from the task files
     (`dsr_bench.planning.verify.verify_tasks`), never a tasks.json's; `pinned` is whether it is this toolkit's pin."""
@@ -53,7 +55,8 @@ def build_results(per_task: Mapping[str, dict], planner: Mapping, manifest: Mapp
 
     keys = ("iou", "iou_identity", "iou_occupancy", "start_iou", "start_iou_identity", "start_iou_occupancy")
     ordered = [per_task[name] for name in sorted(per_task)]  # one order of summation, wherever it is recomputed
-    metrics = {k: float(np.mean([t[k] for t in ordered])) if per_task else float("nan") for k in keys}
+    metrics: dict[str, float | None] = {k: float(np.mean([t[k] for t in ordered])) if per_task else float("nan")
+                                        for k in keys}
     seconds = [t["seconds"] for t in ordered if "seconds" in t]
     metrics["planning_iou"] = metrics["iou"]
     metrics["tasks_per_minute"] = 60.0 * len(seconds) / sum(seconds) if seconds and sum(seconds) > 0 else None

@@ -12,101 +12,19 @@ Scores are averaged over sequences per step index, then over step indices.
 
 from __future__ import annotations
 
-import itertools
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import cast
 
 import numpy as np
 
 from dsr_bench.constants import TSDF_SURFACE_LOW, VOXEL2_TO_CM2
+from dsr_bench.matching import (  # noqa: F401  (brute_force_assignment: the metrics' reference, for tests)
+    Overlap, assignment, brute_force_assignment, matched_iou, official_iou, overlap)
 
 MOVED_VOXELS = 0.5  # an object moved if its mean GT flow exceeds half a voxel (2 mm)
 OCCLUDED_BELOW = 0.5  # visible fraction under which an object counts as mostly occluded
 M2_TO_CM2 = 1e4
-
-
-def assignment(score: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Rows and columns of the one-to-one matching maximising the total score (rectangular ok)."""
-    try:
-        from scipy.optimize import linear_sum_assignment
-    except ImportError:  # e.g. a GPU box without scipy: exact enumeration, fine for a few slots
-        return brute_force_assignment(score)
-    rows, cols = linear_sum_assignment(score, maximize=True)
-    return rows, cols
-
-
-def brute_force_assignment(score: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The same matching by enumerating every injective map (reference for tests)."""
-    flip = score.shape[0] > score.shape[1]
-    s = score.T if flip else score
-    best, best_cols = -np.inf, None
-    for cols in itertools.permutations(range(s.shape[1]), s.shape[0]):
-        total = s[np.arange(s.shape[0]), cols].sum()
-        if total > best + 1e-12:
-            best, best_cols = total, cols
-    rows, cols = np.arange(s.shape[0]), np.array(best_cols, dtype=np.int64)
-    if flip:
-        rows, cols = cols, rows
-        order = np.argsort(rows)
-        rows, cols = rows[order], cols[order]
-    return rows, cols
-
-
-@dataclass(frozen=True)
-class Overlap:
-    """Intersections (S, N) between predicted slots 1..S and GT objects 1..N, and their sizes."""
-
-    inter: np.ndarray
-    pred_size: np.ndarray
-    gt_size: np.ndarray
-
-    @property
-    def union(self) -> np.ndarray:
-        return self.pred_size[:, None] + self.gt_size[None, :] - self.inter
-
-    @property
-    def iou(self) -> np.ndarray:
-        return self.inter / np.maximum(self.union, 1)
-
-
-def overlap(pred: np.ndarray, gt: np.ndarray, num_slots: int, num_objects: int) -> Overlap:
-    """Slot x object intersection counts of two label volumes with one bincount over the voxels
-    occupied in either (empty-empty voxels count towards nothing)."""
-    g1 = num_objects + 1
-    p, g = pred.reshape(-1), gt.reshape(-1)
-    occupied = np.flatnonzero(p | g) if p.dtype == g.dtype == np.uint8 else np.flatnonzero((p > 0) | (g > 0))
-    joint = np.bincount(p[occupied].astype(np.int64) * g1 + g[occupied].astype(np.int64),
-                        minlength=(num_slots + 1) * g1).reshape(num_slots + 1, g1)
-    return Overlap(joint[1:, 1:].astype(np.float64), joint[1:].sum(1).astype(np.float64),
-                   joint[:, 1:].sum(0).astype(np.float64))
-
-
-def matched_iou(ov: Overlap, rows: np.ndarray, cols: np.ndarray) -> tuple[float, np.ndarray]:
-    """(Mean IoU over matched pairs and unmatched non-empty slots/objects, per-object IoU (N,)).
-
-    Empty-empty pairs are not counted (the official code counts them as 0 when a scene has fewer
-    objects than slots; with as many objects as slots the two agree)."""
-    iou = ov.iou
-    per_object = np.zeros(ov.gt_size.shape[0])
-    per_object[cols] = iou[rows, cols]
-    values = list(iou[rows, cols][ov.union[rows, cols] > 0])
-    unmatched_slots = np.setdiff1d(np.arange(iou.shape[0]), rows)
-    unmatched_objects = np.setdiff1d(np.arange(iou.shape[1]), cols)
-    values += [0.0] * int((ov.pred_size[unmatched_slots] > 0).sum() + (ov.gt_size[unmatched_objects] > 0).sum())
-    return (float(np.mean(values)) if values else 1.0), per_object
-
-
-def official_iou(ov: Overlap, rows: np.ndarray | None = None, cols: np.ndarray | None = None) -> float:
-    """The official code's IoU score: slots and objects padded to a square of max(S, N), best (or
-    the given) matching, mean over all of its pairs, empty-empty pairs counting 0. Equals
-    `matched_iou` when every slot and object is non-empty and S == N (the paper's 4 and 4)."""
-    iou = ov.iou
-    size = max(iou.shape)
-    square = np.zeros((size, size))
-    square[: iou.shape[0], : iou.shape[1]] = iou
-    if rows is None or cols is None:
-        rows, cols = assignment(square)
-    return float(square[rows, cols].sum() / size) if size else 1.0
 
 
 #: a float16 prediction with at most this fraction of nonzero values is subtracted sparsely
@@ -173,13 +91,14 @@ def motion_2d_error(pred: np.ndarray, gt: np.ndarray, mask_2d: np.ndarray) -> fl
 
 
 def sequence_scores(pred_mask: np.ndarray, gt_mask: np.ndarray, num_slots: int, num_objects: int,
-                    visible_fraction: np.ndarray | None = None) -> dict[str, np.ndarray]:
+                    visible_fraction: np.ndarray | None = None) -> dict[str, np.ndarray | list[np.ndarray]]:
     """Per-step IoU scores of one sequence: unordered and ordered (T,), and per-object IoU under
     the unordered matching split into mostly occluded and visible objects (lists per step)."""
     steps = pred_mask.shape[0]
     overlaps = [overlap(pred_mask[t], gt_mask[t], num_slots, num_objects) for t in range(steps)]
     unordered = np.zeros(steps)
-    occluded, visible = [], []
+    occluded: list[np.ndarray] = []
+    visible: list[np.ndarray] = []
     for t, ov in enumerate(overlaps):
         rows, cols = assignment(ov.iou)
         unordered[t], per_object = matched_iou(ov, rows, cols)
@@ -188,7 +107,7 @@ def sequence_scores(pred_mask: np.ndarray, gt_mask: np.ndarray, num_slots: int, 
             occ = present & (visible_fraction[t] < OCCLUDED_BELOW)
             occluded.append(per_object[occ])
             visible.append(per_object[present & ~occ])
-    rows, cols = assignment(sum(ov.iou for ov in overlaps))
+    rows, cols = assignment(cast(np.ndarray, sum(ov.iou for ov in overlaps)))  # the steps' IoU matrices summed
     ordered = np.array([matched_iou(ov, rows, cols)[0] for ov in overlaps])
     size = max(num_slots, num_objects)
     total = np.zeros((size, size))
@@ -244,7 +163,7 @@ def step_motion(step: Step3D) -> dict[str, float]:
     return motion_errors(step.motion, step.flow, step.tsdf, step.gt_mask, step.num_objects, object_index=step.objects)
 
 
-def sequence_ious(seq: Sequence3D) -> dict[str, np.ndarray]:
+def sequence_ious(seq: Sequence3D) -> dict[str, np.ndarray | list[np.ndarray]]:
     """The mask IoUs of one sequence (`sequence_scores`): the ordered ones need all its steps at once."""
     return sequence_scores(seq.pred_mask, seq.gt_mask, seq.num_slots, seq.num_objects, seq.visible_fraction)
 
@@ -332,7 +251,7 @@ def compute_step(track: str, inputs) -> dict[str, float]:
     return values
 
 
-def compute_sequence(inputs: Sequence3D) -> dict[str, np.ndarray]:
+def compute_sequence(inputs: Sequence3D) -> dict[str, np.ndarray | list[np.ndarray]]:
     """Every per-sequence metric (and what its function keeps beside, e.g. OBJECT_IOUS) of one sequence, by key."""
     values: dict = {}
     for function, keys in _grouped("3D", "sequence"):

@@ -49,7 +49,8 @@ _SERVING: list = []
 
 def object_color(object_id: int) -> tuple[int, int, int]:
     """RGB colour of object id 1..N (stable across steps, views and runs)."""
-    return tuple(int(c) for c in PALETTE[(object_id - 1) % len(PALETTE)])
+    r, g, b = (int(c) for c in PALETTE[(object_id - 1) % len(PALETTE)])
+    return r, g, b
 
 
 def obs_tick(t: int) -> int:
@@ -83,7 +84,7 @@ def flow_arrows(flow: np.ndarray, mask: np.ndarray, rng: np.random.Generator,
 def match_slots(pred_mask: np.ndarray, gt_mask: np.ndarray, num_slots: int, num_objects: int) -> np.ndarray:
     """Lookup table (num_slots + 1,) uint8 from predicted slot to the GT object id it matches under the
     benchmark's per-step (unordered) Hungarian matching; 0 -> 0, unmatched slots -> UNMATCHED."""
-    from dsr_bench.scoring.metrics import assignment, overlap
+    from dsr_bench.matching import assignment, overlap
 
     ov = overlap(pred_mask, gt_mask, num_slots, num_objects)
     rows, cols = assignment(ov.iou)
@@ -141,7 +142,7 @@ def load_predictions(pred_dir: Path, seq: SequenceReader) -> dict:
         problems = [f"unreadable ({type(exc).__name__}: {exc})"]
     if not problems:
         _, problems, values = score_sequence((seq.path.stem, str(path), str(seq.path)))
-    if problems:
+    if problems or values is None:  # values: None only with problems
         raise UserError(f"{path}: invalid predictions ({'; '.join(problems)}); see `dsr-bench evaluate`")
     pred["metrics"] = {k: np.asarray(values[k], dtype=np.float64) for k in METRIC_NAMES
                        if k in values and (k != "motion_2d" or values.get("has_2d"))}
@@ -159,7 +160,7 @@ def blueprint(cameras: list[str], has_predictions: bool, has_policy: bool = True
                                        contents=["+ /world/pred/**", "+ /world/push/**", "+ /world/tsdf",
                                                  "+ /world/objects/**"]))
     cams = [rrb.Spatial2DView(origin=f"world/cameras/{c}/image", name=f"{c} camera") for c in cameras]
-    charts = []
+    charts: list = []  # rerun views of several kinds
     if has_predictions:
         charts.append(rrb.TimeSeriesView(origin="metrics", name="per-step metrics"))
     if has_policy:
@@ -300,7 +301,7 @@ def _log_or_fail(rec, seq, pred, path: Path) -> None:
     rec.flush()
 
 
-def web_ports(url: str) -> tuple[int, int]:
+def web_ports(url: str) -> tuple[int | None, int | None]:
     """(web viewer port, gRPC port) of a URL that `view` returns when serving: the browser loads the page from
     the first and then streams the recording from the second, so both must be reachable."""
     from urllib.parse import parse_qs, urlsplit

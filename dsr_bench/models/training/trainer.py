@@ -19,19 +19,23 @@ import time
 from collections.abc import Iterable, Iterator
 from functools import partial
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
 
 from dsr_bench.atomic import write_text
 from dsr_bench.errors import UserError
-from dsr_bench.models.dsr_net import batchnorm_layers, batchnorm_statistics
+from dsr_bench.models.dsr_net import DSRNet, batchnorm_layers, batchnorm_statistics
 from dsr_bench.models.labels import slot_labels
 from dsr_bench.models.loss import MaskIdError, check_ids, dsr_loss
 from dsr_bench.models.training.checkpoints import data_provenance, git_hash, save_checkpoint, unwrap
 from dsr_bench.models.training.config import TrainConfig
 from dsr_bench.models.training.loop import WindowError, run_steps
 from dsr_bench.models.training.setup import Run, prepare
+
+if TYPE_CHECKING:
+    from torch.utils.tensorboard import SummaryWriter
 
 __all__ = ["TrainConfig", "WindowError", "recalibrate_batchnorm", "train", "train_step", "train_windows", "validate",
            "window_record"]
@@ -58,7 +62,7 @@ def train_step(model, batch: dict, optimizer, device, bf16: bool = False, determ
     (floats). The steps are queued without waiting for the device; the terms are read once, at the
     end of the window (a non-finite loss is reported then, naming its step)."""
     device = torch.device(device)
-    net = unwrap(model)
+    net: DSRNet = unwrap(model)
     tsdf, action, gt_mask, gt_flow = _to(batch, device, net.config.num_slots)
     state = net.initial_state(tsdf.shape[0], device)
     matching, terms = None, []
@@ -115,7 +119,7 @@ def recalibrate_batchnorm(model, batches: Iterable[dict], device, bf16: bool = F
     equally (momentum None: a cumulative average), with the final weights; no gradients, the
     weights and the momentum are left as they were. Returns the number of forward passes."""
     device = torch.device(device)
-    net = unwrap(model)
+    net: DSRNet = unwrap(model)
     layers = batchnorm_layers(net)
     momenta = [m.momentum for m in layers]
     for m in layers:
@@ -147,10 +151,10 @@ def validate(model, loader, device, official_bn: bool = False, bf16: bool = Fals
     """Mean per-step unordered mask IoU (the benchmark's matching) and loss on a loader, state carried
     across each window's steps. BatchNorm in eval mode unless `official_bn` (the official code
     never switches it: batch statistics, the running statistics left untouched)."""
-    from dsr_bench.scoring.metrics import assignment, matched_iou, overlap
+    from dsr_bench.matching import assignment, matched_iou, overlap
 
     device = torch.device(device)
-    net = unwrap(model)
+    net: DSRNet = unwrap(model)
     ious, losses = [], []
     with batchnorm_statistics(net, batch=official_bn):
         for i, batch in enumerate(loader):
@@ -211,7 +215,7 @@ class RunLog:
         try:
             from torch.utils.tensorboard import SummaryWriter
 
-            self.writer = SummaryWriter(str(out / "tensorboard"))
+            self.writer: SummaryWriter | None = SummaryWriter(str(out / "tensorboard"))
         except Exception:  # TensorBoard is optional
             self.writer = None
         self.file = open(out / "metrics.jsonl", "a")
@@ -272,7 +276,7 @@ def _train_epoch(run: Run, log: RunLog | None, budget: TimeBudget, epoch: int, f
             return _train_batches(run, log, budget, epoch, windows, batch_index, progress)
     except WindowError as exc:
         raise UserError(f"batch {exc.index} of epoch {epoch + 1} "
-                        f"({', '.join(sorted(set(exc.sequences)))}): {exc.cause}") from None
+                        f"({', '.join(sorted(set(exc.sequences or ())))}): {exc.cause}") from None
 
 
 def _train_batches(run: Run, log: RunLog | None, budget: TimeBudget, epoch: int, windows, batch_index: int,
@@ -335,7 +339,7 @@ def _end_epoch(run: Run, log: RunLog | None, epoch: int) -> None:
     run.scheduler.step()
     if epoch + 1 == run.stage.epochs:
         _recalibrate(run, log)
-    if run.rank == 0:
+    if log is not None:  # rank 0
         record = {"epoch": epoch + 1, "step": run.step, "lr_next": run.optimizer.param_groups[0]["lr"]}
         if run.val_loader is not None:
             try:

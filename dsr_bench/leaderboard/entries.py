@@ -222,7 +222,8 @@ def _check_track(r: dict, metrics: dict) -> list[str]:
         if set(metrics) != {"motion_2d"} or shown:
             return [f"a 3D result cut down to motion_2d (it holds {', '.join(shown[:3]) or show(sorted(metrics))}"
                     "): a 2D-only result holds motion_2d alone and empty breakdowns"]
-        allowed, seq_keys = {"motion_2d"}, ("motion_2d",)
+        allowed = {"motion_2d"}
+        seq_keys: tuple[str, ...] = ("motion_2d",)
     else:
         missing = [k for k in HEADLINE if k not in metrics]
         if missing:
@@ -233,12 +234,12 @@ def _check_track(r: dict, metrics: dict) -> list[str]:
     unknown = sorted(set(metrics) - allowed) + sorted(set(steps) - allowed - set(STEP_ONLY))
     if unknown:
         return [f"unknown metrics: {show(unknown)}"]
-    p = [_value_problem(f"metrics.{key}", key, value, nan_ok=False) for key, value in metrics.items()]
+    found = [_value_problem(f"metrics.{key}", key, value, nan_ok=False) for key, value in metrics.items()]
     for key, values in steps.items():
         bad = next((x for x in values if _value_problem("", key, x, nan_ok=True)), None)
         if bad is not None:
-            p.append(_value_problem(f"a value of per_step.{key}", key, bad, nan_ok=True))
-    p = [x for x in p if x]
+            found.append(_value_problem(f"a value of per_step.{key}", key, bad, nan_ok=True))
+    p = [x for x in found if x]
     if p:  # the means below need numbers
         return p
     for key, value in metrics.items():
@@ -282,9 +283,10 @@ def _check_per_sequence(seqs, keys: tuple, metrics: dict, steps: dict) -> list[s
     for name, s in seqs.items():
         if set(s) != set(keys):
             return [f"per_sequence.{show(name)} holds {show(sorted(s))}, not {show(list(keys))}"]
-        bad = next((k for k in keys if _value_problem("", k, s[k], nan_ok=True)), None)
-        if bad is not None:
-            return [_value_problem(f"per_sequence.{show(name)}.{bad}", bad, s[bad], nan_ok=True)]
+        labelled = (_value_problem(f"per_sequence.{show(name)}.{k}", k, s[k], nan_ok=True) for k in keys)
+        problem = next((q for q in labelled if q), None)
+        if problem is not None:
+            return [problem]
     for key in keys:  # every sequence of a named split has the same steps: the two means agree
         values, per_step = [s[key] for s in seqs.values()], steps.get(key, [])
         if all(_finite(v) for v in values) and all(_finite(v) for v in per_step) and _finite(metrics.get(key)):
@@ -336,7 +338,9 @@ def _check_split(r: dict) -> list[str]:
     pin = pinned_digests().get(split) or {}
     names = pin.get("sequences") if pin.get("checksum") == expected else None  # the pin's sequences, where known
     count = len(names) if names else spec.num_sequences
-    coverage = r.get("coverage") if isinstance(r.get("coverage"), dict) else {}
+    coverage = r.get("coverage")
+    if not isinstance(coverage, dict):
+        coverage = {}
     if coverage.get("expected") != count:
         p.append(f"coverage expects {show(coverage.get('expected'))} sequences but {split} has {count}")
     seqs = r.get("per_sequence")
@@ -347,7 +351,8 @@ def _check_split(r: dict) -> list[str]:
 
         want = expected_scored_checksum(split, r["metrics"], sorted(names))
         if want is not None and r["ground_truth_sha256"] != want:
-            p.append(f"ground_truth_sha256 is not that of the pinned {split}'s ground truth (the scored digests this toolkit pins)")
+            p.append(f"ground_truth_sha256 is not that of the pinned {split}'s ground truth (the scored digests "
+                     "this toolkit pins)")
     return p
 
 

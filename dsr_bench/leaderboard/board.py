@@ -3,7 +3,7 @@
 leaderboard/entries/*.json are results of `dsr-bench evaluate` as `add` recomputed them from the predictions
 (plus an optional "label"), never a submitted file's numbers; leaderboard/planning/*.json likewise results of
 `dsr-bench plan` recomputed from the plan files (complete runs on a pinned task set), shown in the planning IoU
-column. `dsr_bench.scoring.entries` validates both before `add` writes and when `build` reads (a file that fails
+column. `dsr_bench.leaderboard.entries` validates both before `add` writes and when `build` reads (a file that fails
 is skipped with one warning line). leaderboard/paper.json holds the paper's published numbers, always shown apart
 and marked "reported in the paper". A 2D-only entry (results holding motion_2d alone) joins the 2D track's table
 only. `build` writes leaderboard/README.md (a table per split and track, best per column in bold; every text
@@ -25,7 +25,7 @@ from dsr_bench.atomic import write_text
 from dsr_bench.constants import GRID_SHAPE, IMAGE_SHAPE
 from dsr_bench.errors import UserError
 from dsr_bench.models.predictors import REFERENCE_MODELS
-from dsr_bench.scoring.entries import (PLAN_RESULTS_FORMAT, RESULTS_FORMAT, check_entry, entry_identity,
+from dsr_bench.leaderboard.entries import (PLAN_RESULTS_FORMAT, RESULTS_FORMAT, check_entry, entry_identity,
                                        entry_name, first_difference, is_2d_only, markdown_cell, show)
 from dsr_bench.scoring.metrics import METRICS, TRACKS as METRIC_TRACKS, metric_keys
 
@@ -95,7 +95,7 @@ def _recompute_predictions(path: Path, submitted: dict, predictions, data, root:
     if not predictions.is_dir():
         raise UserError(f"--predictions {predictions}: not a directory; give the predictions `dsr-bench evaluate` "
                         "scored")
-    data, split, _ = infer_source(predictions, Path(data) if data is not None else None, split)
+    data, _, _ = infer_source(predictions, Path(data) if data is not None else None, split)  # split as given
     evaluation = evaluate(predictions, data, split, workers=workers)
     if evaluation.results is None:
         where, problem = evaluation.problems[0] if evaluation.problems else ("", "nothing scored")
@@ -144,8 +144,8 @@ def check_reference_predictions(path: Path, predictions: Path, data: Path, split
                     want[k].dtype == got[k].dtype and np.array_equal(want[k][()], got[k][()]) for k in want)
             if not same:
                 raise UserError(f"{path}: its method is named like the reference row {model!r}, but "
-                                f"{predictions / (name + '.h5')} is not what `dsr-bench predict --model {model}` writes; "
-                                "give your method another name (meta.json's name)")
+                                f"{predictions / (name + '.h5')} is not what `dsr-bench predict --model {model}` "
+                                "writes; give your method another name (meta.json's name)")
 
 
 def _recompute_plans(path: Path, plans, tasks, root: Path) -> dict:
@@ -293,7 +293,8 @@ def _tables(rows: list[dict]):
             sub = group.dropna(subset=[c for c in cols if c in group], how="all")
             if sub.empty or not cols:
                 continue
-            yield split, kind, track, sub[["method", "grid", *cols, "label", "date", "checksum"]].reset_index(drop=True), cols
+            table = sub[["method", "grid", *cols, "label", "date", "checksum"]].reset_index(drop=True)
+            yield split, kind, track, table, cols
 
 
 _WORSE_MARK = "\u25bc"
@@ -372,12 +373,14 @@ def build(root: str | Path = "leaderboard", warn: Callable[[str], None] | None =
                 worse = _worse_than_no_motion(table, c, r)
                 cells.append((f"**{text}**" if top else text) + (f" {_WORSE_MARK}" if worse else ""))
                 classes = " ".join(k for k, on in (("best", top), ("worse", worse)) if on)
-                tds.append(f'<td data-v="{"" if r[c] != r[c] else r[c]}"{f" class={chr(34)}{classes}{chr(34)}" if classes else ""}>'
+                value = "" if r[c] != r[c] else r[c]  # NaN: no value to sort on
+                tds.append(f'<td data-v="{value}"{f" class={chr(34)}{classes}{chr(34)}" if classes else ""}>'
                            f"{html.escape(_fmt(r[c], c))}{f' {_WORSE_MARK}' if worse else ''}</td>")
             md.append("| " + " | ".join([markdown_cell(r["method"]), markdown_cell(r["grid"]), *cells,
                                          markdown_cell(r["label"]), markdown_cell(r["date"]),
                                          markdown_cell(r["checksum"])]) + " |")
-            html_rows.append(f"<tr><td>{html.escape(str(r['method']))}</td><td>{html.escape(str(r['grid']))}</td>{''.join(tds)}<td>{html.escape(str(r['label']))}"
+            html_rows.append(f"<tr><td>{html.escape(str(r['method']))}</td><td>{html.escape(str(r['grid']))}</td>"
+                             f"{''.join(tds)}<td>{html.escape(str(r['label']))}"
                              f"</td><td>{html.escape(str(r['date']))}</td><td><code>{html.escape(str(r['checksum']))}</code>"
                              "</td></tr>")
         md.append("")
@@ -389,7 +392,8 @@ def build(root: str | Path = "leaderboard", warn: Callable[[str], None] | None =
                    f"![{split}, {track} track: per-step curves]({rel})", ""]
         ths = "".join(f"<th onclick=\"sortTable(this)\">{html.escape(h)}</th>" for h in header)
         note = ("" if comparable or kind == "reported in the paper" else
-                "<p class=note>No no-motion (static) row on this version of the split: not comparable, none marked best.</p>")
+                "<p class=note>No no-motion (static) row on this version of the split: not comparable, none marked "
+                "best.</p>")
         about = f"<p>{html.escape(SPLITS[split].description)}.</p>" if split in SPLITS else ""
         figure = ("" if plot is None else
                   f'<figure><a href="{html.escape(rel)}"><img src="{html.escape(rel)}" alt="{html.escape(split)}, '
@@ -448,14 +452,16 @@ td:first-child,th:first-child{text-align:left}th{cursor:pointer;background:#f4f4
 <h1>dsr-bench leaderboard</h1>
 <p>Reproduced results (<code>dsr-bench evaluate</code>) and numbers reported in the paper, in separate tables.
 Reference rows (oracle, static = predicting no motion, push) sit beside the trained rows of the same version of a split.
-Click a column to sort. Bold: the best value that is not an oracle's. &#9660; (red): worse than predicting no motion.</p>
+Click a column to sort. Bold: the best value that is not an oracle's. &#9660; (red): worse than predicting no \
+motion.</p>
 {body}
 <script>
 function sortTable(th){
   const table=th.closest('table'), i=[...th.parentNode.children].indexOf(th), body=table.tBodies[0];
   const asc=th.dataset.asc!=='1'; th.dataset.asc=asc?'1':'0';
   const key=r=>{const c=r.children[i]; const v=c.dataset.v; return v!==undefined&&v!==''?parseFloat(v):c.textContent;};
-  [...body.rows].sort((a,b)=>{const x=key(a),y=key(b); return (x>y?1:x<y?-1:0)*(asc?1:-1);}).forEach(r=>body.appendChild(r));
+  [...body.rows].sort((a,b)=>{const x=key(a),y=key(b); return (x>y?1:x<y?-1:0)*(asc?1:-1);})\
+.forEach(r=>body.appendChild(r));
 }
 </script></body></html>
 """
