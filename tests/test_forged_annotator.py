@@ -163,19 +163,16 @@ def _board_link(folder):
     _rig(folder, _board_images({"front": {"color": "board.png"}}))
 
 
-def _frame_link(folder):
-    shutil.move(folder / "front_color_1.png", folder.parent / "frame.png")
-    (folder / "front_color_1.png").symlink_to(folder.parent / "frame.png")
+def _linked_out(name: str, outside: str | None = None):
+    """A forgery: SRC's file `name` moved out of SRC (as `outside`) and linked back into it."""
+    def forge(folder):
+        shutil.move(folder / name, folder.parent / (outside or name))
+        (folder / name).symlink_to(folder.parent / (outside or name))
+    return forge
 
 
-def _rig_link(folder):
-    shutil.move(folder / "rig.json", folder.parent / "rig.json")
-    (folder / "rig.json").symlink_to(folder.parent / "rig.json")
-
-
-def _pushes_link(folder):
-    shutil.move(folder / "pushes.json", folder.parent / "pushes.json")
-    (folder / "pushes.json").symlink_to(folder.parent / "pushes.json")
+_frame_link, _rig_link = _linked_out("front_color_1.png", "frame.png"), _linked_out("rig.json")
+_pushes_link = _linked_out("pushes.json")
 
 
 def _pushes_string(folder):
@@ -279,14 +276,7 @@ def _steps(value):
     return lambda f: (f / "steps.json").write_text(json.dumps({"step_times": value}))
 
 
-def _bag_link(folder):
-    shutil.move(folder / "front.bag", folder.parent / "front.bag")
-    (folder / "front.bag").symlink_to(folder.parent / "front.bag")
-
-
-def _steps_link(folder):
-    shutil.move(folder / "steps.json", folder.parent / "steps.json")
-    (folder / "steps.json").symlink_to(folder.parent / "steps.json")
+_bag_link, _steps_link = _linked_out("front.bag"), _linked_out("steps.json")
 
 
 def _bag_extrinsics(folder):
