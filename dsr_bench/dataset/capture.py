@@ -21,7 +21,7 @@ import json
 from dataclasses import dataclass, field
 from functools import lru_cache
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 
@@ -58,8 +58,9 @@ class CaptureCamera:
         return Camera(self.name, self.height, self.width, self.intrinsics, self.extrinsics)
 
     def as_json(self) -> dict:
-        return {"height": int(self.height), "width": int(self.width), "intrinsics": np.asarray(self.intrinsics).tolist(),
-                "extrinsics": np.asarray(self.extrinsics).tolist(), "depth_scale": float(self.depth_scale)}
+        return {"height": int(self.height), "width": int(self.width),
+                "intrinsics": np.asarray(self.intrinsics).tolist(), "extrinsics": np.asarray(self.extrinsics).tolist(),
+                "depth_scale": float(self.depth_scale)}
 
 
 @dataclass(frozen=True)
@@ -144,7 +145,8 @@ class Capture:
         self._mesh = lru_cache(maxsize=None)(self._load_mesh)
 
     def __repr__(self) -> str:
-        return f"Capture({self.name!r}, steps={self.num_steps}, objects={self.num_objects}, cameras={list(self.cameras)})"
+        return (f"Capture({self.name!r}, steps={self.num_steps}, objects={self.num_objects}, "
+                f"cameras={list(self.cameras)})")
 
     # images ------------------------------------------------------------------------------------------
     def image_path(self, step: int, camera: str, kind: str) -> Path:
@@ -168,7 +170,7 @@ class Capture:
         if kind == "color":
             if array.ndim == 3 and array.shape[2] == 4:
                 array = array[..., :3]
-            expected = (cam.height, cam.width, 3)
+            expected: tuple[int, ...] = (cam.height, cam.width, 3)
             ok = array.shape == expected and array.dtype == np.uint8
             what = "8-bit RGB"
         else:
@@ -220,7 +222,7 @@ class Capture:
 
         path = self.objects[index].mesh_path
         try:
-            mesh = trimesh.load(path, force="mesh", process=False)
+            mesh = cast("trimesh.Trimesh", trimesh.load(path, force="mesh", process=False))  # force="mesh": a Trimesh
         except Exception as exc:  # trimesh raises many types for corrupt files
             raise _fail(path, f"unreadable mesh ({exc}); use a .ply, .obj or .stl triangle mesh in metres") from None
         vertices = np.asarray(mesh.vertices, dtype=np.float64)
@@ -249,7 +251,8 @@ class Capture:
             return None
         poses = np.asarray(truth.get("poses"), dtype=np.float64)
         if poses.shape != (self.num_observations, self.num_objects, 7):
-            raise _fail(self.path / "truth.json", f"poses must have shape {(self.num_observations, self.num_objects, 7)}")
+            raise _fail(self.path / "truth.json",
+                        f"poses must have shape {(self.num_observations, self.num_objects, 7)}")
         return poses
 
     def truth_calibration(self) -> dict[str, CaptureCamera] | None:
@@ -295,7 +298,8 @@ def load_capture(path: str | Path) -> Capture:
         actions = np.asarray(act["actions"], dtype=np.float64)
         pushes = np.asarray(act["pushes_world"], dtype=np.float64)
     except (KeyError, TypeError, ValueError):
-        raise _fail(act_path, "needs 'actions' (T x [d, row, col]) and 'pushes_world' (T x [[x,y,z],[x,y,z]])") from None
+        raise _fail(act_path,
+                    "needs 'actions' (T x [d, row, col]) and 'pushes_world' (T x [[x,y,z],[x,y,z]])") from None
     if actions.shape != (steps, 3) or pushes.shape != (steps, 2, 3):
         raise _fail(act_path, f"expected {steps} actions of [d, row, col] and {steps} pushes of 2 points, got "
                               f"shapes {actions.shape} and {pushes.shape}")
@@ -317,7 +321,8 @@ def load_capture(path: str | Path) -> Capture:
             raise _fail(obj_path, f"object {i} mesh {entry['mesh']!r}: use one of {', '.join(MESH_SUFFIXES)}")
         if not mesh_path.is_file():
             raise _fail(obj_path, f"object {i} mesh file {entry['mesh']!r} not found")
-        objects.append(CaptureObject(i, str(entry.get("name", f"object_{i}")), mesh_path, dict(entry.get("identity", {}))))
+        objects.append(CaptureObject(i, str(entry.get("name", f"object_{i}")), mesh_path,
+                                     dict(entry.get("identity", {}))))
 
     absent = [str(p.relative_to(path)) for step in range(steps + 1) for n in names for kind in ("color", "depth")
               if not (p := path / "steps" / f"{step:03d}" / f"{n}_{kind}.png").is_file()]
@@ -346,8 +351,8 @@ def _check_image_sizes(capture: Capture) -> None:
                     raise _fail(p, f"image is {size[0]}x{size[1]} but calibration.json gives {name!r} "
                                    f"{cam.width}x{cam.height} (width x height)")
                 if kind == "depth" and mode not in ("I;16", "I;16B", "I;16L", "I"):
-                    raise _fail(p, f"depth must be a 16-bit single-channel PNG (mode {mode}); store depth / depth_scale "
-                                   "as uint16")
+                    raise _fail(p, f"depth must be a 16-bit single-channel PNG (mode {mode}); store depth / "
+                                   "depth_scale as uint16")
 
 
 def _write_png(path: Path, array: np.ndarray) -> None:

@@ -28,7 +28,7 @@ TSDF_SIGN_AGREEMENT = 0.95
 MASK_WARP_IOU = 0.9
 
 
-def action_problems(actions: np.ndarray, shape: tuple[int, int] = GRID_SHAPE[:2]) -> list[str]:
+def action_problems(actions: np.ndarray, shape: tuple[int, ...] = GRID_SHAPE[:2]) -> list[str]:
     """What is wrong with actions (T, 3) [direction, row, col] on a (Y, X) action map (none: [])."""
     a = np.asarray(actions)
     if a.ndim != 2 or a.shape[1] != 3 or not np.issubdtype(a.dtype, np.integer):
@@ -94,14 +94,17 @@ def _range_checks(seq, ok: set[str]) -> dict[str, Callable[[], list[str]]]:
             out.append(f"visible_fraction: values in [{a.min():.3g}, {a.max():.3g}], expected [0, 1]")
         return out
 
-    checks = {"tsdf": tsdf, "mask_3d": mask_3d, "object_poses": poses, "action": action,
-              "visible_fraction": visible}
+    def finite(name):
+        return lambda: _finite(name, seq.read(name))
+
+    checks: dict[str, Callable[[], list[str]]] = {"tsdf": tsdf, "mask_3d": mask_3d, "object_poses": poses,
+                                                  "action": action, "visible_fraction": visible}
     for name in ("scene_flow_3d", "push_start", "push_end", "heightmap"):
-        checks[name] = (lambda name=name: _finite(name, seq.read(name)))
+        checks[name] = finite(name)
     for cam in seq.cameras:
         checks[f"cameras/{cam}/mask"] = camera_mask(f"cameras/{cam}/mask")
         flow2d = f"cameras/{cam}/scene_flow_2d"
-        checks[flow2d] = (lambda name=flow2d: _finite(name, seq.read(name)))
+        checks[flow2d] = finite(flow2d)
     return {name: check for name, check in checks.items() if name in ok}
 
 
@@ -112,7 +115,7 @@ def _check_flow(seq) -> list[str]:
 
     if seq.attrs.get("source") == "official-import":
         return _check_official_flow(seq)
-    problems = []
+    problems: list[str] = []
     for t, poses, mask, flow in _flow_steps(seq, problems):
         err = float(np.abs(flow - rigid_scene_flow_3d(mask, poses[t], poses[t + 1])).max())
         if err > FLOW_TOLERANCE:
@@ -244,7 +247,7 @@ def _check_official_flow(seq) -> list[str]:
     (`official_motion`), within OFFICIAL_POSE_DRIFT (+ FLOW_TOLERANCE) voxels per axis (`rounding_excess`)."""
     names = FLOW_COMPONENTS.split(",")
     limit = OFFICIAL_POSE_DRIFT + FLOW_TOLERANCE
-    problems = []
+    problems: list[str] = []
     for t, poses, mask, flow in _flow_steps(seq, problems):
         fractional = flow != np.rint(flow)
         if fractional.any():
@@ -319,8 +322,8 @@ def mask_warp_iou(mask_t: np.ndarray, flow_t: np.ndarray, mask_next: np.ndarray,
         return 0.0
     both = np.concatenate([moved, target])
     lo = both.min(0) - 1
-    shape = tuple(both.max(0) - lo + 2)
-    warped, truth = np.zeros(shape, bool), np.zeros(shape, bool)
+    box = tuple(both.max(0) - lo + 2)
+    warped, truth = np.zeros(box, bool), np.zeros(box, bool)
     warped[tuple((moved - lo).T)] = True
     truth[tuple((target - lo).T)] = True
     cube = np.ones((3, 3, 3), bool)

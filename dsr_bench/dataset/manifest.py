@@ -11,7 +11,7 @@ from __future__ import annotations
 import hashlib
 import json
 import re
-from collections.abc import Iterable, Mapping
+from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -161,7 +161,7 @@ def completed_entry(data_dir: str | Path, entry: Mapping) -> dict:
     return merged
 
 
-def common_generator_args(entries: list[Mapping]) -> tuple[dict, list[str]]:
+def common_generator_args(entries: Sequence[Mapping]) -> tuple[dict, list[str]]:
     """The generator arguments shared by every entry (with the same value), and the sorted names of those that
     vary or are missing from some."""
     args = [e.get("generator_args") or {} for e in entries]

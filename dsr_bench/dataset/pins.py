@@ -86,7 +86,9 @@ def compare_with_pin(pin: Mapping, digests: Mapping[str, Mapping],
             continue
         actual = fingerprints(name)
         expected = {f: Fingerprint.from_list(v) for f, v in zip(fields, pinned["arrays"]) if v is not None}
-        gt, obs_out, obs_within = [], [], []
+        gt: list[str] = []
+        obs_out: list[str] = []
+        obs_within: list[str] = []
         for array in sorted(set(actual) | set(expected)):
             a, e = actual.get(array), expected.get(array)
             if a is None or e is None:

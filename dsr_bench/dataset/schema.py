@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -72,7 +72,8 @@ SEQUENCE_SCHEMA: tuple[Field, ...] = (
     Field("mask", ("T+1", "H", "W"), "uint8", "instance id", "Visible instance ids: 0 table/background, 1..N",
           camera=True),
     Field("points", ("T+1", "H", "W", "3"), "float32", "m, world (x, y, z) (NaN = no return)",
-          "World point of each pixel (stored, or derived from depth on reading: docs/format.md, 'Storage')", camera=True),
+          "World point of each pixel (stored, or derived from depth on reading: docs/format.md, 'Storage')",
+          camera=True),
     Field("scene_flow_2d", ("T", "H", "W", "3"), "float32", "m, world (dy, dx, dz)",
           "World displacement t -> t+1 of the surface point seen at each pixel; 0 for the background",
           camera=True),
@@ -121,7 +122,8 @@ def sequence_header(*, sequence: str, seed: int, num_steps: int, num_objects: in
     return header
 
 
-def resolve_shape(field: Field, num_steps: int, num_objects: int, image_shape: tuple[int, int] = IMAGE_SHAPE) -> tuple[int, ...]:
+def resolve_shape(field: Field, num_steps: int, num_objects: int,
+                  image_shape: tuple[int, int] = IMAGE_SHAPE) -> tuple[int, ...]:
     """The concrete shape of a field for a sequence of T pushes and N objects."""
     sizes = {
         "T": num_steps, "T+1": num_steps + 1, "N": num_objects,
@@ -140,7 +142,17 @@ def dataset_path(field: Field, camera: str | None = None) -> str:
     return field.name
 
 
-def check_array(field: Field, array: np.ndarray, expected_shape: tuple[int, ...], where: str) -> list[str]:
+class Shaped(Protocol):
+    """What `check_array` reads: an array, an h5py dataset, or a record of a stored shape and dtype."""
+
+    @property
+    def shape(self) -> tuple[int, ...]: ...
+
+    @property
+    def dtype(self) -> Any: ...
+
+
+def check_array(field: Field, array: Shaped, expected_shape: tuple[int, ...], where: str) -> list[str]:
     """Problems (empty if none) with an array against its field's shape and dtype."""
     problems = []
     if tuple(array.shape) != tuple(expected_shape):

@@ -28,6 +28,7 @@ import hashlib
 import json
 from collections.abc import Mapping
 from pathlib import Path
+from typing import cast
 
 import numpy as np
 
@@ -54,7 +55,7 @@ def nonzero_rows(rows: np.ndarray) -> np.ndarray:
     raw = np.ascontiguousarray(rows).view(np.uint8).reshape(rows.shape[0], -1)
     width = raw.shape[1]
     word = 8 if width % 8 == 0 else 4 if width % 4 == 0 else 1
-    return raw.view({8: np.uint64, 4: np.uint32, 1: np.uint8}[word]).any(axis=1)
+    return cast(np.ndarray, raw.view({8: np.uint64, 4: np.uint32, 1: np.uint8}[word]).any(axis=1))  # 2-D: an array
 
 
 def surface_band(tsdf_values: np.ndarray) -> np.ndarray:

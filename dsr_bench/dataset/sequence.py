@@ -111,9 +111,11 @@ def write_sequence(
         if field is None:
             problems.append(f"unknown dataset {name!r}")
             continue
-        image_shape = (cameras[name.split("/")[1]]["height"], cameras[name.split("/")[1]]["width"]) if field.camera else None
-        expected = resolve_shape(field, num_steps, num_objects, image_shape) if field.camera else resolve_shape(
-            field, num_steps, num_objects)
+        if field.camera:
+            camera = cameras[name.split("/")[1]]
+            expected = resolve_shape(field, num_steps, num_objects, (camera["height"], camera["width"]))
+        else:
+            expected = resolve_shape(field, num_steps, num_objects)
         problems += check_array(field, np.asarray(array), expected, name)
     for field in FIELDS.values():
         names = [dataset_path(field, c) for c in cameras] if field.camera else [field.name]
@@ -136,8 +138,8 @@ def write_sequence(
                 field = field_for(name)
                 ds = _create_dataset(f, name, array)
                 ds.attrs["units"] = field.units
-            for name in sorted(extras or {}):
-                array = np.ascontiguousarray(extras[name])
+            for name, extra in sorted((extras or {}).items()):
+                array = np.ascontiguousarray(extra)
                 _create_dataset(f, name, array)
             for index, (vertices, faces) in sorted((meshes or {}).items()):
                 g = f.create_group(f"meshes/{index}")
@@ -173,9 +175,9 @@ class SequenceReader:
             )
         if version not in READABLE_SCHEMA_VERSIONS:
             self._file.close()
+            earlier = isinstance(version, (int, np.integer)) and version < SCHEMA_VERSION
             fix = ("it holds an earlier benchmark version's data: regenerate it (`dsr-bench generate`) or re-import "
-                   "it (`dsr-bench import-official`)" if isinstance(version, (int, np.integer)) and version < SCHEMA_VERSION
-                   else "upgrade dsr-bench")
+                   "it (`dsr-bench import-official`)" if earlier else "upgrade dsr-bench")
             readable = ", ".join(map(str, READABLE_SCHEMA_VERSIONS))
             raise SequenceFormatError(f"{self.path}: schema version {version}, this toolkit reads {readable}; {fix}")
         self.attrs: dict[str, Any] = {}

@@ -51,7 +51,8 @@ class Split:
 SPLITS: dict[str, Split] = {
     s.name: s
     for s in (
-        Split("cube-train", "cube", 4000, 10_000, "train", "Paper stage 1-2 training set: boxes (official scripts: 4000)"),
+        Split("cube-train", "cube", 4000, 10_000, "train",
+              "Paper stage 1-2 training set: boxes (official scripts: 4000)"),
         Split("cube-test", "cube", 400, 11_000, "test", "Held-out boxes"),
         Split("shapenet-train", "shapenet", 8000, 20_000, "train", "Paper stage 3 training set: 44 ShapeNet models"),
         Split("shapenet-test", "shapenet", 400, 21_000, "test", "Held-out ShapeNet scenes"),

@@ -4,8 +4,9 @@ Every per-step array has chunks of one step (random access by step) compressed w
 HDF5's built-in gzip filter, so any HDF5 reader without plugins opens the files (h5py, h5dump, MATLAB).
 The 3D flow is stored in (Y, X) tiles instead, `GRID_TILE` voxels on a side with the whole Z column
 (chunks (1, 3, 16, 16, 48)): it is zero except on the objects, which cover about 30% of the tiles,
-and an all-zero tile is never written (HDF5 reads it as the dataset's fill value, 0). The chunks of the 3D flow, the 2D flow and the depth go through HDF5's
-byte-shuffle filter before deflate (also built in): their floats compress 1.3-1.8x smaller.
+and an all-zero tile is never written (HDF5 reads it as the dataset's fill value, 0). The chunks of the 3D
+flow, the 2D flow and the depth go through HDF5's byte-shuffle filter before deflate (also built in):
+their floats compress 1.3-1.8x smaller.
 Everything is lossless: a read returns the array that was written, bit for bit.
 
 The writer compresses each chunk itself (ISA-L when the optional `isal` package is installed, else
@@ -80,10 +81,10 @@ def _deflate_sparse(data: np.ndarray) -> bytes:
     Adler-32 of a zero run is updated in closed form (a unchanged, b += n * a)."""
     blocks = len(data) // _ZERO_BLOCK
     if blocks < 2:
-        return zlib.compress(data, 1)
+        return zlib.compress(data.data, 1)
     zero = ~data[:blocks * _ZERO_BLOCK].view(np.uint64).reshape(blocks, -1).any(axis=1)
     if not zero.any():
-        return zlib.compress(data, 1)
+        return zlib.compress(data.data, 1)
     kinds = np.append(zero, False)  # the tail after the last whole block is compressed
     edges = np.concatenate(([0], np.flatnonzero(kinds[1:] != kinds[:-1]) + 1, [len(kinds)]))
     compressor = zlib.compressobj(1, zlib.DEFLATED, -15)
@@ -97,7 +98,7 @@ def _deflate_sparse(data: np.ndarray) -> bytes:
             out.append(_deflated_zeros(int(last - first)))
             b = (b + (stop - start) * a) % 65521
         else:
-            piece = data[start:stop]
+            piece = data[start:stop].data  # a memoryview: zlib's buffer (numpy's stubs type it so)
             out.append(compressor.compress(piece))
             out.append(compressor.flush(zlib.Z_FULL_FLUSH))
             adler = zlib.adler32(piece, (b << 16) | a)
@@ -174,10 +175,10 @@ def _inflate_chunk(ds: h5py.Dataset, offset: tuple[int, ...], nbytes: int) -> np
         return None
     if mask:
         return None
-    data = inflate_exact(raw, nbytes)
-    if data is None:
+    inflated = inflate_exact(raw, nbytes)
+    if inflated is None:
         raise OSError(f"{ds.name}: chunk at {offset} does not inflate to its {nbytes} bytes")
-    data = np.frombuffer(data, dtype=np.uint8)
+    data = np.frombuffer(inflated, dtype=np.uint8)
     return unshuffle_bytes(data, ds.dtype.itemsize) if ds.shuffle else data
 
 

@@ -98,8 +98,9 @@ def _check_sequence(path: str | Path, check_gt: bool = True, expected: dict | No
     """Every problem of one sequence file (empty if none), and its array fingerprints when computed.
 
     Schema (attributes, every dataset's shape and dtype), value ranges, and with `check_gt` the
-    ground-truth consistency (`dsr_bench.dataset.checks.content_problems`) and the digests, recomputed from the arrays (`dsr_bench.dataset.digests`): the
-    file's own (naming the arrays changed since writing) and `expected` (the manifest's entry).
+    ground-truth consistency (`dsr_bench.dataset.checks.content_problems`) and the digests, recomputed from the
+    arrays (`dsr_bench.dataset.digests`): the file's own (naming the arrays changed since writing) and `expected`
+    (the manifest's entry).
     """
     from dsr_bench.dataset.digests import GROUND_TRUTH_KEY, OBSERVATIONS_KEY, file_digests
     from dsr_bench.dataset.schema import REQUIRED_ATTRS
