@@ -36,7 +36,8 @@ def coarse_grid(factor: int) -> tuple[int, int, int]:
     multiple of 16 ((32, 32, 16) for 4)."""
     if factor < 1 or any(g % factor for g in GRID_SHAPE):
         raise ValueError(f"voxel factor {factor}: must divide the grid {GRID_SHAPE}")
-    return tuple(-(-(g // factor) // 16) * 16 for g in GRID_SHAPE)
+    y, x, z = (-(-(g // factor) // 16) * 16 for g in GRID_SHAPE)
+    return y, x, z
 
 
 def _blocks(volume: np.ndarray, factor: int) -> np.ndarray:

@@ -35,7 +35,7 @@ from dsr_bench.dataset.storage import read_steps
 TRAINING_FIELDS = ("tsdf", "action", "mask_3d", "scene_flow_3d")
 
 
-def check_actions(actions: np.ndarray, shape: tuple[int, int], source) -> np.ndarray:
+def check_actions(actions: np.ndarray, shape: tuple[int, ...], source) -> np.ndarray:
     """Actions (L, 3) [direction 0..7, row, col] with the pixel inside the (Y, X) map, as int64;
     UserError naming `source` (a file) otherwise (the checks of `dsr-bench validate`)."""
     from dsr_bench.dataset.checks import action_problems
@@ -46,7 +46,7 @@ def check_actions(actions: np.ndarray, shape: tuple[int, int], source) -> np.nda
     return np.asarray(actions).astype(np.int64, copy=False)
 
 
-def action_map(action: np.ndarray, shape: tuple[int, int] = GRID_SHAPE[:2]) -> torch.Tensor:
+def action_map(action: np.ndarray, shape: tuple[int, ...] = GRID_SHAPE[:2]) -> torch.Tensor:
     """One-hot action maps (L, 8, Y, X) float32 from actions (L, 3) = [d, row, col]."""
     action = np.asarray(action, dtype=np.int64).reshape(-1, 3)
     out = torch.zeros((len(action), NUM_DIRECTIONS) + tuple(shape), dtype=torch.float32)

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import contextlib
 from collections.abc import Iterator
+from typing import cast
 
 import torch
 from torch import nn
@@ -62,8 +63,8 @@ def batchnorm_statistics(net: nn.Module, batch: bool) -> Iterator[nn.Module]:
     finally:
         for m, flag in zip(layers, tracking):
             m.track_running_stats = flag
-        for m, mode in modes:
-            m.training = mode
+        for module, mode in modes:
+            module.training = mode
 
 
 class ConvBlock(nn.Module):
@@ -183,8 +184,8 @@ class SE3Head(nn.Module):
         self.conv2 = nn.Sequential(ConvBlock(16 + 16, w(32), s, 2), ConvBlock(w(32), w(32), s),
                                    ConvBlock(w(32), w(32), s), ConvBlock(w(32), w(64), s),
                                    ConvBlock(w(64), w(128), s, 2), ConvBlock(w(128), w(128), s, 2))
-        remaining = tuple(_halved(int(g), 5) for g in config.grid)  # (4, 4, 2) on the 128 x 128 x 48 grid
-        self.to_vector = nn.Conv3d(w(128), w(128), remaining)
+        ry, rx, rz = (_halved(int(g), 5) for g in config.grid)  # (4, 4, 2) on the 128 x 128 x 48 grid
+        self.to_vector = nn.Conv3d(w(128), w(128), (ry, rx, rz))
         layers: list[nn.Module] = []
         prev = w(128)
         for _ in range(config.mlp_layers - 1):
@@ -229,6 +230,8 @@ class FlowHead(nn.Module):
 class DSRNet(nn.Module):
     """One step of DSR-Net or a baseline: (tsdf, action map, history state) -> outputs."""
 
+    coords: torch.Tensor  # (3, Y, X, Z) voxel coordinates / grid size: a buffer, not saved
+
     def __init__(self, config: ModelConfig):
         super().__init__()
         self.config = config
@@ -257,7 +260,7 @@ class DSRNet(nn.Module):
                 nn.init.xavier_normal_(m.weight)
                 nn.init.zeros_(m.bias)
         if self.config.init == "zero-motion" and isinstance(self.motion_head, SE3Head):
-            nn.init.zeros_(self.motion_head.mlp[-1].weight)
+            nn.init.zeros_(cast(nn.Linear, self.motion_head.mlp[-1]).weight)
 
     def to_channels_last(self) -> DSRNet:
         """channels_last_3d weights and inputs for the 3D convs (channels_last for the 2D ones)."""
@@ -329,7 +332,7 @@ class DSRNet(nn.Module):
         if history == "gtwarp":
             if gt_flow is None or (self.config.gtwarp_weight == "gt" and gt_mask is None):
                 raise ValueError("gtwarp needs the ground-truth flow (and mask with gtwarp_weight='gt')")
-            if self.config.gtwarp_weight == "gt":
+            if self.config.gtwarp_weight == "gt" and gt_mask is not None:  # (not None: checked above)
                 foreground = (gt_mask > 0).float()
             return self._warp(rep, gt_flow.float(), foreground, self.config.warp_eps, deterministic)
         return self._warp(rep, outputs["motion"].detach().float(), foreground, self.config.warp_eps, deterministic)

@@ -19,6 +19,9 @@ class ImagePredictor:
     """A trained 2D-track network run on each push of a sequence (single-step: prediction t sees
     observation t and action t). BatchNorm in eval mode (running statistics)."""
 
+    #: where the weights came from (source, file, sha256), set by the loader
+    weights: dict[str, str]
+
     def __init__(self, net, device: torch.device):
         self.net, self.device = net.to(device).eval(), device
         config = net.config

@@ -8,9 +8,9 @@ The action carries what DSR-Net's does (the start point and the direction), mapp
 concatenated with the image at the input of 2DFlow and SE3-Net (`action_maps`): the direction one-hot,
 constant over the image, and the start point as a Gaussian bump around it plus each pixel's offset from it.
 (DSR-Net's own encoding, a one-hot map with a single 1 at [d, v, u], did not train here: over 1,200 batches
-both models' loss stayed at that of predicting no motion; docs/models.md, the 2D track.) SE3Pose-Net's masks and poses see the image alone (its masks do
-not depend on the action, as in Byravan et al. 2018) and its transition sees the push as a vector
-(u, v scaled to [-1, 1], one-hot d).
+both models' loss stayed at that of predicting no motion; docs/models.md, the 2D track.) SE3Pose-Net's masks
+and poses see the image alone (its masks do not depend on the action, as in Byravan et al. 2018) and its
+transition sees the push as a vector (u, v scaled to [-1, 1], one-hot d).
 
 All three share one 2D U-Net (`Backbone`: 3 stride-2 levels, skip connections, BatchNorm, leaky ReLU).
 Their outputs (`forward`) are the pieces `flow_at` turns into flow at any resolution:
@@ -25,6 +25,8 @@ The layers that output motions are zero-initialised: every model predicts no mot
 """
 
 from __future__ import annotations
+
+from typing import cast
 
 import torch
 import torch.nn.functional as F
@@ -46,6 +48,12 @@ POINT_SCALE = 0.1
 def _conv(cin: int, cout: int, stride: int = 1) -> nn.Sequential:
     return nn.Sequential(nn.Conv2d(cin, cout, 3, stride, 1, bias=False), nn.BatchNorm2d(cout),
                          nn.LeakyReLU(0.01, inplace=True))
+
+
+def _zero(layer: nn.Module) -> None:
+    """Zero a layer's weight and bias (a head's last layer: the network starts by predicting no motion)."""
+    nn.init.zeros_(cast(torch.Tensor, layer.weight))
+    nn.init.zeros_(cast(torch.Tensor, layer.bias))
 
 
 class Backbone(nn.Module):
@@ -80,8 +88,7 @@ class VectorHead(nn.Module):
         self.convs = nn.Sequential(_conv(cin, cin, 2), _conv(cin, cin, 2), nn.AdaptiveAvgPool2d((4, 5)))
         self.mlp = nn.Sequential(nn.Flatten(), nn.Linear(cin * 20, hidden), nn.LeakyReLU(0.01, inplace=True),
                                  nn.Linear(hidden, out))
-        nn.init.zeros_(self.mlp[-1].weight)
-        nn.init.zeros_(self.mlp[-1].bias)
+        _zero(self.mlp[-1])
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         return self.mlp(self.convs(x))
@@ -92,7 +99,7 @@ ACTION_CHANNELS = NUM_DIRECTIONS + 3
 ACTION_SIGMA = 1 / 20
 
 
-def action_maps(action: torch.Tensor, shape: tuple[int, int]) -> torch.Tensor:
+def action_maps(action: torch.Tensor, shape: tuple[int, ...]) -> torch.Tensor:
     """The push as images (B, 11, h, w) from actions (B, 3) = [d, v, u]: the direction one-hot, constant over
     the image (8 channels); the start point as a Gaussian bump exp(-r^2 / 2 s^2), s = w / 20 (r: the distance
     from (u, v) in pixels), and each pixel's offset from it, ((u' - u) / w, (v' - v) / w)."""
@@ -103,11 +110,12 @@ def action_maps(action: torch.Tensor, shape: tuple[int, int]) -> torch.Tensor:
     du = (u - action[:, 2].view(b, 1, 1).float()) / w
     dv = (v - action[:, 1].view(b, 1, 1).float()) / w
     bump = torch.exp(-(du ** 2 + dv ** 2) / (2 * ACTION_SIGMA ** 2))
-    direction = F.one_hot(action[:, 0], NUM_DIRECTIONS).float().view(b, NUM_DIRECTIONS, 1, 1).expand(b, NUM_DIRECTIONS, h, w)
+    direction = F.one_hot(action[:, 0], NUM_DIRECTIONS).float().view(b, NUM_DIRECTIONS, 1, 1)
+    direction = direction.expand(b, NUM_DIRECTIONS, h, w)
     return torch.cat([direction, torch.stack([bump, du.expand(b, h, w), dv.expand(b, h, w)], 1)], 1)
 
 
-def action_vectors(action: torch.Tensor, shape: tuple[int, int]) -> torch.Tensor:
+def action_vectors(action: torch.Tensor, shape: tuple[int, ...]) -> torch.Tensor:
     """(B, 10): the start pixel (u, v) scaled to [-1, 1], then the direction one-hot."""
     h, w = shape
     uv = torch.stack([action[:, 2] / (w - 1), action[:, 1] / (h - 1)], -1).float() * 2 - 1
@@ -125,8 +133,7 @@ class ImageNet(nn.Module):
         self.backbone = Backbone(4 if pose_model else 4 + ACTION_CHANNELS, w)
         if config.name == "2dflow":
             self.flow = nn.Conv2d(w, 3, 1)
-            nn.init.zeros_(self.flow.weight)
-            nn.init.zeros_(self.flow.bias)
+            _zero(self.flow)
             return
         self.mask = nn.Conv2d(w, k, 1)
         if not pose_model:
@@ -136,8 +143,7 @@ class ImageNet(nn.Module):
         self.transition = nn.Sequential(nn.Linear((k - 1) * 6 + 2 + NUM_DIRECTIONS, config.hidden),
                                         nn.LeakyReLU(0.01, inplace=True), nn.Linear(config.hidden, config.hidden),
                                         nn.LeakyReLU(0.01, inplace=True), nn.Linear(config.hidden, (k - 1) * 6))
-        nn.init.zeros_(self.transition[-1].weight)
-        nn.init.zeros_(self.transition[-1].bias)
+        _zero(self.transition[-1])
 
     def encode(self, points: torch.Tensor, valid: torch.Tensor, action: torch.Tensor | None) -> tuple:
         center = torch.tensor(POINT_CENTER, device=points.device).view(1, 3, 1, 1)
@@ -185,7 +191,8 @@ class ImageNet(nn.Module):
         delta = self.transition(torch.cat([_pose_features(params), action_vectors(action, points.shape[-2:])],
                                           -1)).float().view(b, k - 1, 6)
         turn = euler_to_matrix(delta[..., 3:] * ROTATION_SCALE, "standard")
-        next_poses = rigid.homogeneous(turn @ poses[..., :3, :3], poses[..., :3, 3] + delta[..., :3] * TRANSLATION_SCALE)
+        next_poses = rigid.homogeneous(turn @ poses[..., :3, :3],
+                                       poses[..., :3, 3] + delta[..., :3] * TRANSLATION_SCALE)
         return {"masks": masks, "poses": poses, "next_poses": next_poses, "pose_params": params}
 
 

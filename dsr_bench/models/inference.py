@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from pathlib import Path
+from typing import cast
 
 import numpy as np
 import torch
@@ -30,6 +31,9 @@ class ModelPredictor:
     BatchNorm normalises with its running statistics (eval mode), or with `official_bn` with each
     step's own statistics (batch 1: the sample's), as the official code evaluates; either way the
     model's running statistics are left as they are (`dsr_net.batchnorm_statistics`)."""
+
+    #: where the weights came from (source, file, sha256, BatchNorm mode), set by the loaders
+    weights: dict[str, str]
 
     def __init__(self, model: DSRNet, device: torch.device, official_bn: bool = False, bf16: bool = False):
         self.model, self.device, self.bf16, self.official_bn = model, device, bf16, official_bn
@@ -70,6 +74,8 @@ class ModelPredictor:
         tsdf_shape = tuple(np.shape(tsdf))
 
         def ground_truth(t: int) -> tuple[np.ndarray, np.ndarray]:
+            if flow is None or mask is None:
+                raise ValueError("gtwarp needs the ground-truth flow and mask (flow=, mask=)")
             return flow[t], mask[t]
 
         return self._predict(steps, tsdf_shape, lambda t: tsdf[t], lambda: np.asarray(actions), ground_truth, source)
@@ -132,8 +138,8 @@ def load_predictor(model: str, checkpoint: Path, device: str = "cpu", official_b
     """A predictor from a dsr-bench weights file of a 3D-track model (any role and version of the one weights
     format, `training.checkpoints`: a run's last.pt, a CPU-track weights file, the shipped weights)."""
     dev = torch_device(device)
-    return ModelPredictor(read_weights(Path(checkpoint), dev, kind=registry.VOXEL, model=model).network(dev), dev,
-                          official_bn, bf16)
+    net = cast(DSRNet, read_weights(Path(checkpoint), dev, kind=registry.VOXEL, model=model).network(dev))  # VOXEL
+    return ModelPredictor(net, dev, official_bn, bf16)
 
 
 def load_official_predictor(model: str, weights: Path, device: str = "cpu", official_bn: bool = True,

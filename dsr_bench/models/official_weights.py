@@ -57,7 +57,8 @@ _USE = {"se3": "use --model dsr, single, nowarp or gtwarp (the one the file was 
 
 def _block(theirs: str, ours: str) -> list[tuple[str, str]]:
     """A conv block: conv (no bias) + BatchNorm, named conv/norm in both."""
-    return [(f"{theirs}.conv.weight", f"{ours}.conv.weight")] + [(f"{theirs}.norm.{p}", f"{ours}.norm.{p}") for p in _BN]
+    return [(f"{theirs}.conv.weight", f"{ours}.conv.weight")] + [(f"{theirs}.norm.{p}", f"{ours}.norm.{p}")
+                                                                  for p in _BN]
 
 
 def _resblock(theirs: str, ours: str) -> list[tuple[str, str]]:
@@ -143,7 +144,7 @@ def official_layout(obj) -> str | None:
 
 
 @functools.cache
-def _our_shapes(model_name: str, grid: tuple[int, int, int]) -> dict[str, tuple[int, ...]]:
+def _our_shapes(model_name: str, grid: tuple[int, ...]) -> dict[str, tuple[int, ...]]:
     """Our network's state_dict shapes (built on the meta device: no memory, no initialisation cost)."""
     from dsr_bench.models.config import ModelConfig
     from dsr_bench.models.dsr_net import DSRNet
@@ -169,8 +170,8 @@ def convert_official_state(state, model_name: str, *, grid: tuple[int, int, int]
     want, have = LAYOUT[model_name], official_layout(weights)
     if have is not None and have != want:
         raise UserError(f"{source} holds {_LAYOUT_WORDS[have]}, not what --model {model_name} needs; {_USE[have]}")
-    grid = tuple(int(g) for g in grid)
-    ours = _our_shapes(model_name, grid)
+    shape = tuple(int(g) for g in grid)
+    ours = _our_shapes(model_name, shape)
     linear = sum(1 for k in ours if k.startswith("motion_head.mlp.") and k.endswith(".weight"))
     table = dict(key_table(want, linear or 5))
     for key in weights:
@@ -185,10 +186,11 @@ def convert_official_state(state, model_name: str, *, grid: tuple[int, int, int]
     for key, mine in table.items():
         value = weights[key]
         if not isinstance(value, torch.Tensor):
-            raise UserError(f"{source}: {key} is a {type(value).__name__}, not a tensor; pass the release's file unmodified")
+            raise UserError(f"{source}: {key} is a {type(value).__name__}, not a tensor; pass the release's file "
+                            "unmodified")
         if tuple(value.shape) != ours[mine]:
             fix = (f"the authors' networks run on the {' x '.join(map(str, OFFICIAL_GRID))} grid only"
-                   if mine == "motion_head.to_vector.weight" and grid != OFFICIAL_GRID
+                   if mine == "motion_head.to_vector.weight" and shape != OFFICIAL_GRID
                    else "pass the release's file unmodified (ModelDSR with object_num=5)")
             raise UserError(f"{source}: {key} has shape {tuple(value.shape)}, our {mine} needs {ours[mine]}; {fix}")
         out[mine] = value

@@ -11,7 +11,7 @@ models come from `dsr_bench.models.inference`.
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Protocol
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -34,7 +34,10 @@ MODEL_NAMES = registry.names()
 
 class Predictor(Protocol):
     name: str
-    num_slots: int | None  # None: a model without masks (2DFlow)
+
+    @property
+    def num_slots(self) -> int | None:  # None: a model without masks (2DFlow)
+        ...
 
     def predict_sequence(self, seq: SequenceReader) -> dict[str, np.ndarray]:
         """{"mask": (T, Y, X, Z) uint8, "motion": (T, 3, Y, X, Z) float16/32[, "motion_2d"]}."""
@@ -149,7 +152,7 @@ def _load_voxel(entry: registry.ModelEntry, checkpoint: Path | None, device: str
 
         return load_official_predictor(model, Path(weights), device, True if official_bn is None else official_bn)
     shipped = checkpoint is None
-    if shipped:
+    if checkpoint is None:
         checkpoint = shipped_weights(model)
         if checkpoint is None:
             raise UserError(f"--model {model} needs --checkpoint CKPT (train one with `dsr-bench train`) "
@@ -176,7 +179,7 @@ def _load_image(entry: registry.ModelEntry, checkpoint: Path | None, device: str
 
     model = entry.name
     shipped = checkpoint is None
-    checkpoint = shipped_weights(model) if shipped else Path(checkpoint)
+    checkpoint = shipped_weights(model) if checkpoint is None else Path(checkpoint)
     if checkpoint is None:
         raise UserError(f"--model {model} needs --checkpoint CKPT (train one with `dsr-bench train --model {model}`)")
     if not checkpoint.is_file():
@@ -214,8 +217,9 @@ def predict_split(predictor: Predictor, data_dir: str | Path, names: list[str], 
                                          predictor.num_slots if three_d else None, pred.get("motion_2d")))
         if progress:
             progress()
-    meta = {"name": predictor.name,
-            "description": getattr(predictor, "description", None) or (type(predictor).__doc__ or "").strip().splitlines()[0],
+    meta: dict[str, Any] = {"name": predictor.name,
+            "description": (getattr(predictor, "description", None)
+                            or (type(predictor).__doc__ or "").strip().splitlines()[0]),
             "parameters": {**({} if predictor.num_slots is None else {"num_slots": predictor.num_slots}),
                            **({"image": list(predictor.image)} if hasattr(predictor, "image")
                               else {"grid": list(getattr(predictor, "grid", GRID_SHAPE))})},

@@ -33,6 +33,7 @@ import random
 import subprocess
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING, Any, cast
 
 import numpy as np
 import torch
@@ -40,6 +41,10 @@ import torch
 from dsr_bench.atomic import atomic_path
 from dsr_bench.errors import UserError
 from dsr_bench.models import registry
+
+if TYPE_CHECKING:
+    from dsr_bench.models.dsr_net import DSRNet
+    from dsr_bench.models.image_nets import ImageNet
 
 __all__ = ["KINDS", "ROLES", "WEIGHTS_FORMAT", "WEIGHTS_VERSION", "Weights", "data_provenance", "git_hash",
            "half", "read_weights", "rng_state", "save_checkpoint", "save_weights", "set_rng_state", "torch_device",
@@ -99,7 +104,7 @@ def git_hash() -> str:
 
 def rng_state() -> dict:
     """The torch, numpy, Python and CUDA generators' states, as tensors and strings (weights_only-safe)."""
-    np_state = np.random.get_state()
+    np_state = cast(tuple, np.random.get_state())  # legacy=True (the default): the MT19937 tuple
     return {"torch": torch.get_rng_state(), "numpy": torch.from_numpy(np_state[1].astype(np.int64)),
             "numpy_pos": int(np_state[2]), "python": json.dumps(random.getstate()[1]),
             "cuda": torch.cuda.get_rng_state_all() if torch.cuda.is_available() else []}
@@ -114,9 +119,10 @@ def set_rng_state(state: dict) -> None:
         torch.cuda.set_rng_state_all(state["cuda"])
 
 
-def unwrap(model: torch.nn.Module) -> torch.nn.Module:
-    """The network inside a DistributedDataParallel (`.module`) and/or torch.compile (`_orig_mod`) wrapper."""
-    net = model.module if hasattr(model, "module") else model
+def unwrap(model: torch.nn.Module) -> Any:
+    """The network inside a DistributedDataParallel (`.module`) and/or torch.compile (`_orig_mod`) wrapper
+    (typed Any: the wrappers do not say what they wrap; the caller knows)."""
+    net = getattr(model, "module", model)
     return getattr(net, "_orig_mod", net)
 
 
@@ -185,7 +191,7 @@ class Weights:
     kind: str
     role: str
     version: int
-    config: object  # ModelConfig | ImageModelConfig
+    config: Any  # ModelConfig | ImageModelConfig: the class `KINDS` names for `kind`, chosen when the file is read
 
     def __getitem__(self, key: str):
         return self.payload[key]
@@ -197,7 +203,7 @@ class Weights:
         """The state dict in fp32 (fp16 files are widened exactly)."""
         return {k: v.float() if v.is_floating_point() else v for k, v in self.payload["model"].items()}
 
-    def load_into(self, net: torch.nn.Module, *, fix: str = "") -> None:
+    def load_into(self, net: DSRNet | ImageNet, *, fix: str = "") -> None:
         """Load the weights into `net` (strict); weights of another shape are a UserError naming the file, the
         model they were meant for, and the `fix` if one is given."""
         try:
@@ -241,7 +247,8 @@ def _header(path: Path, payload) -> tuple[str, str, str, int]:
             raise _fail(path, f"role {role!r} is not one of {', '.join(ROLES)}")
         return model_type, registry.MODELS[model_type].kind, role, version
     if fmt is None or fmt in LEGACY_FORMATS:  # version 1 (and the first last.pt files, without a format)
-        kind, role = LEGACY_FORMATS.get(fmt, (registry.VOXEL, "checkpoint" if "optimizer" in payload else "weights"))
+        kind, role = (LEGACY_FORMATS[fmt] if fmt is not None
+                      else (registry.VOXEL, "checkpoint" if "optimizer" in payload else "weights"))
         name = payload["model_config"].get("name")
         return (name if isinstance(name, str) else ""), kind, role, 1
     raise _fail(path, f"format {fmt!r} is not a dsr-bench weights file")

@@ -197,7 +197,7 @@ def train_cpu(recipe: CpuRecipe, data_dir: Path, split: str | None, out: Path, w
     moving = {k: v.clone() for k, v in net.state_dict().items() if "running_" in k or "num_batches" in k}
     if recipe.bn_recalibration:
         windows = draw_windows(data, recipe.bn_recalibration, steps, recipe.batch_size, recipe.seed + 2,
-                               tuple(config.grid))
+                               config.grid)
         passes = recalibrate_batchnorm(net, windows, "cpu")
     net.eval()
     # the training's moving averages, which recalibration replaced, are kept (scripts/batchnorm_modes.py)

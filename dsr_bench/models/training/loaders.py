@@ -51,7 +51,8 @@ def _data_grid(dataset: SequenceWindowDataset) -> tuple[int, int, int]:
     with h5py.File(path, "r") as f:
         if "tsdf" not in f or len(f["tsdf"].shape) != 4:
             raise UserError(f"{path}: no (T, Y, X, Z) tsdf; check it with `dsr-bench validate {path.parent}`")
-        return tuple(int(s) for s in f["tsdf"].shape[1:])
+        y, x, z = (int(s) for s in f["tsdf"].shape[1:])
+        return y, x, z
 
 
 def open_windows(config: TrainConfig, stage: StageConfig) -> tuple[SequenceWindowDataset, tuple[int, int, int]]:

@@ -54,7 +54,8 @@ def fit(step: Step, net: torch.nn.Module, batches: Iterable[dict], count: int, l
     optimizer = torch.optim.Adam(net.parameters(), lr=lr, betas=(0.9, 0.95))
     halve = {int(count * 0.5), int(count * 0.75)}
     net.train()
-    start, keys, records = time.perf_counter(), [], []
+    start, records = time.perf_counter(), []
+    keys: list[str] = []
     for b, (_, terms, _) in enumerate(run_steps(step, net, batches, optimizer)):
         keys = keys or list(terms[0])
         records.append([np.mean([t[k] for t in terms]) for k in keys])

@@ -8,6 +8,7 @@ import os
 import random
 from dataclasses import dataclass
 from pathlib import Path
+from typing import cast
 
 import numpy as np
 import torch
@@ -157,11 +158,11 @@ def restore(checkpoint: Weights, net: DSRNet, optimizer, scheduler) -> tuple[int
 def wrap(net: DSRNet, distributed: bool, device: torch.device, compile_model: bool) -> tuple[torch.nn.Module,
                                                                                               torch.nn.Module]:
     """(model: the network, under DDP when distributed; the model the steps run: compiled if asked)."""
-    model = net
+    model: torch.nn.Module = net
     if distributed:
         model = torch.nn.parallel.DistributedDataParallel(net, device_ids=[device.index] if device.type == "cuda"
                                                           else None)
-    train_model = torch.compile(model) if compile_model else model
+    train_model = cast(torch.nn.Module, torch.compile(model)) if compile_model else model  # a Module's: a Module
     if compile_model:
         net.compile_warp()
     return model, train_model

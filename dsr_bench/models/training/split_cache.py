@@ -8,6 +8,7 @@ import json
 import os
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -46,7 +47,7 @@ def cached_split(data_dir: Path, split: str | None, kind: str, version: list, re
     lengths = {len(r["action"]) for r in reduced}
     if len(lengths) != 1:
         raise UserError(f"{data_dir}: sequences of {sorted(lengths)} pushes; the CPU-sized tracks need one length")
-    out = {k: np.stack([r[k] for r in reduced]) for k in reduced[0]}
+    out: dict[str, Any] = {k: np.stack([r[k] for r in reduced]) for k in reduced[0]}  # arrays, by name
     out["names"] = np.array(names)
     cached.parent.mkdir(parents=True, exist_ok=True)
     with atomic_path(cached) as tmp, open(tmp, "wb") as fh:
