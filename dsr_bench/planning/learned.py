@@ -42,6 +42,12 @@ class BatchedModel:
     observe(tsdf) runs the network's state-dependent part; predict(actions) the motion head per batch;
     executed(action) carries the history as `ModelPredictor` does (`DSRNet.next_state` of the executed action)."""
 
+    # what observe() saw (None before it): the representation and mask logits, the labels and their voxels
+    _rep: torch.Tensor | None
+    _mask: torch.Tensor | None
+    _labels: np.ndarray | None
+    _voxels: np.ndarray | None
+
     def __init__(self, predictor):
         self.predictor = predictor
         self.model = predictor.model
@@ -71,10 +77,10 @@ class BatchedModel:
         with self._bn():
             out = self.model.represent(x, self.state)
         self._rep, self._mask = out["representation"], out["mask"]
-        labels = slot_labels(self._mask)[0].cpu().numpy()
-        self._labels = labels if self.factor == 1 else coarse.unpool_mask(labels, self.factor)
-        self._voxels = np.argwhere(self._labels > 0)
-        return self._labels
+        labels = slot_labels(out["mask"])[0].cpu().numpy()
+        self._labels = labels = labels if self.factor == 1 else coarse.unpool_mask(labels, self.factor)
+        self._voxels = np.argwhere(labels > 0)
+        return labels
 
     @torch.no_grad()
     def motion(self, actions: np.ndarray) -> torch.Tensor:
@@ -84,9 +90,11 @@ class BatchedModel:
 
         acts = np.asarray(actions, np.int64).reshape(-1, 3)
         grid = tuple(self.config.grid)
-        maps = action_map(acts if self.factor == 1 else coarse.coarse_action(acts, self.factor), grid[:2]).to(self.device)
+        pushes = acts if self.factor == 1 else coarse.coarse_action(acts, self.factor)
+        maps = action_map(pushes, grid[:2]).to(self.device)
         b = len(acts)
         chunks = [slice(i, i + 1) for i in range(b)] if self.predictor.official_bn else [slice(0, b)]
+        assert self._rep is not None and self._mask is not None, "observe(tsdf) first"
         out = []
         with self._bn():
             for part in chunks:
@@ -100,6 +108,7 @@ class BatchedModel:
         """Candidate actions (B, 3) -> predicted next masks (B, Y, X, Z) uint8 (see the module doc)."""
         motion = self.motion(actions).cpu().numpy()  # (B, 3, *grid) model voxels
         v = self._voxels
+        assert v is not None and self._labels is not None, "observe(tsdf) first"
         if self.factor == 1:
             at = motion[:, :, v[:, 0], v[:, 1], v[:, 2]]
         else:

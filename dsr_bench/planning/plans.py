@@ -36,7 +36,7 @@ PLAN_FORMAT, PLAN_VERSION = "dsr-bench-plan", 1
 
 def plan_arrays(task: Task, record: PlanRecord) -> dict[str, np.ndarray]:
     """The plan file's arrays of a record."""
-    arrays = {
+    arrays: dict[str, np.ndarray] = {
         "states/tsdf": np.stack([s.tsdf for s in record.states]).astype(np.float32),
         "states/mask_3d": np.stack([s.mask_3d for s in record.states]).astype(np.uint8),
         "states/object_poses": np.stack([s.object_poses for s in record.states]).astype(np.float64),
@@ -51,8 +51,9 @@ def plan_arrays(task: Task, record: PlanRecord) -> dict[str, np.ndarray]:
         "predicted": np.stack(record.predicted).astype(np.uint8),
         "seconds": np.array(record.seconds, np.float64),
     }
-    if all(s.color is not None for s in record.states):
-        arrays["states/color"] = np.stack([s.color for s in record.states]).astype(np.uint8)
+    colors = [s.color for s in record.states if s.color is not None]
+    if len(colors) == len(record.states):
+        arrays["states/color"] = np.stack(colors).astype(np.uint8)
     return arrays
 
 

@@ -77,7 +77,8 @@ def run_plan(task: Task, planner, env: Environment, candidates: int, seed: int =
         masks = planner.observe(state.tsdf)
         if not planner.predicts:
             acts = sample_uniform(free_cells(tsdf_footprint(state.tsdf)), rng, 1)
-            costs, pos, iou, best, best_pred = np.full(1, np.nan), np.full((1, n), np.nan), np.full((1, n), np.nan), 0, zeros
+            costs, pos, iou = np.full(1, np.nan), np.full((1, n), np.nan), np.full((1, n), np.nan)
+            best, best_pred = 0, zeros
         else:
             acts = sample_around_masks(masks, rng, candidates)
             costs = np.zeros(len(acts))

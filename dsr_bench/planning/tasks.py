@@ -28,6 +28,7 @@ import json
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -61,7 +62,8 @@ class TaskSet:
 
 TASK_SETS: dict[str, TaskSet] = {s.name: s for s in (
     TaskSet("plan-novel-test", "procedural-novel", 100, 70_000,
-            "The planning track's 100 tasks: novel objects (as procedural-novel-test), 3 heuristic pushes to the target"),
+            "The planning track's 100 tasks: novel objects (as procedural-novel-test), 3 heuristic pushes to the "
+            "target"),
     TaskSet("plan-novel-mini", "procedural-novel", 4, 71_000, "Four planning tasks for a first look and the tests"),
 )}
 
@@ -210,7 +212,8 @@ def read_task(path: str | Path) -> Task:
         seed = int(attrs["seed"])
         missing = [a for a in GROUND_TRUTH_ARRAYS + ("start/tsdf",) if a not in arrays]
     except (KeyError, TypeError, ValueError):
-        raise UserError(f"{path}: a task file without its objects, num_objects or seed attributes; {_fix(path)}") from None
+        raise UserError(f"{path}: a task file without its objects, num_objects or seed attributes; "
+                        f"{_fix(path)}") from None
     if missing:
         raise UserError(f"{path}: missing arrays {', '.join(missing)}; {_fix(path)}")
     if not isinstance(objects, list) or len(objects) != n or not 1 <= n <= MAX_OBJECTS_PER_SCENE:
@@ -299,8 +302,8 @@ def pin_task_set(manifest: Mapping) -> Path:
     """Record a task directory's checksum and per-task digests as the pin of its set (task_pins.json)."""
     from dsr_bench.atomic import write_text
 
-    pins = json.loads(PINS_FILE.read_text()) if PINS_FILE.is_file() else {"format": "dsr-bench-task-pins",
-                                                                          "version": 1, "task_sets": {}}
+    pins: dict[str, Any] = (json.loads(PINS_FILE.read_text()) if PINS_FILE.is_file()
+                            else {"format": "dsr-bench-task-pins", "version": 1, "task_sets": {}})
     pins["task_sets"][manifest["task_set"]] = {
         "checksum": manifest["checksum"],
         "tasks": {e["name"]: {"ground_truth": e[GROUND_TRUTH_KEY], "observations": e[OBSERVATIONS_KEY]}

@@ -30,6 +30,7 @@ import re
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -237,7 +238,8 @@ def recompute_results(plans_dir: Path, tasks: str | Path | None = None) -> dict:
         missing = next(n for n in verified.names if n not in planned)
         raise UserError(f"{plans_dir}: plans of {len(planned)} tasks but not of {missing}: a partial run is a "
                         f"prefix of the tasks (--num-tasks); {fix}")
-    per_task, run = {}, None
+    per_task: dict[str, dict] = {}
+    run: dict[str, Any] | None = None
     for name in planned:
         task = read_task(verified.path(name))
         if task.ground_truth_sha256 != verified.digests[name]:
@@ -251,11 +253,15 @@ def recompute_results(plans_dir: Path, tasks: str | Path | None = None) -> dict:
             raise UserError(f"{plans_dir}: {name}.h5 was made with {key} {_show(this[key])}, {first}.h5 with "
                             f"{_show(run[key])}: not one run's plans; {fix}")
         per_task[name] = scores
+    assert run is not None  # planned is not empty
     if not all(isinstance(run[k], str) for k in ("planner", "description")):
         raise UserError(f"{plans_dir}/{first}.h5: planner or description is not a string; {fix}")
-    planner = submitted.get("planner") if isinstance(submitted.get("planner"), dict) else {}
-    planner = {**planner, "name": run["planner"], "description": run["description"]}
-    reported = submitted.get("parameters") if isinstance(submitted.get("parameters"), dict) else {}
+    submitted_planner = submitted.get("planner")
+    planner = {**(submitted_planner if isinstance(submitted_planner, dict) else {}), "name": run["planner"],
+               "description": run["description"]}
+    reported = submitted.get("parameters")
+    if not isinstance(reported, dict):
+        reported = {}
     parameters = {"candidates": _plain(run["candidates"]), "seed": _plain(run["seed"]), "lambda": _plain(run["lambda"]),
                   "steps": PLAN_STEPS, "hardware": reported.get("hardware"), "workers": reported.get("workers")}
     out = build_results(per_task, planner, {"task_set": verified.task_set, "checksum": verified.checksum},

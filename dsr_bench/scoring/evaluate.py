@@ -22,6 +22,7 @@ import stat
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import h5py
 import numpy as np
@@ -167,7 +168,7 @@ def score_sequence(args: tuple[str, str, str]) -> tuple[str, list[str], dict | N
                 whole = compute_sequence(Sequence3D(pred_mask, gt_mask, num_slots, n, visible))
     except READ_ERRORS as exc:
         return name, [f"unreadable or truncated: {type(exc).__name__}: {' '.join(str(exc).split())}"], None
-    out = {k: v.tolist() for k, v in per_step.items()}
+    out: dict[str, Any] = {k: v.tolist() for k, v in per_step.items()}
     if has_3d:
         out.update({k: v.tolist() if isinstance(v, np.ndarray) else [x.tolist() for x in v] for k, v in whole.items()})
     out["has_2d"] = has_2d
@@ -390,7 +391,8 @@ def evaluate(pred_dir: str | Path, data_dir: str | Path, split: str | None = Non
         "split": split, "split_checksum": split_digest(manifest, split),
         "pinned": warning is None and verified and _pinned(manifest, split),
         "ground_truth_verified": verified,
-        "ground_truth_sha256": scored_checksum({name: {f: d[f] for f in fields if f in d} for name, d in truth.items()}),
+        "ground_truth_sha256": scored_checksum({name: {f: d[f] for f in fields if f in d}
+                                                for name, d in truth.items()}),
         "predictions_checksum": checksum_of(files), "predictions_sha256": files,
         "toolkit_version": __version__, "date": dt.datetime.now(dt.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ"),
         "coverage": {"scored": len(scored), "expected": len(names), "partial": len(scored) < len(names)},

@@ -110,7 +110,8 @@ def write_predictions(path: str | Path, mask: np.ndarray | None = None, motion: 
         expected = ((steps,) if steps is not None else motion_2d.shape[:1]) + IMAGE_SHAPE + (3,)
         if motion_2d.ndim != 4 or motion_2d.shape != expected or motion_2d.dtype not in MOTION_DTYPES:
             problems.append(f"motion_2d must be (T, {', '.join(map(str, IMAGE_SHAPE))}, 3) float16/float32"
-                            f"{' (T as in mask)' if steps is not None else ''}, got {motion_2d.shape} {motion_2d.dtype}")
+                            f"{' (T as in mask)' if steps is not None else ''}, got {motion_2d.shape} "
+                            f"{motion_2d.dtype}")
         elif not np.all(np.isfinite(motion_2d)):
             problems.append("motion_2d has NaN or inf")
     if problems:
@@ -120,6 +121,7 @@ def write_predictions(path: str | Path, mask: np.ndarray | None = None, motion: 
         f.attrs["format"] = PREDICTION_FORMAT
         opts = {"compression": "gzip", "compression_opts": 1}
         if mask is not None:
+            assert num_slots is not None  # checked above with mask
             f.attrs["num_slots"] = int(num_slots)
             f.create_dataset("mask", data=mask, chunks=(1,) + GRID_SHAPE, track_times=False, **opts)
             f.create_dataset("motion", data=motion, chunks=(1, 3) + GRID_SHAPE, track_times=False, **opts)
