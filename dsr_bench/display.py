@@ -1,5 +1,6 @@
 """Whether a native window can open here: the one check shared by `dsr-bench view`, `dsr-bench annotate` and the
-annotator's window (only the standard library, outside `dsr_bench.cli` so that importing it does not assemble the CLI)."""
+annotator's window (only the standard library, outside `dsr_bench.cli` so that importing it does not assemble the
+CLI)."""
 
 from __future__ import annotations
 

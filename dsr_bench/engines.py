@@ -23,6 +23,7 @@ from abc import ABC, abstractmethod
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import Any
 
 from dsr_bench.errors import UserError
 from dsr_bench.memory import keep_freed_memory
@@ -43,13 +44,13 @@ class Engine(ABC):
     label = "engine"
 
     @abstractmethod
-    def as_finished(self, function, jobs: list, describe: Callable[[object], str] | None = None
-                    ) -> Iterator[tuple[int, object]]:
+    def as_finished(self, function, jobs: list, describe: Callable[[Any], str] | None = None
+                    ) -> Iterator[tuple[int, Any]]:
         """(position, `function(jobs[position])`) for every job, as jobs finish; `describe(job)` names a job in
         the message of a failure."""
 
     def map(self, function, jobs: list, progress: Callable[[int, int], None] | None = None,
-            describe: Callable[[object], str] | None = None) -> list:
+            describe: Callable[[Any], str] | None = None) -> list:
         """`[function(j) for j in jobs]`, in the order of `jobs`; `progress(done, total)` once per job as each
         finishes."""
         return in_order(self.as_finished(function, jobs, describe), len(jobs), progress)
@@ -121,7 +122,7 @@ class RayEngine(Engine):
         if address != "local":
             check_reachable(address)  # before any work: Ray itself retries an unreachable address for minutes
 
-    def as_finished(self, function, jobs, describe=None):
+    def as_finished(self, function, jobs, describe=None) -> Iterator[tuple[int, Any]]:
         import ray
 
         if not jobs:  # nothing to do (a resumed run): no connection
@@ -191,7 +192,8 @@ def check_reachable(address: str, timeout: float = 10.0) -> None:
         socket.create_connection((host.strip("[]"), int(port)), timeout=timeout).close()
     except OSError as exc:
         raise UserError(f"--ray {address}: nothing answers at {host}:{port} ({exc.strerror or exc}); start the "
-                        "cluster (`ray start --head`) or give its address (auto, HOST:6379, ray://HOST:10001)") from None
+                        "cluster (`ray start --head`) or give its address (auto, HOST:6379, "
+                        "ray://HOST:10001)") from None
 
 
 # --- SLURM through submitit -------------------------------------------------------------------------------------------
@@ -299,7 +301,7 @@ class SlurmEngine(Engine):
         return [value for _, value in results]
 
 
-# --- from the command line ---------------------------------------------------------------------------------------------
+# --- from the command line --------------------------------------------------------------------------------------------
 def engine_from_options(ray: str | None = None, slurm: bool = False, workers: int | None = None,
                         slurm_options: SlurmOptions | None = None, name: str = "dsr-bench") -> Engine | None:
     """The engine that --ray / --slurm ask for, None for neither (the command's own processes). `workers`: the CPUs

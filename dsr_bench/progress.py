@@ -13,7 +13,7 @@ def no_progress(done: int, total: int, note: str = "") -> None:
 
 
 @contextmanager
-def progress_bar(description: str, console=None) -> Iterator[Callable[[int, int], None]]:
+def progress_bar(description: str, console=None) -> Iterator[Callable[..., None]]:
     """Yield a callback `progress(done, total, note="")` for the library's loops: it moves a transient rich bar
     on stderr (or on `console`, a rich Console) if that is a terminal, `note` (e.g. the loss) shown after the
     description, and does nothing otherwise."""
@@ -23,11 +23,14 @@ def progress_bar(description: str, console=None) -> Iterator[Callable[[int, int]
     if not console.is_terminal:
         yield no_progress
         return
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, \
-        TimeRemainingColumn
+    from rich.progress import (BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn,
+                               TimeRemainingColumn)
 
     with Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
                   TimeRemainingColumn(), console=console, transient=True) as bar:
         task = bar.add_task(description, total=None)
-        yield lambda done, total, note="": bar.update(task, completed=done, total=total,
-                                                      description=f"{description} {note}".rstrip())
+
+        def progress(done: int, total: int, note: str = "") -> None:
+            bar.update(task, completed=done, total=total, description=f"{description} {note}".rstrip())
+
+        yield progress

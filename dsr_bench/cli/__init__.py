@@ -39,7 +39,7 @@ def _register_commands() -> None:
     for entry in entry_points(group=ENTRY_POINT_GROUP):
         entry.load()(app)
     rank = {name: i for i, name in enumerate(COMMAND_ORDER)}
-    app.registered_commands.sort(key=lambda c: rank.get(c.name, len(rank)))
+    app.registered_commands.sort(key=lambda c: rank.get(c.name or "", len(rank)))
 
 
 _register_commands()
@@ -77,9 +77,10 @@ def main(argv: list[str] | None = None) -> int:
         typer.echo("interrupted", err=True)
         return 130
     except Exception as exc:  # click's usage errors (typer may vendor click) carry their own exit codes
-        if hasattr(exc, "show") and isinstance(getattr(exc, "exit_code", None), int):
+        code = getattr(exc, "exit_code", None)
+        if hasattr(exc, "show") and isinstance(code, int):
             exc.show()
-            return exc.exit_code
+            return code
         raise
     return rc if isinstance(rc, int) else 0
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
-from typing import Optional, Tuple
+from typing import Any, Optional, Tuple
 
 import typer
 
@@ -25,7 +25,8 @@ def train(
     val_split: Optional[str] = typer.Option(None, "--val-split", help="Validation split (IoU after each epoch)."),
     init: Optional[Path] = typer.Option(None, "--init", help="Start from this checkpoint's weights (next stage; "
                                          "--track cpu: another run's .stage1.pt, stage 1 skipped)."),
-    resume: Optional[Path] = typer.Option(None, "--resume", help="Resume a run exactly (optimizer, schedule, RNG, data)."),
+    resume: Optional[Path] = typer.Option(None, "--resume", help="Resume a run exactly (optimizer, schedule, RNG, "
+                                          "data)."),
     epochs: Optional[int] = typer.Option(None, "--epochs", help="Override the stage's epochs."),
     batch_size: Optional[int] = typer.Option(None, "--batch-size", help="Per process (default 12)."),
     lr: Optional[float] = typer.Option(None, "--lr", help="Constant learning rate instead of the official schedule."),
@@ -43,13 +44,15 @@ def train(
     deterministic: bool = typer.Option(False, "--deterministic", help="Deterministic algorithms and warp."),
     official_bn: bool = typer.Option(False, "--official-bn", help="Validate with BatchNorm in train mode (official)."),
     workers: int = typer.Option(4, "--workers", help="DataLoader worker processes per GPU."),
-    checkpoint_every: int = typer.Option(0, "--checkpoint-every", help="Also save last.pt every N steps (0: per epoch)."),
+    checkpoint_every: int = typer.Option(0, "--checkpoint-every", help="Also save last.pt every N steps (0: per "
+                                         "epoch)."),
     seed: int = typer.Option(0, "--seed", help="Seed of initialisation and data order."),
     bn_recalibration: int = typer.Option(16, "--bn-recalibration", help="At the stage's end, re-estimate BatchNorm's "
                                          "running statistics on N batches of whole sequences, the state carried "
                                          "(0: keep the moving averages; docs/models.md, BatchNorm)."),
     single_batches: Optional[int] = typer.Option(None, "--single-batches", help="--track cpu: stage 1 single-step "
-                                                 "batches (default 3000; the 2D track: all its batches, default 2000)."),
+                                                 "batches (default 3000; the 2D track: all its batches, default "
+                                                 "2000)."),
     multi_batches: int = typer.Option(300, "--multi-batches", help="--track cpu: stage 2 batches of --window "
                                       "steps (models without history: x window single-step batches)."),
     same_windows: bool = typer.Option(False, "--same-windows", help="--track cpu, single and 3dflow: stage 2 on the "
@@ -61,8 +64,9 @@ def train(
 
     kind = registry.model_entry(model, registry.VOXEL, registry.IMAGE).kind  # the trainable kinds
     if kind == registry.IMAGE:
-        given = [flag for flag, value in (("--stage", stage), ("--init", init), ("--resume", resume), ("--window", window),
-                                          ("--val-split", val_split), ("--epochs", epochs)) if value is not None]
+        given = [flag for flag, value in (("--stage", stage), ("--init", init), ("--resume", resume),
+                                          ("--window", window), ("--val-split", val_split), ("--epochs", epochs))
+                 if value is not None]
         if given:
             raise UserError(f"{given[0]} is not an option of the 2D track's models (single-step, one stage); drop it")
         _train_image(model, data, out, track, split, batch_size, lr, seed, device, workers, single_batches, quiet)
@@ -77,12 +81,12 @@ def train(
     if track != "full":
         raise UserError(f"--track {track!r}: choose full or cpu")
     # TrainConfig checks its own values (--stage, --max-steps, --max-minutes, --workers, --resume with --init)
-    config = TrainConfig(model_name=model, stage_name=stage, data=data, out=out, split=split, val_split=val_split,
+    config = TrainConfig(model_name=model, stage_name=stage or "", data=data, out=out, split=split, val_split=val_split,
                          epochs=epochs, batch_size=batch_size, lr=lr, window=window, max_steps=max_steps,
                          max_seconds=None if max_minutes is None else max_minutes * 60, init=init, resume=resume,
                          device=device, bf16=bf16, compile_model=compile_model, channels_last=channels_last,
                          workers=workers, seed=seed, official_bn=official_bn, deterministic=deterministic,
-                         grid=tuple(grid_size) if grid_size else None, checkpoint_every=checkpoint_every,
+                         grid=grid_size or None, checkpoint_every=checkpoint_every,
                          progress=not quiet, bn_recalibration=bn_recalibration, schedule=schedule)
     path = run(config)
     if os.environ.get("RANK", "0") == "0":
@@ -100,8 +104,10 @@ def _train_cpu(model: str, stage: str | None, data: Path, out: Path, split: str 
     if stage is not None:
         raise UserError(f"--stage {stage}: the CPU track's recipe runs both its stages; drop --stage")
     if out.is_dir():
-        raise UserError(f"--out {out} is a directory; --track cpu writes one weights file (e.g. {out / (model + '.pt')})")
-    overrides = {k: v for k, v in {"batch_size": batch_size, "lr": lr, "window": window}.items() if v is not None}
+        raise UserError(f"--out {out} is a directory; --track cpu writes one weights file "
+                        f"(e.g. {out / (model + '.pt')})")
+    overrides: dict[str, Any] = {k: v for k, v in {"batch_size": batch_size, "lr": lr, "window": window}.items()
+                                 if v is not None}
     recipe = CpuRecipe(model, single_batches=single_batches, multi_batches=multi_batches, seed=seed,
                        bn_recalibration=bn_recalibration, init=None if init is None else str(init),
                        same_windows=same_windows, **overrides)
@@ -120,8 +126,10 @@ def _train_image(model: str, data: Path, out: Path, track: str, split: str | Non
     if track not in ("cpu", "full"):
         raise UserError(f"--track {track!r}: choose full or cpu")
     if out.is_dir():
-        raise UserError(f"--out {out} is a directory; the 2D track writes one weights file (e.g. {out / (model + '.pt')})")
-    overrides = {k: v for k, v in {"batch_size": batch_size, "lr": lr, "batches": batches}.items() if v is not None}
+        raise UserError(f"--out {out} is a directory; the 2D track writes one weights file "
+                        f"(e.g. {out / (model + '.pt')})")
+    overrides: dict[str, Any] = {k: v for k, v in {"batch_size": batch_size, "lr": lr, "batches": batches}.items()
+                                 if v is not None}
     recipe = ImageRecipe(model, seed=seed, image_factor=2 if track == "cpu" else 1, **overrides)
     path = train_image_model(recipe, data, split, out, device, workers=max(1, workers),
                              report=(lambda line: None) if quiet else (lambda line: typer.echo(line, err=True)))

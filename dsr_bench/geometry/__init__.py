@@ -20,12 +20,17 @@ from dsr_bench.geometry.camera import (
     Camera, look_at, pinhole_inverse, pinhole_intrinsics, make_camera, resized_camera,
 )
 from dsr_bench.geometry.grid import (
-    axis_samples, voxel_points, voxel_points_of, world_to_voxel, voxel_to_world, world_to_pixel, pixel_to_world, direction_vector,
+    axis_samples, voxel_points, voxel_points_of, world_to_voxel, voxel_to_world, world_to_pixel, pixel_to_world,
+    direction_vector,
 )
 from dsr_bench.geometry.projection import flow_at_points
 from dsr_bench.geometry.transforms import (
-    quat_to_matrix, pose_to_matrix, matrix_to_pose, apply_matrix, dot_last, vector_norm, transform_points, rigid_inverse, compose, relative_motion,
-    rotation_angle,
+    quat_to_matrix, pose_to_matrix, matrix_to_pose, apply_matrix, dot_last, vector_norm, transform_points,
+    rigid_inverse, compose, relative_motion, rotation_angle,
 )
 
-__all__ = ["Camera", "apply_matrix", "axis_samples", "compose", "direction_vector", "dot_last", "flow_at_points", "look_at", "make_camera", "matrix_to_pose", "pinhole_intrinsics", "pinhole_inverse", "pixel_to_world", "pose_to_matrix", "quat_to_matrix", "relative_motion", "resized_camera", "rigid_inverse", "rotation_angle", "transform_points", "vector_norm", "voxel_points", "voxel_points_of", "voxel_to_world", "world_to_pixel", "world_to_voxel"]
+__all__ = ["Camera", "apply_matrix", "axis_samples", "compose", "direction_vector", "dot_last", "flow_at_points",
+           "look_at", "make_camera", "matrix_to_pose", "pinhole_intrinsics", "pinhole_inverse", "pixel_to_world",
+           "pose_to_matrix", "quat_to_matrix", "relative_motion", "resized_camera", "rigid_inverse", "rotation_angle",
+           "transform_points", "vector_norm", "voxel_points", "voxel_points_of", "voxel_to_world", "world_to_pixel",
+           "world_to_voxel"]

@@ -75,7 +75,9 @@ def look_at(eye, target, up) -> np.ndarray:
 def pinhole_inverse(intrinsics: np.ndarray) -> np.ndarray:
     """Closed-form inverse of intrinsics [[fx, s, cx], [0, fy, cy], [0, 0, 1]] (no LAPACK, see `apply_matrix`)."""
     (fx, s, cx), (_, fy, cy) = np.asarray(intrinsics, dtype=np.float64)[:2]
-    return np.array([[1 / fx, -s / (fx * fy), (s * cy - cx * fy) / (fx * fy)], [0.0, 1 / fy, -cy / fy], [0.0, 0.0, 1.0]])
+    return np.array([[1 / fx, -s / (fx * fy), (s * cy - cx * fy) / (fx * fy)],
+                     [0.0, 1 / fy, -cy / fy],
+                     [0.0, 0.0, 1.0]])
 
 
 def pinhole_intrinsics(height: int, width: int, hfov: float = CAMERA_HFOV) -> np.ndarray:

@@ -18,7 +18,8 @@ def rigid_scene_flow_3d(mask_t: np.ndarray, poses_t: np.ndarray, poses_next: np.
 
     mask_t: amodal instance ids (Y, X, Z) at t (0 empty, i + 1 = object i); poses_t, poses_next:
     (N, 7) world poses at t and t + 1. Each object's voxels move with the object's rigid motion,
-    evaluated at their sample points (`dsr_bench.geometry.voxel_points_of`); empty voxels get 0. `out`, if given, must be zeros; it is filled in place and returned.
+    evaluated at their sample points (`dsr_bench.geometry.voxel_points_of`); empty voxels get 0. `out`, if
+    given, must be zeros; it is filled in place and returned.
     """
     flow = np.zeros((3,) + mask_t.shape, dtype=np.float32) if out is None else out
     flat = np.flatnonzero(mask_t)

@@ -60,7 +60,8 @@ class ProjectiveTSDF:
 
     def __init__(self, camera: Camera, truncation: float = TSDF_TRUNCATION,
                  grid_shape: tuple[int, int, int] = GRID_SHAPE):
-        self.camera, self.truncation, self.grid_shape = camera, truncation, tuple(grid_shape)
+        ny, nx, nz = grid_shape  # a tuple, whatever sequence was given
+        self.camera, self.truncation, self.grid_shape = camera, truncation, (ny, nx, nz)
         (_, self._z, self._pixels, _, self._counts,
          self._g_voxels, self._g_z, self._g_pixel, self._g_z32) = _projection(camera, self.grid_shape)
         # float32 error of |d - z| where |d - z| <= trunc: a few float32 ulps of z_max + trunc
@@ -80,7 +81,8 @@ class ProjectiveTSDF:
         Each voxel reads the depth of the pixel whose centre is nearest to its projection.
         """
         if depth.shape != (self.camera.height, self.camera.width):
-            raise ValueError(f"depth image {depth.shape} does not match camera {self.camera.height}x{self.camera.width}")
+            raise ValueError(f"depth image {depth.shape} does not match camera "
+                             f"{self.camera.height}x{self.camera.width}")
         return self.from_pixel_depths(np.asarray(depth).reshape(-1)[self._pixels])
 
     def from_pixel_depths(self, pixel_depth: np.ndarray) -> np.ndarray:

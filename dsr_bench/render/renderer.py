@@ -168,11 +168,12 @@ class SceneRenderer:
                 offset += len(v)
                 first += len(f)
             parts.append(tuple(ranges))
-        vertices = np.vstack(vertices) if vertices else np.zeros((0, 3))
-        faces = np.vstack(faces) if faces else np.zeros((0, 3), np.int64)
-        instance = np.concatenate(instance) if instance else np.zeros(0, np.int64)
-        scene = PosedScene(vertices, faces, instance, _triangle_normals(vertices, faces), tuple(parts))
-        return scene, instance
+        all_vertices = np.vstack(vertices) if vertices else np.zeros((0, 3))
+        all_faces = np.vstack(faces) if faces else np.zeros((0, 3), np.int64)
+        face_instance = np.concatenate(instance) if instance else np.zeros(0, np.int64)
+        scene = PosedScene(all_vertices, all_faces, face_instance, _triangle_normals(all_vertices, all_faces),
+                           tuple(parts))
+        return scene, face_instance
 
     # cameras ---------------------------------------------------------------------------------------
     @staticmethod

@@ -113,8 +113,8 @@ def log_plan(rec, arrays: dict, attrs: dict) -> None:
         o, v = push_arrows(arrays["actions"][t])
         chosen = int(arrays["chosen"][t])
         d, row, col = (int(x) for x in arrays["actions"][t])
-        rec.log("world/push", rr.Arrows3D(origins=o, vectors=v, colors=[(255, 215, 0)], radii=0.004,
-                                          labels=[f"push {t}: direction {d}, cell ({row}, {col}), cost {labels[chosen]}"]))
+        label = f"push {t}: direction {d}, cell ({row}, {col}), cost {labels[chosen]}"
+        rec.log("world/push", rr.Arrows3D(origins=o, vectors=v, colors=[(255, 215, 0)], radii=0.004, labels=[label]))
         _voxels(rec, rr, "world/predicted/mask", arrays["predicted"][t])
         if np.isfinite(costs[chosen]):
             rec.log("cost/chosen", rr.Scalars(float(costs[chosen])))
