@@ -488,8 +488,9 @@ def main() -> None:
         good = [e for e in errs if not e["gross"]]
         overall[method] |= {"gross_count": len(errs) - len(good), "object_steps": len(errs)}
         if good:
-            overall[method] |= {"mean_translation_mm_without_gross": float(np.mean([e["translation_mm"] for e in good])),
-                                "mean_rotation_deg_without_gross": float(np.mean([e["rotation_deg"] for e in good]))}
+            overall[method] |= {
+                "mean_translation_mm_without_gross": float(np.mean([e["translation_mm"] for e in good])),
+                "mean_rotation_deg_without_gross": float(np.mean([e["rotation_deg"] for e in good]))}
     overall["annotator"]["repicks"] = sum(r["annotator"]["repicks"] for r in rows) / len(rows)
     for method in ("annotator", "keyboard+snap"):  # Session actions (pick, snap, step, ...), as the issue counts them
         total = sum(sum(r[method]["actions"].values()) for r in rows)

@@ -36,7 +36,8 @@ NAMES = ("mask", "motion", "motion_2d")
 def layouts(steps: int) -> dict[str, dict[str, dict]]:
     """Layout name -> dataset -> h5py create_dataset keywords (chunks, compression); absent: the toolkit's."""
     gzip = {"compression": "gzip", "compression_opts": 1}
-    whole = {"mask": (steps,) + GRID_SHAPE, "motion": (steps, 3) + GRID_SHAPE, "motion_2d": (steps,) + IMAGE_SHAPE + (3,)}
+    whole = {"mask": (steps,) + GRID_SHAPE, "motion": (steps, 3) + GRID_SHAPE,
+             "motion_2d": (steps,) + IMAGE_SHAPE + (3,)}
     # MAX_STEP_CHUNKS (1024) chunks per step: 32 x 32 columns of the grid, 16 x 64 patches of the image
     at_limit = {"mask": (1, 4, 4, 48), "motion": (1, 3, 4, 4, 48), "motion_2d": (1, 15, 5, 3)}
     return {

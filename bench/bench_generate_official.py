@@ -13,8 +13,8 @@ sequence to a fresh directory:
 - ours: `dsr-bench generate --objects cube -n 1 --workers 1 --seed K --out DIR`, K = --seed + run.
 Prints each side's median wall seconds per sequence, the ratio of the medians, each side's median bytes on
 disk per step (every file the run wrote, over its steps; the authors' files hold one step each) and their
-ratio, and one markdown table row (date, cores, both medians, ratios) to quote. Without `--official-repo` only our side is
-run and no comparison is made. Both generators are single-process; run on an idle machine.
+ratio, and one markdown table row (date, cores, both medians, ratios) to quote. Without `--official-repo` only
+our side is run and no comparison is made. Both generators are single-process; run on an idle machine.
 """
 
 from __future__ import annotations
@@ -112,7 +112,8 @@ def main(argv: list[str] | None = None) -> dict:
             seed = args.seed + count["ours"]
             count["ours"] += 1
             out = work / f"ours-{seed}"
-            return run_process(OURS, our_command(out, seed, args.steps), out, None, logs, args.timeout, sizes=sizes[OURS])
+            return run_process(OURS, our_command(out, seed, args.steps), out, None, logs, args.timeout,
+                               sizes=sizes[OURS])
 
         def theirs() -> float:
             count["theirs"] += 1

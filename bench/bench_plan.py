@@ -59,8 +59,8 @@ def main() -> None:
             wall, cpu = time.perf_counter() - wall0, time.process_time() - cpu0
             env.close()
             n = len(tasks)
-            print(f"{name:<8} {wall / n:>12.2f} {cpu / n:>11.2f} {60 * n / wall:>10.2f} {100 * planning / wall:>10.0f}% "
-                  f"{float(np.mean(ious)):>7.3f}")
+            print(f"{name:<8} {wall / n:>12.2f} {cpu / n:>11.2f} {60 * n / wall:>10.2f} "
+                  f"{100 * planning / wall:>10.0f}% {float(np.mean(ious)):>7.3f}")
 
 
 if __name__ == "__main__":

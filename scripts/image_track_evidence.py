@@ -43,7 +43,8 @@ def main() -> None:
 
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--data", type=Path, required=True)
-    parser.add_argument("--weights", type=Path, help="directory of the 2D models' <model>.pt (default: the shipped ones)")
+    parser.add_argument("--weights", type=Path,
+                        help="directory of the 2D models' <model>.pt (default: the shipped ones)")
     parser.add_argument("--work", type=Path, default=Path("image-track-evidence"))
     parser.add_argument("--models", nargs="+", default=["2dflow", "se3net", "se3posenet"])
     parser.add_argument("--projected", nargs="*", default=["dsr", "single", "3dflow"])

@@ -57,8 +57,8 @@ def main() -> None:
     for name in results:
         for reference in ("no push", "random", "oracle"):
             if reference != name and reference in per_task:
-                summary["pairs"][f"{name} - {reference}"] = {m: paired_difference(per_task[name], per_task[reference], m)
-                                                            for m in METRICS}
+                summary["pairs"][f"{name} - {reference}"] = {
+                    m: paired_difference(per_task[name], per_task[reference], m) for m in METRICS}
     print(f"{summary['task_set']}: mean IoU (matched, identity, occupancy)")
     for name, row in summary["means"].items():
         print(f"{name:>10} " + " ".join(f"{row[m]:.3f}" for m in METRICS))

@@ -127,7 +127,8 @@ def main() -> None:
     verdict = None
     if {"dsr", "nowarp", "single"} <= set(ordered):
         verdict = ordered["dsr"] > ordered["nowarp"] > ordered["single"]
-        print(f"paper's ordering DSR-Net > NoWarp > SingleStep on ordered IoU: {'holds' if verdict else 'does NOT hold'}")
+        print("paper's ordering DSR-Net > NoWarp > SingleStep on ordered IoU: "
+              f"{'holds' if verdict else 'does NOT hold'}")
     summary = {"command": " ".join(shlex.quote(a) for a in sys.argv), "train_data": str(data), "test_data": str(test),
                "test_split": args.test_split, "steps_single": args.steps_single, "steps_multi": args.steps_multi,
                "batch_size": args.batch_size, "lr_single": args.lr_single, "lr_multi": args.lr_multi,

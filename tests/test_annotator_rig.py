@@ -32,7 +32,7 @@ def _worse_snap(session, obj: int = 0) -> tuple[float, float, float]:
     return start.quality(), result.score.quality(), result.score.coverage
 
 
-# --- 1. a rejected snap changes nothing --------------------------------------------------------------------------------
+# --- 1. a rejected snap changes nothing -------------------------------------------------------------------------------
 
 
 def test_a_snap_that_fits_worse_is_rejected_and_changes_nothing(capture_dir, truth, tmp_path):
@@ -194,7 +194,7 @@ def test_keys_offer_the_re_carry_and_jump_to_what_needs_a_look(carried_off):
     assert ctl.view.message.startswith("every object at every visited step is checked")
 
 
-# --- 4. objects are numbered from 1 in every message --------------------------------------------------------------------
+# --- 4. objects are numbered from 1 in every message ------------------------------------------------------------------
 
 
 def test_messages_number_objects_from_1_as_the_panel(capture_dir, truth, tmp_path, capsys):
@@ -224,7 +224,7 @@ def test_messages_number_objects_from_1_as_the_panel(capture_dir, truth, tmp_pat
     assert "(1, 2, 3)" in capsys.readouterr().err
 
 
-# --- 3. placing step 0 without the window ------------------------------------------------------------------------------
+# --- 3. placing step 0 without the window -----------------------------------------------------------------------------
 
 
 def _poses_file(path: Path, session, truth) -> Path:
@@ -264,7 +264,8 @@ def test_place_step_0_from_a_poses_file_then_auto_and_export_headless(capture_di
 
 @pytest.mark.parametrize("content, expected", [
     ({"objects": {"7": np.eye(4).tolist()}}, "object '7' is not in capture 'seq_000': use its number 1..3"),
-    ({"objects": {"1": np.diag([2.0, 2.0, 2.0, 1.0]).tolist()}}, "object '1': the pose's upper-left 3x3 is not a rotation"),
+    ({"objects": {"1": np.diag([2.0, 2.0, 2.0, 1.0]).tolist()}},
+     "object '1': the pose's upper-left 3x3 is not a rotation"),
     ({"objects": {"1": np.eye(3).tolist()}}, "object '1': a pose must be 4 rows of 4 finite numbers"),
     ({"objects": {"2": {"mesh": [[0, 0, 0]], "cloud": [[0, 0, 0]]}}}, "object 2: picked 1 point pairs"),
     ({"poses": []}, 'expected {"objects"'),
@@ -278,7 +279,8 @@ def test_place_errors_are_one_line_naming_the_file_and_the_fix(capture_dir, tmp_
     assert main(["annotate", str(capture_dir), "--work", str(tmp_path / "w"), "--place", str(path)]) == 2
     err = capsys.readouterr().err.strip()
     assert expected in err and str(path) in err and len(err.splitlines()) == 1
-    assert main(["annotate", str(capture_dir), "--work", str(tmp_path / "w"), "--place", str(tmp_path / "no.json")]) == 2
+    assert main(["annotate", str(capture_dir), "--work", str(tmp_path / "w"),
+                 "--place", str(tmp_path / "no.json")]) == 2
     assert "no such file" in capsys.readouterr().err
 
 
@@ -292,7 +294,7 @@ def test_without_a_display_the_message_names_the_headless_option(capture_dir, tm
     assert len(err.splitlines()) == 1 and "--place POSES.json" in err and "--auto" in err and "--export" in err
 
 
-# --- 5. the BOP export ---------------------------------------------------------------------------------------------------
+# --- 5. the BOP export ------------------------------------------------------------------------------------------------
 
 
 def test_bop_export_follows_the_bop_conventions(capture_dir, truth, tmp_path):

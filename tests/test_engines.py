@@ -131,7 +131,8 @@ def test_engine_options_refused_with_one_line(tmp_path, capsys, monkeypatch):
     out = str(tmp_path / "out")
     cases = [
         (["--ray", "local", "--slurm"], "--ray and --slurm both given"),
-        (["--ray", "local", "--shard", "0/2"], "--shard 0/2 with --ray: the engine splits the run itself; drop --shard"),
+        (["--ray", "local", "--shard", "0/2"],
+         "--shard 0/2 with --ray: the engine splits the run itself; drop --shard"),
         (["--slurm", "--slurm-local", "--shard", "1/2"], "drop --shard"),
         (["--slurm-partition", "gpu"], "need --slurm"),
         (["--slurm", "--slurm-local", "--slurm-tasks", "0"], "--slurm-tasks 0: must be at least 1"),

@@ -293,7 +293,8 @@ def test_mixed_3d_and_2d_only_submission_is_refused_naming_one_of_each(synthetic
         assert line.strip().startswith(f"{pred}: ") and "seq_0000.h5 holds mask and motion" in line
         assert "seq_0001.h5 holds motion_2d alone" in line and "no score" in err
     assert not (tmp_path / "r.json").exists()
-    scored = {n: score_sequence((n, str(pred / f"{n}.h5"), str(synthetic / f"{n}.h5")))[2] for n in ("seq_0000", "seq_0001")}
+    scored = {n: score_sequence((n, str(pred / f"{n}.h5"), str(synthetic / f"{n}.h5")))[2]
+              for n in ("seq_0000", "seq_0001")}
     with pytest.raises(UserError, match="seq_0000.h5 holds mask and motion .* but seq_0001.h5 holds motion_2d alone"):
         aggregate(scored)
 

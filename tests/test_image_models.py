@@ -43,7 +43,8 @@ def test_flow_from_poses_moves_points_fixed_in_each_object_with_it():
     local = torch.randn(3, 5, 3, generator=gen, dtype=torch.float64)  # 5 points on each of 2 objects + background
 
     def seen(transforms):
-        return torch.cat([local[k] @ transforms[0, k, :3, :3].T + transforms[0, k, :3, 3] for k in range(2)] + [local[2]])
+        return torch.cat([local[k] @ transforms[0, k, :3, :3].T + transforms[0, k, :3, 3] for k in range(2)]
+                         + [local[2]])
 
     points, expected_next = seen(poses), seen(next_poses)
     masks = torch.zeros(1, 3, 15, dtype=torch.float64)
@@ -62,7 +63,8 @@ def test_flow_from_poses_moves_points_fixed_in_each_object_with_it():
 
 def test_a_quarter_turn_about_a_pivot_keeps_the_pivot_and_turns_the_rest():
     pivot = torch.tensor([[0.5, 0.0, 0.1]], dtype=torch.float64)
-    transform = rigid.about_pivots(_rot_z(math.pi / 2)[None], torch.tensor([[0.0, 0.0, 0.02]], dtype=torch.float64), pivot)
+    transform = rigid.about_pivots(_rot_z(math.pi / 2)[None], torch.tensor([[0.0, 0.0, 0.02]], dtype=torch.float64),
+                                   pivot)
     points = torch.tensor([[[0.5, 0.0, 0.1], [0.6, 0.0, 0.1]]], dtype=torch.float64)
     masks = torch.tensor([[[1.0, 1.0], [0.0, 0.0]]], dtype=torch.float64)
     flow = rigid.blended_flow(points, masks, transform[None])[0]
@@ -82,7 +84,8 @@ def _batch(b=4, h=48, w=64, seed=0):
     points = points * valid
     flow = torch.zeros(b, 3, h, w)
     flow[:, 0][mask > 0] = 0.03  # the object moves 3 cm along world x
-    action = torch.stack([torch.zeros(b, dtype=torch.int64), torch.full((b,), 20), torch.randint(0, w, (b,), generator=gen)], 1)
+    action = torch.stack([torch.zeros(b, dtype=torch.int64), torch.full((b,), 20),
+                          torch.randint(0, w, (b,), generator=gen)], 1)
     return {"points": points, "valid": valid, "next_points": points.clone(), "next_valid": valid.clone(),
             "flow": flow * valid, "mask": mask, "action": action}
 
@@ -173,7 +176,8 @@ def test_train_predict_evaluate_from_the_cli(name, tmp_path, capsys):
     assert state["model_config"]["name"] == name and state["model_config"]["image_factor"] == 2
     assert state["data"]["sequences"] == 2 and all(v.dtype != torch.float32 for v in state["model"].values())
     pred = tmp_path / "pred"
-    assert main(["predict", "--model", name, "--checkpoint", str(weights), "--data", str(data), "--out", str(pred)]) == 0
+    assert main(["predict", "--model", name, "--checkpoint", str(weights), "--data", str(data),
+                 "--out", str(pred)]) == 0
     import h5py
 
     with h5py.File(pred / "seq_0000.h5", "r") as f:

@@ -300,7 +300,7 @@ def test_non_square_720p_capture_annotates_and_exports_like_the_simulated_one(si
             assert set(np.unique(mask)) == set(range(real.num_objects + 1))
 
 
-# --- one-line errors ---------------------------------------------------------------------------------------------------
+# --- one-line errors --------------------------------------------------------------------------------------------------
 
 
 def _edit_rig(rig_folder: Path, tmp_path: Path, edit) -> Path:

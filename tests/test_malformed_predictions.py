@@ -354,7 +354,8 @@ def pinned_data(tmp_path_factory) -> Path:
 
 def _pin(monkeypatch, digest):
     spec = SPLITS["procedural-novel-mini"]
-    monkeypatch.setitem(SPLITS, spec.name, Split(**{**spec.__dict__, "pinned_checksum": digest or ""}))  # "": not pinned
+    # "": not pinned
+    monkeypatch.setitem(SPLITS, spec.name, Split(**{**spec.__dict__, "pinned_checksum": digest or ""}))
 
 
 def test_pin_mismatch_warns_once_and_still_scores(pinned_data, tmp_path, monkeypatch, capsys):

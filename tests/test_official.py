@@ -14,7 +14,8 @@ from dsr_bench.atomic import host_name
 from dsr_bench.cli import main
 from dsr_bench.errors import UserError
 from dsr_bench.dataset.manifest import load_manifest
-from dsr_bench.dataset.official import OFFICIAL_NEXT, OFFICIAL_STEP, find_official_sequences, import_official, official_arrays
+from dsr_bench.dataset.official import (OFFICIAL_NEXT, OFFICIAL_STEP, find_official_sequences, import_official,
+                                        official_arrays)
 from dsr_bench.dataset.sequence import SequenceReader
 from dsr_bench.testing import write_synthetic_dataset
 from dsr_bench.dataset.validate import validate_dataset

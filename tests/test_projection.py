@@ -105,7 +105,8 @@ def test_projected_ground_truth_agrees_with_the_2d_ground_truth_generated(genera
         steps = seq.num_steps
         errors = _projection_errors(seq.read("scene_flow_3d"), seq.read("mask_3d", slice(0, steps)),
                                     seq.read("cameras/front/points", slice(0, steps)),
-                                    seq.read("cameras/front/scene_flow_2d"), seq.read("cameras/front/mask", slice(0, steps)))
+                                    seq.read("cameras/front/scene_flow_2d"),
+                                    seq.read("cameras/front/mask", slice(0, steps)))
     _check_agreement(errors, bound=0.01)
 
 

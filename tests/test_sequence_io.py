@@ -229,7 +229,8 @@ def test_points_that_follow_from_depth_are_derived_not_stored_and_read_back_bit_
         assert seq.shape_and_dtype("cameras/front/points") == (points.shape, np.dtype(np.float32))
         assert np.array_equal(seq.read("cameras/front/points").view(np.uint32), points.view(np.uint32))
         assert np.array_equal(seq.read("cameras/front/points", 1).view(np.uint32), points[1].view(np.uint32))
-        assert np.array_equal(seq.read("cameras/front/points", slice(1, 3)).view(np.uint32), points[1:3].view(np.uint32))
+        assert np.array_equal(seq.read("cameras/front/points", slice(1, 3)).view(np.uint32),
+                              points[1:3].view(np.uint32))
         assert DERIVED_ATTR not in seq.attrs
     digests = file_digests(tmp_path / "derived.h5")
     assert digests["observations_sha256"] == attrs["observations_sha256"]

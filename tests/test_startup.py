@@ -1,7 +1,7 @@
 """Start-up (issue 20): `dsr-bench --help`, and every command's `--help`, imports none of the heavy libraries,
-and a run of boxes or procedural objects imports neither a mesh library nor open3d (whose import pulls in its plotly/dash viewer). Each
-check runs the CLI in a fresh interpreter and reads its sys.modules afterwards; bench/bench_startup.py times
-the same commands."""
+and a run of boxes or procedural objects imports neither a mesh library nor open3d (whose import pulls in its
+plotly/dash viewer). Each check runs the CLI in a fresh interpreter and reads its sys.modules afterwards;
+bench/bench_startup.py times the same commands."""
 
 import importlib.util
 import sys

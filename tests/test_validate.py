@@ -215,8 +215,8 @@ def test_summary_says_why_validate_failed(pristine, dataset, tmp_path, capsys):
     assert main(["validate", str(dataset), "--no-gt"]) == 1
     assert _last_line(capsys) == (
         "3 sequence files checked, 0 with problems; 2 dataset-level problems (splits/test.txt: split checksum of "
-        "'test' in the manifest does not match its sequences' ground-truth digests; splits/extra.txt: split file not in "
-        "the manifest (run `dsr-bench manifest DIR`))")
+        "'test' in the manifest does not match its sequences' ground-truth digests; splits/extra.txt: split file not "
+        "in the manifest (run `dsr-bench manifest DIR`))")
     # a file listed but missing is not a checked file with problems; a modified file is
     other = tmp_path / "other"
     shutil.copytree(pristine, other)
