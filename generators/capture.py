@@ -208,7 +208,7 @@ def calibration_error(stored: CaptureCamera, true: CaptureCamera) -> tuple[float
 class _RecordingSet:
     """Wraps an object set and remembers the specs of its last sample (the scene the episode kept)."""
 
-    def __init__(self, object_set):
+    def __init__(self, object_set) -> None:
         self._set = object_set
         self.name = getattr(object_set, "name", "")
         self.last: list = []

@@ -211,7 +211,8 @@ def _assemble(observations, poses: np.ndarray, decisions, pushes, renderer) -> d
         "push_end": np.array([p[1] for p in pushes], dtype=np.float64).reshape(steps, 3),
         "policy/chosen_object": np.array([d.object_index for d in decisions], dtype=np.int64),
         "policy/object_probs": np.array([d.object_probs for d in decisions], dtype=np.float32),
-        "policy/direction_scores": np.array([d.direction_scores for d in decisions], dtype=np.float32).reshape(steps, 8),
+        "policy/direction_scores": np.array([d.direction_scores for d in decisions],
+                                            dtype=np.float32).reshape(steps, 8),
         "policy/direction_probs": np.array([d.direction_probs for d in decisions], dtype=np.float32).reshape(steps, 8),
         "policy/attempts": np.array([d.attempts for d in decisions], dtype=np.int64),
     }

@@ -199,6 +199,10 @@ def _one_thread() -> None:
         sys.modules["torch"].set_num_threads(1)
 
 
+def _not_simulated(*args):
+    raise RuntimeError("this planner only describes the run: its plans run in the workers' simulators")
+
+
 def _planner(model: str, env: SimEnvironment, checkpoint: str | None, device: str):
     from dsr_bench.planning.planners import make_planner
 
@@ -319,7 +323,7 @@ def plan_tasks(model: str, tasks: str, out: Path, candidates: int, workers: int 
         warn(line)
     names = verified.names[: num_tasks] if num_tasks else verified.names
     _one_thread()
-    describe = make_planner(model, (None, None)) if model in ("random", "oracle") else \
+    describe = make_planner(model, (_not_simulated, _not_simulated)) if model in ("random", "oracle") else \
         make_planner(model, checkpoint=checkpoint, device=device)  # fails fast on a bad model or checkpoint
     if model not in ("random", "oracle"):  # in this process, the workers' planner (workers=1) is this one
         _WORKER["planner"], _WORKER["planner_key"] = describe, (model, str(checkpoint) if checkpoint else None, device)

@@ -312,7 +312,8 @@ def summarize(results: list[SequenceResult]) -> dict[str, float]:
     if not results:
         return {}
     secs = np.array([r.seconds for r in results])
-    out = {"sequences": len(results), "mean_seconds": float(secs.mean()), "total_bytes": int(sum(r.bytes for r in results)),
+    out = {"sequences": len(results), "mean_seconds": float(secs.mean()),
+           "total_bytes": int(sum(r.bytes for r in results)),
            "mean_scene_attempts": float(np.mean([r.scene_attempts for r in results]))}
     for key in results[0].timings:
         out[f"mean_{key}_seconds"] = float(np.mean([r.timings[key] for r in results]))

@@ -25,7 +25,8 @@ from generators.objects.spec import ObjectSpec, make_spec, random_color
 
 CUBE_DIVISORS = (700, 750, 800, 850, 900, 1000, 1100, 1200, 1400)
 CUBE_HALF_EXTENTS = (30.0, 30.0, 35.0)  # divided by s: metres
-NORMALISED_DIAGONAL = 0.15  # m: bounding-box diagonal at scale 1 (the official URDFs scale unit-diagonal meshes by 0.15)
+#: m: bounding-box diagonal at scale 1 (the official URDFs scale unit-diagonal meshes by 0.15)
+NORMALISED_DIAGONAL = 0.15
 #: Official category scale ranges: (normal low, normal high), (large low, large high).
 CATEGORY_SCALES = {
     "bottle": ((0.7, 0.8), (1.1, 1.2)),

@@ -16,6 +16,7 @@ import os
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -24,6 +25,9 @@ from generators.objects.builtin import NORMALISED_DIAGONAL, category_scale, choo
 from generators.objects.catalog import SHAPENET_MODELS, YCB_LARGE, YCB_NORMAL, ycb_release_name
 from generators.objects.solid import load_solid
 from generators.objects.spec import ObjectSpec, make_spec, random_color
+
+if TYPE_CHECKING:
+    import trimesh
 
 ENV = {"shapenet": "DSR_BENCH_SHAPENET", "ycb": "DSR_BENCH_YCB"}
 LAYOUTS = {
@@ -80,8 +84,9 @@ def read_urdf_mesh(urdf: Path) -> tuple[Path, float]:
         raise UserError(f"{urdf}: unreadable URDF ({exc}); replace the file") from None
     for tag in ("visual", "collision"):
         mesh = tree.find(f".//{tag}/geometry/mesh")
-        if mesh is not None and mesh.get("filename"):
-            name = mesh.get("filename").removeprefix("package://").removeprefix("file://")
+        filename = mesh.get("filename") if mesh is not None else None
+        if mesh is not None and filename:
+            name = filename.removeprefix("package://").removeprefix("file://")
             path = Path(name) if Path(name).is_absolute() else urdf.parent / name
             try:
                 scale = np.array([float(v) for v in mesh.get("scale", "1 1 1").split()], dtype=np.float64)
@@ -100,8 +105,8 @@ def _processed_source(model_id: str, model_dir: Path, default_scale: float = 1.0
     """A model of the official processed layout (obj.urdf and the mesh and scale it names; without a
     URDF, the first mesh file at default_scale), or None when the directory holds neither."""
     urdf = model_dir / "obj.urdf"
-    binvox = model_dir / "model_com.binvox"
-    binvox = binvox if binvox.is_file() else None
+    binvox_path = model_dir / "model_com.binvox"
+    binvox = binvox_path if binvox_path.is_file() else None
     if urdf.is_file():
         mesh, scale = read_urdf_mesh(urdf)
         return ModelSource(model_id, mesh, binvox, scale, **flags)
@@ -116,7 +121,7 @@ class _SolidCache:
     """Per-process memo of the solids (the disk cache holds them across processes)."""
 
     def __init__(self) -> None:
-        self._solids: dict[ModelSource, object] = {}
+        self._solids: dict[ModelSource, trimesh.Trimesh] = {}
 
     def solid(self, source: ModelSource, pitch: float | None):
         import trimesh
@@ -144,13 +149,15 @@ class ShapeNetSet:
         if base is None:
             raise _missing(self.name, root, "no ShapeNet synset directory (e.g. 02876657)")
         self.models: dict[str, list[ModelSource]] = {}
-        missing, total = [], 0
+        missing: list[str] = []
+        total = 0
         for category, (synset, ids) in SHAPENET_MODELS.items():
             self.models[category] = []
             for model_id in ids:
                 total += 1
                 model_dir = base / synset / model_id
                 release = model_dir / "models" / "model_normalized.obj"
+                source: ModelSource | None
                 if release.is_file():
                     source = ModelSource(model_id, release, None, NORMALISED_DIAGONAL, up_y=True)
                 else:

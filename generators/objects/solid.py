@@ -55,7 +55,8 @@ def read_binvox(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
             scale = float(header.get("scale", ["1"])[0])
             raw = np.frombuffer(f.read(), dtype=np.uint8)
     except (OSError, ValueError, KeyError, UnicodeDecodeError) as exc:
-        raise UserError(f"{path}: unreadable binvox file ({exc}); replace it or delete it to voxelise the mesh") from None
+        raise UserError(f"{path}: unreadable binvox file ({exc}); replace it or delete it to voxelise the "
+                        "mesh") from None
     if dims.shape != (3,) or np.any(dims <= 0) or translate.shape != (3,) or not scale > 0 or len(raw) % 2:
         raise UserError(f"{path}: malformed binvox header or data; replace it or delete it to voxelise the mesh")
     values, counts = raw[0::2], raw[1::2].astype(np.int64)

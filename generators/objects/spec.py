@@ -74,8 +74,9 @@ def make_spec(set_name: str, category: str, model_id: str, scale: float, meshes:
     com = np.average(np.array(centres), axis=0, weights=np.array(volumes))
     parts = tuple(Part(_frozen(np.asarray(m.vertices, np.float64) - com), _frozen(np.asarray(m.faces, np.int64)))
                   for m in meshes)
-    return ObjectSpec(set_name, category, model_id, float(scale), parts, tuple(float(c) for c in color),
-                      float(mass), bool(is_large))
+    red, green, blue = (float(c) for c in color)
+    return ObjectSpec(set_name, category, model_id, float(scale), parts, (red, green, blue), float(mass),
+                      bool(is_large))
 
 
 def _frozen(array: np.ndarray) -> np.ndarray:
