@@ -206,18 +206,18 @@ def align_depth(depth_m: np.ndarray, corner_rays: np.ndarray, depth_to_color: np
     keep = np.all(lo >= 0, 1) & (hi[:, 0] < wc) & (hi[:, 1] < hc) & np.all(hi - lo < MAX_SPLAT, 1)
     lo, hi, uc, zc = lo[keep], hi[keep], uc[keep], zc[keep]
     span = (hi - lo).max(0) + 1 if len(zc) else np.zeros(2, np.int64)
-    index, value, miss = [], [], []
+    indices, values, misses = [], [], []
     for du in range(int(span[0])):  # a few offsets within a footprint, each vectorised over all pixels
         for dv in range(int(span[1])):
             inside = (lo[:, 0] + du <= hi[:, 0]) & (lo[:, 1] + dv <= hi[:, 1])
             u, v = lo[inside, 0] + du, lo[inside, 1] + dv
-            index.append(v * wc + u)
-            value.append(zc[inside])
-            miss.append((uc[inside, 0] - u) ** 2 + (uc[inside, 1] - v) ** 2)
+            indices.append(v * wc + u)
+            values.append(zc[inside])
+            misses.append((uc[inside, 0] - u) ** 2 + (uc[inside, 1] - v) ** 2)
     out = np.zeros(hc * wc)
-    if not index:
+    if not indices:
         return out.reshape(hc, wc)
-    index, value, miss = np.concatenate(index), np.concatenate(value), np.concatenate(miss)
+    index, value, miss = np.concatenate(indices), np.concatenate(values), np.concatenate(misses)
     nearest = np.full(hc * wc, np.inf)
     np.minimum.at(nearest, index, value)  # the z-buffer
     front = value <= nearest[index] * (1 + SAME_SURFACE_REL) + SAME_SURFACE_M

@@ -88,8 +88,10 @@ def export_bop(session, out: str | Path, allow_unchecked: bool = False) -> Path:
             for s in range(steps + 1):
                 shutil.copyfile(capture.image_path(s, name, "color"), root / "rgb" / f"{s:06d}.png")
                 shutil.copyfile(capture.image_path(s, name, "depth"), root / "depth" / f"{s:06d}.png")
-                scene_camera[str(s)] = {"cam_K": _row_major(cam.intrinsics), "depth_scale": float(cam.depth_scale) * 1000,
-                                        "cam_R_w2c": _row_major(w2c[:3, :3]), "cam_t_w2c": _row_major(w2c[:3, 3] * 1000)}
+                scene_camera[str(s)] = {"cam_K": _row_major(cam.intrinsics),
+                                        "depth_scale": float(cam.depth_scale) * 1000,
+                                        "cam_R_w2c": _row_major(w2c[:3, :3]),
+                                        "cam_t_w2c": _row_major(w2c[:3, 3] * 1000)}
                 gts = []
                 for i in range(n):
                     rot, t = model_to_camera(pose_to_matrix(poses[s, i]), cam.extrinsics)

@@ -94,7 +94,8 @@ def parse_board(where: str, spec) -> Board:
                         f"a name and legacy true/false; give {hint}")
     squares = tuple(squares)
     square, marker = float(spec["square_length"]), float(spec["marker_length"])
-    offset = tuple(float(v) for v in spec["offset"])
+    ox, oy, oz = (float(v) for v in spec["offset"])  # 3 numbers: checked above
+    offset = (ox, oy, oz)
     if not 2 <= min(squares) <= max(squares) <= MAX_SQUARES:
         raise UserError(f"{where}: board squares must be [columns, rows], each 2..{MAX_SQUARES}; give {hint}")
     if not 0 < marker < square < 0.5:

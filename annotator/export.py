@@ -3,9 +3,9 @@
 From the capture's front camera: colour, depth and world points at the benchmark's image size (IMAGE_SHAPE,
 `stored_camera`), and the TSDF of its full-resolution depth image; from the poses and
 meshes: amodal `mask_3d` (voxel centres inside each mesh's solid, `dsr_bench.render.SceneRenderer.amodal_mask`),
-`scene_flow_3d` and `scene_flow_2d` (`dsr_bench.geometry.groundtruth`), the heightmap of the posed meshes, the front view's
-visible instance mask (rendered ids where the measured depth agrees) and visible fractions. Actions and pushes
-come from the capture. Attributes carry "source": "annotated" and an "annotation" record: annotator and state
+`scene_flow_3d` and `scene_flow_2d` (`dsr_bench.geometry.groundtruth`), the heightmap of the posed meshes, the
+front view's visible instance mask (rendered ids where the measured depth agrees) and visible fractions. Actions and
+pushes come from the capture. Attributes carry "source": "annotated" and an "annotation" record: annotator and state
 versions, capture name and provenance, per-step/object status and fit scores, user action counts.
 """
 
@@ -55,9 +55,9 @@ def renderer_for(capture, cameras: dict):
 def stored_camera(camera, shape: tuple[int, int]):
     """The camera of the stored 2D data (H', W') = `shape` and the full-resolution pixel each stored pixel takes.
 
-    Focal lengths and principal point scale by W'/W and H'/H (`dsr_bench.geometry.resized_camera`), so stored pixel (u', v') looks along the ray of
-    full-resolution pixel (u' W / W', v' H / H') (exactly for integer ratios, e.g. 480 x 640 -> 240 x 320; to the
-    nearest pixel otherwise). Returns (Camera, rows (H',) int, cols (W',) int).
+    Focal lengths and principal point scale by W'/W and H'/H (`dsr_bench.geometry.resized_camera`), so stored
+    pixel (u', v') looks along the ray of full-resolution pixel (u' W / W', v' H / H') (exactly for integer ratios,
+    e.g. 480 x 640 -> 240 x 320; to the nearest pixel otherwise). Returns (Camera, rows (H',) int, cols (W',) int).
     """
     from dsr_bench.geometry import resized_camera
 

@@ -153,4 +153,4 @@ def resize_image(image: np.ndarray, width: int, height: int) -> np.ndarray:
 
     if image.shape[:2] == (height, width):
         return np.asarray(image, np.uint8)
-    return np.asarray(Image.fromarray(np.asarray(image, np.uint8)).resize((width, height), Image.BILINEAR))
+    return np.asarray(Image.fromarray(np.asarray(image, np.uint8)).resize((width, height), Image.Resampling.BILINEAR))

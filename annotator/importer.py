@@ -104,11 +104,11 @@ def find_steps(src: Path, cameras: list[str]) -> tuple[list[int], dict[tuple[str
             raise UserError(f"{src}: {entry.name} names camera {m['camera']!r}, which the rig file does not list; name "
                             f"the images {' or '.join(CAMERA_NAMES)}_<color|depth>_<N>.png as the rig's cameras")
         step = int(m["step"])
-        if (*key, step) in files:
-            raise UserError(f"{src}: {files[(*key, step)].name} and {entry.name} are both step {step}; keep one")
+        if key + (step,) in files:
+            raise UserError(f"{src}: {files[key + (step,)].name} and {entry.name} are both step {step}; keep one")
         resolved_inside(src, entry, "image", src)
         found[key].add(step)
-        files[(*key, step)] = entry
+        files[key + (step,)] = entry
     steps = sorted(set().union(*found.values()))
     if len(steps) < 2:
         raise UserError(f"{src}: found {len(steps)} steps of <camera>_color_<N>.png / <camera>_depth_<N>.png images "
@@ -233,7 +233,7 @@ def import_png_folder(src: str | Path, out: str | Path, *, rig: str | Path | Non
     steps, files = find_steps(src, names)
     actions, pushes_world = read_pushes(default_file(src, pushes, PUSHES_FILE, "the push log"), len(steps) - 1)
 
-    maps = {n: undistort_maps(cameras[n], distortion[n]) for n in names if distortion[n] is not None}
+    maps = {n: undistort_maps(cameras[n], d) for n, d in distortion.items() if d is not None}  # names' order
 
     def load(camera: str, kind: str, path: Path) -> np.ndarray:
         image = read_image(path, cameras[camera], kind)

@@ -66,7 +66,8 @@ def resolved_inside(src: Path, path: Path, field: str, where) -> Path:
     try:
         real = path.resolve()
     except (OSError, RuntimeError) as exc:  # a link loop
-        raise UserError(f"{where}: {field} {str(path)!r} cannot be resolved ({exc}); copy the file into {src}") from None
+        raise UserError(f"{where}: {field} {str(path)!r} cannot be resolved ({exc}); copy the file into "
+                        f"{src}") from None
     if not real.is_relative_to(src.resolve()):
         shown = str(path.relative_to(src)) if path.is_relative_to(src) else str(path)
         raise UserError(f"{where}: {field} {shown!r} leads outside {src} (a link to {real}); copy the file into {src} "

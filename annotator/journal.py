@@ -148,8 +148,9 @@ def _journal_lines(path: Path, d: dict, state_sha256: str, generation: int) -> t
 def read_saved(work_dir: str | Path, capture=None, digest: str | None = None) -> Saved:
     """The annotation state saved in a work directory: state.json with its journal's records replayed (see `Saved`
     and the module docstring). `capture`: the `Capture` it must belong to (name, steps x objects, digest), checked
-    when given; `digest`: its `capture_digest` when already computed. Raises StateError (or a JSON / OS error) when state.json is unreadable, UserError (one line naming
-    the file and the fix) when it belongs to another capture or the journal is not its own or is malformed."""
+    when given; `digest`: its `capture_digest` when already computed. Raises StateError (or a JSON / OS error)
+    when state.json is unreadable, UserError (one line naming the file and the fix) when it belongs to another
+    capture or the journal is not its own or is malformed."""
     work = Path(work_dir)
     state_path = work / STATE_FILE
     check_file(state_path, "state")

@@ -70,7 +70,7 @@ class Binding(NamedTuple):
 
     label: str
     method: str | None
-    action: Callable[["Controller"], Any]
+    action: Callable[..., Any]  # (controller) or, for a nudge, (controller, count=n)
     group: str
 
 
@@ -256,7 +256,8 @@ MAX_REPEAT = 5
 MAX_LAG = 0.5
 
 
-class KeyAction(NamedTuple):
+@dataclass(frozen=True)
+class KeyAction:
     """What the window does with pending keys: press `key` standing for `count` presses (> 1: a merged nudge)."""
 
     key: str
@@ -319,7 +320,8 @@ def coalesce(events: Sequence[tuple[str, float]], frames: Sequence[float], max_r
              max_lag: float = MAX_LAG) -> list[tuple[float, KeyAction]]:
     """What a window does with key events: (key, time) events and the times its frames start (both ascending) ->
     (frame time, action) in order; each frame drains the events received before it (`KeyCoalescer`)."""
-    keys, out, k = KeyCoalescer(max_repeat, max_lag), [], 0
+    keys, k = KeyCoalescer(max_repeat, max_lag), 0
+    out: list[tuple[float, KeyAction]] = []
     for frame in frames:
         while k < len(events) and events[k][1] <= frame:
             keys.push(*events[k])

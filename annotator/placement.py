@@ -56,11 +56,11 @@ def _object_index(path: Path, session, key: str) -> int:
         return names.index(key)
     if key.isdigit() and 1 <= int(key) <= session.num_objects:
         return int(key) - 1
-    raise _fail(path, f"object {key!r} is not in capture {session.capture.name!r}: use its number 1..{session.num_objects} "
-                      f"or its name ({', '.join(names)})")
+    raise _fail(path, f"object {key!r} is not in capture {session.capture.name!r}: use its number "
+                      f"1..{session.num_objects} or its name ({', '.join(names)})")
 
 
-def read_placements(path: str | Path, session) -> dict[int, tuple[str, object]]:
+def read_placements(path: str | Path, session) -> dict[int, tuple[str, np.ndarray | tuple[np.ndarray, np.ndarray]]]:
     """The placements of a file: {object index: ("pose", 4x4) or ("picks", (mesh (k, 3), cloud (k, 3)))}."""
     path = Path(path)
     try:
@@ -72,7 +72,7 @@ def read_placements(path: str | Path, session) -> dict[int, tuple[str, object]]:
     objects = data.get("objects") if isinstance(data, dict) else None
     if not isinstance(objects, dict) or not objects:
         raise _fail(path, 'expected {"objects": {"1": 4x4 pose or {"mesh": ..., "cloud": ...}, ...}}')
-    out: dict[int, tuple[str, object]] = {}
+    out: dict[int, tuple[str, np.ndarray | tuple[np.ndarray, np.ndarray]]] = {}
     for key, value in objects.items():
         obj = _object_index(path, session, str(key))
         where = f"object {key!r}"

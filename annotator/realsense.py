@@ -106,14 +106,14 @@ def pick_frames(recording: Recording, times: np.ndarray, max_gap_s: float, where
     def what(i: int) -> str:
         return f"step {i}" if label == "step" else f"the {label}"
 
-    for i in np.nonzero(gap > max_gap_s)[0]:
+    for i in np.nonzero(gap > max_gap_s)[0].tolist():
         raise UserError(f"{where}: {what(i)} time {times[i]:.3f} s has no {recording.name} colour frame within "
                         f"{max_gap_s * 1000:g} ms (nearest {c_st[color[i]]:.3f} s, {gap[i] * 1000:.0f} ms away; its "
                         f"colour frames span {c_st[0]:.3f}..{c_st[-1]:.3f} s in {recording.path.name}): give times on "
                         "the frames' header-stamp clock, or raise --max-gap-ms")
     depth = _nearest(d_st, c_st[color])
     dgap = np.abs(d_st[depth] - c_st[color])
-    for i in np.nonzero(dgap > max_gap_s)[0]:
+    for i in np.nonzero(dgap > max_gap_s)[0].tolist():
         raise UserError(f"{where}: the {recording.name} colour frame of {what(i)} ({c_st[color[i]]:.3f} s) has no "
                         f"depth frame within {max_gap_s * 1000:g} ms (nearest {dgap[i] * 1000:.0f} ms away in "
                         f"{recording.path.name}): record depth and colour together, or raise --max-gap-ms")

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import cast
 
 import numpy as np
 
@@ -60,7 +61,7 @@ def read_objects(path: Path, src: Path, entries) -> list[tuple[str, np.ndarray, 
         if not mesh_path.is_file():
             raise rig_error(path, f"object {i + 1} mesh {entry['mesh']!r} not found under {src}")
         try:
-            mesh = trimesh.load(mesh_path, force="mesh", process=False)
+            mesh = cast("trimesh.Trimesh", trimesh.load(mesh_path, force="mesh", process=False))  # force="mesh"
             vertices, faces = np.asarray(mesh.vertices, np.float64), np.asarray(mesh.faces, np.int64)
         except Exception as exc:  # trimesh raises many types for corrupt files
             raise rig_error(path, f"object {i + 1} mesh {entry['mesh']!r} is unreadable ({exc})") from None

@@ -270,8 +270,8 @@ class Session:
     def _require_pose(self, obj: int, step: int) -> np.ndarray:
         pose = self.state.pose(step, obj)
         if pose is None:
-            raise UserError(f"object {obj + 1} has no pose at step {step} yet: initialise it first (pick 3+ point pairs, "
-                            "or take the previous step's pose)")
+            raise UserError(f"object {obj + 1} has no pose at step {step} yet: initialise it first (pick 3+ point "
+                            "pairs, or take the previous step's pose)")
         return pose
 
     # scoring ----------------------------------------------------------------------------------------------------------
@@ -492,8 +492,9 @@ class Session:
 
     def _recarry_plan(self, obj: int, step: int) -> list[tuple[int, int]]:
         """(step, source) to re-carry, in step order: see `stale_steps`."""
-        if self.is_stale(obj, step):
-            step = self.carried_from(obj, step)[0]
+        source = self.carried_from(obj, step) if self.is_stale(obj, step) else None
+        if source is not None:  # stale: carried, from a source that has changed since
+            step = source[0]
         chain, affected, plan = {step}, set(), []
         for t in range(step + 1, self.num_steps + 1):
             rec = self.carried_from(obj, t)
@@ -647,7 +648,7 @@ class Session:
         for along in np.arange(0.0, reach + 1e-9, SEARCH_STEP):
             for lateral in SEARCH_LATERAL:
                 for yaw in SEARCH_YAWS:
-                    rz = align.rotvec_to_matrix([0.0, 0.0, yaw])
+                    rz = align.rotvec_to_matrix(np.array([0.0, 0.0, yaw]))
                     cand = np.eye(4)
                     cand[:3, :3] = rz @ start[:3, :3]
                     shift = np.zeros(3)
@@ -710,7 +711,7 @@ class Session:
         xy = (cells + 0.5) * SEARCH_STEP
         starts, penalties = [], []
         for yaw in SEARCH_YAWS:
-            rot = align.rotvec_to_matrix([0.0, 0.0, yaw]) @ start[:3, :3]
+            rot = align.rotvec_to_matrix(np.array([0.0, 0.0, yaw])) @ start[:3, :3]
             for x, y in xy:
                 cand = np.eye(4)
                 cand[:3, :3] = rot

@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, TypeGuard
 
 import numpy as np
 
@@ -122,7 +122,7 @@ def _clean_carried(carried) -> dict | None:
     return {"step": int(carried["step"]), "pose": pose}
 
 
-def _is_int(value) -> bool:
+def _is_int(value) -> TypeGuard[int]:
     return isinstance(value, int) and not isinstance(value, bool)
 
 
@@ -209,8 +209,9 @@ class AnnotationState:
     def entry(self, step: int, obj: int) -> Entry:
         pose = self.poses[step, obj]
         carried = self.carried[step][obj]
+        score = self.scores[step][obj]
         return Entry(None if np.isnan(pose).any() else [float(x) for x in pose], str(self.status[step, obj]),
-                     None if self.scores[step][obj] is None else dict(self.scores[step][obj]),
+                     None if score is None else dict(score),
                      None if carried is None else {"step": carried["step"], "pose": list(carried["pose"])})
 
     def _set(self, step: int, obj: int, entry: Entry) -> None:

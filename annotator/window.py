@@ -302,6 +302,7 @@ class AnnotatorWindow:
 
     def panel_screenshot(self) -> np.ndarray:
         """The panel window's current image (H, W, 3) uint8."""
+        assert self.panel_vis is not None, "the panel window is open"
         img = np.asarray(self.panel_vis.capture_screen_float_buffer(do_render=True))
         return np.round(np.clip(img, 0, 1) * 255).astype(np.uint8)
 
