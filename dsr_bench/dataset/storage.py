@@ -182,9 +182,12 @@ def _inflate_chunk(ds: h5py.Dataset, offset: tuple[int, ...], nbytes: int) -> np
     return unshuffle_bytes(data, ds.dtype.itemsize) if ds.shuffle else data
 
 
-def _inflated_step(ds: h5py.Dataset, t: int, tile: tuple[int, ...]) -> np.ndarray | None:
+def _inflated_step(ds: h5py.Dataset, t: int, tile: tuple[int, ...],
+                   columns: np.ndarray | None = None) -> np.ndarray | None:
     """Step t, inflated from its raw chunks, or None where h5py must read it. A step in one chunk comes back
-    read-only (no copy); a tiled step is assembled in zeros from its written tiles."""
+    read-only (no copy); a tiled step is assembled in zeros from its written tiles. `columns` (bool, the step's
+    shape but its last axis, all False), for tiles spanning that axis: set True where a written tile's Z column
+    holds a non-zero byte (a tile never written is all zero)."""
     step_shape = tuple(ds.shape[1:])
     itemsize = ds.dtype.itemsize
     if tile == step_shape:
@@ -195,11 +198,15 @@ def _inflated_step(ds: h5py.Dataset, t: int, tile: tuple[int, ...]) -> np.ndarra
     for corner in itertools.product(*(range(0, s, c) for s, c in zip(step_shape, tile))):
         offset = (t,) + corner
         if ds.id.get_chunk_info_by_coord(offset).byte_offset is None:
-            continue  # never written: the fill value, 0
+            continue  # never written: the fill value, 0 (`_chunk_layout` admits fill value 0 only)
         data = _inflate_chunk(ds, offset, nbytes)
         if data is None:
             return None
-        out[tuple(slice(o, o + c) for o, c in zip(corner, tile))] = data.view(ds.dtype).reshape(tile)
+        block = data.view(ds.dtype).reshape(tile)
+        where = tuple(slice(o, o + c) for o, c in zip(corner, tile))
+        out[where] = block
+        if columns is not None:
+            columns[where[:-1]] = nonzero_rows(block.reshape(-1, tile[-1])).reshape(tile[:-1])
     return out
 
 
@@ -256,23 +263,11 @@ def read_step_and_columns(ds: h5py.Dataset, t: int) -> tuple[np.ndarray, np.ndar
     step_shape = tuple(ds.shape[1:])
     tile = _chunk_layout(ds)
     if tile is not None and tile != step_shape and tile[-1] == step_shape[-1] and 0 <= t < ds.shape[0]:
-        out = np.zeros(step_shape, dtype=ds.dtype)
         columns = np.zeros(step_shape[:-1], dtype=bool)
-        nbytes = int(np.prod(tile)) * ds.dtype.itemsize
-        for corner in itertools.product(*(range(0, s, c) for s, c in zip(step_shape, tile))):
-            offset = (t,) + corner
-            if ds.id.get_chunk_info_by_coord(offset).byte_offset is None:
-                continue  # never written: the fill value, 0 (`_chunk_layout` admits fill value 0 only)
-            data = _inflate_chunk(ds, offset, nbytes)
-            if data is None:
-                break  # HDF5 must decode it: the plain path below
-            block = data.view(ds.dtype).reshape(tile)
-            where = tuple(slice(o, o + c) for o, c in zip(corner, tile))
-            out[where] = block
-            columns[where[:-1]] = nonzero_rows(block.reshape(-1, tile[-1])).reshape(tile[:-1])
-        else:
+        out = _inflated_step(ds, t, tile, columns)
+        if out is not None:
             return out, columns
-    step = read_step(ds, t)
+    step = read_step(ds, t)  # HDF5 decodes it: every column looked at
     return step, nonzero_rows(np.ascontiguousarray(step).reshape(-1, step_shape[-1])).reshape(step_shape[:-1])
 
 
