@@ -27,6 +27,7 @@ import json
 import math
 import re
 
+from dsr_bench.scoring.evaluate import _mean as aggregate_mean, checksum_of, expected_scored_checksum
 from dsr_bench.scoring.metrics import METRICS, OBJECT_IOUS, metric_keys
 
 RESULTS_FORMAT = "dsr-bench-results"
@@ -102,8 +103,6 @@ def _same(a, b) -> bool:
 def step_mean(values: list) -> float:
     """`dsr_bench.scoring.evaluate._mean` of a per-step list (null read as NaN): the very computation `aggregate`
     made."""
-    from dsr_bench.scoring.evaluate import _mean as aggregate_mean
-
     return aggregate_mean([float("nan") if v is None else v for v in values])
 
 
@@ -198,8 +197,7 @@ def _check_fields(r: dict) -> list[str]:
                                                             for v in sha.values()):
             p.append("predictions_sha256 is not an object of SHA-256s")
         else:
-            digest = hashlib.sha256("".join(f"{name}:{sha[name]}\n" for name in sorted(sha)).encode()).hexdigest()
-            if digest != r.get("predictions_checksum"):
+            if checksum_of(sha) != r.get("predictions_checksum"):
                 p.append("predictions_checksum is not the checksum of predictions_sha256")
             if isinstance(r.get("per_sequence"), dict) and set(sha) != set(r["per_sequence"]):
                 p.append("predictions_sha256 and per_sequence name different sequences")
@@ -347,8 +345,6 @@ def _check_split(r: dict) -> list[str]:
     if names and isinstance(seqs, dict) and set(seqs) != set(names):
         p.append(f"per_sequence names sequences that are not those of {split}")
     if names and isinstance(r.get("ground_truth_sha256"), str) and isinstance(r.get("metrics"), dict):
-        from dsr_bench.scoring.evaluate import expected_scored_checksum
-
         want = expected_scored_checksum(split, r["metrics"], sorted(names))
         if want is not None and r["ground_truth_sha256"] != want:
             p.append(f"ground_truth_sha256 is not that of the pinned {split}'s ground truth (the scored digests "

@@ -76,8 +76,8 @@ def pin_warning(manifest: dict, split: str, data_dir: str | Path | None = None) 
             "to see which sequences differ")
 
 
-#: what a 2D-only prediction is scored against, and where
-GT_2D, GT_MASK_2D = FRONT_FLOW_2D, FRONT_MASK
+#: what a 2D-only prediction is scored against (at the front camera's mask, FRONT_MASK)
+GT_2D = FRONT_FLOW_2D
 
 
 def require_predictions_dir(pred_dir: str | Path) -> Path:
@@ -191,7 +191,7 @@ def _partial_2d_warning(scored: Mapping[str, dict]) -> list[str]:
 
 def _truth_2d(gt, t: int, digests) -> tuple[np.ndarray, np.ndarray]:
     """The front camera's 2D flow and mask at step t, fed to the scored digests as they are read."""
-    mask = gt.read(GT_MASK_2D, t)
+    mask = gt.read(FRONT_MASK, t)
     flow = gt.read(GT_2D, t)
     digests.mask_2d_step(t, mask)
     digests.flow_2d_step(t, flow, mask)
@@ -307,11 +307,6 @@ def checksum_of(files: Mapping[str, str]) -> str:
     return h.hexdigest()
 
 
-def predictions_checksum(pred_dir: Path, names: list[str]) -> str:
-    """SHA-256 over the sorted prediction files' names and SHA-256s."""
-    return checksum_of({name: file_sha256(pred_dir / f"{name}.h5") for name in names})
-
-
 def scored_fields(metrics: Mapping[str, float]) -> tuple[str, ...]:
     """The scored ground-truth inputs (`dsr_bench.dataset.scored`) behind a results' metrics: the 3D ones for the
     3D metrics, the 2D ones where the 2D flow is scored; what `ground_truth_sha256` covers."""
@@ -340,14 +335,6 @@ def scored_checksum(truth: Mapping[str, Mapping[str, str]]) -> str:
     for name in sorted(truth):
         h.update(f"{name}:{json.dumps(dict(truth[name]), sort_keys=True)}\n".encode())
     return h.hexdigest()
-
-
-def _pinned(manifest: dict, split: str) -> bool:
-    """Whether `split` is a named split pinned in this toolkit and the dataset matches the pin."""
-    from dsr_bench.dataset.splits import SPLITS
-
-    spec = SPLITS.get(split)
-    return spec is not None and spec.expected_digest is not None and pin_warning(manifest, split) is None
 
 
 def evaluate(pred_dir: str | Path, data_dir: str | Path, split: str | None = None, allow_partial: bool = False,
@@ -389,7 +376,8 @@ def evaluate(pred_dir: str | Path, data_dir: str | Path, split: str | None = Non
     results = {
         "format": RESULTS_FORMAT, "version": 1, "method": meta.get("name", pred_dir.name), "meta": meta,
         "split": split, "split_checksum": split_digest(manifest, split),
-        "pinned": warning is None and verified and _pinned(manifest, split),
+        # verified: a named split pinned here, scored inputs equal to the pin; no warning: its manifest matches too
+        "pinned": warning is None and verified,
         "ground_truth_verified": verified,
         "ground_truth_sha256": scored_checksum({name: {f: d[f] for f in fields if f in d}
                                                 for name, d in truth.items()}),
