@@ -45,7 +45,8 @@ def is_ground_truth(name: str) -> bool:
     return field is not None and field.group == GROUND_TRUTH
 
 
-def _le_contiguous(a: np.ndarray) -> np.ndarray:
+def le_contiguous(a: np.ndarray) -> np.ndarray:
+    """`a` as a C-contiguous little-endian array (no copy where it is one already)."""
     a = np.asarray(a)
     return np.ascontiguousarray(a.astype(a.dtype.newbyteorder("<"), copy=False))
 
@@ -62,7 +63,7 @@ class ArrayHasher:
         self._h = hashlib.sha256(f"{name}|{np.dtype(dtype).newbyteorder('<').str}|{tuple(shape)}|".encode())
 
     def update(self, part: np.ndarray) -> None:
-        self._h.update(_raw(_le_contiguous(part)))
+        self._h.update(_raw(le_contiguous(part)))
 
     def hexdigest(self) -> str:
         return self._h.hexdigest()
@@ -70,7 +71,7 @@ class ArrayHasher:
 
 def array_digest(name: str, array: np.ndarray) -> str:
     """SHA-256 of one named array: name, little-endian dtype, shape, then its C-order bytes."""
-    a = _le_contiguous(array)
+    a = le_contiguous(array)
     hasher = ArrayHasher(name, a.dtype, a.shape)
     hasher.update(a)
     return hasher.hexdigest()

@@ -33,6 +33,7 @@ from typing import cast
 import numpy as np
 
 from dsr_bench.constants import TSDF_SURFACE_LOW
+from dsr_bench.dataset.digests import le_contiguous
 
 #: what a pin's `scored` entry holds, in this order
 SCORED_FIELDS = ("objects", "mask_3d", "tsdf", "scene_flow_3d", "visible_fraction", "mask_2d", "scene_flow_2d")
@@ -41,13 +42,13 @@ DIGEST_HEX = 32
 FRONT_MASK, FRONT_FLOW_2D = "cameras/front/mask", "cameras/front/scene_flow_2d"
 
 
-def _le(a: np.ndarray) -> np.ndarray:
-    a = np.asarray(a)
-    return np.ascontiguousarray(a.astype(a.dtype.newbyteorder("<"), copy=False))
-
-
 def _bytes(a: np.ndarray):
-    return _le(a).reshape(-1).view(np.uint8)
+    return le_contiguous(a).reshape(-1).view(np.uint8)
+
+
+def _dtype(a: np.ndarray) -> str:
+    """The little-endian dtype string of an array's values, as hashed (`'<f4'`, `'|u1'`)."""
+    return np.asarray(a).dtype.newbyteorder("<").str
 
 
 def nonzero_rows(rows: np.ndarray) -> np.ndarray:
@@ -89,33 +90,33 @@ class ScoredDigests:
 
     def mask_step(self, t: int, mask: np.ndarray, index: np.ndarray) -> None:
         """mask: mask_3d[t] (Y, X, Z); index: the flat indices of its non-zero voxels."""
-        h = self._step("mask_3d", f"{_le(mask).dtype.str}|{mask.shape}|nonzero", t)
+        h = self._step("mask_3d", f"{_dtype(mask)}|{mask.shape}|nonzero", t)
         h.update(_bytes(index.astype(np.int32)))
         h.update(_bytes(mask.reshape(-1)[index]))
 
     def tsdf_step(self, t: int, tsdf: np.ndarray, index: np.ndarray) -> None:
         """tsdf: tsdf[t] (Y, X, Z); index: the flat indices of mask_3d[t]'s non-zero voxels."""
-        h = self._step("tsdf", f"{_le(tsdf).dtype.str}|{tsdf.shape}|band-at-objects|{TSDF_SURFACE_LOW}", t)
+        h = self._step("tsdf", f"{_dtype(tsdf)}|{tsdf.shape}|band-at-objects|{TSDF_SURFACE_LOW}", t)
         h.update(np.packbits(surface_band(tsdf.reshape(-1)[index])).tobytes())
 
     def flow_step(self, t: int, flow: np.ndarray, columns: np.ndarray | None = None) -> None:
         """flow: scene_flow_3d[t] (3, Y, X, Z); columns: which of its Z columns are non-zero, (3, Y, X) bool, when
         the reader knows it already (computed here otherwise)."""
-        h = self._step("scene_flow_3d", f"{_le(flow).dtype.str}|{flow.shape}|nonzero-z-columns", t)
+        h = self._step("scene_flow_3d", f"{_dtype(flow)}|{flow.shape}|nonzero-z-columns", t)
         rows = flow.reshape(-1, flow.shape[-1])
         keep = np.flatnonzero(nonzero_rows(rows) if columns is None else columns.reshape(-1))
         h.update(_bytes(keep.astype(np.int32)))
         h.update(_bytes(rows[keep]))
 
     def visible_fraction(self, values: np.ndarray) -> None:
-        self._start("visible_fraction", f"{_le(values).dtype.str}|{values.shape}|all").update(_bytes(values))
+        self._start("visible_fraction", f"{_dtype(values)}|{values.shape}|all").update(_bytes(values))
 
     def mask_2d_step(self, t: int, mask: np.ndarray) -> None:
-        self._step("mask_2d", f"{_le(mask).dtype.str}|{mask.shape}|all", t).update(_bytes(mask))
+        self._step("mask_2d", f"{_dtype(mask)}|{mask.shape}|all", t).update(_bytes(mask))
 
     def flow_2d_step(self, t: int, flow: np.ndarray, mask: np.ndarray) -> None:
         """flow: scene_flow_2d[t] (H, W, 3); mask: the front camera's mask[t] (H, W)."""
-        h = self._step("scene_flow_2d", f"{_le(flow).dtype.str}|{flow.shape}|at-mask", t)
+        h = self._step("scene_flow_2d", f"{_dtype(flow)}|{flow.shape}|at-mask", t)
         h.update(_bytes(flow[mask > 0]))
 
     def hexdigests(self) -> dict[str, str]:
