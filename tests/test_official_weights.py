@@ -179,8 +179,10 @@ def data(tmp_path_factory):
 
 
 def test_predict_with_the_authors_weights(data, tmp_path, capsys):
-    """`dsr-bench predict --model dsr --weights dsr.pth` on the full grid (one sequence of one push);
-    meta.json records the file, its sha256 and the BatchNorm mode, and the predictions score."""
+    """`dsr-bench predict --model dsr --weights dsr.pth` on the full grid (one sequence of one push): run as
+    the authors ran them (their warp kernel, BatchNorm over batches of 12); meta.json and the results record
+    the file, its sha256, the BatchNorm mode and the warp kernel, and the predictions score. --warp floor
+    --bn-batch 1 depart from it, and say so."""
     from dsr_bench.cli import main
 
     weights = tmp_path / "dsr.pth"
@@ -189,11 +191,20 @@ def test_predict_with_the_authors_weights(data, tmp_path, capsys):
     assert main(["predict", "--model", "dsr", "--weights", str(weights), "--data", str(data), "--out", str(pred)]) == 0
     meta = json.loads((pred / "meta.json").read_text())
     expected = {"source": "official", "file": "dsr.pth", "sha256": hashlib.sha256(weights.read_bytes()).hexdigest(),
-                "batchnorm": "batch statistics (official)"}
+                "batchnorm": "batch statistics over 12 consecutive sequences of the split (the authors' test "
+                             "protocol); the last batch holds the rest",
+                "warp": "official: the authors' kernel (base corner int(p), truncated toward zero)"}
     assert meta["name"] == "dsr" and meta["weights"] == expected and meta["parameters"]["weights"] == expected
+    assert "run as the authors ran them: warp kernel official" in meta["description"]
     assert main(["evaluate", str(pred), "--data", str(data), "--out", str(tmp_path / "r.json")]) == 0
     results = json.loads((tmp_path / "r.json").read_text())
     assert results["meta"]["parameters"]["weights"]["source"] == "official"
+    assert results["meta"]["parameters"]["weights"]["warp"].startswith("official")
+    assert main(["predict", "--model", "dsr", "--weights", str(weights), "--warp", "floor", "--bn-batch", "1",
+                 "--data", str(data), "--out", str(tmp_path / "floor")]) == 0
+    meta = json.loads((tmp_path / "floor" / "meta.json").read_text())
+    assert meta["weights"]["warp"].startswith("floor") and meta["weights"]["batchnorm"] == "batch statistics (official)"
+    assert "departing from the authors' way: warp kernel floor" in meta["description"]
     capsys.readouterr()
 
     def one_line_error(*argv) -> str:
@@ -210,6 +221,11 @@ def test_predict_with_the_authors_weights(data, tmp_path, capsys):
     assert "not both" in one_line_error("--model", "dsr", "--weights", str(weights), "--checkpoint", str(weights))
     assert "not --model static" in one_line_error("--model", "static", "--weights", str(weights))
     assert "weights not found" in one_line_error("--model", "dsr", "--weights", str(tmp_path / "none.pth"))
+    assert "--bn-batch is for the authors' weights" in one_line_error("--model", "dsr", "--bn-batch", "12")
+    assert "sequences per batch must be at least 1" in one_line_error("--model", "dsr", "--weights", str(weights),
+                                                                     "--bn-batch", "0")
+    assert "--warp 'round': choose one of floor, official" in one_line_error("--model", "dsr", "--warp", "round")
+    assert "not --model static" in one_line_error("--model", "static", "--warp", "official")
     ours = tmp_path / "ours.pt"
     torch.save({"format": "dsr-bench-checkpoint", "model": {}, "model_config": {}}, ours)
     assert "pass it with --checkpoint" in one_line_error("--model", "dsr", "--weights", str(ours))

@@ -24,7 +24,13 @@ def predict(
                                               "the CPU-track weights shipped with dsr-bench, docs/models.md)."),
     weights: Optional[Path] = typer.Option(None, "--weights", help="The authors' released weights instead "
                                            "(dsr.pth, dsr_ft.pth, single.pth, nowarp.pth, gtwarp.pth, 3dflow.pth); "
-                                           "BatchNorm then uses batch statistics, as theirs did."),
+                                           "run as the authors ran them: their warp kernel, BatchNorm over "
+                                           "batches of 12 sequences (docs/models.md)."),
+    warp: Optional[str] = typer.Option(None, "--warp", help="The history warp's kernel: official (the authors', "
+                                       "the default with --weights) or floor (ours, the default otherwise)."),
+    bn_batch: Optional[int] = typer.Option(None, "--bn-batch", help="With --weights: sequences run "
+                                           "together, BatchNorm normalising over them (default 12, the authors' "
+                                           "test protocol; 1: each sequence alone)."),
     device: str = typer.Option("cpu", "--device", help="cpu or cuda (learned models)."),
 ) -> None:
     """Run a model over a split and write the predictions contract (one .h5 per sequence + meta.json, which
@@ -37,7 +43,7 @@ def predict(
     from dsr_bench.scoring.predictions import record_source
 
     check_writable(out)  # before the model is loaded and run
-    predictor = load_predictor(model, checkpoint, device, weights=weights)
+    predictor = load_predictor(model, checkpoint, device, weights=weights, warp=warp, bn_batch=bn_batch)
     split, names = read_split(data, split)
     with Progress(transient=True) as bar:
         task = bar.add_task(f"predict {model}", total=len(names))

@@ -20,11 +20,16 @@ Motion is in voxels along (D0, D1, D2) = (dy, dx, dz).
 `batchnorm_statistics(net, batch)` sets which statistics BatchNorm normalises with outside
 training: the running averages (eval mode) or each batch's own (the official code's evaluation),
 the latter without touching the stored running statistics.
+
+The history warp's kernel (`warp.WARP_KERNELS`) is `net.warp_kernel`: `warp.FLOOR` (ours) unless set
+with `net.set_warp_kernel(warp.OFFICIAL)`, as the loader of the authors' checkpoints does. It is a
+property of how a network is run, not of its weights, and is not saved in dsr-bench checkpoints.
 """
 
 from __future__ import annotations
 
 import contextlib
+import functools
 from collections.abc import Iterator
 from typing import cast
 
@@ -34,7 +39,7 @@ from torch.nn import functional as F
 
 from dsr_bench.models.config import ModelConfig
 from dsr_bench.models.se3 import blended_motion, euler_to_matrix, soft_centroids
-from dsr_bench.models.warp import forward_warp
+from dsr_bench.models.warp import FLOOR, check_kernel, forward_warp
 
 
 def batchnorm_layers(net: nn.Module) -> list[nn.modules.batchnorm._BatchNorm]:
@@ -236,7 +241,9 @@ class DSRNet(nn.Module):
         super().__init__()
         self.config = config
         self.channels_last = False  # feed the encoder channels_last_3d inputs (set with the weights' format)
-        self._warp = forward_warp  # compile_warp() swaps in a compiled one
+        self.warp_kernel = FLOOR  # the history warp's kernel: set_warp_kernel()
+        self._warp_compiled = False
+        self._warp = forward_warp  # (features, flow, weight, eps, deterministic) -> warped; compile_warp() compiles it
         c = config.state_channels
         self.encoder = VolumeEncoder(1 + 3 + c, config.leaky_slope, config.width)
         self.decoder = FeatureDecoder(c, config.leaky_slope, config.width)
@@ -337,9 +344,22 @@ class DSRNet(nn.Module):
             return self._warp(rep, gt_flow.float(), foreground, self.config.warp_eps, deterministic)
         return self._warp(rep, outputs["motion"].detach().float(), foreground, self.config.warp_eps, deterministic)
 
+    def set_warp_kernel(self, kernel: str) -> DSRNet:
+        """Warp the history with `kernel` (`warp.FLOOR`, ours, or `warp.OFFICIAL`, the authors' truncating
+        kernel) from now on; ValueError for another name. Keeps a compiled warp compiled."""
+        self.warp_kernel = check_kernel(kernel)
+        self._warp = self._warp_function()
+        return self
+
     def compile_warp(self) -> DSRNet:
         """Run the history warp through torch.compile (fused index arithmetic and atomic adds) when the
         network is on a GPU; on a CPU the eager warp stays (inductor's CPU backend rejects its scatter)."""
         if self.coords.device.type == "cuda":
-            self._warp = torch.compile(forward_warp, dynamic=False)
+            self._warp_compiled = True
+            self._warp = self._warp_function()
         return self
+
+    def _warp_function(self):
+        """forward_warp with this network's kernel, compiled if compile_warp() asked for it."""
+        warp = forward_warp if self.warp_kernel == FLOOR else functools.partial(forward_warp, kernel=self.warp_kernel)
+        return torch.compile(warp, dynamic=False) if self._warp_compiled else warp

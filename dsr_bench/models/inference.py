@@ -1,8 +1,15 @@
-"""Running a trained model over sequences: the predictor behind `dsr-bench predict --model dsr|...`."""
+"""Running a trained model over sequences: the predictor behind `dsr-bench predict --model dsr|...`.
+
+A predictor runs one sequence at a time, or `bn_batch` independent sequences of a split side by side
+(`predict_sequences`): the authors' test protocol (their test.py) runs their weights on batches of 12
+consecutive sequences of the split with BatchNorm normalising over the batch at every step, so one
+sequence's predictions depend on the other 11 (`load_official_predictor`, OFFICIAL_BN_BATCH).
+"""
 
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import cast
 
@@ -17,9 +24,50 @@ from dsr_bench.models.config import ModelConfig
 from dsr_bench.models.dsr_net import DSRNet, batchnorm_statistics
 from dsr_bench.models.labels import slot_labels
 from dsr_bench.models.training.checkpoints import read_weights, torch_device
+from dsr_bench.models.warp import FLOOR, OFFICIAL, check_kernel
 
 #: What each model is, in one line (predictions' meta.json, the leaderboard): `dsr_bench.models.registry`.
 _DESCRIPTIONS = {name: entry.description for name, entry in registry.MODELS.items()}
+#: The authors' test protocol: sequences per batch, BatchNorm normalising over the batch (their test.py's default)
+OFFICIAL_BN_BATCH = 12
+#: The warp kernels in words, for the predictions' meta.json (`warp.WARP_KERNELS`)
+KERNEL_WORDS = {FLOOR: "floor: ours (base corner floor(p), weights in [0, 1])",
+                OFFICIAL: "official: the authors' kernel (base corner int(p), truncated toward zero)"}
+NO_WARP = "none (this model does not warp its history)"
+
+
+@dataclass(frozen=True)
+class _Inputs:
+    """One sequence for `ModelPredictor._predict`: its steps, TSDF shape (T, Y, X, Z), the TSDF of a step,
+    the actions (T, 3), the ground truth (flow, mask) of a step (read by gtwarp only), and its name."""
+
+    steps: int
+    tsdf_shape: tuple
+    tsdf_at: Callable[[int], np.ndarray]
+    read_actions: Callable[[], np.ndarray]
+    ground_truth: Callable[[int], tuple[np.ndarray, np.ndarray]]
+    source: str
+
+
+def batchnorm_words(official_bn: bool, bn_batch: int = 1) -> str:
+    """How BatchNorm normalised, for the predictions' meta.json."""
+    if not official_bn:
+        return "running statistics (eval)"
+    if bn_batch == 1:
+        return "batch statistics (official)"
+    protocol = " (the authors' test protocol)" if bn_batch == OFFICIAL_BN_BATCH else ""
+    return (f"batch statistics over {bn_batch} consecutive sequences of the split{protocol}; "
+            "the last batch holds the rest")
+
+
+def warp_name(model: DSRNet) -> str:
+    """The kernel that warps the model's history (`warp.WARP_KERNELS`), or "none" for a model that does not warp."""
+    return model.warp_kernel if model.config.history in ("warp", "gtwarp") else "none"
+
+
+def warp_words(model: DSRNet) -> str:
+    """Which kernel warps the model's history, in words, for the predictions' meta.json."""
+    return KERNEL_WORDS.get(warp_name(model), NO_WARP)
 
 
 class ModelPredictor:
@@ -29,14 +77,21 @@ class ModelPredictor:
     channels (background, the last, -> 0; object slot k -> k + 1); motion: fp32 voxels (dy, dx, dz).
 
     BatchNorm normalises with its running statistics (eval mode), or with `official_bn` with each
-    step's own statistics (batch 1: the sample's), as the official code evaluates; either way the
-    model's running statistics are left as they are (`dsr_net.batchnorm_statistics`)."""
+    step's own statistics, as the official code evaluates: over the sequences run together, `bn_batch`
+    of them (`predict_sequences`; `predict_split` groups a split's sequences so). Either way the model's
+    running statistics are left as they are (`dsr_net.batchnorm_statistics`). The history is warped with
+    the model's `warp_kernel`."""
 
-    #: where the weights came from (source, file, sha256, BatchNorm mode), set by the loaders
+    #: where the weights came from (source, file, sha256, BatchNorm mode, warp kernel), set by the loaders
     weights: dict[str, str]
 
-    def __init__(self, model: DSRNet, device: torch.device, official_bn: bool = False, bf16: bool = False):
+    def __init__(self, model: DSRNet, device: torch.device, official_bn: bool = False, bf16: bool = False,
+                 bn_batch: int = 1):
+        if bn_batch < 1:
+            raise UserError(f"--bn-batch {bn_batch}: sequences per batch must be at least 1")
         self.model, self.device, self.bf16, self.official_bn = model, device, bf16, official_bn
+        #: sequences run side by side by `predict_split` (BatchNorm's batch when official_bn)
+        self.bn_batch = bn_batch
         config = model.config
         self.name = config.name if config.voxel_factor == 1 else f"{config.name}-cpu"
         self.num_slots = config.num_slots - 1
@@ -51,103 +106,139 @@ class ModelPredictor:
         and "motion_2d" (T, H, W, 3) float32 metres (dy, dx, dz) when it has `cameras/front/points` and the
         predictions are on the benchmark's grid: the predicted flow read at each pixel's world point over the
         predicted object voxels (`geometry.projection.flow_at_points`), as the paper scores DSR-Net in 2D."""
+        return self.predict_sequences([seq])[0]
+
+    def predict_sequences(self, seqs: list[SequenceReader]) -> list[dict[str, np.ndarray]]:
+        """`predict_sequence` of several independent sequences run side by side as one batch: with
+        official_bn, BatchNorm normalises over them at every step (the authors' test protocol). A sequence
+        with fewer steps than the others leaves the batch after its last step."""
         from dsr_bench.geometry.projection import flow_at_points
 
-        steps = seq.num_steps
-        tsdf_shape = tuple(seq.dataset("tsdf").shape)
+        def inputs(seq: SequenceReader) -> _Inputs:
+            steps = seq.num_steps
+            return _Inputs(steps, tuple(seq.dataset("tsdf").shape), lambda t: seq.read("tsdf", t),
+                           lambda: np.asarray(seq.read("action"))[:steps],
+                           lambda t: (seq.read("scene_flow_3d", t), seq.read("mask_3d", t)), str(seq.path))
 
-        def ground_truth(t: int) -> tuple[np.ndarray, np.ndarray]:
-            return seq.read("scene_flow_3d", t), seq.read("mask_3d", t)
-
-        out = self._predict(steps, tsdf_shape, lambda t: seq.read("tsdf", t),
-                            lambda: np.asarray(seq.read("action"))[:steps], ground_truth, seq.path)
-        if "cameras/front/points" in seq and out["mask"].shape[1:] == GRID_SHAPE:
-            out["motion_2d"] = np.stack([flow_at_points(out["motion"][t], out["mask"][t],
-                                                        seq.read("cameras/front/points", t)) for t in range(steps)])
-        return out
+        outs = self._predict([inputs(seq) for seq in seqs])
+        for seq, out in zip(seqs, outs):
+            if "cameras/front/points" in seq and out["mask"].shape[1:] == GRID_SHAPE:
+                out["motion_2d"] = np.stack([flow_at_points(out["motion"][t], out["mask"][t],
+                                                            seq.read("cameras/front/points", t))
+                                             for t in range(seq.num_steps)])
+        return outs
 
     def predict_arrays(self, tsdf: np.ndarray, actions: np.ndarray, flow: np.ndarray | None = None,
                        mask: np.ndarray | None = None, source: str = "arrays") -> dict[str, np.ndarray]:
         """The same for a sequence held in memory: tsdf (T, Y, X, Z), actions (T, 3); the ground-truth
         flow (T, 3, Y, X, Z) and mask (T, Y, X, Z) are read only by the gtwarp oracle."""
-        steps = len(actions)
-        tsdf_shape = tuple(np.shape(tsdf))
+        return self.predict_arrays_batch([(tsdf, actions, flow, mask)], source)[0]
 
-        def ground_truth(t: int) -> tuple[np.ndarray, np.ndarray]:
-            if flow is None or mask is None:
-                raise ValueError("gtwarp needs the ground-truth flow and mask (flow=, mask=)")
-            return flow[t], mask[t]
+    def predict_arrays_batch(self, sequences: list[tuple], source: str = "arrays") -> list[dict[str, np.ndarray]]:
+        """`predict_arrays` of several sequences, each (tsdf, actions[, flow, mask]), run side by side as one
+        batch (`predict_sequences`)."""
+        def inputs(i: int, tsdf, actions, flow=None, mask=None) -> _Inputs:
+            def ground_truth(t: int) -> tuple[np.ndarray, np.ndarray]:
+                if flow is None or mask is None:
+                    raise ValueError("gtwarp needs the ground-truth flow and mask (flow=, mask=)")
+                return flow[t], mask[t]
 
-        return self._predict(steps, tsdf_shape, lambda t: tsdf[t], lambda: np.asarray(actions), ground_truth, source)
+            name = source if len(sequences) == 1 else f"{source}[{i}]"
+            return _Inputs(len(actions), tuple(np.shape(tsdf)), lambda t: tsdf[t], lambda: np.asarray(actions),
+                           ground_truth, name)
+
+        return self._predict([inputs(i, *seq) for i, seq in enumerate(sequences)])
 
     @torch.no_grad()
-    def _predict(self, steps: int, tsdf_shape: tuple, tsdf_at: Callable[[int], np.ndarray],
-                 read_actions: Callable[[], np.ndarray], ground_truth: Callable[[int], tuple[np.ndarray, np.ndarray]],
-                 source) -> dict[str, np.ndarray]:
-        """The steps in order: tsdf_at(t) and ground_truth(t) (flow, mask) read one step at a time.
-        A CPU-track model (`voxel_factor` > 1) sees them pooled (`models.coarse`) and its predictions are
-        brought back to the benchmark's grid."""
+    def _predict(self, sequences: list[_Inputs]) -> list[dict[str, np.ndarray]]:
+        """The sequences' steps in order, as one batch: tsdf_at(t) and ground_truth(t) (flow, mask) read one
+        step at a time. At step t the batch holds the sequences with more than t steps (a shorter one leaves
+        it). A CPU-track model (`voxel_factor` > 1) sees the volumes pooled (`models.coarse`) and its
+        predictions are brought back to the benchmark's grid."""
         from dsr_bench.models import coarse
         from dsr_bench.models.data import action_map, check_actions
 
         config = self.model.config
         grid, factor = tuple(config.grid), config.voxel_factor
         data_grid = grid if factor == 1 else GRID_SHAPE
-        if tsdf_shape[1:] != data_grid or tsdf_shape[0] < steps:
-            raise UserError(f"{source}: tsdf {tsdf_shape} does not fit the model's grid {data_grid}")
-        actions = read_actions()
-        if len(actions) != steps:
-            raise UserError(f"{source}: {len(actions)} actions for {steps} pushes; "
-                            "check it with `dsr-bench validate`")
-        actions = check_actions(actions, data_grid[:2], source)
-        maps = action_map(actions if factor == 1 else coarse.coarse_action(actions, factor), grid[:2])
-        masks = np.zeros((steps,) + data_grid, dtype=np.uint8)
-        motions = np.zeros((steps, 3) + data_grid, dtype=np.float32)
-        state = self.model.initial_state(1, self.device)
-        for t in range(steps):
-            volume = np.asarray(tsdf_at(t), dtype=np.float32)
-            volume = volume if factor == 1 else coarse.pool_tsdf(volume, factor)
-            tsdf = torch.from_numpy(volume).unsqueeze(0).to(self.device)
+        maps, masks, motions = [], [], []
+        for seq in sequences:
+            if seq.tsdf_shape[1:] != data_grid or seq.tsdf_shape[0] < seq.steps:
+                raise UserError(f"{seq.source}: tsdf {seq.tsdf_shape} does not fit the model's grid {data_grid}")
+            actions = seq.read_actions()
+            if len(actions) != seq.steps:
+                raise UserError(f"{seq.source}: {len(actions)} actions for {seq.steps} pushes; "
+                                "check it with `dsr-bench validate`")
+            actions = check_actions(actions, data_grid[:2], seq.source)
+            maps.append(action_map(actions if factor == 1 else coarse.coarse_action(actions, factor), grid[:2]))
+            masks.append(np.zeros((seq.steps,) + data_grid, dtype=np.uint8))
+            motions.append(np.zeros((seq.steps, 3) + data_grid, dtype=np.float32))
+        active = [i for i, seq in enumerate(sequences) if seq.steps > 0]
+        state = self.model.initial_state(len(active), self.device)
+        t = 0
+        while active:
+            volumes = [np.asarray(sequences[i].tsdf_at(t), dtype=np.float32) for i in active]
+            tsdf = torch.from_numpy(np.stack([v if factor == 1 else coarse.pool_tsdf(v, factor) for v in volumes]))
+            action = torch.stack([maps[i][t] for i in active]).to(self.device)
             with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=self.bf16), \
                     batchnorm_statistics(self.model, batch=self.official_bn):
                 try:
-                    out = self.model(tsdf, maps[t: t + 1].to(self.device), state)
+                    out = self.model(tsdf.to(self.device), action, state)
                 except ValueError as exc:  # batch statistics of a single value (a small grid at batch 1)
                     if self.official_bn and "more than 1 value per channel" in str(exc):
-                        raise UserError(f"official BatchNorm (batch statistics) at batch 1 needs more than one "
-                                        f"value per channel, and the grid {grid} leaves one voxel in the SE(3) "
-                                        "head; predict with BatchNorm in eval mode") from None
+                        raise UserError(f"official BatchNorm (batch statistics) at batch {len(active)} needs more "
+                                        f"than one value per channel, and the grid {grid} leaves one voxel in the "
+                                        "SE(3) head; predict with BatchNorm in eval mode or more sequences per "
+                                        "batch") from None
                     raise
-            mask, motion = slot_labels(out["mask"])[0].cpu().numpy(), out["motion"][0].float().cpu().numpy()
-            masks[t] = mask if factor == 1 else coarse.unpool_mask(mask, factor)
-            motions[t] = motion if factor == 1 else coarse.unpool_motion(motion, factor)
-            gt_flow = gt_mask = None
-            if config.history == "gtwarp" and t + 1 < steps:
-                flow, mask = ground_truth(t)
-                if factor != 1:
-                    flow, mask = coarse.pool_flow(flow, mask, factor), coarse.pool_labels(mask, factor)
-                gt_flow = torch.from_numpy(np.asarray(flow, np.float32)).unsqueeze(0).to(self.device)
-                gt_mask = torch.from_numpy(np.asarray(mask, np.int64)).unsqueeze(0).to(self.device)
-            if t + 1 < steps:
+            labels, motion = slot_labels(out["mask"]).cpu().numpy(), out["motion"].float().cpu().numpy()
+            for row, i in enumerate(active):
+                masks[i][t] = labels[row] if factor == 1 else coarse.unpool_mask(labels[row], factor)
+                motions[i][t] = motion[row] if factor == 1 else coarse.unpool_motion(motion[row], factor)
+            going = [row for row, i in enumerate(active) if t + 1 < sequences[i].steps]
+            if going:
+                if len(going) < len(active):  # a sequence ended: its row leaves the batch
+                    index = torch.tensor(going, device=self.device)
+                    out = {key: value.index_select(0, index) for key, value in out.items()}
+                gt_flow = gt_mask = None
+                if config.history == "gtwarp":
+                    flows, gt_masks = [], []
+                    for row in going:
+                        flow, mask = sequences[active[row]].ground_truth(t)
+                        if factor != 1:
+                            flow, mask = coarse.pool_flow(flow, mask, factor), coarse.pool_labels(mask, factor)
+                        flows.append(np.asarray(flow, np.float32))
+                        gt_masks.append(np.asarray(mask, np.int64))
+                    gt_flow = torch.from_numpy(np.stack(flows)).to(self.device)
+                    gt_mask = torch.from_numpy(np.stack(gt_masks)).to(self.device)
                 state = self.model.next_state(out, gt_flow, gt_mask)
-        return {"mask": masks, "motion": motions}
+            active = [active[row] for row in going]
+            t += 1
+        return [{"mask": mask, "motion": motion} for mask, motion in zip(masks, motions)]
 
 
 def load_predictor(model: str, checkpoint: Path, device: str = "cpu", official_bn: bool = False,
-                   bf16: bool = False) -> ModelPredictor:
+                   bf16: bool = False, warp: str = FLOOR) -> ModelPredictor:
     """A predictor from a dsr-bench weights file of a 3D-track model (any role and version of the one weights
-    format, `training.checkpoints`: a run's last.pt, a CPU-track weights file, the shipped weights)."""
+    format, `training.checkpoints`: a run's last.pt, a CPU-track weights file, the shipped weights). Our models
+    warp with `warp.FLOOR`, the kernel they were trained with; `warp` overrides it."""
     dev = torch_device(device)
     net = cast(DSRNet, read_weights(Path(checkpoint), dev, kind=registry.VOXEL, model=model).network(dev))  # VOXEL
+    net.set_warp_kernel(check_kernel(warp))
     return ModelPredictor(net, dev, official_bn, bf16)
 
 
 def load_official_predictor(model: str, weights: Path, device: str = "cpu", official_bn: bool = True,
-                            bf16: bool = False) -> ModelPredictor:
+                            bf16: bool = False, warp: str = OFFICIAL,
+                            bn_batch: int = OFFICIAL_BN_BATCH) -> ModelPredictor:
     """A predictor from the authors' released weights (dsr.pth, dsr_ft.pth, single.pth, nowarp.pth,
-    gtwarp.pth, 3dflow.pth; `dsr_bench.models.official_weights`) on the official 128 x 128 x 48 grid.
-    official_bn=True (the default here): BatchNorm with batch statistics, as the authors trained and ran
-    them. The predictor's `weights` records the file (source, name, sha256, BatchNorm mode)."""
+    gtwarp.pth, 3dflow.pth; `dsr_bench.models.official_weights`) on the official 128 x 128 x 48 grid, run
+    as the authors ran them by default: the history warped with their kernel (`warp.OFFICIAL`, which they
+    were trained with) and their test protocol, BatchNorm with batch statistics (official_bn=True) over
+    `bn_batch` = 12 consecutive sequences of a split (`predict_split`; the last batch holds the rest, as
+    their unshuffled DataLoader's last batch does). `warp=warp.FLOOR`, `bn_batch=1` or official_bn=False
+    (running statistics) depart from it. The predictor's `weights` records the file (source, name,
+    sha256), the BatchNorm mode and the warp kernel, and its description says the same."""
     from dsr_bench.dataset.manifest import file_sha256
     from dsr_bench.models.official_weights import check_release_name, convert_official_state, read_official_file
 
@@ -157,7 +248,13 @@ def load_official_predictor(model: str, weights: Path, device: str = "cpu", offi
     check_release_name(weights, model)
     net = DSRNet(ModelConfig.for_model(model))
     net.load_state_dict(state)  # strict: the converter returns exactly our keys, shapes checked
-    predictor = ModelPredictor(net.to(dev), dev, official_bn, bf16)
+    net.set_warp_kernel(check_kernel(warp))
+    predictor = ModelPredictor(net.to(dev), dev, official_bn, bf16, bn_batch if official_bn else 1)
     predictor.weights = {"source": "official", "file": weights.name, "sha256": file_sha256(weights),
-                         "batchnorm": "batch statistics (official)" if official_bn else "running statistics (eval)"}
+                         "batchnorm": batchnorm_words(official_bn, predictor.bn_batch), "warp": warp_words(net)}
+    warps = warp_name(net)
+    faithful = warps != FLOOR and official_bn and predictor.bn_batch == OFFICIAL_BN_BATCH
+    predictor.description += (f"; the authors' released weights ({weights.name}), "
+                              + ("run as the authors ran them" if faithful else "run departing from the authors' way")
+                              + f": warp kernel {warps}, BatchNorm {predictor.weights['batchnorm']}")
     return predictor

@@ -26,6 +26,11 @@ Every official tensor has a counterpart. One of ours has none: the official 3DFl
 and ours keeps one so the baseline fills the predictions' masks. Converting 3dflow.pth sets our mask
 head to predict background everywhere (weights 0, biases 0 but the background's, `FILLED_MASK_BIAS`):
 its masks are empty, and its mask scores mean nothing.
+
+Converted weights are run as the authors ran them by `inference.load_official_predictor` (`predict
+--weights`): the history warped with their kernel (`warp.OFFICIAL`, base corner truncated toward zero,
+which they were trained with), BatchNorm with statistics over batches of 12 sequences (their test
+protocol); `--warp floor` and `--bn-batch 1` depart from it, and the predictions' meta.json says which.
 """
 
 from __future__ import annotations

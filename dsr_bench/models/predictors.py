@@ -123,34 +123,55 @@ def shipped_weights(model: str) -> Path | None:
 
 
 def load_predictor(model: str, checkpoint: Path | None = None, device: str = "cpu", weights: Path | None = None,
-                   official_bn: bool | None = None) -> Predictor:
+                   official_bn: bool | None = None, warp: str | None = None, bn_batch: int | None = None) -> Predictor:
     """The predictor `model` (an entry of `dsr_bench.models.registry`, whose kind chooses the loader): a learned
     model needs a dsr-bench `checkpoint` or the authors' released `weights` (dsr.pth ... 3dflow.pth). official_bn:
     BatchNorm with batch statistics (the official code's way) or running statistics (eval); None: batch statistics
-    for the authors' weights, eval mode for a dsr-bench checkpoint."""
+    for the authors' weights, eval mode for a dsr-bench checkpoint. warp: the history warp's kernel
+    (`warp.WARP_KERNELS`); None: the authors' ("official") for their weights, ours ("floor") for a dsr-bench
+    checkpoint. bn_batch: sequences normalised together with the authors' weights; None: their test protocol's
+    12 (`inference.OFFICIAL_BN_BATCH`)."""
     entry = registry.model_entry(model)
     if weights is not None and not entry.released:
         raise UserError(f"--weights is for the authors' released models ({', '.join(registry.released())}), "
                         f"not --model {model}")
-    return _LOADERS[entry.kind](entry, checkpoint, device, weights, official_bn)
+    if entry.kind != registry.VOXEL and (warp is not None or bn_batch is not None):
+        raise UserError(f"--warp and --bn-batch are for the 3D track's learned models "
+                        f"({', '.join(registry.names(registry.VOXEL))}), not --model {model}")
+    if warp is not None:
+        from dsr_bench.models.warp import WARP_KERNELS  # (torch: a voxel model's loader needs it anyway)
+
+        if warp not in WARP_KERNELS:
+            raise UserError(f"--warp {warp!r}: choose one of {', '.join(WARP_KERNELS)}")
+    if bn_batch is not None and weights is None:
+        raise UserError("--bn-batch is for the authors' weights (--weights), which normalise BatchNorm over a batch; "
+                        "a dsr-bench checkpoint runs BatchNorm with its running statistics")
+    if bn_batch is not None and bn_batch < 1:
+        raise UserError(f"--bn-batch {bn_batch}: sequences per batch must be at least 1 (12: the authors' protocol)")
+    return _LOADERS[entry.kind](entry, checkpoint, device, weights, official_bn, warp, bn_batch)
 
 
 def _load_reference(entry: registry.ModelEntry, checkpoint: Path | None, device: str, weights: Path | None,
-                    official_bn: bool | None) -> Predictor:
+                    official_bn: bool | None, warp: str | None, bn_batch: int | None) -> Predictor:
     """A reference predictor (no weights; a --checkpoint is not read)."""
     return entry.make_predictor()
 
 
 def _load_voxel(entry: registry.ModelEntry, checkpoint: Path | None, device: str, weights: Path | None,
-                official_bn: bool | None) -> Predictor:
-    """A 3D-track model from the authors' `weights`, a dsr-bench `checkpoint`, or the shipped CPU-track weights."""
+                official_bn: bool | None, warp: str | None, bn_batch: int | None) -> Predictor:
+    """A 3D-track model from the authors' `weights` (their warp kernel and test protocol unless told otherwise),
+    a dsr-bench `checkpoint`, or the shipped CPU-track weights (our warp kernel, running statistics)."""
     model = entry.name
     if checkpoint is not None and weights is not None:
         raise UserError("pass either --checkpoint (a dsr-bench checkpoint) or --weights (the authors' file), not both")
-    if weights is not None:
-        from dsr_bench.models.inference import load_official_predictor
+    from dsr_bench.models.warp import FLOOR, OFFICIAL
 
-        return load_official_predictor(model, Path(weights), device, True if official_bn is None else official_bn)
+    if weights is not None:
+        from dsr_bench.models.inference import OFFICIAL_BN_BATCH, load_official_predictor
+
+        return load_official_predictor(model, Path(weights), device, True if official_bn is None else official_bn,
+                                       warp=OFFICIAL if warp is None else warp,
+                                       bn_batch=OFFICIAL_BN_BATCH if bn_batch is None else bn_batch)
     shipped = checkpoint is None
     if checkpoint is None:
         checkpoint = shipped_weights(model)
@@ -160,19 +181,19 @@ def _load_voxel(entry: registry.ModelEntry, checkpoint: Path | None, device: str
     if not Path(checkpoint).is_file():
         raise UserError(f"checkpoint not found: {checkpoint}")
     from dsr_bench.dataset.manifest import file_sha256
+    from dsr_bench.models.inference import batchnorm_words, warp_words
     from dsr_bench.models.inference import load_predictor as load_learned
 
-    predictor = (load_learned(model, Path(checkpoint), device) if official_bn is None
-                 else load_learned(model, Path(checkpoint), device, official_bn))
+    predictor = load_learned(model, Path(checkpoint), device, bool(official_bn), warp=FLOOR if warp is None else warp)
     predictor.weights = {"source": "dsr-bench, shipped CPU-track weights" if shipped else "dsr-bench",
                          "file": Path(checkpoint).name,
                          "sha256": file_sha256(checkpoint),
-                         "batchnorm": "batch statistics (official)" if official_bn else "running statistics (eval)"}
+                         "batchnorm": batchnorm_words(bool(official_bn)), "warp": warp_words(predictor.model)}
     return predictor
 
 
 def _load_image(entry: registry.ModelEntry, checkpoint: Path | None, device: str, weights: Path | None,
-                official_bn: bool | None) -> Predictor:
+                official_bn: bool | None, warp: str | None, bn_batch: int | None) -> Predictor:
     """A 2D-track predictor from `checkpoint`, or from the shipped CPU-track weights."""
     from dsr_bench.dataset.manifest import file_sha256
     from dsr_bench.models.image_inference import load_image_predictor
@@ -196,7 +217,10 @@ _LOADERS = {registry.REFERENCE: _load_reference, registry.VOXEL: _load_voxel, re
 
 def predict_split(predictor: Predictor, data_dir: str | Path, names: list[str], out: str | Path,
                   progress=None) -> list[Path]:
-    """Run a predictor over sequences and write one predictions file each, plus meta.json."""
+    """Run a predictor over sequences and write one predictions file each, plus meta.json. A predictor with
+    `bn_batch` > 1 (the authors' weights under their test protocol) runs `names` in consecutive groups of that
+    many (`predict_sequences`: BatchNorm over the group; the last group holds the rest)."""
+    import contextlib
     import json
     import os
     import time
@@ -206,17 +230,22 @@ def predict_split(predictor: Predictor, data_dir: str | Path, names: list[str], 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     written, seconds, steps = [], 0.0, 0
-    for name in names:
-        with SequenceReader(Path(data_dir) / f"{name}.h5") as seq:
+    group = max(1, int(getattr(predictor, "bn_batch", 1)))
+    for first in range(0, len(names), group):
+        chunk = names[first: first + group]
+        with contextlib.ExitStack() as stack:
+            seqs = [stack.enter_context(SequenceReader(Path(data_dir) / f"{name}.h5")) for name in chunk]
             start = time.perf_counter()
-            pred = predictor.predict_sequence(seq)
+            preds = (predictor.predict_sequences(seqs) if group > 1  # type: ignore[attr-defined]
+                     else [predictor.predict_sequence(seqs[0])])
             seconds += time.perf_counter() - start
-            steps += seq.num_steps
-        three_d = "mask" in pred  # a 2D-track model's predictions hold motion_2d only
-        written.append(write_predictions(out / f"{name}.h5", pred.get("mask"), pred.get("motion"),
-                                         predictor.num_slots if three_d else None, pred.get("motion_2d")))
-        if progress:
-            progress()
+            steps += sum(seq.num_steps for seq in seqs)
+        for name, pred in zip(chunk, preds):
+            three_d = "mask" in pred  # a 2D-track model's predictions hold motion_2d only
+            written.append(write_predictions(out / f"{name}.h5", pred.get("mask"), pred.get("motion"),
+                                             predictor.num_slots if three_d else None, pred.get("motion_2d")))
+            if progress:
+                progress()
     meta: dict[str, Any] = {"name": predictor.name,
             "description": (getattr(predictor, "description", None)
                             or (type(predictor).__doc__ or "").strip().splitlines()[0]),

@@ -1,13 +1,24 @@
-"""Forward warping of a feature volume by a flow field: a differentiable trilinear splat.
+"""Forward warping of a feature volume by a flow field: a differentiable trilinear splat, in two kernels.
 
-Each source voxel i with features f_i moves to p_i = x_i + flow_i and splats onto the 8 voxels
-around floor(p_i) with weights m_i * prod_axes(1 - |p_i - corner|) (m_i: the source's foreground
-probability); the output at voxel j is sum_i w_ij f_i / max(sum_i w_ij, eps). Floor, not
-truncation, so negative positions land correctly (the official CUDA kernel truncates); corners
-outside the grid are dropped. Pure PyTorch (CPU and GPU), differentiable in features, flow and
-weights. Computes in fp32 (fp64 when the features or the flow are fp64). `deterministic=True`
-accumulates with index_put_(accumulate=True) under torch's deterministic algorithms (sort-based on
-CUDA), so repeated runs give identical bits; the default index_add_ uses atomics on CUDA.
+Each source voxel i with features f_i moves to p_i = x_i + flow_i (per axis) and splats onto the 8
+corners base_i + d, d in {0, 1}^3, with weights m_i * prod_axes(w_d) (m_i: the source's foreground
+probability), w_0 = base + 1 - p and w_1 = p - base; corners outside the grid are dropped, and the
+output at voxel j is sum_i w_ij f_i / max(sum_i w_ij, eps). The kernels differ only in the base corner:
+
+- `FLOOR` ("floor", ours, the default): base = floor(p), so every weight is in [0, 1] and negative
+  positions land correctly (p = -0.25 puts 0.75 on voxel 0 and drops voxel -1).
+- `OFFICIAL` ("official"): base = trunc(p), C's int() toward zero, as the authors' CUDA kernel does; it
+  equals `FLOOR` for p >= 0 and is bit for bit the same there. For -1 < p < 0 the base is 0: voxel 0
+  gets 1 - p > 1 and voxel 1 gets p < 0 (a negative weight); for -2 < p <= -1 the base is -1, so only
+  voxel 0 is in the grid, with weight p + 1 <= 0; for p <= -2 nothing lands. A voxel whose summed
+  weight is negative or below eps is divided by eps. The authors' checkpoints were trained and tested
+  with it, and `inference.load_official_predictor` (`predict --weights`) runs them with it; our own
+  models keep `FLOOR` (`DSRNet.set_warp_kernel` chooses).
+
+Pure PyTorch (CPU and GPU), differentiable in features, flow and weights (both kernels). Computes in
+fp32 (fp64 when the features or the flow are fp64). `deterministic=True` accumulates with
+index_put_(accumulate=True) under torch's deterministic algorithms (sort-based on CUDA), so repeated
+runs give identical bits; the default index_add_ uses atomics on CUDA.
 """
 
 from __future__ import annotations
@@ -16,12 +27,26 @@ import torch
 
 _CORNERS = [(a, b, c) for a in (0, 1) for b in (0, 1) for c in (0, 1)]
 
+#: The warp kernels, named here only: ours (base corner floor(p)) and the authors' (trunc(p)); module docstring.
+FLOOR = "floor"
+OFFICIAL = "official"
+WARP_KERNELS = (FLOOR, OFFICIAL)
+
+
+def check_kernel(kernel: str) -> str:
+    """`kernel` if it is one of WARP_KERNELS, else ValueError naming the choices."""
+    if kernel not in WARP_KERNELS:
+        raise ValueError(f"warp kernel {kernel!r}: choose one of {', '.join(WARP_KERNELS)}")
+    return kernel
+
 
 def forward_warp(features: torch.Tensor, flow: torch.Tensor, weight: torch.Tensor, eps: float = 1e-3,
-                 deterministic: bool = False) -> torch.Tensor:
+                 deterministic: bool = False, kernel: str = FLOOR) -> torch.Tensor:
     """Warp features (B, C, D0, D1, D2) by flow (B, 3, D0, D1, D2) in voxels (components along the
     three volume axes) with per-voxel weights (B, D0, D1, D2); returns (B, C, D0, D1, D2) in the
-    computation dtype (fp32, or fp64 for fp64 inputs)."""
+    computation dtype (fp32, or fp64 for fp64 inputs). kernel: FLOOR (ours) or OFFICIAL (the
+    authors' truncating kernel), see the module docstring."""
+    check_kernel(kernel)
     b, c, *dims = features.shape
     if flow.shape != (b, 3, *dims) or weight.shape != (b, *dims):
         raise ValueError(f"forward_warp: features {tuple(features.shape)}, flow {tuple(flow.shape)} and weight "
@@ -32,8 +57,8 @@ def forward_warp(features: torch.Tensor, flow: torch.Tensor, weight: torch.Tenso
     axes = [torch.arange(d, device=device, dtype=dtype) for d in dims]
     grid = torch.stack(torch.meshgrid(*axes, indexing="ij")).reshape(1, 3, n)
     target = grid + flow.to(dtype).reshape(b, 3, n)  # (B, 3, N)
-    base = torch.floor(target)
-    frac = target - base
+    base = torch.floor(target) if kernel == FLOOR else torch.trunc(target)
+    frac = target - base  # exact; FLOOR: in [0, 1); OFFICIAL: in (-1, 1), negative where p < 0
     base = base.long()
     # one row per source voxel: [w * features..., w]; rows of all samples stacked (B * N, C + 1)
     values = torch.cat([features.to(dtype).reshape(b, c, n), torch.ones(b, 1, n, device=device, dtype=dtype)], 1)
@@ -51,7 +76,7 @@ def forward_warp(features: torch.Tensor, flow: torch.Tensor, weight: torch.Tenso
         w = w_src * inside
         for axis in range(3):
             f = frac[:, axis].reshape(b * n)
-            w = w * (f if corner[axis] else 1 - f)
+            w = w * (f if corner[axis] else 1 - f)  # p - base and base + 1 - p (negative for OFFICIAL, p < 0)
         flat = ((idx[0] * dims[1] + idx[1]) * dims[2] + idx[2] + sample_offset).reshape(b * n)
         contrib = values * w.unsqueeze(1)
         if deterministic:
