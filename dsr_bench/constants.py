@@ -42,12 +42,11 @@ NUM_DIRECTIONS: int = 8
 PUSH_APPROACH_HEIGHT: float = 0.15
 PUSH_HEIGHT: float = 0.005
 PUSH_LENGTH: float = 0.15
-#: The simulated pusher: the official generator's thin stick, a cylinder (m).
+#: The simulated pusher: the official generator's thin stick, a cylinder (m). The arm carries its lower
+#: end 2.5 mm above the tool tip it commands to PUSH_HEIGHT, and ends the push phase about 14.6 cm along
+#: the commanded PUSH_LENGTH (generators/arm.py).
 PUSHER_RADIUS: float = 0.003
-PUSHER_LENGTH: float = 0.10
-#: How far the tool actually travels along a push (m): the official arm stops about 2.4 cm short of
-#: the nominal PUSH_LENGTH in every sequence (its joint-space path), and the simulated tool follows it.
-PUSH_TRAVEL: float = 0.126
+PUSHER_LENGTH: float = 0.14
 #: The real rig's pusher: a cylinder tool (m), for the annotator's contact checks.
 RIG_PUSHER_RADIUS: float = 0.01
 #: Start-point search of the official code (m, pixels, count).

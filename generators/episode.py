@@ -20,12 +20,11 @@ from dsr_bench.constants import (
     MIN_LARGE_SEPARATION,
     MIN_OBJECT_SEPARATION,
     MIN_VISIBLE_FRACTION,
-    PUSH_TRAVEL,
     TSDF_IMAGE_SHAPE,
     WORKSPACE_CENTER,
 )
 from dsr_bench.dataset.schema import sequence_header
-from dsr_bench.geometry import direction_vector, pose_to_matrix, transform_points, world_to_pixel
+from dsr_bench.geometry import pose_to_matrix, transform_points, world_to_pixel
 from dsr_bench.geometry.groundtruth import rigid_scene_flow_2d, rigid_scene_flow_3d
 
 MAX_SCENE_ATTEMPTS = 30
@@ -165,7 +164,7 @@ def generate_episode(config: EpisodeConfig, object_set, seed: int, name: str) ->
                 if decision is None:
                     raise SceneRejected(f"no valid push at step {t}")
                 t0, c0 = time.perf_counter(), time.process_time()
-                start, end = world.push(decision.start_xy, direction_vector(decision.direction), PUSH_TRAVEL)
+                start, end = world.push(decision.start_xy, decision.direction)
                 after = world.poses()
                 timings["physics"] += time.perf_counter() - t0
                 timings["physics_cpu"] += time.process_time() - c0

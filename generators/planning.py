@@ -138,12 +138,8 @@ class SimEnvironment:
 
         self.close()
         objects = task_objects(task)
-        self.world, self.renderer = PushWorld(objects), create_renderer(objects)
-        for i, pose in enumerate(task.arrays["start/object_poses"]):
-            self.world.set_pose(i, pose)
-        # contacts without moving anything: pybullet's restoreState does not clear contact manifolds that a saved
-        # state lacks, so a state saved before any contact exists would not restore the same world twice
-        self.world._pb.performCollisionDetection(physicsClientId=self.world.client)
+        self.world = PushWorld(objects, poses=task.arrays["start/object_poses"])
+        self.renderer = create_renderer(objects)
         return self._observe()
 
     def _observe(self):
@@ -154,19 +150,15 @@ class SimEnvironment:
         return WorldState(tsdf=obs.tsdf, mask_3d=obs.mask_3d, object_poses=poses, color=obs.images["front"].color)
 
     def _push(self, action) -> None:
-        from dsr_bench.constants import PUSH_TRAVEL
-        from dsr_bench.geometry import direction_vector, pixel_to_world
+        from dsr_bench.geometry import pixel_to_world
 
         d, row, col = (int(x) for x in action)
-        self.world.push(pixel_to_world(np.array([row, col])), direction_vector(d), PUSH_TRAVEL)
+        self.world.push(pixel_to_world(np.array([row, col])), d)
 
     def step(self, action):
-        """Execute the push from the current state saved and restored (as `simulate` runs each candidate, so the
-        executed push is the oracle's prediction of it, bit for bit), and observe."""
-        pb, client = self.world._pb, self.world.client
-        saved = pb.saveState(physicsClientId=client)
-        pb.restoreState(stateId=saved, physicsClientId=client)
-        pb.removeState(saved, physicsClientId=client)
+        """Execute the push and observe. A push starts from a world built afresh at the objects' rest poses
+        (`PushWorld.push`), as in the generator and in `simulate`: the executed push is the one that made the task's
+        target when it is the reference's, and the oracle's prediction of it, bit for bit."""
         self._push(action)
         return self._observe()
 
@@ -174,17 +166,17 @@ class SimEnvironment:
         return self.renderer.amodal_mask(self.world.poses())
 
     def simulate(self, actions: np.ndarray) -> np.ndarray:
-        pb, client = self.world._pb, self.world.client
-        saved = pb.saveState(physicsClientId=client)
+        """The true next amodal masks (A, Y, X, Z) of pushes (A, 3), each from the current rest poses; the world is
+        put back at them afterwards."""
+        rest = self.world.rest_poses.copy()
         out = []
         try:
             for action in actions:
-                pb.restoreState(stateId=saved, physicsClientId=client)
+                self.world.rest_poses = rest.copy()
                 self._push(action)
                 out.append(self.renderer.amodal_mask(self.world.poses()))
         finally:
-            pb.restoreState(stateId=saved, physicsClientId=client)
-            pb.removeState(saved, physicsClientId=client)
+            self.world.restart(rest)
         return np.stack(out)
 
 

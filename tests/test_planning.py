@@ -245,6 +245,31 @@ def test_oracle_prediction_is_the_executed_push(one_task):
         assert record.costs[k][record.chosen[k]] == record.costs[k].min()
 
 
+def test_replaying_the_reference_pushes_reaches_the_target_exactly(one_task):
+    """The planning world is the generator's: each push starts from a world built afresh at the rest poses
+    (`PushWorld.restart`), so the task's own reference pushes, executed from its start, leave the objects at its
+    target poses bit for bit (and a push of another cell does not)."""
+    from dsr_bench.planning.tasks import read_task
+    from generators.planning import SimEnvironment
+
+    task = read_task(one_task / "task_0000.h5")
+    env = SimEnvironment()
+    try:
+        env.reset(task)
+        for action in task.arrays["reference/action"]:
+            env.step(action)
+        assert np.array_equal(env.world.poses(), task.arrays["target/object_poses"])
+        assert np.array_equal(env.current_mask(), task.target_mask)
+        env.reset(task)
+        first = task.arrays["reference/action"][0]
+        moved = env.simulate(np.array([first, [(first[0] + 4) % 8, first[1], first[2]]]))
+        assert not np.array_equal(moved[0], moved[1])
+        assert np.array_equal(env.world.rest_poses, task.arrays["start/object_poses"])  # simulate puts it back
+        np.testing.assert_allclose(env.world.poses(), task.arrays["start/object_poses"], atol=1e-12)
+    finally:
+        env.close()
+
+
 def test_batched_candidates_match_the_networks_forward_pass():
     torch = pytest.importorskip("torch")
     from dsr_bench.models import coarse

@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from dsr_bench.constants import PUSH_HEIGHT, PUSH_TRAVEL, VOXEL_SIZE
+from dsr_bench.constants import PUSH_HEIGHT, PUSH_LENGTH, VOXEL_SIZE
 from dsr_bench.errors import UserError
 from dsr_bench.geometry import direction_vector, pixel_to_world, voxel_to_world
 
@@ -54,11 +54,11 @@ def cost_colors(costs: np.ndarray) -> np.ndarray:
 
 def push_arrows(actions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Origins and vectors (A, 3) world metres of pushes (A, 3) (d, row, col): from the start cell's centre at
-    PUSH_HEIGHT along the direction for PUSH_TRAVEL."""
+    PUSH_HEIGHT along the direction for the commanded PUSH_LENGTH."""
     a = np.asarray(actions, np.int64).reshape(-1, 3)
     xy = pixel_to_world(a[:, 1:])
     origins = np.column_stack([xy, np.full(len(a), PUSH_HEIGHT)])
-    vectors = np.column_stack([direction_vector(a[:, 0]) * PUSH_TRAVEL, np.zeros(len(a))])
+    vectors = np.column_stack([direction_vector(a[:, 0]) * PUSH_LENGTH, np.zeros(len(a))])
     return origins, vectors
 
 
