@@ -9,7 +9,9 @@ import typer
 
 
 def resolve_capture(capture: str, captures: Path) -> Path:
-    """A capture directory from a name under `captures` or a path (UserError naming both when neither exists)."""
+    """A capture directory from a name under `captures` (`seq_0042`, or its number however padded: `seq_42`,
+    `42`) or a path (`captures/seq_042` the same way). Not found or ambiguous: a UserError naming what exists."""
+    from dsr_bench.dataset.manifest import match_sequence_name, name_ranges
     from dsr_bench.errors import UserError
 
     by_name = Path(captures) / capture
@@ -17,12 +19,23 @@ def resolve_capture(capture: str, captures: Path) -> Path:
         return by_name
     if Path(capture).is_dir():
         return Path(capture)
-    raise UserError(f"capture {capture!r} not found: no directory {by_name} nor {capture}; give a capture name under "
-                    "--captures or a path (make simulated ones with `dsr-bench generate-captures`)")
+    typed = Path(capture)
+    folder = typed.parent if typed.parent != Path(".") else Path(captures)
+    held = sorted(d.name for d in folder.iterdir() if d.is_dir()) if folder.is_dir() else []
+    found = match_sequence_name(typed.name, held, "capture")
+    if found is not None:
+        return folder / found
+    make = f"make simulated ones with `dsr-bench generate-captures --out {folder} -n 5`"
+    if not folder.is_dir():
+        raise UserError(f"capture {capture!r} not found: no directory {folder}; give a capture name under --captures "
+                        f"or a path ({make})")
+    holds = f"it holds {name_ranges(held)}" if held else "it holds no captures"
+    raise UserError(f"capture {capture!r} not found in {folder}: {holds}; give one of them or a path ({make})")
 
 
 def annotate(
-    capture: str = typer.Argument(..., help="A capture name under --captures (seq_0042) or a capture directory."),
+    capture: str = typer.Argument(..., help="A capture name under --captures (seq_0042; seq_42 or 42 "
+                                 "mean it too) or a capture directory."),
     captures: Path = typer.Option(Path("captures"), "--captures", help="Directory holding the captures."),
     work: Optional[Path] = typer.Option(None, "--work", help="Annotation state directory (default CAPTURE/annotation)"),
     status: bool = typer.Option(False, "--status", help="Print the progress table and exit."),

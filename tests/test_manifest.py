@@ -166,6 +166,31 @@ def test_resolve_sequence(data):
         resolve_sequence(None, "seq_0042")
 
 
+def test_a_sequence_number_however_padded_names_the_sequence(data, tmp_path):
+    """`seq_001`, `seq_1`, `1` and `0001` all name seq_0001 (the user's words, not the writer's padding); a number
+    two files share is refused naming both, and a number no file has names what the directory holds."""
+    import shutil
+
+    from dsr_bench.dataset.manifest import match_sequence_name
+
+    for typed in ("seq_0001", "seq_001", "seq_1", "1", "0001", "seq1"):
+        assert resolve_sequence(data, typed) == data / "seq_0001.h5", typed
+    assert resolve_sequence(data, "0") == data / "seq_0000.h5"
+    with pytest.raises(UserError, match=r"no sequence 'seq_42' in .*: it holds seq_0000..seq_0001 \(2 sequences\)"):
+        resolve_sequence(data, "seq_42")
+    both = tmp_path / "both"
+    shutil.copytree(data, both)
+    shutil.copy(both / "seq_0001.h5", both / "seq_01.h5")
+    assert resolve_sequence(both, "seq_01") == both / "seq_01.h5"  # the exact name wins
+    with pytest.raises(UserError, match="^sequence 'seq_1' is ambiguous: seq_0001 and seq_01 both have number 1; "
+                                        "give the full name$"):
+        resolve_sequence(both, "seq_1")
+    assert match_sequence_name("seq_x", ["seq_x", "seq_0000"]) == "seq_x"  # names that are not numbers: exactly
+    assert match_sequence_name("x", ["seq_0000"]) is None and match_sequence_name("seq_", ["seq_0000"]) is None
+    with pytest.raises(UserError, match=r"dataset directory not found: .*mini; .* e\.g\. .*both.* \(the datasets in"):
+        resolve_sequence(tmp_path / "mini", "seq_1")
+
+
 def test_completed_entry_and_common_generator_args(data, tmp_path):
     import shutil
 

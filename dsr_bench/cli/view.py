@@ -9,8 +9,8 @@ import typer
 
 
 def view(
-    sequence: str = typer.Argument(..., help="A sequence name within --data (seq_0042) or a path to a .h5 file "
-                                   "(a sequence, or a plan file of `dsr-bench plan`)."),
+    sequence: str = typer.Argument(..., help="A sequence name within --data (seq_0042; seq_42 or 42 mean it "
+                                   "too) or a path to a .h5 file (a sequence, or a plan file of `dsr-bench plan`)."),
     data: Optional[Path] = typer.Option(None, "--data", help="Dataset directory holding the sequence (with "
                                         "--predictions, default: the one their meta.json names)."),
     predictions: Optional[Path] = typer.Option(

@@ -251,9 +251,39 @@ def name_ranges(names: Iterable[str], limit: int = 6) -> str:
     return ", ".join(shown) or "-"
 
 
+def match_sequence_name(name: str, held: Iterable[str], what: str = "sequence") -> str | None:
+    """The name among `held` that the typed `name` means: itself, else the one sequence of the same number
+    however it is padded (`seq_042`, `seq_42`, `42` -> `seq_0042`); None when none is. Two held names of that
+    number (`seq_42` and `seq_0042`): a UserError naming both. `what` names the thing in that message."""
+    held = list(held)
+    if name in held:
+        return name
+    typed = re.fullmatch(r"(?:seq_?)?(\d+)", name)
+    if typed is None:
+        return None
+    number = int(typed.group(1))
+    same = sorted(h for h in held if (m := re.fullmatch(r"seq_(\d+)", h)) and int(m.group(1)) == number)
+    if len(same) > 1:
+        raise UserError(f"{what} {name!r} is ambiguous: {' and '.join(same)} both have number {number}; give the "
+                        "full name")
+    return same[0] if same else None
+
+
+def _datasets_beside(data_dir: Path) -> str:
+    """', e.g. data/a, data/b (the datasets in data/)' for a dataset directory that does not exist, '' if none."""
+    parent = data_dir.parent
+    if not parent.is_dir():
+        return ""
+    found = sorted(str(d) for d in parent.iterdir() if d.is_dir() and (d / MANIFEST_NAME).is_file())
+    if not found:
+        return ""
+    shown = ", ".join(found[:4]) + (f" and {len(found) - 4} more" if len(found) > 4 else "")
+    return f", e.g. {shown} (the datasets in {parent})"
+
+
 def resolve_sequence(data_dir: str | Path | None, name: str) -> Path:
-    """A sequence file from a name within a dataset (`seq_0042`) or a path to a file. Not found: a UserError
-    that names the sequences the directory holds."""
+    """A sequence file from a name within a dataset (`seq_0042`, or its number however padded: `seq_42`, `42`)
+    or a path to a file. Not found: a UserError that names the sequences the directory holds."""
     candidate = Path(name)
     if candidate.suffix == ".h5" and candidate.is_file():
         return candidate
@@ -262,9 +292,13 @@ def resolve_sequence(data_dir: str | Path | None, name: str) -> Path:
         path = data_dir / f"{candidate.stem}.h5"
         if path.is_file():
             return path
+        if data_dir.is_dir():
+            found = match_sequence_name(candidate.stem, (p.stem for p in data_dir.glob("seq_*.h5")))
+            if found is not None:
+                return data_dir / f"{found}.h5"
         if not data_dir.is_dir():
             raise UserError(f"dataset directory not found: {data_dir}; give --data the directory holding the "
-                            "seq_*.h5 files")
+                            f"seq_*.h5 files{_datasets_beside(data_dir)}")
         held = [p.stem for p in data_dir.glob("seq_*.h5")]
         if not held:
             raise UserError(f"no sequence {name!r} in {data_dir}: it holds no seq_*.h5 files; give --data a dataset "
