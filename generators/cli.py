@@ -34,7 +34,10 @@ def generate(
                                           "with --ray local the CPUs of its Ray, with --slurm those of each task)."),
     shard: Optional[str] = typer.Option(None, "--shard", help="Generate only shard i of n (i/n), e.g. in a SLURM "
                                         "array written by hand (--ray and --slurm shard the run themselves)."),
-    object_root: Optional[Path] = typer.Option(None, "--object-root", help="Mesh root for shapenet / ycb."),
+    object_root: Optional[Path] = typer.Option(None, "--object-root", help="Your copy of the meshes, needed by "
+                                               "shapenet (ShapeNetCore v2, from https://shapenet.org) and ycb (from "
+                                               "https://www.ycbbenchmarks.com/); else $DSR_BENCH_SHAPENET / "
+                                               "$DSR_BENCH_YCB."),
     ray: RayAddress = None,
     slurm: Slurm = False,
     slurm_partition: SlurmPartition = None,

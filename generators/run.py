@@ -100,7 +100,10 @@ def plan_from_arguments(*, objects: str | None = None, num_sequences: int | None
         out = out or Path("data") / split
     else:
         if objects is None or num_sequences is None or out is None:
-            raise UserError("give --objects, --num-sequences and --out (or a named --split)")
+            missing = [flag for flag, value in (("--objects SET", objects), ("--num-sequences N", num_sequences),
+                                                ("--out DIR", out)) if value is None]
+            raise UserError(f"missing {' and '.join(missing)}: give {'it' if len(missing) == 1 else 'them'}, or a "
+                            f"named --split instead{_needs_meshes(objects, object_root)}")
         seed = 0 if seed is None else seed
         steps = DEFAULT_STEPS if steps is None else steps
         objects_per_scene = DEFAULT_OBJECTS_PER_SCENE if objects_per_scene is None else objects_per_scene
@@ -110,6 +113,17 @@ def plan_from_arguments(*, objects: str | None = None, num_sequences: int | None
                            object_root=str(object_root) if object_root else None)
     return RunPlan(config=config, out=Path(out), num_sequences=num_sequences, seed=seed, split=split or "all",
                    shard=parse_shard(shard), workers=workers)
+
+
+def _needs_meshes(objects: str | None, object_root: Path | None) -> str:
+    """'; ShapeNet also needs --object-root ...' when `objects` is a mesh set read from the user's copy and
+    neither --object-root nor its environment variable names one ('' otherwise)."""
+    from generators.objects.external import ENV, SOURCES
+
+    if objects not in ENV or object_root is not None or os.environ.get(ENV[objects]):
+        return ""
+    return (f"; --objects {objects} also needs --object-root PATH (or ${ENV[objects]}), your copy of "
+            f"{SOURCES[objects]}")
 
 
 def check_scene_arguments(num_sequences: int, steps: int, objects_per_scene: int) -> None:

@@ -293,8 +293,26 @@ def test_plan_from_arguments_fills_a_split_or_the_defaults(tmp_path):
     assert plan.config.object_root == str(tmp_path) and plan.config.cameras == ("front",)
     with pytest.raises(UserError, match="--split procedural-mini fixes --seed, --policy"):
         plan_from_arguments(split="procedural-mini", seed=1, policy="random")
-    with pytest.raises(UserError, match="give --objects, --num-sequences and --out"):
+    with pytest.raises(UserError, match="^missing --out DIR: give it, or a named --split instead$"):
         plan_from_arguments(objects="cube", num_sequences=3)
+    with pytest.raises(UserError, match="^missing --objects SET and --out DIR: give them, or a named --split"):
+        plan_from_arguments(num_sequences=3)
+
+
+def test_generate_names_what_is_missing_and_where_shapenet_comes_from(monkeypatch, capsys):
+    """`generate --objects shapenet` alone names the two options it lacks, not the one given, and says at once
+    that ShapeNet needs --object-root and where to get it; with the variable set or the root given it does not."""
+    from dsr_bench.cli import main
+
+    monkeypatch.delenv("DSR_BENCH_SHAPENET", raising=False)
+    assert main(["generate", "--objects", "shapenet"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: missing --num-sequences N and --out DIR: give them, or a named --split instead; "
+                          "--objects shapenet also needs --object-root PATH (or $DSR_BENCH_SHAPENET), your copy of "
+                          "ShapeNetCore v2 (https://shapenet.org") and err.count("\n") == 1
+    monkeypatch.setenv("DSR_BENCH_SHAPENET", "/somewhere")
+    assert main(["generate", "--objects", "shapenet", "-n", "2"]) == 2
+    assert capsys.readouterr().err == "error: missing --out DIR: give it, or a named --split instead\n"
 
 
 def test_needs_writing_skips_same_arguments_and_refuses_others(tmp_path):

@@ -477,6 +477,7 @@ def test_missing_sets_name_flag_variable_layout_and_ids(tmp_path, monkeypatch):
         get_object_set("ycb")
     msg = str(err.value)
     assert "--object-root" in msg and "DSR_BENCH_YCB" in msg and "google_16k" in msg and "\n" not in msg
+    assert "https://www.ycbbenchmarks.com/" in msg  # where to get them
     (tmp_path / "005_tomato_soup_can" / "google_16k").mkdir(parents=True)
     trimesh.creation.box([0.05] * 3).export(tmp_path / "005_tomato_soup_can" / "google_16k" / "textured.obj")
     with pytest.raises(UserError) as err:
@@ -485,7 +486,7 @@ def test_missing_sets_name_flag_variable_layout_and_ids(tmp_path, monkeypatch):
     with pytest.raises(UserError, match="no ShapeNet synset"):
         get_object_set("shapenet", tmp_path)
     monkeypatch.setenv("DSR_BENCH_SHAPENET", str(tmp_path / "nowhere"))
-    with pytest.raises(UserError, match="DSR_BENCH_SHAPENET"):
+    with pytest.raises(UserError, match=r"DSR_BENCH_SHAPENET to your copy of ShapeNetCore v2 \(https://shapenet.org"):
         get_object_set("shapenet")
     with pytest.raises(UserError, match="is not an object set"):
         get_object_set("lego")

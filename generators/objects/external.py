@@ -36,6 +36,13 @@ LAYOUTS = {
     "ycb": "ROOT/<name>/google_16k/textured.obj (YCB release; or tsdf/textured.obj, poisson/textured.ply) or "
            "ROOT/[object_models/]ycb/<official id>/obj.urdf (official processed)",
 }
+#: Where each set's meshes come from (their licences forbid redistribution: the user downloads a copy).
+SOURCES = {
+    "shapenet": "ShapeNetCore v2 (https://shapenet.org: sign up, then download ShapeNetCore v2 and unzip it; or the "
+                "authors' processed shapenet.zip)",
+    "ycb": "the YCB object models (https://www.ycbbenchmarks.com/: their google_16k meshes; or the authors' "
+           "processed ycb.zip)",
+}
 YCB_RELEASE_MESHES = ("google_16k/textured.obj", "tsdf/textured.obj", "poisson/textured.ply")
 YCB_PITCH = 0.002  # m: voxel size when a YCB mesh must be made solid
 _MESH_SUFFIXES = (".obj", ".ply", ".stl", ".off")
@@ -56,8 +63,8 @@ class ModelSource:
 
 def _missing(set_name: str, root: Path | None, detail: str) -> UserError:
     where = f"in {root}" if root is not None else f"no --object-root given and ${ENV[set_name]} unset"
-    return UserError(f"--objects {set_name}: {detail} ({where}); pass --object-root PATH or set {ENV[set_name]}; "
-                     f"expected layout: {LAYOUTS[set_name]}")
+    return UserError(f"--objects {set_name}: {detail} ({where}); pass --object-root PATH or set {ENV[set_name]} to "
+                     f"your copy of {SOURCES[set_name]}; expected layout: {LAYOUTS[set_name]}")
 
 
 def _resolve_root(set_name: str, object_root: str | Path | None) -> Path:
@@ -67,7 +74,7 @@ def _resolve_root(set_name: str, object_root: str | Path | None) -> Path:
         raise _missing(set_name, None, "no mesh directory")
     if not root.is_dir():
         raise UserError(f"--objects {set_name}: mesh directory {root} not found; pass --object-root PATH or set "
-                        f"{ENV[set_name]}; expected layout: {LAYOUTS[set_name]}")
+                        f"{ENV[set_name]} to your copy of {SOURCES[set_name]}; expected layout: {LAYOUTS[set_name]}")
     return root
 
 
