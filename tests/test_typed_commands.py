@@ -30,3 +30,30 @@ def test_annotate_finds_a_capture_by_its_number_however_padded(tmp_path):
         resolve_capture("seq_042", captures)
     with pytest.raises(UserError, match=r"capture 'seq_1' not found: no directory .*nowhere; give a capture name"):
         resolve_capture("seq_1", tmp_path / "nowhere")
+
+
+def test_validate_says_which_pinned_split_the_data_matched(tmp_path, monkeypatch, capsys):
+    """A valid dataset's every split is named with its checksum and the pinned split that has it, or none."""
+    from dsr_bench.cli import main
+    from dsr_bench.dataset import splits
+    from dsr_bench.dataset.manifest import load_manifest
+    from dsr_bench.dataset.pins import pin_matches
+    from dsr_bench.testing import write_synthetic_dataset
+
+    monkeypatch.setenv("COLUMNS", "400")  # rich's lines unwrapped
+    data = write_synthetic_dataset(tmp_path / "d", num_sequences=1, num_steps=1, split="test")
+    checksum = load_manifest(data)["splits"]["test"]["content_sha256"]
+    pinned = len(splits.pinned_digests())
+    assert main(["validate", str(data), "--no-gt"]) == 0
+    out = capsys.readouterr().out.splitlines()
+    assert out[0].startswith("valid: 1 sequences in")
+    assert out[1:] == [f"split test: checksum {checksum}, matches none of the {pinned} pinned splits (not a "
+                       "benchmark split)"]
+    monkeypatch.setattr(splits, "pinned_digests", lambda: {"cube-test": {"checksum": checksum}})
+    assert main(["validate", str(data), "--no-gt"]) == 0
+    assert capsys.readouterr().out.splitlines()[1:] == [
+        f"split test: checksum {checksum}, matches the pinned split cube-test (its ground truth bit for bit)"]
+    manifest = {"splits": {"cube-test": {"content_sha256": "abc"}}}
+    assert pin_matches(manifest, {"cube-test": {"checksum": "def"}}) == [
+        "split cube-test: checksum abc, matches no pinned split (the pinned cube-test has def)"]
+    assert pin_matches({"splits": {}}, {})[0].startswith("no split files: the dataset matches none of the pinned")

@@ -14,6 +14,7 @@ def validate(
     workers: int = typer.Option(1, "--workers", "-w", help="Parallel worker processes."),
 ) -> None:
     """Check schema, shapes, ranges, checksums and ground-truth consistency; report every problem.
+    A valid dataset's splits are named with the pinned split each matches, or none.
     A progress bar (per sequence) shows on stderr when it is a terminal."""
     from rich.console import Console
     from rich.table import Table
@@ -31,6 +32,11 @@ def validate(
     if not problems:
         console.print(f"[green]valid[/green]: {count} sequences in {data_dir}"
                       f"{' (ground truth not checked)' if no_gt else ', ground truth consistent'}")
+        from dsr_bench.dataset.manifest import load_manifest
+        from dsr_bench.dataset.pins import pin_matches
+
+        for line in pin_matches(load_manifest(data_dir)):  # unwrapped, to copy
+            typer.echo(line)
         return
     table = Table(title=f"{len(problems)} problems in {data_dir}")
     table.add_column("where")

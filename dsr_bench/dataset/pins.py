@@ -136,6 +136,33 @@ def summarize(split: str, comparison: PinComparison, limit: int = 3) -> list[tup
     return lines
 
 
+def pin_matches(manifest: Mapping, pins: Mapping[str, Mapping] | None = None) -> list[str]:
+    """One line per split of a dataset's manifest saying which of this toolkit's pinned splits (`pins`, default
+    `dsr_bench.dataset.splits.pinned_digests()`) has its ground-truth checksum, or that none has; for `validate`
+    once the manifest's checksums are verified against the arrays."""
+    from dsr_bench.dataset.splits import pinned_digests
+
+    pins = pinned_digests() if pins is None else pins
+    splits = manifest.get("splits") or {}
+    if not splits:
+        return ["no split files: the dataset matches none of the pinned splits (`dsr-bench generate --split NAME` "
+                "writes one)"]
+    lines = []
+    for name, info in sorted(splits.items()):
+        checksum = info["content_sha256"]
+        same = sorted(p for p, pin in pins.items() if pin.get("checksum") == checksum)
+        if same:
+            lines.append(f"split {name}: checksum {checksum}, matches the pinned split {' and '.join(same)} "
+                         "(its ground truth bit for bit)")
+        elif name in pins:
+            lines.append(f"split {name}: checksum {checksum}, matches no pinned split (the pinned {name} has "
+                         f"{pins[name].get('checksum')})")
+        else:
+            lines.append(f"split {name}: checksum {checksum}, matches none of the {len(pins)} pinned splits "
+                         "(not a benchmark split)")
+    return lines
+
+
 def verify_scored(split: str, names: list[str], recomputed: Mapping[str, Mapping[str, str]],
                   data_dir: str | Path, limit: int = 3) -> tuple[bool, list[str]]:
     """Whether what `evaluate` scored is the pinned split: `names` (the split's list in the dataset) are the pinned
