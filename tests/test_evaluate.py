@@ -164,6 +164,12 @@ def test_evaluate_infers_data_and_split_from_the_predictions_meta(synthetic, tmp
     assert main(["evaluate", str(pred), "--out", "inferred.json"]) == 0
     err = capsys.readouterr().err
     assert f"data: {synthetic.resolve()}, split: test (from {pred / 'meta.json'})" in err.splitlines()
+    assert "no results JSON" not in err
+    before = sorted(tmp_path.rglob("*"))
+    assert main(["evaluate", str(pred)]) == 0 and sorted(tmp_path.rglob("*")) == before  # no --out: says so
+    assert capsys.readouterr().err.splitlines()[-1] == ("no results JSON or per-step plots written (no --out): add "
+                                                        "--out results.json to write both (results.json and "
+                                                        "results-steps.png)")
     assert main(["evaluate", str(pred), "--data", str(synthetic), "--split", "test", "--out", "given.json"]) == 0
     assert "(from " not in capsys.readouterr().err  # nothing inferred, nothing said
     inferred, given = (json.loads((tmp_path / f"{n}.json").read_text()) for n in ("inferred", "given"))

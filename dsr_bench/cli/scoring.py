@@ -160,6 +160,9 @@ def evaluate(
         plot, why = write_steps_plot(evaluation.results, steps_plot_path(out))
         typer.echo(f"per-step plots written to {_printable(str(plot))}" if plot else f"no per-step plots: {why}",
                    err=True)  # unwrapped: a path to copy
+    else:
+        typer.echo("no results JSON or per-step plots written (no --out): add --out results.json to write both "
+                   "(results.json and results-steps.png)", err=True)
     if evaluation.problems:
         console.print(f"[yellow]partial[/yellow]: scored {evaluation.results['coverage']['scored']} of "
                       f"{evaluation.results['coverage']['expected']} sequences")
