@@ -72,7 +72,16 @@ def annotate(
         for line in lines:
             typer.echo(f"  {line}")
     if auto:
-        snapped = session.auto()
+        import time
+
+        started = time.perf_counter()
+
+        def visited(step: int, last: int, objects: list[int]) -> None:  # each step as it is done: it takes seconds
+            plural = "s" if len(objects) != 1 else ""
+            typer.echo(f"auto: step {step}/{last}: snapped {len(objects)} moved object{plural} "
+                       f"({time.perf_counter() - started:.1f} s)", err=True)
+
+        snapped = session.auto(progress=visited)
         moved = sum(len(v) for v in snapped.values())
         typer.echo(f"auto: visited {len(snapped)} steps, snapped {moved} moved objects")
     if status or auto or place is not None:

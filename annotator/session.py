@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import json
 from collections import OrderedDict
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -801,9 +802,10 @@ class Session:
         return [(s, i, str(self.state.status[s, i])) for s in range(self.num_steps + 1) for i in range(self.num_objects)
                 if self.state.status[s, i] not in ("snapped", "confirmed")]
 
-    def auto(self) -> dict[int, list[int]]:
+    def auto(self, progress: Callable[[int, int, list[int]], None] | None = None) -> dict[int, list[int]]:
         """Visit every step not yet visited in order (carry forward + snap what moved); returns the objects
-        snapped per newly visited step. Step 0 must be initialised (every object posed)."""
+        snapped per newly visited step. Step 0 must be initialised (every object posed). `progress(step, last
+        step, objects snapped)`: called after each step visited."""
         missing = [i for i in range(self.num_objects) if self.state.pose(0, i) is None]
         if missing:
             raise UserError(f"step 0 has objects without a pose ({', '.join(str(i + 1) for i in missing)}): place them "
@@ -812,6 +814,8 @@ class Session:
         for s in range(1, self.num_steps + 1):
             if not self.state.visited[s]:
                 out[s] = self.go_to(s)
+                if progress is not None:
+                    progress(s, self.num_steps, out[s])
         return out
 
     def export(self, out: str | Path, allow_unchecked: bool = False) -> Path:

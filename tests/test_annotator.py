@@ -11,6 +11,7 @@ push, beyond the search along the push.
 from __future__ import annotations
 
 import json
+import re
 import shutil
 
 import numpy as np
@@ -439,7 +440,7 @@ def test_go_to_carries_forward_and_snaps_only_moved_objects(capture_dir, truth, 
     assert session.action_counts["step"] == session.num_steps + 1
 
 
-def test_auto_export_round_trip_and_validate(capture_dir, truth, tmp_path):
+def test_auto_export_round_trip_and_validate(capture_dir, truth, tmp_path, capsys):
     from annotator.session import Session
     from dsr_bench.cli import main
     from dsr_bench.geometry import voxel_points
@@ -452,6 +453,9 @@ def test_auto_export_round_trip_and_validate(capture_dir, truth, tmp_path):
     _place_from_truth(session, truth)
     del session
     assert main(["annotate", str(capture_dir), "--work", str(work), "--auto"]) == 0
+    err = capsys.readouterr().err.splitlines()  # a line per step as it is done, not only the table at the end
+    assert [line.split(":")[1] for line in err] == [f" step {t}/{len(truth) - 1}" for t in range(1, len(truth))]
+    assert all(re.fullmatch(r"auto: step \d+/\d+: snapped \d+ moved objects? \(\d+\.\d s\)", line) for line in err)
     data = tmp_path / "data"
     out = data / "seq_0000.h5"
     assert main(["annotate", capture_dir.name, "--captures", str(capture_dir.parent), "--work", str(work),
