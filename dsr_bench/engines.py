@@ -200,10 +200,11 @@ def check_reachable(address: str, timeout: float = 10.0) -> None:
 @dataclass(frozen=True)
 class SlurmOptions:
     """A SLURM job array: `tasks` array tasks of `cpus_per_task` CPUs (as many processes), `time_min` minutes each,
-    on `partition`; submitit's files and the tasks' logs in `folder`; `local`: run the tasks as processes here
-    (submitit's local executor) instead of submitting them."""
+    on `partition`; submitit's files and the tasks' logs in `folder` (None: `engine_from_options` puts them in
+    slurm-logs/ under the run's output directory); `local`: run the tasks as processes here (submitit's local
+    executor) instead of submitting them."""
 
-    folder: Path = Path("slurm-logs")
+    folder: Path | None = None
     partition: str | None = None
     time_min: int = 60
     tasks: int = 8
@@ -224,6 +225,8 @@ class SlurmOptions:
 
 
 _DEFAULT = SlurmOptions()
+#: The folder of a SLURM run's logs in its output directory, unless --slurm-logs names one.
+LOGS_NAME = "slurm-logs"
 #: The command-line options of the engines, shared by `generate` and `evaluate` (their help texts).
 HELP = {
     "ray": "Run the sequences as tasks on a Ray cluster: its address as ray.init takes it (auto, HOST:PORT, "
@@ -236,7 +239,8 @@ HELP = {
     "slurm_time": f"Time limit of each array task, in minutes (default {_DEFAULT.time_min}).",
     "slurm_tasks": f"Array tasks (default {_DEFAULT.tasks}): task k runs the sequences at positions k, k + n, ... "
                    "(the --shard k/n rule).",
-    "slurm_logs": f"Folder of submitit's job files and the tasks' logs (default {_DEFAULT.folder}).",
+    "slurm_logs": f"Folder of submitit's job files and the tasks' logs (default: {LOGS_NAME}/ in the output "
+                  "directory, generate's --out or evaluate's PRED_DIR, never the current directory).",
     "slurm_local": "Run the array's tasks as processes on this machine (submitit's local executor) instead of "
                    "submitting them: to try a --slurm command without SLURM.",
 }
@@ -278,7 +282,7 @@ class SlurmEngine(Engine):
         import submitit
 
         o = self.options
-        executor = submitit.AutoExecutor(folder=o.folder, cluster="local" if o.local else "slurm")
+        executor = submitit.AutoExecutor(folder=o.folder or LOGS_NAME, cluster="local" if o.local else "slurm")
         executor.update_parameters(name=self.name, timeout_min=o.time_min, cpus_per_task=o.cpus_per_task,
                                    slurm_partition=o.partition, slurm_array_parallelism=len(chunks))
         try:
@@ -303,10 +307,12 @@ class SlurmEngine(Engine):
 
 # --- from the command line --------------------------------------------------------------------------------------------
 def engine_from_options(ray: str | None = None, slurm: bool = False, workers: int | None = None,
-                        slurm_options: SlurmOptions | None = None, name: str = "dsr-bench") -> Engine | None:
+                        slurm_options: SlurmOptions | None = None, name: str = "dsr-bench",
+                        output: Path | None = None) -> Engine | None:
     """The engine that --ray / --slurm ask for, None for neither (the command's own processes). `workers`: the CPUs
     of a `--ray local` Ray (None or 0: all), the processes of each SLURM array task (None or 0: 1). The other
-    --slurm-* options (`slurm_options`, None: not given) need --slurm."""
+    --slurm-* options (`slurm_options`, None: not given) need --slurm. `output`: the run's output directory, on the
+    file system the nodes share; SLURM's logs go in its slurm-logs/ unless --slurm-logs names a folder."""
     if ray is not None and slurm:
         raise UserError("--ray and --slurm both given: choose one engine")
     if workers is not None and workers < 0:
@@ -319,7 +325,8 @@ def engine_from_options(ray: str | None = None, slurm: bool = False, workers: in
         return RayEngine(ray.strip(), num_cpus=workers or None)
     if slurm:
         options = replace(slurm_options or SlurmOptions(), cpus_per_task=workers or 1)
-        return SlurmEngine(replace(options, folder=Path(options.folder).absolute()), name=name)
+        folder = options.folder if options.folder is not None else Path(output or ".") / LOGS_NAME
+        return SlurmEngine(replace(options, folder=Path(folder).absolute()), name=name)
     return None
 
 
@@ -328,6 +335,6 @@ def slurm_options_given(partition: str | None, time_min: int | None, tasks: int 
     """SlurmOptions from the --slurm-* options, their defaults where not given; None when none was given."""
     if partition is None and time_min is None and tasks is None and logs is None and not local:
         return None
-    return SlurmOptions(folder=logs or _DEFAULT.folder, partition=partition,
+    return SlurmOptions(folder=logs, partition=partition,
                         time_min=_DEFAULT.time_min if time_min is None else time_min,
                         tasks=_DEFAULT.tasks if tasks is None else tasks, local=local)

@@ -66,7 +66,7 @@ def generate(
         raise UserError(f"--shard {shard} with {'--ray' if ray is not None else '--slurm'}: the engine splits the run "
                         "itself; drop --shard")
     slurm_given = slurm_options_given(slurm_partition, slurm_time, slurm_tasks, slurm_logs, slurm_local)
-    engine = engine_from_options(ray, slurm, workers, slurm_given, "dsr-bench-generate")
+    engine = engine_from_options(ray, slurm, workers, slurm_given, "dsr-bench-generate", output=plan.out)
     total = len(plan.indices())
     todo, skipped = prepare_run(plan)
     with Progress(TextColumn("[bold]generate"), BarColumn(), MofNCompleteColumn(),

@@ -86,6 +86,28 @@ def test_evaluate_on_ray_and_as_a_submitit_array_equals_one_process(tmp_path):
     assert results["ray"] == results["plain"] and results["slurm"] == results["plain"]
 
 
+def test_slurm_logs_go_in_the_output_directory_unless_named(tmp_path, monkeypatch):
+    """--slurm without --slurm-logs writes submitit's files in slurm-logs/ of the run's output directory (evaluate:
+    PRED_DIR, which the nodes share anyway), nothing in the current directory; --slurm-logs DIR puts them there."""
+    pytest.importorskip("submitit")
+    from dsr_bench.engines import engine_from_options, slurm_options_given
+    from dsr_bench.testing import write_synthetic_dataset
+
+    data = write_synthetic_dataset(tmp_path / "data", num_sequences=1, num_steps=1)
+    pred = tmp_path / "pred"
+    assert main(["predict", "--model", "static", "--data", str(data), "--out", str(pred)]) == 0
+    here = tmp_path / "here"
+    here.mkdir()
+    monkeypatch.chdir(here)
+    assert main(["evaluate", str(pred), "--slurm", "--slurm-local", "--slurm-tasks", "1"]) == 0
+    assert list(here.iterdir()) == [] and len(list((pred / "slurm-logs").glob("*_result.pkl"))) == 1
+    local = slurm_options_given(None, None, None, None, True)
+    engine = engine_from_options(slurm=True, slurm_options=local, output=Path("data/out"))
+    assert engine.options.folder == here / "data" / "out" / "slurm-logs"  # generate: in its --out
+    named = slurm_options_given(None, None, None, Path("logs"), True)
+    assert engine_from_options(slurm=True, slurm_options=named, output=Path("x")).options.folder == here / "logs"
+
+
 # --- the engines' contract ------------------------------------------------------------------------------------------
 JOBS = [5, 3, 0, 7, 1]
 

@@ -129,7 +129,7 @@ def evaluate(
         check_writable(out, "--out", directory=False)  # before scoring, not after
         check_writable(steps_plot_path(out), "--out", directory=False)
     slurm_given = slurm_options_given(slurm_partition, slurm_time, slurm_tasks, slurm_logs, slurm_local)
-    engine = engine_from_options(ray, slurm, workers, slurm_given, "dsr-bench-evaluate")
+    engine = engine_from_options(ray, slurm, workers, slurm_given, "dsr-bench-evaluate", output=pred_dir)
     data, split, note = infer_source(pred_dir, data, split)
     if note:
         typer.echo(_printable(note), err=True)
