@@ -185,9 +185,11 @@ def plan(
                                             "results)."),
 ) -> None:
     """Plan 3 pushes per task with MPC (sample candidates, score by the paper's cost, execute the best in pybullet),
-    write a plan file per task and results.json (final-vs-target voxel IoU per task and mean). Every task file is
-    checked against this toolkit's pin first (a task that differs: a warning, results not pinned); a rerun keeps the
-    plan files of the same run, rescored from their final states, and plans the others again."""
+    write a plan file per task and results.json (final-vs-target voxel IoU per task and mean).
+
+    Every task file is checked against this toolkit's pin first (a task that differs: a warning, results not
+    pinned); a rerun keeps the plan files of the same run, rescored from their final states, and plans the others
+    again."""
     from rich.progress import Progress
 
     from generators.planning import plan_tasks

@@ -57,3 +57,21 @@ def test_validate_says_which_pinned_split_the_data_matched(tmp_path, monkeypatch
     assert pin_matches(manifest, {"cube-test": {"checksum": "def"}}) == [
         "split cube-test: checksum abc, matches no pinned split (the pinned cube-test has def)"]
     assert pin_matches({"splits": {}}, {})[0].startswith("no split files: the dataset matches none of the pinned")
+
+
+def test_the_command_list_has_one_line_per_command(monkeypatch, capsys):
+    """`dsr-bench --help` on a wide terminal lists each command on one line: no command's summary breaks where
+    its docstring's source line does (typer's rich help keeps those breaks; the CLI reflows every paragraph)."""
+    import re
+
+    from dsr_bench.cli import app, main
+
+    monkeypatch.setenv("COLUMNS", "400")
+    assert main(["--help"]) == 0
+    panel = capsys.readouterr().out.split("Commands", 1)[1].splitlines()[1:]
+    rows = panel[:panel.index(next(line for line in panel if line.startswith("╰")))]
+    names = [c.name for c in app.registered_commands] + [g.name for g in app.registered_groups]
+    assert [re.match(r"│ (\S+)", row).group(1) for row in rows] == names  # one row each, no continuation lines
+    groups = [app, *(g.typer_instance for g in app.registered_groups)]
+    for command in (c for group in groups for c in group.registered_commands):
+        assert command.help and "\n" not in command.help.split("\n\n")[0], command.name  # the summary: one line

@@ -9,6 +9,7 @@ Each command module defines `register(app)` and imports heavy libraries inside i
 from __future__ import annotations
 
 import importlib
+import inspect
 import sys
 
 import typer
@@ -40,6 +41,24 @@ def _register_commands() -> None:
         entry.load()(app)
     rank = {name: i for i, name in enumerate(COMMAND_ORDER)}
     app.registered_commands.sort(key=lambda c: rank.get(c.name or "", len(rank)))
+    for group in [app, *(g.typer_instance for g in app.registered_groups if g.typer_instance is not None)]:
+        for command in group.registered_commands:
+            command.help = reflow(command.help or inspect.getdoc(command.callback) or "")
+
+
+def reflow(text: str) -> str:
+    """A command's help with each paragraph on one line (typer's rich help keeps a docstring's line breaks, so the
+    command list and --help would break where the source does); blank lines and list items ("- ...") stay."""
+    paragraphs = []
+    for paragraph in text.strip().split("\n\n"):
+        lines: list[str] = []
+        for line in paragraph.splitlines():
+            if lines and not line.lstrip().startswith(("- ", "* ")):
+                lines[-1] += " " + line.strip()
+            else:
+                lines.append(line.rstrip())
+        paragraphs.append("\n".join(lines))
+    return "\n\n".join(paragraphs)
 
 
 _register_commands()

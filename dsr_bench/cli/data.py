@@ -14,6 +14,7 @@ def validate(
     workers: int = typer.Option(1, "--workers", "-w", help="Parallel worker processes."),
 ) -> None:
     """Check schema, shapes, ranges, checksums and ground-truth consistency; report every problem.
+
     A valid dataset's splits are named with the pinned split each matches, or none.
     A progress bar (per sequence) shows on stderr when it is a terminal."""
     from rich.console import Console

@@ -110,8 +110,9 @@ def evaluate(
     slurm_logs: SlurmLogs = None,
     slurm_local: SlurmLocal = False,
 ) -> None:
-    """Validate a predictions directory strictly, then score it with the benchmark's metrics: here, on a Ray
-    cluster (--ray) or in a SLURM job array (--slurm), with the same numbers whichever.
+    """Validate a predictions directory strictly, then score it with the benchmark's metrics.
+
+    Here, on a Ray cluster (--ray) or in a SLURM job array (--slurm), with the same numbers whichever.
     Each problem is one line `PRED_DIR/FILE: problem` on stderr; any problem means no score (exit 1).
     A progress bar (per sequence) shows on stderr when it is a terminal."""
     from rich.console import Console
