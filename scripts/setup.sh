@@ -3,10 +3,11 @@
 # the CPU build of torch (pinned: an unpinned torch pulls a multi-GB CUDA build), and the package.
 set -euo pipefail
 cd "$(dirname "$0")/.."
+source scripts/apt_install.sh  # apt_install: waits for the dpkg lock, and shows apt's reason when it fails
 if ! ldconfig -p 2>/dev/null | grep -q "libusb-1.0.so"; then
   if [ "$(id -u)" = 0 ]; then
-    (apt-get update -qq && apt-get install -y -qq libusb-1.0-0 >/dev/null) \
-      || echo "warning: could not install libusb-1.0-0; open3d (generator, annotator) will not import" >&2
+    apt_install "could not install libusb-1.0-0; open3d (generator, annotator) will not import" libusb-1.0-0 \
+      || true
   else
     echo "warning: libusb-1.0-0 is missing; run: sudo apt-get install -y libusb-1.0-0" >&2
   fi
@@ -21,9 +22,9 @@ if command -v dpkg >/dev/null 2>&1; then
   for pkg in $WINDOW_PKGS; do dpkg -s "$pkg" >/dev/null 2>&1 || missing="$missing $pkg"; done
   if [ -n "$missing" ]; then
     if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then
-      (apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends $missing \
-        >/dev/null 2>&1) \
-        || echo "warning: could not install$missing; the annotator window needs a display (its test skips)" >&2
+      # shellcheck disable=SC2086  # one word per package
+      apt_install "could not install$missing; the annotator window needs a display (its test skips)" $missing \
+        || true
     else
       echo "warning:$missing missing; for the annotator window run: sudo apt-get install -y$missing" >&2
     fi
@@ -39,9 +40,7 @@ for browser in chromium chromium-browser chromium-headless-shell google-chrome g
 done
 if [ -z "$have_chromium" ]; then
   if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then
-    (apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends chromium \
-      >/dev/null 2>&1) \
-      || echo "warning: could not install chromium; the leaderboard page's browser test skips" >&2
+    apt_install "could not install chromium; the leaderboard page's browser test skips" chromium || true
   else
     echo "note: no Chromium; for the leaderboard page's browser test run: sudo apt-get install -y chromium" >&2
   fi
