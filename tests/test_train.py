@@ -1,6 +1,7 @@
 """`dsr-bench train`, exact resume and `dsr-bench predict --model ...` end to end on a real dataset
 directory (full 128 x 128 x 48 grid, batch 1, a couple of optimisation steps: kept to the minimum)."""
 
+import gc
 import json
 
 import numpy as np
@@ -177,6 +178,11 @@ def test_bad_actions_read_in_a_worker_give_one_line(tmp_path, capsys):
         err = capsys.readouterr().err.strip()
         assert err == (f"error: {data / 'seq_0000.h5'}: action: direction outside 0..7 (values 9..9); "
                        "check it with `dsr-bench validate`"), workers
+        # its workers ended with the loop, not in some later garbage collection (where an interruption shows as
+        # "Exception ignored in _MultiProcessingDataLoaderIter.__del__")
+        from torch.utils.data.dataloader import _MultiProcessingDataLoaderIter as WorkerIterator
+
+        assert not [o for o in gc.get_objects() if isinstance(o, WorkerIterator) and not o._shutdown], workers
 
 
 @pytest.mark.parametrize("field, value, message", [

@@ -37,14 +37,29 @@ class WindowError(Exception):
 def run_steps(step: Step, model, batches: Iterable[dict], optimizer, *,
               start: int = 0) -> Iterator[tuple[dict, list[dict], float]]:
     """`step` on each batch in turn, yielding (batch, its loss terms per time step, seconds the step took).
-    A window that cannot be trained raises `WindowError` (numbered from `start` + 1)."""
-    for index, batch in enumerate(batches, start + 1):
-        t0 = time.perf_counter()
-        try:
-            terms = step(model, batch, optimizer)
-        except (MaskIdError, FloatingPointError) as exc:
-            raise WindowError(index, batch.get("sequence"), exc) from None
-        yield batch, terms, time.perf_counter() - t0
+    A window that cannot be trained raises `WindowError` (numbered from `start` + 1). However the loop ends (done,
+    closed early, an error), a DataLoader's worker processes are ended before it returns (`end_workers`)."""
+    iterator = iter(batches)
+    try:
+        for index, batch in enumerate(iterator, start + 1):
+            t0 = time.perf_counter()
+            try:
+                terms = step(model, batch, optimizer)
+            except (MaskIdError, FloatingPointError) as exc:
+                raise WindowError(index, batch.get("sequence"), exc) from None
+            yield batch, terms, time.perf_counter() - t0
+    finally:
+        end_workers(iterator)
+
+
+def end_workers(iterator: object) -> None:
+    """End the worker processes of a DataLoader's iterator now (nothing for other iterators). An error raised in a
+    worker keeps the iterator alive in a reference cycle (the exception's traceback holds its frames), so torch
+    would end the workers only in a later garbage collection, at any moment, where an interruption shows as an
+    exception ignored in `__del__`."""
+    shutdown = getattr(iterator, "_shutdown_workers", None)  # torch's own: what its __del__ calls
+    if callable(shutdown):
+        shutdown()
 
 
 def fit(step: Step, net: torch.nn.Module, batches: Iterable[dict], count: int, lr: float, label: str,
