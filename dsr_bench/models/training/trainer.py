@@ -291,7 +291,7 @@ def _train_batches(run: Run, log: RunLog | None, budget: TimeBudget, epoch: int,
             samples = batch["tsdf"].shape[0] * batch["tsdf"].shape[1] * run.world
             record = {"step": run.step, "epoch": epoch, "batch": batch_index,
                       "lr": run.optimizer.param_groups[0]["lr"], **window_record(terms),
-                      "samples_per_s": samples / seconds}
+                      "samples": samples, "samples_per_s": samples / seconds}
             log.window(record)
             note = f"loss {record['loss']:.4f}"
         progress(batch_index, run.sampler.batches, note)
