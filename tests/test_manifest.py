@@ -187,8 +187,18 @@ def test_a_sequence_number_however_padded_names_the_sequence(data, tmp_path):
         resolve_sequence(both, "seq_1")
     assert match_sequence_name("seq_x", ["seq_x", "seq_0000"]) == "seq_x"  # names that are not numbers: exactly
     assert match_sequence_name("x", ["seq_0000"]) is None and match_sequence_name("seq_", ["seq_0000"]) is None
-    with pytest.raises(UserError, match=r"dataset directory not found: .*mini; .* e\.g\. .*both.* \(the datasets in"):
+
+
+def test_a_missing_dataset_names_how_to_make_it_and_the_datasets_beside_it(data, tmp_path):
+    import shutil
+
+    shutil.copytree(data, tmp_path / "both")
+    with pytest.raises(UserError, match=r"dataset directory not found: .*mini; give --data the directory holding the "
+                                        r"seq_\*\.h5 files; datasets in .*: .*both$"):
         resolve_sequence(tmp_path / "mini", "seq_1")
+    with pytest.raises(UserError, match=r"^dataset directory not found: .*cpu-train; make it with `dsr-bench generate "
+                                        r"--split cpu-train --out .*cpu-train`; datasets in .*: .*both$"):
+        read_split(tmp_path / "cpu-train", None)
 
 
 def test_completed_entry_and_common_generator_args(data, tmp_path):

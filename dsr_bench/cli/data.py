@@ -110,11 +110,10 @@ def info(
 
 def manifest(data_dir: Path = typer.Argument(..., help="Dataset directory.")) -> None:
     """(Re)build manifest.json from the sequence and split files present (after sharded generation)."""
-    from dsr_bench.errors import UserError
-    from dsr_bench.dataset.manifest import build_manifest, write_manifest
+    from dsr_bench.dataset.manifest import build_manifest, missing_dataset, write_manifest
 
     if not Path(data_dir).is_dir():
-        raise UserError(f"dataset directory not found: {data_dir}")
+        raise missing_dataset(data_dir)
     built = build_manifest(data_dir)
     path = write_manifest(data_dir, built)
     typer.echo(f"wrote {path}: {len(built['sequences'])} sequences, splits: {', '.join(built['splits']) or 'none'}")

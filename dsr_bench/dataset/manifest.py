@@ -110,7 +110,7 @@ def build_manifest(data_dir: str | Path) -> dict:
 
     data_dir = Path(data_dir)
     if not data_dir.is_dir():
-        raise UserError(f"dataset directory not found: {data_dir}")
+        raise missing_dataset(data_dir)
     sequences = [_sequence_entry(path) for path in sorted(data_dir.glob("seq_*.h5"))]
     known = {s["name"] for s in sequences}
     splits = {}
@@ -196,7 +196,7 @@ def load_manifest(data_dir: str | Path) -> dict:
     data_dir = Path(data_dir)
     path = data_dir / MANIFEST_NAME
     if not data_dir.is_dir():
-        raise UserError(f"dataset directory not found: {data_dir}")
+        raise missing_dataset(data_dir)
     if not path.is_file():
         raise UserError(f"{data_dir} has no {MANIFEST_NAME}; build it with `dsr-bench manifest {data_dir}`")
     try:
@@ -218,7 +218,7 @@ def read_split(data_dir: str | Path, split: str | None) -> tuple[str, list[str]]
     """(split name, sequence names) from DATA_DIR/splits/<split>.txt; `None` picks the only split."""
     data_dir = Path(data_dir)
     if not data_dir.is_dir():
-        raise UserError(f"dataset directory not found: {data_dir}")
+        raise missing_dataset(data_dir)
     splits = _split_names(data_dir)
     if split is None:
         if len(splits) != 1:
@@ -269,8 +269,19 @@ def match_sequence_name(name: str, held: Iterable[str], what: str = "sequence") 
     return same[0] if same else None
 
 
+def missing_dataset(data_dir: str | Path) -> UserError:
+    """The error of a dataset directory that does not exist: the command that makes it when its name is a named
+    split's (data/cpu-train), and the datasets beside it."""
+    from dsr_bench.dataset.splits import SPLITS
+
+    data_dir = Path(data_dir)
+    make = (f"; make it with `dsr-bench generate --split {data_dir.name} --out {data_dir}`" if data_dir.name in SPLITS
+            else "")
+    return UserError(f"dataset directory not found: {data_dir}{make}{_datasets_beside(data_dir)}")
+
+
 def _datasets_beside(data_dir: Path) -> str:
-    """', e.g. data/a, data/b (the datasets in data/)' for a dataset directory that does not exist, '' if none."""
+    """'; datasets in data: data/a, data/b' for a dataset directory that does not exist, '' if none is beside it."""
     parent = data_dir.parent
     if not parent.is_dir():
         return ""
@@ -278,7 +289,7 @@ def _datasets_beside(data_dir: Path) -> str:
     if not found:
         return ""
     shown = ", ".join(found[:4]) + (f" and {len(found) - 4} more" if len(found) > 4 else "")
-    return f", e.g. {shown} (the datasets in {parent})"
+    return f"; datasets in {parent}: {shown}"
 
 
 def resolve_sequence(data_dir: str | Path | None, name: str) -> Path:

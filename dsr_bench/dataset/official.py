@@ -134,7 +134,8 @@ def find_official_sequences(src: str | Path) -> dict[str, OfficialSequence]:
     """Every sequence of an official-layout directory, with contiguous steps 0..T-1 checked."""
     src = Path(src)
     if not src.is_dir():
-        raise UserError(f"official data directory not found: {src}")
+        raise UserError(f"official data directory not found: {src}; give the data folder of the authors' release "
+                        "(https://github.com/columbia-ai-robotics/dsr: its README's data download), e.g. its test/")
     steps: dict[str, dict[int, Path]] = {}
     for path in src.glob("*.hdf5"):
         m = _STEP_FILE.match(path.name)

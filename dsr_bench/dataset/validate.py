@@ -224,7 +224,9 @@ def validate_dataset(data_dir: str | Path, check_gt: bool = True, workers: int =
 
     data_dir = Path(data_dir)
     if not data_dir.is_dir():
-        raise UserError(f"dataset directory not found: {data_dir}")
+        from dsr_bench.dataset.manifest import missing_dataset
+
+        raise missing_dataset(data_dir)
     if workers < 1:
         raise UserError(f"--workers {workers}: must be at least 1")
     problems: list[Problem] = []
