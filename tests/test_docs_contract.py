@@ -1,10 +1,9 @@
 """The documented contract matches the code: the DATASHEET schema table lists every field as the schema defines it;
-the README opens with its two commands, its PyTorch example runs, its links resolve."""
+the README opens with its two commands, its links resolve (its other commands and its PyTorch example run in
+tests/test_readme_commands.py)."""
 
 import re
 from pathlib import Path
-
-import pytest
 
 from dsr_bench.dataset.schema import SEQUENCE_SCHEMA
 
@@ -28,35 +27,6 @@ def test_readme_opens_with_the_two_commands():
     assert block[0].startswith("bash scripts/quickstart.sh") and block[1].startswith("bash scripts/test.sh")
     assert (ROOT / "scripts" / "quickstart.sh").exists() and (ROOT / "scripts" / "test.sh").exists()
     assert "scripts/test.sh" in (ROOT / ".ci" / "run").read_text()
-
-
-def _code_blocks(text: str, language: str) -> list[str]:
-    return re.findall(rf"^```{language}\n(.*?)^```", text, re.M | re.S)
-
-
-@pytest.mark.filterwarnings("ignore:This DataLoader will create")  # the example's 4 workers; none is started
-def test_readme_pytorch_example_runs_as_written(tmp_path, monkeypatch):
-    """The README's PyTorch example is docs/format.md's, and runs against the real API on a small dataset laid
-    out as it says (data/cube-train, split cube-train), giving the shapes its comments state."""
-    pytest.importorskip("torch")
-    from torch.utils.data import DataLoader
-
-    from dsr_bench.testing import write_synthetic_dataset
-
-    readme = ROOT / "README.md"
-    [example] = [b for b in _code_blocks(readme.read_text(), "python") if "SequenceWindowDataset" in b]
-    assert example in _code_blocks((ROOT / "docs" / "format.md").read_text(), "python")
-    write_synthetic_dataset(tmp_path / "data" / "cube-train", num_sequences=1, num_steps=10, split="cube-train")
-    monkeypatch.chdir(tmp_path)
-    scope: dict = {}
-    exec(compile(example, str(readme), "exec"), scope)
-    item, loader = scope["item"], scope["loader"]
-    assert isinstance(loader, DataLoader) and loader.batch_size == 12 and len(scope["ds"]) == 1
-    assert item["tsdf"].shape == (10, 128, 128, 48) and str(item["tsdf"].dtype) == "torch.float32"
-    assert item["action"].shape == (10, 8, 128, 128) and item["action"].sum() == 10  # one-hot per push
-    assert item["mask_3d"].shape == (10, 128, 128, 48) and str(item["mask_3d"].dtype) == "torch.uint8"
-    assert item["scene_flow_3d"].shape == (10, 3, 128, 128, 48) and str(item["scene_flow_3d"].dtype) == "torch.float32"
-    assert item["sequence"] == "seq_0000" and item["start"] == 0
 
 
 def _slug(heading: str) -> str:
