@@ -6,7 +6,10 @@
   measured depth), so coverage counts only surface the cameras could have measured.
 - `icp`: point-to-plane ICP of the visible samples against a cloud crop (cKDTree correspondences, shrinking
   correspondence distance, Tukey weights, damped Gauss-Newton), with jump rejection against the start pose.
-- `fit_score`: inlier RMSE, coverage of the visible samples, fitness of the crop.
+- `fit_score`: inlier RMSE, coverage of the visible samples, fitness of the crop, and the physical checks
+  (`physical_problems`): no interpenetration with the other objects, resting on the table or on another object,
+  no surface in front of what a camera measured (free space).
+- `render_depth`: the z-depth of posed meshes in a camera (the other objects, as occluders of a view).
 
 Transforms are 4x4 object-to-world matrices; points (..., 3) are (x, y, z) metres in the world/table frame unless
 stated; angles are radians.
@@ -33,6 +36,27 @@ MAX_JUMP_ROTATION = float(np.deg2rad(25.0))
 TABLE_MARGIN = 0.003
 #: A sample counts as hidden from a camera when the measured surface lies this much (m) in front of it.
 OCCLUSION_TOLERANCE = 0.02
+#: A sample counts for a camera only when its normal is turned at most about 81 degrees from the ray to the camera
+#: (cosine above this): a face seen edge-on covers a few pixels whose depth is hardly measured (a box face at 85
+#: degrees to one camera, whose other view another object hides, had half its samples without a cloud point).
+MIN_VIEW_COSINE = 0.15
+#: A sample counts as hidden by another object when that object's posed surface lies this much (m) in front of it
+#: along the camera's ray (`View.occluders`): coverage counts only the surface no other object hides.
+OCCLUDER_TOLERANCE = 0.002
+#: Physical checks (`physical_problems`): two meshes may interpenetrate by at most this (m), measured by the
+#: PENETRATION_COUNT-th deepest surface sample of one inside the other ...
+PENETRATION_TOLERANCE = 0.005
+PENETRATION_COUNT = 5
+#: ... a mesh's lowest point may lie this far (m) below or above the table (z = 0) ...
+TABLE_TOLERANCE = 0.005
+#: ... or higher when it rests on another object: some surface sample within this distance (m) of that object's ...
+SUPPORT_DISTANCE = 0.006
+#: ... and the cameras may measure depth more than FREE_SPACE_TOLERANCE (m) behind at most FREE_SPACE_FRACTION of
+#: the mesh's surface samples that face them and project onto measured pixels (they saw through the mesh there);
+#: the measured depth of a pixel is the nearest in its 3 x 3 neighbourhood, so a silhouette's edge does not count.
+FREE_SPACE_TOLERANCE = 0.01
+FREE_SPACE_FRACTION = 0.1
+FREE_SPACE_MIN_SAMPLES = 20
 #: A fit is good when at least this fraction of the visible samples has a cloud point within INLIER_DISTANCE ...
 MIN_COVERAGE = 0.65
 #: ... and the inlier RMSE is at most this (m).
@@ -84,12 +108,14 @@ class FitScore:
 @dataclass(frozen=True)
 class SurfaceSamples:
     """Surface samples of a mesh in its object frame: points (S, 3) m, unit outward normals (S, 3); centre (3,) of
-    the bounding box and radius (m) of the bounding sphere about it."""
+    the bounding box and radius (m) of the bounding sphere about it; the mesh's vertices (V, 3) m (for its lowest
+    point), or None (the samples stand in)."""
 
     points: np.ndarray
     normals: np.ndarray
     centre: np.ndarray
     radius: float
+    vertices: np.ndarray | None = None
 
 
 @dataclass
@@ -185,7 +211,7 @@ def sample_surface(vertices: np.ndarray, faces: np.ndarray, spacing: float = SAM
     lo, hi = v.min(0), v.max(0)
     centre = (lo + hi) / 2
     radius = float(np.linalg.norm(v - centre, axis=1).max())
-    return SurfaceSamples(points, normals[which], centre, radius)
+    return SurfaceSamples(points, normals[which], centre, radius, v)
 
 
 def posed_samples(samples: SurfaceSamples, transform: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -196,19 +222,54 @@ def posed_samples(samples: SurfaceSamples, transform: np.ndarray) -> tuple[np.nd
 
 @dataclass(frozen=True)
 class View:
-    """A calibrated camera and its measured z-depth (H, W) in metres (0 = missing), for visibility tests."""
+    """A calibrated camera and its measured z-depth (H, W) in metres (0 = missing), for visibility tests;
+    `occluders`: the z-depth (H, W) m of the other objects' posed meshes in this camera (inf where none,
+    `render_depth`), or None (no other objects known)."""
 
     camera: Camera
     depth: np.ndarray
+    occluders: np.ndarray | None = None
+
+    def with_occluders(self, occluders: np.ndarray | None) -> View:
+        """This view with another occluder depth (H, W) m (or None)."""
+        return View(self.camera, self.depth, occluders)
+
+
+def render_depth(camera: Camera, meshes: Sequence[tuple[np.ndarray, np.ndarray]]) -> np.ndarray:
+    """Z-depth (H, W) m of posed meshes in a camera (the nearest surface per pixel centre, inf where none).
+
+    meshes: (vertices (V, 3) world m, faces (F, 3)) each; rasterised exactly (`dsr_bench.render.raster`), the part
+    in front of the camera (`annotator.images.clip_near`)."""
+    from annotator.images import clip_near
+    from dsr_bench.geometry import rigid_inverse, transform_points
+    from dsr_bench.render.raster import nearest, perspective_depth, rasterize
+
+    h, w = camera.height, camera.width
+    out = np.full(h * w, np.inf)
+    to_camera = rigid_inverse(camera.extrinsics)
+    k = np.asarray(camera.intrinsics, np.float64)
+    for vertices, faces in meshes:
+        if len(faces) == 0 or not np.all(np.isfinite(vertices)):
+            continue
+        points, front = clip_near(transform_points(to_camera, np.asarray(vertices, np.float64)), faces)
+        uv = points[:, :2] / points[:, 2:3] * np.diag(k)[:2] + k[:2, 2]
+        frags = rasterize(uv, front, h, w)
+        if len(frags.sample) == 0:
+            continue
+        depth, _ = nearest(frags, perspective_depth(frags, front, points[:, 2]), h * w)
+        np.minimum(out, depth, out=out)
+    return out.reshape(h, w)
 
 
 def visible_samples(points: np.ndarray, normals: np.ndarray, views: Sequence[View],
                     table_margin: float = TABLE_MARGIN, occlusion_tolerance: float = OCCLUSION_TOLERANCE) -> np.ndarray:
     """Which posed samples (S,) bool at least one camera could have measured.
 
-    A sample counts for a camera when it faces the camera (back-face test against the camera centre), projects
+    A sample counts for a camera when it faces the camera (its normal within the angle of MIN_VIEW_COSINE of the
+    ray to the camera centre: a face seen edge-on is hardly measured), projects
     inside its image onto a pixel with a measurement, and that measurement is not more than
-    `occlusion_tolerance` m in front of it (something else hides it). Samples below `table_margin` m are left out
+    `occlusion_tolerance` m in front of it (something else hides it), nor hidden by another object's posed surface
+    (`View.occluders`, more than OCCLUDER_TOLERANCE m in front). Samples below `table_margin` m are left out
     (the table hides the contact surface). points, normals: (S, 3) world.
     """
     out = np.zeros(len(points), dtype=bool)
@@ -216,7 +277,8 @@ def visible_samples(points: np.ndarray, normals: np.ndarray, views: Sequence[Vie
     for view in views:
         cam = view.camera
         centre = cam.extrinsics[:3, 3]
-        facing = np.einsum("ij,ij->i", normals, centre - points) > 0
+        ray = centre - points
+        facing = np.einsum("ij,ij->i", normals, ray) > MIN_VIEW_COSINE * np.linalg.norm(ray, axis=1)
         cand = facing & above & ~out
         if not cand.any():
             continue
@@ -227,6 +289,8 @@ def visible_samples(points: np.ndarray, normals: np.ndarray, views: Sequence[Vie
         d = np.zeros(len(z))
         d[inside] = view.depth[v[inside], u[inside]]
         seen = inside & (d > 0) & (d >= z - occlusion_tolerance)
+        if view.occluders is not None:
+            seen[inside] &= view.occluders[v[inside], u[inside]] >= z[inside] - OCCLUDER_TOLERANCE
         idx = np.flatnonzero(cand)
         out[idx[seen]] = True
     return out
@@ -238,14 +302,107 @@ def crop_cloud(points: np.ndarray, centre: np.ndarray, radius: float, table_marg
     return points[near & (points[:, 2] > table_margin)]
 
 
+# --- physical checks -------------------------------------------------------------------------------------------
+
+
+def _penetration(points: np.ndarray, other: SurfaceSamples, transform: np.ndarray) -> float:
+    """How deep (m) points (S, 3) world lie inside another posed mesh: the PENETRATION_COUNT-th largest depth below
+    its surface (signed distance along the nearest surface sample's outward normal), 0 when fewer are inside."""
+    from scipy.spatial import cKDTree
+
+    centre = transform[:3, :3] @ other.centre + transform[:3, 3]
+    near = np.sum((points - centre) ** 2, axis=1) <= other.radius**2
+    if near.sum() < PENETRATION_COUNT:
+        return 0.0
+    pts, nrm = posed_samples(other, transform)
+    _, j = cKDTree(pts).query(points[near])
+    depth = -np.einsum("ij,ij->i", points[near] - pts[j], nrm[j])
+    depth = np.sort(depth[depth > 0])
+    return float(depth[-PENETRATION_COUNT]) if len(depth) >= PENETRATION_COUNT else 0.0
+
+
+def near_depth(depth: np.ndarray) -> np.ndarray:
+    """Per pixel the nearest measured depth (m) of its 3 x 3 neighbourhood (inf where none is measured): depth
+    (H, W) m, 0 = missing."""
+    from scipy.ndimage import minimum_filter
+
+    return minimum_filter(np.where(depth > 0, depth, np.inf), size=3, mode="nearest")
+
+
+def free_space_fraction(points: np.ndarray, normals: np.ndarray, views: Sequence[View],
+                        tolerance: float = FREE_SPACE_TOLERANCE) -> tuple[float, int]:
+    """(fraction, count) of the posed samples (S, 3) world, normals (S, 3), that face a camera (cosine to the ray
+    above 0.2), project onto a measured pixel and have the measured depth (nearest of its 3 x 3 pixels) more than
+    `tolerance` m behind them: the camera saw through the mesh there. count: the samples tested (all views)."""
+    bad = tested = 0
+    for view in views:
+        cam = view.camera
+        ray = cam.extrinsics[:3, 3] - points
+        cos = np.einsum("ij,ij->i", normals, ray) / np.maximum(np.linalg.norm(ray, axis=1), 1e-12)
+        cand = cos > 0.2
+        if not cand.any():
+            continue
+        uv, z = cam.project(points[cand])
+        u = np.rint(uv[:, 0]).astype(np.int64)
+        v = np.rint(uv[:, 1]).astype(np.int64)
+        inside = (z > 0) & (u >= 0) & (u < cam.width) & (v >= 0) & (v < cam.height)
+        d = near_depth(view.depth)[v[inside], u[inside]]
+        measured = np.isfinite(d)
+        tested += int(measured.sum())
+        bad += int((d[measured] > z[inside][measured] + tolerance).sum())
+    return (bad / tested if tested else 0.0), tested
+
+
+def physical_problems(samples: SurfaceSamples, transform: np.ndarray,
+                      neighbours: Sequence[tuple[str, SurfaceSamples, np.ndarray]], views: Sequence[View]) -> list[str]:
+    """Why the mesh cannot physically be at `transform` (4, 4), as reason strings ([] when it can):
+
+    - it interpenetrates another object (neighbours: (name, samples, 4x4 transform) of the others at this step)
+      by more than PENETRATION_TOLERANCE (either object's samples inside the other);
+    - its lowest point sinks more than TABLE_TOLERANCE below the table (z = 0), or floats more than that above it
+      without resting on another object (a sample within SUPPORT_DISTANCE of it);
+    - the cameras measured depth behind more than FREE_SPACE_FRACTION of its surface (`free_space_fraction`).
+    """
+    from scipy.spatial import cKDTree
+
+    pts, nrm = posed_samples(samples, transform)
+    problems = []
+    supported = False
+    for name, other, other_t in neighbours:
+        if not np.all(np.isfinite(other_t)):
+            continue
+        other_centre = other_t[:3, :3] @ other.centre + other_t[:3, 3]
+        centre = transform[:3, :3] @ samples.centre + transform[:3, 3]
+        if np.linalg.norm(centre - other_centre) > samples.radius + other.radius + SUPPORT_DISTANCE:
+            continue
+        depth = max(_penetration(pts, other, other_t), _penetration(posed_samples(other, other_t)[0], samples,
+                                                                    transform))
+        if depth > PENETRATION_TOLERANCE:
+            problems.append(f"interpenetrates {name} by {depth * 1000:.0f} mm")
+        gap, _ = cKDTree(posed_samples(other, other_t)[0]).query(pts, distance_upper_bound=SUPPORT_DISTANCE)
+        supported |= bool(np.isfinite(gap).any())
+    lowest_points = pts if samples.vertices is None else samples.vertices @ transform[:3, :3].T + transform[:3, 3]
+    lowest = float(lowest_points[:, 2].min())
+    if lowest < -TABLE_TOLERANCE:
+        problems.append(f"sinks {-lowest * 1000:.0f} mm into the table")
+    elif lowest > TABLE_TOLERANCE and not supported:
+        problems.append(f"floats {lowest * 1000:.0f} mm above the table")
+    fraction, tested = free_space_fraction(pts, nrm, views)
+    if tested >= FREE_SPACE_MIN_SAMPLES and fraction > FREE_SPACE_FRACTION:
+        problems.append(f"the cameras see through {fraction:.0%} of its surface")
+    return problems
+
+
 # --- scores and ICP ------------------------------------------------------------------------------------------------
 
 
 def fit_score(samples: SurfaceSamples, transform: np.ndarray, crop: np.ndarray, views: Sequence[View],
-              inlier_distance: float = INLIER_DISTANCE, tree=None, with_fitness: bool = True) -> FitScore:
+              inlier_distance: float = INLIER_DISTANCE, tree=None, with_fitness: bool = True,
+              neighbours: Sequence[tuple[str, SurfaceSamples, np.ndarray]] | None = None) -> FitScore:
     """Score of the mesh at `transform` (4, 4) against a cloud crop (M, 3) (see FitScore); accepted when the
-    coverage is at least MIN_COVERAGE and the RMSE at most MAX_RMSE. `tree`: a cKDTree of `crop` to reuse;
-    `with_fitness=False` skips the fitness (reported as NaN), for fast screening."""
+    coverage is at least MIN_COVERAGE, the RMSE at most MAX_RMSE and, when `neighbours` (the other objects:
+    name, samples, 4x4 transform) are given, no physical check fails (`physical_problems`). `tree`: a cKDTree of
+    `crop` to reuse; `with_fitness=False` skips the fitness (reported as NaN), for fast screening."""
     from scipy.spatial import cKDTree
 
     pts, nrm = posed_samples(samples, transform)
@@ -270,6 +427,8 @@ def fit_score(samples: SurfaceSamples, transform: np.ndarray, crop: np.ndarray, 
         problems.append(f"coverage {coverage:.0%} < {MIN_COVERAGE:.0%}")
     if not np.isfinite(rmse) or rmse > MAX_RMSE:
         problems.append(f"rmse {rmse * 1000:.1f} mm > {MAX_RMSE * 1000:.1f} mm")
+    if neighbours is not None:
+        problems += physical_problems(samples, transform, neighbours, views)
     reason = "; ".join(problems) if problems else f"rmse {rmse * 1000:.1f} mm, coverage {coverage:.0%}"
     return FitScore(rmse, coverage, fitness, not problems, reason, nvis)
 
@@ -309,7 +468,8 @@ def _tukey(r: np.ndarray, c: float) -> np.ndarray:
 def icp(samples: SurfaceSamples, crop: np.ndarray, start: np.ndarray, views: Sequence[View], *,
         max_correspondence: float = MAX_CORRESPONDENCE, inlier_distance: float = INLIER_DISTANCE,
         iterations: int = 40, max_translation: float = MAX_JUMP_TRANSLATION,
-        max_rotation: float = MAX_JUMP_ROTATION, tree=None) -> IcpResult:
+        max_rotation: float = MAX_JUMP_ROTATION, tree=None,
+        neighbours: Sequence[tuple[str, SurfaceSamples, np.ndarray]] | None = None) -> IcpResult:
     """Point-to-plane ICP of the mesh's visible samples against a cloud crop (M, 3), from `start` (4, 4).
 
     Each iteration matches the visible posed samples to their nearest cloud points within a correspondence
@@ -317,12 +477,13 @@ def icp(samples: SurfaceSamples, crop: np.ndarray, start: np.ndarray, views: Seq
     normals with Tukey's biweight, and takes one damped Gauss-Newton step (rotation about the matched samples'
     centroid). The result is rejected (transform = start, score.accepted False, reason given) when it moved more
     than `max_translation` m or `max_rotation` rad from the start, or found too few correspondences.
+    `neighbours`: the other objects (name, samples, 4x4 transform), for the score's physical checks (`fit_score`).
     """
     from scipy.spatial import cKDTree
 
     start = np.asarray(start, dtype=np.float64)
     if len(crop) < MIN_CORRESPONDENCES:
-        score = fit_score(samples, start, crop, views, inlier_distance)
+        score = fit_score(samples, start, crop, views, inlier_distance, neighbours=neighbours)
         score.accepted, score.reason = False, f"only {len(crop)} cloud points near the object: move it onto its points"
         return IcpResult(start, score, 0, 0.0, 0.0, False)
     tree = cKDTree(crop) if tree is None else tree
@@ -341,7 +502,7 @@ def icp(samples: SurfaceSamples, crop: np.ndarray, start: np.ndarray, views: Seq
         d, j = tree.query(pts[vis], distance_upper_bound=dist)
         ok = np.isfinite(d)
         if ok.sum() < MIN_CORRESPONDENCES:
-            score = fit_score(samples, start, crop, views, inlier_distance, tree)
+            score = fit_score(samples, start, crop, views, inlier_distance, tree, neighbours=neighbours)
             score.accepted = False
             score.reason = (f"only {int(ok.sum())} mesh points have cloud points within {dist * 100:.1f} cm: "
                             "nudge the object onto its points and snap again")
@@ -366,11 +527,11 @@ def icp(samples: SurfaceSamples, crop: np.ndarray, start: np.ndarray, views: Seq
         dist = max(floor, dist * 0.75)
     moved_t, moved_r = pose_delta(start, current)
     if moved_t > max_translation or moved_r > max_rotation:
-        score = fit_score(samples, start, crop, views, inlier_distance, tree)
+        score = fit_score(samples, start, crop, views, inlier_distance, tree, neighbours=neighbours)
         score.accepted = False
         score.reason = (f"rejected jump: ICP moved the object {moved_t * 100:.1f} cm and {np.rad2deg(moved_r):.0f} deg "
                         f"(limits {max_translation * 100:.0f} cm, {np.rad2deg(max_rotation):.0f} deg); nudge it closer "
                         "and snap again")
         return IcpResult(start, score, it, moved_t, moved_r, False)
-    score = fit_score(samples, current, crop, views, inlier_distance, tree)
+    score = fit_score(samples, current, crop, views, inlier_distance, tree, neighbours=neighbours)
     return IcpResult(current, score, it, moved_t, moved_r)

@@ -81,6 +81,11 @@ DISTANCE_PENALTY = 0.5
 SCREEN_CHUNK = 1000
 #: Clouds kept in memory (steps).
 CLOUD_CACHE = 4
+#: Occluder depth renders kept in memory (one per step and set of the other objects' poses).
+OCCLUDER_CACHE = 64
+#: Ranking penalty (quality units) of a search's ICP result whose fit is not accepted (e.g. a physical check
+#: failed: it sits inside another object or in front of what a camera measured): the best physically valid fit wins.
+REJECTED_PENALTY = 1.0
 
 
 def _mm(value: float) -> str:
@@ -104,6 +109,16 @@ class SnapScore(FitScore):
         return out
 
 
+def _rank(score: FitScore) -> float:
+    """Rank of a fit among a search's results: its quality, less REJECTED_PENALTY when it is not accepted."""
+    return score.quality() - (0.0 if score.accepted else REJECTED_PENALTY)
+
+
+def _same_poses(a: list[tuple[int, np.ndarray]], b: list[tuple[int, np.ndarray]]) -> bool:
+    """Whether two lists of (object, pose) hold the same objects at exactly the same poses."""
+    return len(a) == len(b) and all(i == j and np.array_equal(p, q) for (i, p), (j, q) in zip(a, b))
+
+
 def _nan_score(d: dict | None) -> FitScore | None:
     """The FitScore of a stored score dict; None when there is none or it is not a whole score (then refitted)."""
     if d is None:
@@ -123,6 +138,7 @@ class Session:
         self.state = state
         self._samples: dict[int, align.SurfaceSamples] = {}
         self._clouds: OrderedDict[int, tuple] = OrderedDict()
+        self._occluders: OrderedDict[tuple, list] = OrderedDict()  # (step, others' poses) -> depth per view
         self._generation = 0  # journal generation of the last snapshot written or read
         self._records = 0  # records in the journal since
         self._capture_sha256 = capture_sha256 or capture_digest(capture)  # what state.json and the journal are bound to
@@ -281,10 +297,43 @@ class Session:
         centre = transform[:3, :3] @ samples.centre + transform[:3, 3]
         return align.crop_cloud(points, centre, samples.radius + CROP_MARGIN + extra)
 
-    def _fit(self, obj: int, step: int, pose: np.ndarray) -> FitScore:
+    def _others(self, obj: int, step: int) -> list[tuple[int, np.ndarray]]:
+        """(object, pose (7,)) of the other objects posed at a step in the state."""
+        return [(k, p) for k in range(self.num_objects) if k != obj and (p := self.state.pose(step, k)) is not None]
+
+    def _context(self, obj: int, step: int, others: list[tuple[int, np.ndarray]] | None = None
+                 ) -> tuple[list[align.View], list[tuple[str, align.SurfaceSamples, np.ndarray]]]:
+        """(views, neighbours) to score object `obj` at a step against: the step's views with the other objects'
+        posed meshes as occluders (`align.View.occluders`), and those objects as (name, samples, 4x4 transform)
+        for the physical checks. others: (object, pose (7,)) of the other objects (default: the state's)."""
+        others = self._others(obj, step) if others is None else [(k, p) for k, p in others if k != obj]
+        others = [(k, np.asarray(p, dtype=np.float64)) for k, p in others if np.all(np.isfinite(p))]
+        views = self._views(step)
+        key = (step, tuple((k, p.tobytes()) for k, p in sorted(others, key=lambda e: e[0])))
+        if key not in self._occluders:
+            meshes = []
+            for k, p in others:
+                v, f = self.capture.mesh(k)
+                m = pose_to_matrix(p)
+                meshes.append((np.asarray(v, np.float64) @ m[:3, :3].T + m[:3, 3], f))
+            self._occluders[key] = [align.render_depth(view.camera, meshes) if meshes else None for view in views]
+            while len(self._occluders) > OCCLUDER_CACHE:
+                self._occluders.popitem(last=False)
+        self._occluders.move_to_end(key)
+        views = [view.with_occluders(occ) for view, occ in zip(views, self._occluders[key])]
+        neighbours = [(f"object {k + 1} ({self.capture.objects[k].name})", self.samples(k), pose_to_matrix(p))
+                      for k, p in others]
+        return views, neighbours
+
+    def _fit(self, obj: int, step: int, pose: np.ndarray, others: list[tuple[int, np.ndarray]] | None = None
+             ) -> FitScore:
+        """Fit score of object `obj` at `pose` (7,) at a step, occlusion-aware and with the physical checks against
+        the other objects (`others`: (object, pose); default: the state's poses at the step)."""
         transform = pose_to_matrix(pose)
         samples = self.samples(obj)
-        return align.fit_score(samples, transform, self._crop(step, transform, samples), self._views(step))
+        views, neighbours = self._context(obj, step, others)
+        return align.fit_score(samples, transform, self._crop(step, transform, samples), views,
+                               neighbours=neighbours)
 
     def score(self, obj: int, step: int | None = None) -> FitScore:
         """Fit score of object `obj`'s current pose at a step (default the current one) against its cloud."""
@@ -402,10 +451,14 @@ class Session:
         self._set_pose("snap", obj, matrix_to_pose(result.transform), status, result.score)
         return SnapScore.of(result.score, kept=True)
 
-    def _icp(self, obj: int, step: int, start: np.ndarray, extra_crop: float = 0.0, **kwargs) -> align.IcpResult:
+    def _icp(self, obj: int, step: int, start: np.ndarray, extra_crop: float = 0.0,
+             others: list[tuple[int, np.ndarray]] | None = None, **kwargs) -> align.IcpResult:
+        """ICP of object `obj` at a step from `start` (4, 4), scored against the other objects (`others`:
+        (object, pose); default: the state's poses at the step)."""
         samples = self.samples(obj)
         crop = self._crop(step, start, samples, extra_crop)
-        return align.icp(samples, crop, start, self._views(step), **kwargs)
+        views, neighbours = self._context(obj, step, others)
+        return align.icp(samples, crop, start, views, neighbours=neighbours, **kwargs)
 
     def confirm(self, obj: int) -> None:
         """Mark object `obj`'s pose at the current step as checked by the user ('confirmed')."""
@@ -455,25 +508,56 @@ class Session:
     def _carry_objects(self, step: int, carries: dict) -> tuple[dict, list[int]]:
         """Carry objects to `step`: carries {obj: (source step, source pose, source score or None, source status or
         None)} (None: the state's). Returns the changes {(step, obj): (pose, status, score dict, (source, source
-        pose))} and the objects whose pose the snapping changed. Objects not carried keep their pose at `step`."""
+        pose))} and the objects whose pose the snapping changed. Objects not carried keep their pose at `step`.
+
+        The objects the pusher passed go first (the others are scored against their new poses: an object that
+        moved in front of a still one hides part of it), the others stay still as hypotheses; once every object has
+        a pose, each is scored again against the others' final poses, and an object whose pose is then not
+        accepted (another object now hides it, or it interpenetrates one) is carried again against them."""
+        current = {k: p for k in range(self.num_objects)
+                   if k not in carries and (p := self.state.pose(step, k)) is not None}
+        current.update({obj: c[1] for obj, c in carries.items()})
+        order = sorted(carries, key=lambda o: (not self._near_push(o, carries[o][1], carries[o][0], step), o))
+        results, used = {}, {}
+        for obj in order:
+            source, pose, before, src_status = carries[obj]
+            used[obj] = self._others_of(obj, current)
+            results[obj] = self._carry(obj, source, step, pose, before, src_status, used[obj])
+            current[obj] = results[obj][0]
+        for obj in order:
+            new_pose, status, score, moved = results[obj]
+            others = self._others_of(obj, current)
+            if _same_poses(others, used[obj]):
+                continue  # scored against these poses already
+            final = self._fit(obj, step, new_pose, others)
+            if final.accepted and status == "snapped":
+                results[obj] = (new_pose, status, final, moved)
+                continue
+            source, pose, before, src_status = carries[obj]
+            results[obj] = self._carry(obj, source, step, pose, before, src_status, others)
+            current[obj] = results[obj][0]
         changes, snapped = {}, []
-        for obj, (source, pose, before, src_status) in carries.items():
-            new_pose, status, score, moved = self._carry(obj, source, step, pose, before, src_status)
-            changes[(step, obj)] = (new_pose, status, score.as_dict(), (source, pose))
+        for obj in sorted(results):
+            new_pose, status, score, moved = results[obj]
+            changes[(step, obj)] = (new_pose, status, score.as_dict(), (carries[obj][0], carries[obj][1]))
             if moved:
                 snapped.append(obj)
-        # second pass, once every object near its push has its new pose: an object that left its place and was not
-        # found near the push is looked for where the cloud shows surface that no other object explains
+        # once every object near its push has its new pose: an object that left its place and was not found near
+        # the push is looked for where the cloud shows surface that no other object explains
         for obj in [k for (_, k), change in changes.items() if change[1] != "snapped"]:
-            others = [(k, change[0]) for (_, k), change in changes.items() if k != obj]
-            others += [(k, p) for k in range(self.num_objects)
-                       if k not in carries and (p := self.state.pose(step, k)) is not None]
+            others = self._others_of(obj, {k: change[0] for (_, k), change in changes.items()} |
+                                     {k: p for k, p in current.items() if k not in carries})
             source, pose, before, _ = carries[obj]
             landed = self._land(obj, source, step, pose, others, before)
             if landed is not None:
                 changes[(step, obj)] = (landed[0], "snapped", landed[1].as_dict(), (source, pose))
                 snapped = sorted(set(snapped) | {obj})
         return changes, snapped
+
+    @staticmethod
+    def _others_of(obj: int, poses: dict) -> list[tuple[int, np.ndarray]]:
+        """(object, pose) of the entries of {object: pose} other than `obj`."""
+        return [(k, np.asarray(p, dtype=np.float64)) for k, p in sorted(poses.items()) if k != obj]
 
     # re-carrying after a fix, and what is left to check -------------------------------------------------------------
     def carried_from(self, obj: int, step: int | None = None) -> tuple[int, np.ndarray] | None:
@@ -590,11 +674,15 @@ class Session:
         return False
 
     def _carry(self, obj: int, source: int, step: int, pose: np.ndarray, before: FitScore | None = None,
-               src_status: str | None = None) -> tuple[np.ndarray, str, FitScore, bool]:
+               src_status: str | None = None, others: list[tuple[int, np.ndarray]] | None = None
+               ) -> tuple[np.ndarray, str, FitScore, bool]:
         """(pose, status, score, moved) of an object carried from `source` to `step`; `before` / `src_status`: the
-        source's score and status (default: the state's)."""
-        before = before or self.stored_score(obj, source) or self._fit(obj, source, pose)
-        carried = self._fit(obj, step, pose)
+        source's score and status (default: scored now against the source's other objects, and the state's status);
+        `others`: (object, pose) of the other objects at `step` (default: the state's). Coverage counts only the
+        surface no other object hides, at both steps, so an object that another one moved in front of keeps its
+        coverage; a pose that fails a physical check is not accepted."""
+        before = before or self._fit(obj, source, pose)
+        carried = self._fit(obj, step, pose, others)
         src_status = str(self.state.status[source, obj]) if src_status is None else src_status
         checked = src_status in ("snapped", "confirmed")
         rmse_before = before.rmse if np.isfinite(before.rmse) else 0.0
@@ -603,7 +691,7 @@ class Session:
         if not dropped and not self._near_push(obj, pose, source, step):
             return pose, ("snapped" if checked else "initialised"), carried, False
         start = pose_to_matrix(pose)
-        result = self._icp(obj, step, start)
+        result = self._icp(obj, step, start, others=others)
 
         def good(r: align.IcpResult) -> bool:  # accepted, and about as well covered as at the source step
             return r.applied and r.score.accepted and r.score.coverage >= before.coverage - MOVED_COVERAGE_DROP
@@ -615,18 +703,21 @@ class Session:
                 return pose, ("snapped" if checked else "initialised"), carried, False
             return matrix_to_pose(result.transform), "snapped", result.score, True
         if not good(result):
-            searched = self._search(obj, source, step, start)
-            if searched is not None and (not result.applied or searched.score.quality() > result.score.quality()):
+            searched = self._search(obj, source, step, start, others)
+            if searched is not None and (not result.applied or _rank(searched.score) > _rank(result.score)):
                 result = searched
         if good(result):
             return matrix_to_pose(result.transform), "snapped", result.score, True
-        if result.applied and result.score.quality() > carried.quality():
+        if result.applied and _rank(result.score) > _rank(carried):
             return matrix_to_pose(result.transform), "initialised", result.score, True
         carried.reason = f"moved, not snapped: {result.score.reason}"
         return pose, "initialised", carried, False
 
-    def _search(self, obj: int, source: int, step: int, start: np.ndarray) -> align.IcpResult | None:
-        """Best kept ICP result from start poses along the push direction, sideways and turned about z."""
+    def _search(self, obj: int, source: int, step: int, start: np.ndarray,
+                others: list[tuple[int, np.ndarray]] | None = None) -> align.IcpResult | None:
+        """Best kept ICP result from start poses along the push direction (the pushes between `source` and
+        `step`, `capture.pushes_world`), sideways and turned about z; `others`: (object, pose) of the other objects
+        at `step` (occluders, and the physical checks: the best physically valid fit wins)."""
         pushes = self.capture.pushes_world[source:step]
         samples = self.samples(obj)
         vec = pushes[-1, 1, :2] - pushes[-1, 0, :2]
@@ -640,7 +731,7 @@ class Session:
         from scipy.spatial import cKDTree
 
         tree = cKDTree(wide)
-        views = self._views(step)
+        views, neighbours = self._context(obj, step, others)
         centre = start[:3, :3] @ samples.centre + start[:3, 3]
         every = max(1, len(samples.points) // SEARCH_SAMPLES)
         screen = align.SurfaceSamples(samples.points[::every], samples.normals[::every], samples.centre,
@@ -664,8 +755,8 @@ class Session:
         candidates = [(quality[k], starts[k]) for k in np.argsort(-quality, kind="stable")]
         best, best_rank = None, -np.inf
         for _, cand in candidates[:SEARCH_ICP_STARTS]:
-            result = align.icp(samples, self._crop(step, cand, samples), cand, views)
-            rank = result.score.quality() - TURN_PENALTY * align.pose_delta(start, result.transform)[1] / np.pi
+            result = align.icp(samples, self._crop(step, cand, samples), cand, views, neighbours=neighbours)
+            rank = _rank(result.score) - TURN_PENALTY * align.pose_delta(start, result.transform)[1] / np.pi
             if result.applied and rank > best_rank:
                 best, best_rank = result, rank
         return best
@@ -676,8 +767,8 @@ class Session:
         coverage) found by `_search_landed` with a good fit (accepted, about as well covered as at `source`), or
         None. `others`: (object, pose) of the other objects at `step`; `before`: the source's score (default the
         state's)."""
-        before = before or self.stored_score(obj, source) or self._fit(obj, source, pose)
-        carried = self._fit(obj, step, pose)
+        before = before or self._fit(obj, source, pose)
+        carried = self._fit(obj, step, pose, others)
         if carried.coverage >= before.coverage - MOVED_COVERAGE_DROP:
             return None  # still (partly) where it was: not free to go looking elsewhere
         result = self._search_landed(obj, step, pose_to_matrix(pose), others)
@@ -721,7 +812,7 @@ class Session:
                 penalties.append(TURN_PENALTY * abs(yaw) / np.pi + DISTANCE_PENALTY * np.hypot(x - centre[0],
                                                                                                y - centre[1]))
         tree = cKDTree(above)
-        views = self._views(step)
+        views, neighbours = self._context(obj, step, others)
         every = max(1, len(samples.points) // SEARCH_SAMPLES)
         screen = align.SurfaceSamples(samples.points[::every], samples.normals[::every], samples.centre,
                                       samples.radius)
@@ -731,9 +822,10 @@ class Session:
         quality = quality - np.asarray(penalties)
         best, best_rank = None, -np.inf
         for k in np.argsort(-quality, kind="stable")[:SEARCH_ICP_STARTS]:
-            result = align.icp(samples, self._crop(step, starts[k], samples), starts[k], views)
+            result = align.icp(samples, self._crop(step, starts[k], samples), starts[k], views,
+                                neighbours=neighbours)
             moved_t, turned = align.pose_delta(start, result.transform)
-            rank = result.score.quality() - TURN_PENALTY * turned / np.pi - DISTANCE_PENALTY * moved_t
+            rank = _rank(result.score) - TURN_PENALTY * turned / np.pi - DISTANCE_PENALTY * moved_t
             if result.applied and rank > best_rank:
                 best, best_rank = result, rank
         return best
