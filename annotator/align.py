@@ -224,15 +224,17 @@ def posed_samples(samples: SurfaceSamples, transform: np.ndarray) -> tuple[np.nd
 class View:
     """A calibrated camera and its measured z-depth (H, W) in metres (0 = missing), for visibility tests;
     `occluders`: the z-depth (H, W) m of the other objects' posed meshes in this camera (inf where none,
-    `render_depth`), or None (no other objects known)."""
+    `render_depth`), or None (no other objects known); `bounds`: the box (2, 3) (lowest, highest x, y, z, m) outside
+    which the cloud holds no points (`Capture.cloud` keeps the grid's), or None."""
 
     camera: Camera
     depth: np.ndarray
     occluders: np.ndarray | None = None
+    bounds: np.ndarray | None = None  # (2, 3) lowest and highest (x, y, z) m of the cloud's points (it is cut there)
 
     def with_occluders(self, occluders: np.ndarray | None) -> View:
         """This view with another occluder depth (H, W) m (or None)."""
-        return View(self.camera, self.depth, occluders)
+        return View(self.camera, self.depth, occluders, self.bounds)
 
 
 def render_depth(camera: Camera, meshes: Sequence[tuple[np.ndarray, np.ndarray]]) -> np.ndarray:
@@ -270,7 +272,8 @@ def visible_samples(points: np.ndarray, normals: np.ndarray, views: Sequence[Vie
     inside its image onto a pixel with a measurement, and that measurement is not more than
     `occlusion_tolerance` m in front of it (something else hides it), nor hidden by another object's posed surface
     (`View.occluders`, more than OCCLUDER_TOLERANCE m in front). Samples below `table_margin` m are left out
-    (the table hides the contact surface). points, normals: (S, 3) world.
+    (the table hides the contact surface), and so are samples outside the view's `bounds` (the cloud holds no
+    point there: an object pushed partly off the grid). points, normals: (S, 3) world.
     """
     out = np.zeros(len(points), dtype=bool)
     above = points[:, 2] > table_margin
@@ -280,6 +283,8 @@ def visible_samples(points: np.ndarray, normals: np.ndarray, views: Sequence[Vie
         ray = centre - points
         facing = np.einsum("ij,ij->i", normals, ray) > MIN_VIEW_COSINE * np.linalg.norm(ray, axis=1)
         cand = facing & above & ~out
+        if view.bounds is not None:
+            cand &= np.all((points >= view.bounds[0]) & (points <= view.bounds[1]), axis=1)
         if not cand.any():
             continue
         uv, z = cam.project(points[cand])

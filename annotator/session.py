@@ -88,6 +88,17 @@ OCCLUDER_CACHE = 64
 REJECTED_PENALTY = 1.0
 
 
+def cloud_bounds() -> np.ndarray:
+    """The box (2, 3) (lowest, highest x, y, z; m, table frame) that `Capture.cloud` keeps points in: the grid's
+    bounds plus CLOUD_MARGIN, from CLOUD_MARGIN below the table."""
+    from dsr_bench.constants import GRID_BOUNDS
+    from dsr_bench.dataset.capture import CLOUD_MARGIN
+
+    lo, hi = GRID_BOUNDS[:, 0] - CLOUD_MARGIN, GRID_BOUNDS[:, 1] + CLOUD_MARGIN
+    lo[2] = -CLOUD_MARGIN
+    return np.stack([lo, hi])
+
+
 def _mm(value: float) -> str:
     return f"{value * 1000:.1f} mm" if np.isfinite(value) else "-"
 
@@ -257,8 +268,10 @@ class Session:
         """The fused cloud of a step (points (M, 3) m, colours (M, 3) 0..1, camera index (M,)), cached."""
         step = self._step(step)
         if step not in self._clouds:
+            bounds = cloud_bounds()
             self._clouds[step] = self.capture.cloud(step) + (
-                [align.View(cam.camera, self.capture.depth(step, name)) for name, cam in self.capture.cameras.items()],)
+                [align.View(cam.camera, self.capture.depth(step, name), bounds=bounds)
+                 for name, cam in self.capture.cameras.items()],)
             while len(self._clouds) > CLOUD_CACHE:
                 self._clouds.popitem(last=False)
         self._clouds.move_to_end(step)

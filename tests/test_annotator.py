@@ -238,6 +238,10 @@ def test_coverage_counts_what_no_other_object_hides(capture_dir, truth):
     hidden = back.with_occluders(align.render_depth(back.camera, [(phantom, f)]))
     assert align.visible_samples(pts, nrm, [back]).sum() > 1000
     assert align.visible_samples(pts, nrm, [hidden]).sum() < 0.1 * align.visible_samples(pts, nrm, [back]).sum()
+    # the cloud holds no points beyond the grid (Capture.cloud): a part of the box out there is not counted either
+    cut = align.View(back.camera, back.depth, bounds=np.array([[-1.0, -1.0, -1.0], [m[0, 3], 1.0, 1.0]]))
+    inside = align.visible_samples(pts, nrm, [cut])
+    assert 0 < inside.sum() < align.visible_samples(pts, nrm, [back]).sum() and np.all(pts[inside, 0] <= m[0, 3])
 
 
 # --- state and session ------------------------------------------------------------------------------------------------
