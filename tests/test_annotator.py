@@ -244,6 +244,51 @@ def test_coverage_counts_what_no_other_object_hides(capture_dir, truth):
     assert 0 < inside.sum() < align.visible_samples(pts, nrm, [back]).sum() and np.all(pts[inside, 0] <= m[0, 3])
 
 
+def test_physical_checks_refuse_impossible_poses_with_their_reason(capture_dir, truth):
+    """A pose that sinks into the table, floats, interpenetrates another object, or stands where the cameras saw
+    through it is not accepted, whatever its cloud fit (a box sunk 15 mm keeps its coverage and RMSE), and the
+    reason says which check failed; the true poses of every step pass them all."""
+    from annotator import align
+    from annotator.session import Session
+
+    session = Session.open(capture_dir, capture_dir.parent / "work_physics")
+    n = session.num_objects
+    for t in range(len(truth)):
+        for i in range(n):
+            score = session._fit(i, t, truth[t, i], [(k, truth[t, k]) for k in range(n) if k != i])
+            assert score.accepted, (t, i, score.reason)
+    others = [(k, truth[0, k]) for k in range(1, n)]
+    cases = {"sinks 15 mm into the table": [0.0, 0.0, -0.015], "floats 15 mm above the table": [0.0, 0.0, 0.015],
+             "the cameras see through": [0.0, 0.08, 0.0],
+             "interpenetrates object 3 (box_2)": [*(truth[0, 2, :2] - truth[0, 0, :2] + [0.0, 0.03]), 0.0]}
+    for reason, shift in cases.items():
+        pose = truth[0, 0].copy()
+        pose[:3] += shift
+        score = session._fit(0, 0, pose, others)
+        assert not score.accepted and reason in score.reason, (reason, score.reason)
+    sunk = pose_to_matrix(truth[0, 0])
+    sunk[2, 3] -= 0.015
+    samples = session.samples(0)
+    alone = align.fit_score(samples, sunk, session._crop(0, sunk, samples), session._views(0))
+    assert alone.accepted, alone.reason  # the cloud fit alone takes it
+
+
+def test_a_carried_pose_that_interpenetrates_another_object_is_not_snapped(capture_dir, truth, tmp_path):
+    """Carry-forward keeps a pose only when it is physically possible: can 1 carried to step 1 where (wrongly) box 0
+    stands in it fits the cloud, but is left 'initialised' with the reason, for the user to check."""
+    from annotator.session import Session
+
+    session = Session.open(capture_dir, tmp_path / "work")
+    _place_from_truth(session, truth)
+    inside = truth[1, 0].copy()
+    inside[:2] = truth[1, 1, :2]
+    others = [(0, inside), (2, truth[1, 2])]
+    pose, status, score, _ = session._carry(1, 0, 1, truth[1, 1], others=others)
+    assert status == "initialised" and "interpenetrates object 1 (box_0)" in score.reason, (status, score.reason)
+    good = session._carry(1, 0, 1, truth[1, 1], others=[(0, truth[1, 0]), (2, truth[1, 2])])
+    assert good[1] == "snapped", good[2].reason
+
+
 # --- state and session ------------------------------------------------------------------------------------------------
 
 
