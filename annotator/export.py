@@ -98,13 +98,15 @@ def export_sequence(session, out: str | Path, allow_unchecked: bool = False) -> 
     """Write the session's annotation as a sequence file at `out` (.h5), atomically; returns the path.
 
     Refuses (UserError listing them) while any object at any step is not 'snapped' or 'confirmed', unless
-    `allow_unchecked` (objects still 'unset' are refused always: they have no pose).
+    `allow_unchecked` (objects still 'unset' are refused always: they have no pose). The file is written under a
+    temporary name and checked as `dsr-bench validate` checks it (`validate_sequence`); a file that fails is
+    removed and refused (UserError naming the first problem) unless `allow_unchecked`: confirmed poses can still
+    be wrong (two objects in one place leave one of them without voxels).
     """
     from dsr_bench.constants import GRID_SHAPE, IMAGE_SHAPE
     from dsr_bench.dataset.schema import sequence_header
     from dsr_bench.geometry.groundtruth import rigid_scene_flow_2d, rigid_scene_flow_3d
     from dsr_bench.dataset.digests import digest_attrs
-    from dsr_bench.dataset.sequence import write_sequence
     from dsr_bench.geometry.tsdf import ProjectiveTSDF
     from annotator.state import STATE_VERSION
 
@@ -182,4 +184,27 @@ def export_sequence(session, out: str | Path, allow_unchecked: bool = False) -> 
     )
     attrs.update(digest_attrs(arrays, identities))
     meshes = {i: capture.mesh(i) for i in range(n)}
-    return write_sequence(out, arrays, attrs, meshes)
+    return _write_checked(out, arrays, attrs, meshes, capture.name, allow_unchecked)
+
+
+def _write_checked(out: Path, arrays: dict, attrs: dict, meshes: dict, name: str, allow_unchecked: bool) -> Path:
+    """Write the sequence under a temporary name next to `out`, run `validate_sequence` on it, and rename it to
+    `out`, or remove it and raise UserError when it fails validation (unless `allow_unchecked`)."""
+    import os
+
+    from dsr_bench.dataset.sequence import write_sequence
+    from dsr_bench.dataset.validate import validate_sequence
+
+    tmp = out.with_name(f".{out.stem}.{os.getpid()}.checking.h5")
+    try:
+        write_sequence(tmp, arrays, attrs, meshes)
+        problems = validate_sequence(tmp)
+        if problems and not allow_unchecked:
+            more = f" (and {len(problems) - 1} more)" if len(problems) > 1 else ""
+            raise UserError(f"cannot export {name}: the sequence fails `dsr-bench validate`: {problems[0]}{more}; fix "
+                            "the poses of the step and object it names (`dsr-bench annotate` shows them), or pass "
+                            "--allow-unchecked to write it anyway")
+        os.replace(tmp, out)
+    finally:
+        tmp.unlink(missing_ok=True)
+    return out

@@ -637,6 +637,29 @@ def test_export_refuses_unset_and_unchecked_poses(capture_dir, truth, tmp_path):
         assert "initialised" in sum(seq.attrs["annotation"]["status"], [])
 
 
+def test_export_that_fails_validate_is_not_written_without_allow_unchecked(capture_dir, truth, tmp_path):
+    """Every pose confirmed, but one confirmed where another object stands (at step 1, box 0 inside box 2): the
+    sequence would fail `dsr-bench validate`, so the export is refused naming validate's problem and leaves no
+    file; --allow-unchecked writes it."""
+    from annotator.session import Session
+    from dsr_bench.dataset.validate import validate_sequence
+
+    session = Session.open(capture_dir, tmp_path / "work")
+    _place_from_truth(session, truth)
+    for t in range(1, session.num_steps + 1):
+        session.go_to(t)
+        for i in range(session.num_objects):
+            if t == 1 and i == 0:
+                session.place(0, pose_to_matrix(truth[1, 2]))
+            session.confirm(i)
+    assert session.unchecked() == []
+    out = tmp_path / "a.h5"
+    with pytest.raises(UserError, match=r"fails `dsr-bench validate`: .*--allow-unchecked"):
+        session.export(out)
+    assert list(tmp_path.glob("*.h5")) == []
+    assert validate_sequence(session.export(out, allow_unchecked=True)) != []
+
+
 def test_cli_error_paths(capture_dir, tmp_path, capsys):
     from dsr_bench.cli import main
 
