@@ -315,10 +315,12 @@ class Session:
         return [(k, p) for k in range(self.num_objects) if k != obj and (p := self.state.pose(step, k)) is not None]
 
     def _context(self, obj: int, step: int, others: list[tuple[int, np.ndarray]] | None = None
-                 ) -> tuple[list[align.View], list[tuple[str, align.SurfaceSamples, np.ndarray]]]:
-        """(views, neighbours) to score object `obj` at a step against: the step's views with the other objects'
-        posed meshes as occluders (`align.View.occluders`), and those objects as (name, samples, 4x4 transform)
-        for the physical checks. others: (object, pose (7,)) of the other objects (default: the state's)."""
+                 ) -> tuple[list[align.View], dict]:
+        """(views, keywords) to score object `obj` at a step with: the step's views with the other objects' posed
+        meshes as occluders (`align.View.occluders`), and the keywords of `align.fit_score` / `align.icp` for the
+        physical checks: `neighbours`, those objects as (name, samples, 4x4 transform), and `explain`, whether
+        they are all the other objects (then the cloud around the object must be explained). others: (object,
+        pose (7,)) of the other objects (default: the state's)."""
         others = self._others(obj, step) if others is None else [(k, p) for k, p in others if k != obj]
         others = [(k, np.asarray(p, dtype=np.float64)) for k, p in others if np.all(np.isfinite(p))]
         views = self._views(step)
@@ -336,7 +338,7 @@ class Session:
         views = [view.with_occluders(occ) for view, occ in zip(views, self._occluders[key])]
         neighbours = [(f"object {k + 1} ({self.capture.objects[k].name})", self.samples(k), pose_to_matrix(p))
                       for k, p in others]
-        return views, neighbours
+        return views, {"neighbours": neighbours, "explain": len({k for k, _ in others}) == self.num_objects - 1}
 
     def _fit(self, obj: int, step: int, pose: np.ndarray, others: list[tuple[int, np.ndarray]] | None = None
              ) -> FitScore:
@@ -344,9 +346,8 @@ class Session:
         the other objects (`others`: (object, pose); default: the state's poses at the step)."""
         transform = pose_to_matrix(pose)
         samples = self.samples(obj)
-        views, neighbours = self._context(obj, step, others)
-        return align.fit_score(samples, transform, self._crop(step, transform, samples), views,
-                               neighbours=neighbours)
+        views, checks = self._context(obj, step, others)
+        return align.fit_score(samples, transform, self._crop(step, transform, samples), views, **checks)
 
     def score(self, obj: int, step: int | None = None) -> FitScore:
         """Fit score of object `obj`'s current pose at a step (default the current one) against its cloud."""
@@ -470,8 +471,8 @@ class Session:
         (object, pose); default: the state's poses at the step)."""
         samples = self.samples(obj)
         crop = self._crop(step, start, samples, extra_crop)
-        views, neighbours = self._context(obj, step, others)
-        return align.icp(samples, crop, start, views, neighbours=neighbours, **kwargs)
+        views, checks = self._context(obj, step, others)
+        return align.icp(samples, crop, start, views, **checks, **kwargs)
 
     def confirm(self, obj: int) -> None:
         """Mark object `obj`'s pose at the current step as checked by the user ('confirmed')."""
@@ -744,7 +745,7 @@ class Session:
         from scipy.spatial import cKDTree
 
         tree = cKDTree(wide)
-        views, neighbours = self._context(obj, step, others)
+        views, checks = self._context(obj, step, others)
         centre = start[:3, :3] @ samples.centre + start[:3, 3]
         every = max(1, len(samples.points) // SEARCH_SAMPLES)
         screen = align.SurfaceSamples(samples.points[::every], samples.normals[::every], samples.centre,
@@ -768,7 +769,7 @@ class Session:
         candidates = [(quality[k], starts[k]) for k in np.argsort(-quality, kind="stable")]
         best, best_rank = None, -np.inf
         for _, cand in candidates[:SEARCH_ICP_STARTS]:
-            result = align.icp(samples, self._crop(step, cand, samples), cand, views, neighbours=neighbours)
+            result = align.icp(samples, self._crop(step, cand, samples), cand, views, **checks)
             rank = _rank(result.score) - TURN_PENALTY * align.pose_delta(start, result.transform)[1] / np.pi
             if result.applied and rank > best_rank:
                 best, best_rank = result, rank
@@ -825,7 +826,7 @@ class Session:
                 penalties.append(TURN_PENALTY * abs(yaw) / np.pi + DISTANCE_PENALTY * np.hypot(x - centre[0],
                                                                                                y - centre[1]))
         tree = cKDTree(above)
-        views, neighbours = self._context(obj, step, others)
+        views, checks = self._context(obj, step, others)
         every = max(1, len(samples.points) // SEARCH_SAMPLES)
         screen = align.SurfaceSamples(samples.points[::every], samples.normals[::every], samples.centre,
                                       samples.radius)
@@ -835,8 +836,7 @@ class Session:
         quality = quality - np.asarray(penalties)
         best, best_rank = None, -np.inf
         for k in np.argsort(-quality, kind="stable")[:SEARCH_ICP_STARTS]:
-            result = align.icp(samples, self._crop(step, starts[k], samples), starts[k], views,
-                                neighbours=neighbours)
+            result = align.icp(samples, self._crop(step, starts[k], samples), starts[k], views, **checks)
             moved_t, turned = align.pose_delta(start, result.transform)
             rank = _rank(result.score) - TURN_PENALTY * turned / np.pi - DISTANCE_PENALTY * moved_t
             if result.applied and rank > best_rank:
