@@ -273,6 +273,23 @@ def test_physical_checks_refuse_impossible_poses_with_their_reason(capture_dir, 
     assert alone.accepted, alone.reason  # the cloud fit alone takes it
 
 
+def test_a_pose_that_leaves_the_cloud_around_it_unexplained_is_refused(capture_dir, truth):
+    """Box 2 turned 20 degrees about the vertical still fits its cloud (coverage 65%), but leaves 12% of the cloud
+    around it explained by no object: refused once every other object has a pose, not while one has none yet."""
+    from annotator.align import UNEXPLAINED_FRACTION, rotvec_to_matrix
+    from annotator.session import Session
+
+    session = Session.open(capture_dir, capture_dir.parent / "work_explain")
+    m = pose_to_matrix(truth[0, 2])
+    m[:3, :3] = rotvec_to_matrix(np.array([0.0, 0.0, np.deg2rad(20.0)])) @ m[:3, :3]
+    others = [(0, truth[0, 0]), (1, truth[0, 1])]
+    score = session._fit(2, 0, matrix_to_pose(m), others)
+    assert not score.accepted and "of the cloud around it is explained by no object" in score.reason, score.reason
+    assert float(score.reason.split("% of the cloud")[0].split()[-1]) / 100 > UNEXPLAINED_FRACTION
+    assert "explained" not in session._fit(2, 0, matrix_to_pose(m), others[:1]).reason
+    assert session._fit(2, 0, truth[0, 2], others).accepted
+
+
 def test_a_carried_pose_that_interpenetrates_another_object_is_not_snapped(capture_dir, truth, tmp_path):
     """Carry-forward keeps a pose only when it is physically possible: can 1 carried to step 1 where (wrongly) box 0
     stands in it fits the cloud, but is left 'initialised' with the reason, for the user to check."""
