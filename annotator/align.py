@@ -238,10 +238,13 @@ class View:
     depth: np.ndarray
     occluders: np.ndarray | None = None
     bounds: np.ndarray | None = None  # (2, 3) lowest and highest (x, y, z) m of the cloud's points (it is cut there)
+    near: np.ndarray | None = None  # `near_depth(depth)`, computed once (None: computed where needed)
 
     def with_occluders(self, occluders: np.ndarray | None) -> View:
         """This view with another occluder depth (H, W) m (or None)."""
-        return View(self.camera, self.depth, occluders, self.bounds)
+        from dataclasses import replace
+
+        return replace(self, occluders=occluders)
 
 
 def render_depth(camera: Camera, meshes: Sequence[tuple[np.ndarray, np.ndarray]]) -> np.ndarray:
@@ -317,18 +320,15 @@ def crop_cloud(points: np.ndarray, centre: np.ndarray, radius: float, table_marg
 # --- physical checks -------------------------------------------------------------------------------------------
 
 
-def _penetration(points: np.ndarray, other: SurfaceSamples, transform: np.ndarray) -> float:
-    """How deep (m) points (S, 3) world lie inside another posed mesh: the PENETRATION_COUNT-th largest depth below
-    its surface (signed distance along the nearest surface sample's outward normal), 0 when fewer are inside."""
-    from scipy.spatial import cKDTree
+def _inside_depth(points: np.ndarray, surface: np.ndarray, normals: np.ndarray, tree) -> np.ndarray:
+    """Per point (M, 3) its depth (m) below a posed surface (samples (S, 3) with outward normals (S, 3) and their
+    cKDTree): minus the signed distance along the nearest sample's normal (<= 0 outside)."""
+    _, j = tree.query(points)
+    return -np.einsum("ij,ij->i", points - surface[j], normals[j])
 
-    centre = transform[:3, :3] @ other.centre + transform[:3, 3]
-    near = np.sum((points - centre) ** 2, axis=1) <= other.radius**2
-    if near.sum() < PENETRATION_COUNT:
-        return 0.0
-    pts, nrm = posed_samples(other, transform)
-    _, j = cKDTree(pts).query(points[near])
-    depth = -np.einsum("ij,ij->i", points[near] - pts[j], nrm[j])
+
+def _kth_deepest(depth: np.ndarray) -> float:
+    """The PENETRATION_COUNT-th largest positive depth (m), 0 when fewer are inside."""
     depth = np.sort(depth[depth > 0])
     return float(depth[-PENETRATION_COUNT]) if len(depth) >= PENETRATION_COUNT else 0.0
 
@@ -358,7 +358,7 @@ def free_space_fraction(points: np.ndarray, normals: np.ndarray, views: Sequence
         u = np.rint(uv[:, 0]).astype(np.int64)
         v = np.rint(uv[:, 1]).astype(np.int64)
         inside = (z > 0) & (u >= 0) & (u < cam.width) & (v >= 0) & (v < cam.height)
-        d = near_depth(view.depth)[v[inside], u[inside]]
+        d = (near_depth(view.depth) if view.near is None else view.near)[v[inside], u[inside]]
         measured = np.isfinite(d)
         tested += int(measured.sum())
         bad += int((d[measured] > z[inside][measured] + tolerance).sum())
@@ -378,21 +378,31 @@ def physical_problems(samples: SurfaceSamples, transform: np.ndarray,
     from scipy.spatial import cKDTree
 
     pts, nrm = posed_samples(samples, transform)
+    centre = transform[:3, :3] @ samples.centre + transform[:3, 3]
+    own_tree = None
     problems = []
     supported = False
     for name, other, other_t in neighbours:
         if not np.all(np.isfinite(other_t)):
             continue
         other_centre = other_t[:3, :3] @ other.centre + other_t[:3, 3]
-        centre = transform[:3, :3] @ samples.centre + transform[:3, 3]
         if np.linalg.norm(centre - other_centre) > samples.radius + other.radius + SUPPORT_DISTANCE:
             continue
-        depth = max(_penetration(pts, other, other_t), _penetration(posed_samples(other, other_t)[0], samples,
-                                                                    transform))
+        opts, onrm = posed_samples(other, other_t)
+        # own samples near the other's surface: their distance to it (support) and their depth inside it
+        near = np.sum((pts - other_centre) ** 2, axis=1) <= (other.radius + SUPPORT_DISTANCE) ** 2
+        if not near.any():
+            continue
+        other_tree = cKDTree(opts)
+        gap, j = other_tree.query(pts[near])
+        supported |= bool((gap <= SUPPORT_DISTANCE).any())
+        depth = _kth_deepest(-np.einsum("ij,ij->i", pts[near] - opts[j], onrm[j]))
+        theirs = np.sum((opts - centre) ** 2, axis=1) <= samples.radius ** 2
+        if theirs.sum() >= PENETRATION_COUNT:
+            own_tree = cKDTree(pts) if own_tree is None else own_tree
+            depth = max(depth, _kth_deepest(_inside_depth(opts[theirs], pts, nrm, own_tree)))
         if depth > PENETRATION_TOLERANCE:
             problems.append(f"interpenetrates {name} by {depth * 1000:.0f} mm")
-        gap, _ = cKDTree(posed_samples(other, other_t)[0]).query(pts, distance_upper_bound=SUPPORT_DISTANCE)
-        supported |= bool(np.isfinite(gap).any())
     lowest_points = pts if samples.vertices is None else samples.vertices @ transform[:3, :3].T + transform[:3, 3]
     lowest = float(lowest_points[:, 2].min())
     if lowest < -TABLE_TOLERANCE:

@@ -268,10 +268,11 @@ class Session:
         """The fused cloud of a step (points (M, 3) m, colours (M, 3) 0..1, camera index (M,)), cached."""
         step = self._step(step)
         if step not in self._clouds:
-            bounds = cloud_bounds()
-            self._clouds[step] = self.capture.cloud(step) + (
-                [align.View(cam.camera, self.capture.depth(step, name), bounds=bounds)
-                 for name, cam in self.capture.cameras.items()],)
+            bounds, views = cloud_bounds(), []
+            for name, cam in self.capture.cameras.items():
+                depth = self.capture.depth(step, name)
+                views.append(align.View(cam.camera, depth, bounds=bounds, near=align.near_depth(depth)))
+            self._clouds[step] = self.capture.cloud(step) + (views,)
             while len(self._clouds) > CLOUD_CACHE:
                 self._clouds.popitem(last=False)
         self._clouds.move_to_end(step)
@@ -524,18 +525,23 @@ class Session:
         None)} (None: the state's). Returns the changes {(step, obj): (pose, status, score dict, (source, source
         pose))} and the objects whose pose the snapping changed. Objects not carried keep their pose at `step`.
 
-        The objects the pusher passed go first (the others are scored against their new poses: an object that
-        moved in front of a still one hides part of it), the others stay still as hypotheses; once every object has
-        a pose, each is scored again against the others' final poses, and an object whose pose is then not
-        accepted (another object now hides it, or it interpenetrates one) is carried again against them."""
+        The objects the pusher passed go first, each scored without the pushed ones not carried yet (their poses
+        here are unknown), and the others stay still as hypotheses, scored against the new poses (an object that
+        moved in front of a still one hides part of it); once every object has a pose, each is scored again
+        against the others' final poses: a moved object whose new pose now fits (accepted, about as well covered
+        as at the source) is snapped, and an object whose pose is not accepted (another object now hides it, or
+        it interpenetrates one) is carried again against them."""
         current = {k: p for k in range(self.num_objects)
                    if k not in carries and (p := self.state.pose(step, k)) is not None}
         current.update({obj: c[1] for obj, c in carries.items()})
-        order = sorted(carries, key=lambda o: (not self._near_push(o, carries[o][1], carries[o][0], step), o))
+        pushed = {o for o in carries if self._near_push(o, carries[o][1], carries[o][0], step)}
+        order = sorted(carries, key=lambda o: (o not in pushed, o))
         results, used = {}, {}
         for obj in order:
             source, pose, before, src_status = carries[obj]
-            used[obj] = self._others_of(obj, current)
+            # the objects the pusher passed that are not carried yet have no pose here yet: left out
+            pending = {k for k in pushed if k not in results}
+            used[obj] = self._others_of(obj, {k: p for k, p in current.items() if k not in pending})
             results[obj] = self._carry(obj, source, step, pose, before, src_status, used[obj])
             current[obj] = results[obj][0]
         for obj in order:
@@ -544,10 +550,12 @@ class Session:
             if _same_poses(others, used[obj]):
                 continue  # scored against these poses already
             final = self._fit(obj, step, new_pose, others)
-            if final.accepted and status == "snapped":
-                results[obj] = (new_pose, status, final, moved)
-                continue
             source, pose, before, src_status = carries[obj]
+            if final.accepted and (status == "snapped" or moved):
+                before = before or self._fit(obj, source, pose)
+                if status == "snapped" or final.coverage >= before.coverage - MOVED_COVERAGE_DROP:
+                    results[obj] = (new_pose, "snapped", final, moved)  # its fit holds against the final poses
+                    continue
             results[obj] = self._carry(obj, source, step, pose, before, src_status, others)
             current[obj] = results[obj][0]
         changes, snapped = {}, []
