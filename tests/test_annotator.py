@@ -274,7 +274,7 @@ def test_physical_checks_refuse_impossible_poses_with_their_reason(capture_dir, 
 
 
 def test_a_pose_that_leaves_the_cloud_around_it_unexplained_is_refused(capture_dir, truth):
-    """Box 2 turned 20 degrees about the vertical still fits its cloud (coverage 65%), but leaves 12% of the cloud
+    """Box 2 turned 20 degrees about the vertical still fits its cloud (coverage 65%), but leaves 11% of the cloud
     around it explained by no object: refused once every other object has a pose, not while one has none yet."""
     from annotator.align import UNEXPLAINED_FRACTION, rotvec_to_matrix
     from annotator.session import Session
