@@ -337,6 +337,23 @@ def _kth_deepest(depth: np.ndarray) -> float:
     return float(depth[-PENETRATION_COUNT]) if len(depth) >= PENETRATION_COUNT else 0.0
 
 
+def penetration_depth(a: SurfaceSamples, ta: np.ndarray, b: SurfaceSamples, tb: np.ndarray) -> float:
+    """How deep (m) two posed meshes (samples, 4x4 transform each) interpenetrate: the PENETRATION_COUNT-th
+    deepest surface sample of either inside the other (0 when apart)."""
+    from scipy.spatial import cKDTree
+
+    ca, cb = ta[:3, :3] @ a.centre + ta[:3, 3], tb[:3, :3] @ b.centre + tb[:3, 3]
+    if np.linalg.norm(ca - cb) > a.radius + b.radius:
+        return 0.0
+    (pa, na), (pb, nb) = posed_samples(a, ta), posed_samples(b, tb)
+    depth = 0.0
+    for pts, centre, radius, surface, normals in ((pa, cb, b.radius, pb, nb), (pb, ca, a.radius, pa, na)):
+        inside = np.sum((pts - centre) ** 2, axis=1) <= radius**2
+        if inside.sum() >= PENETRATION_COUNT:
+            depth = max(depth, _kth_deepest(_inside_depth(pts[inside], surface, normals, cKDTree(surface))))
+    return depth
+
+
 def near_depth(depth: np.ndarray) -> np.ndarray:
     """Per pixel the nearest measured depth (m) of its 3 x 3 neighbourhood (inf where none is measured): depth
     (H, W) m, 0 = missing."""

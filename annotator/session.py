@@ -646,13 +646,15 @@ class Session:
     def to_check(self) -> list[tuple[int, int, str]]:
         """(step, object, why) of every object at a visited step that needs a look, in step then object order:
         'unset', 'unchecked' (initialised), 'poor fit' (its last score failed the fit checks; confirmed poses are
-        the user's call and are left out) or 'carried from a changed pose' (`is_stale`, or carried from such a
-        step)."""
+        the user's call and are left out), 'carried from a changed pose' (`is_stale`, or carried from such a
+        step) or 'interpenetrates object k' (with another object's pose as it is now, which may have changed since
+        this object's score was taken)."""
         out = []
         stale = [self._stale_all(i) for i in range(self.num_objects)]
         for t in range(self.num_steps + 1):
             if not self.state.visited[t]:
                 continue
+            inside = self._interpenetrating(t)
             for i in range(self.num_objects):
                 status, score = str(self.state.status[t, i]), self.state.scores[t][i]
                 if status == "unset":
@@ -663,6 +665,20 @@ class Session:
                     out.append((t, i, "poor fit"))
                 elif status != "confirmed" and t in stale[i]:
                     out.append((t, i, "carried from a changed pose"))
+                elif status != "confirmed" and i in inside:
+                    out.append((t, i, f"interpenetrates object {inside[i] + 1}"))
+        return out
+
+    def _interpenetrating(self, step: int) -> dict[int, int]:
+        """{object: another object it interpenetrates by more than align.PENETRATION_TOLERANCE} at a step, from
+        the poses as they are now (geometry only: cheap enough to run on every look)."""
+        posed = [(k, pose_to_matrix(p)) for k in range(self.num_objects) if (p := self.state.pose(step, k)) is not None]
+        out: dict[int, int] = {}
+        for x, (a, ta) in enumerate(posed):
+            for b, tb in posed[x + 1:]:
+                if align.penetration_depth(self.samples(a), ta, self.samples(b), tb) > align.PENETRATION_TOLERANCE:
+                    out.setdefault(a, b)
+                    out.setdefault(b, a)
         return out
 
     def _stale_all(self, obj: int) -> set[int]:

@@ -273,6 +273,22 @@ def test_physical_checks_refuse_impossible_poses_with_their_reason(capture_dir, 
     assert alone.accepted, alone.reason  # the cloud fit alone takes it
 
 
+def test_next_to_check_shows_a_snapped_pose_that_a_later_change_makes_interpenetrate(capture_dir, truth, tmp_path):
+    """Box 0 is snapped at step 0; then box 2 is placed in it and confirmed (the user's call). Box 0's score was
+    taken before and still reads accepted, but the two now interpenetrate: next_to_check shows box 0 for it."""
+    from annotator.session import Session
+
+    session = Session.open(capture_dir, tmp_path / "work")
+    _place_from_truth(session, truth)
+    assert session.to_check() == []
+    session.place(2, pose_to_matrix(truth[0, 0]))
+    session.confirm(2)
+    assert session.stored_score(0).accepted and session.status(0)[0] == "snapped"
+    assert session.to_check() == [(0, 0, "interpenetrates object 3")]
+    session.select(2)
+    assert session.next_to_check() == (0, 0, "interpenetrates object 3")
+
+
 def test_a_pose_that_leaves_the_cloud_around_it_unexplained_is_refused(capture_dir, truth):
     """Box 2 turned 20 degrees about the vertical still fits its cloud (coverage 65%), but leaves 11% of the cloud
     around it explained by no object: refused once every other object has a pose, not while one has none yet."""
