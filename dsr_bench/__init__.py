@@ -9,4 +9,4 @@ from importlib.metadata import PackageNotFoundError, version
 try:
     __version__ = version("dsr-bench")
 except PackageNotFoundError:  # running from a source tree that is not installed
-    __version__ = "0.2.0"
+    __version__ = "0.3.0"
