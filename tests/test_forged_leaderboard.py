@@ -217,14 +217,14 @@ def test_build_skips_every_bad_entry_with_one_warning_and_builds_the_rest(pinned
     for name, text in bad.items():
         (root / "entries" / name).write_text(text)
     (root / "planning").mkdir()
-    plan = json.loads((ROOT / "leaderboard" / "planning" / "oracle-plan-novel-test.json").read_text())
+    plan = json.loads(next((ROOT / "leaderboard" / "planning").glob("random-plan-novel-test*.json")).read_text())
     bad_plans = {"forged.json": {"format": "dsr-bench-plan-results", "metrics": {}},
                  "task-set-a-list.json": {**plan, "task_set": ["plan-novel-test"]},
                  "planner-grid.json": {**plan, "planner": {**plan["planner"], "grid": ["a", "b", "c"]}},
                  "iou-1.5.json": {**plan, "metrics": {**plan["metrics"], "iou": 1.5}}}
     for name, results in bad_plans.items():
         (root / "planning" / name).write_text(json.dumps(results))
-    (root / "planning" / "oracle.json").write_text(json.dumps(plan))  # valid: built
+    (root / "planning" / "random.json").write_text(json.dumps(plan))  # valid: built
     capsys.readouterr()
     assert main(["leaderboard", "build", "--root", str(root)]) == 0
     warnings = capsys.readouterr().err.splitlines()
@@ -233,7 +233,7 @@ def test_build_skips_every_bad_entry_with_one_warning_and_builds_the_rest(pinned
         assert sum(f"/{name}:" in w for w in warnings) == 1, name
     md = (root / "README.md").read_text()
     assert md.count("| static |") == 2  # the good entry, in the 3D and the 2D table; every bad one left out
-    assert md.count("| oracle (planning) |") == 1
+    assert md.count("| random (planning) |") == 1
     rc, out, err = _add(root, _results(pinned.parent / "oracle", pinned), tmp_path, capsys)  # a later add works
     assert rc == 0 and out.startswith("added ") and err.count("warning: skipped ") == len(bad) + len(bad_plans)
 
