@@ -35,7 +35,7 @@ from dsr_bench.errors import UserError, one_line
 OFFICIAL_REPOSITORY = "columbia-ai-robotics/dsr"
 # The authors' generator's environment (official-release.md, "Running the authors' code beside ours").
 OFFICIAL_REQUIREMENTS = ("numpy==1.23.5", "numba==0.57.1", "pybullet==3.2.7", "opencv-python-headless",
-                         "scikit-image<0.22", "h5py<3.12", "trimesh", "dominate")
+                         "scikit-image<0.22", "h5py<3.12", "trimesh", "dominate", "tqdm")
 DEFAULT_ENV_DIR = Path("~/.cache/dsr-bench/official-env")
 NEWEST_PYTHON = (3, 11)  # numpy 1.23.5 and numba 0.57.1 have no wheels for later versions
 
