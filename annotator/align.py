@@ -277,6 +277,15 @@ def render_depth(camera: Camera, meshes: Sequence[tuple[np.ndarray, np.ndarray]]
     return out.reshape(h, w)
 
 
+def _pixels(camera: Camera, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The nearest pixel (u, v) (n,) int64, depth z (n,) m and whether it lies in front of the camera and inside its
+    image (n,) bool, of world points (n, 3)."""
+    uv, z = camera.project(points)
+    u = np.rint(uv[:, 0]).astype(np.int64)
+    v = np.rint(uv[:, 1]).astype(np.int64)
+    return u, v, z, (z > 0) & (u >= 0) & (u < camera.width) & (v >= 0) & (v < camera.height)
+
+
 def visible_samples(points: np.ndarray, normals: np.ndarray, views: Sequence[View],
                     table_margin: float = TABLE_MARGIN, occlusion_tolerance: float = OCCLUSION_TOLERANCE) -> np.ndarray:
     """Which posed samples (S,) bool at least one camera could have measured.
@@ -301,10 +310,7 @@ def visible_samples(points: np.ndarray, normals: np.ndarray, views: Sequence[Vie
             cand &= np.all((points >= view.bounds[0]) & (points <= view.bounds[1]), axis=1)
         if not cand.any():
             continue
-        uv, z = cam.project(points[cand])
-        u = np.rint(uv[:, 0]).astype(np.int64)
-        v = np.rint(uv[:, 1]).astype(np.int64)
-        inside = (z > 0) & (u >= 0) & (u < cam.width) & (v >= 0) & (v < cam.height)
+        u, v, z, inside = _pixels(cam, points[cand])
         d = np.zeros(len(z))
         d[inside] = view.depth[v[inside], u[inside]]
         seen = inside & (d > 0) & (d >= z - occlusion_tolerance)
@@ -375,10 +381,7 @@ def free_space_fraction(points: np.ndarray, normals: np.ndarray, views: Sequence
         cand = cos > 0.2
         if not cand.any():
             continue
-        uv, z = cam.project(points[cand])
-        u = np.rint(uv[:, 0]).astype(np.int64)
-        v = np.rint(uv[:, 1]).astype(np.int64)
-        inside = (z > 0) & (u >= 0) & (u < cam.width) & (v >= 0) & (v < cam.height)
+        u, v, z, inside = _pixels(cam, points[cand])
         d = (near_depth(view.depth) if view.near is None else view.near)[v[inside], u[inside]]
         measured = np.isfinite(d)
         tested += int(measured.sum())
