@@ -97,8 +97,12 @@ def _compose(left: np.ndarray, right: np.ndarray) -> np.ndarray:
 
 def tool_tips(q: np.ndarray) -> np.ndarray:
     """Tool tip positions (n, 3), world metres, of joint angles q (n, 6)."""
-    pose = flange_poses(q)
-    return pose[:, :3, 3] + TIP_OFFSET * pose[:, :3, 2]
+    return tips_of_flanges(flange_poses(q))
+
+
+def tips_of_flanges(flange: np.ndarray) -> np.ndarray:
+    """Tool tip positions (n, 3), world metres, of flange poses (n, 4, 4): TIP_OFFSET along each flange's z."""
+    return flange[:, :3, 3] + TIP_OFFSET * flange[:, :3, 2]
 
 
 def rotation_quaternions(rotation: np.ndarray) -> np.ndarray:
@@ -224,5 +228,4 @@ def push_path(start: np.ndarray, angle: float, distance: float = PUSH_LENGTH,
         q = move[-1]
     q_all = np.concatenate(moves)
     flange = flange_poses(q_all)
-    tip = flange[:, :3, 3] + TIP_OFFSET * flange[:, :3, 2]
-    return PushPath(q=q_all, phase=np.concatenate(phases), flange=flange, tip=tip)
+    return PushPath(q=q_all, phase=np.concatenate(phases), flange=flange, tip=tips_of_flanges(flange))

@@ -45,10 +45,9 @@ def test_inverse_kinematics_reaches_every_workspace_point_pointing_down():
         for y in ys:
             for z in zs:
                 q = arm.inverse_kinematics(np.array([x, y, z]), arm.HOME_Q[0])
-                pose = arm.flange_poses(q[None])[0]
-                tip = pose[:3, 3] + arm.TIP_OFFSET * pose[:3, 2]
-                np.testing.assert_allclose(tip, [x, y, z], atol=1e-12)
-                np.testing.assert_allclose(pose[:3, 2], [0, 0, -1], atol=1e-12)  # the tool points straight down
+                pose = arm.flange_poses(q[None])
+                np.testing.assert_allclose(arm.tips_of_flanges(pose)[0], [x, y, z], atol=1e-12)
+                np.testing.assert_allclose(pose[0, :3, 2], [0, 0, -1], atol=1e-12)  # the tool points straight down
                 assert q[2] > 0 and abs(q[0] - arm.HOME_Q[0]) < math.pi  # elbow up; the pan nearest home's
 
 
