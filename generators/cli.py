@@ -222,3 +222,6 @@ def register(app: typer.Typer) -> None:
     app.command("generate-captures")(generate_captures)
     app.command("generate-plan-tasks")(generate_plan_tasks)
     app.command("plan")(plan)
+    from generators.challenge import register as register_challenge
+
+    register_challenge(app)  # `dsr-bench challenge create` (the rest of the group: dsr_bench.challenge.cli)

@@ -1,0 +1,15 @@
+"""The challenge server: a hidden test set made from a secret seed, team tokens, uploads, evaluation workers and a
+live leaderboard (docs/challenge.md).
+
+- `layout`: what a challenge directory holds, its configuration and its secret seed (never read by a route).
+- `host`: pinning a generated hidden set, splitting it into public and private parts, exporting the inputs.
+- `auth`: team tokens (argon2 hashes, constant-time checks) and the slowing of failed attempts.
+- `db`: the database (SQLAlchemy: SQLite in WAL mode by default, PostgreSQL by URL), migrated by Alembic.
+- `storage`: uploads streamed to disk under a size limit, archive members checked before anything is extracted.
+- `worker`: evaluation processes that claim queued submissions, score them with `dsr_bench.scoring.evaluate` and
+  keep aggregate scores only.
+- `server`: the FastAPI app; `client`: `dsr-bench submit`; `cli`: the commands.
+
+The library never imports `generators`: `dsr-bench challenge create` (which runs the simulator) lives in
+`generators/challenge.py` and calls `host.finish_hidden_set` here.
+"""

@@ -1,0 +1,208 @@
+"""The challenge's commands: `dsr-bench challenge ...` (host), `dsr-bench serve`, `dsr-bench submit`.
+
+Registered through the `dsr_bench.commands` entry point; `challenge create`, which runs the simulator, is added to
+the same group by `generators.challenge`. Heavy imports (FastAPI, SQLAlchemy, httpx) happen inside the commands.
+"""
+
+from __future__ import annotations
+
+import threading
+from pathlib import Path
+from typing import Optional
+
+import typer
+
+challenge_app = typer.Typer(help="Host a challenge: a hidden test set, teams, phases, re-scoring.",
+                            no_args_is_help=True)
+
+DbOption = typer.Option(None, "--db", help="Database URL (default: DIR/challenge.db, SQLite); e.g. "
+                        "postgresql+psycopg://user@host/dbname.")
+
+
+def _sessions(root: Path, db: Optional[str]):
+    from dsr_bench.challenge.db import open_database
+    from dsr_bench.challenge.layout import open_challenge
+
+    layout, config = open_challenge(root)
+    return layout, config, open_database(db or layout.default_db_url())[1]
+
+
+@challenge_app.command("export-inputs")
+def export_inputs(
+    root: Path = typer.Argument(..., help="Challenge directory."),
+    out: Path = typer.Argument(..., help="New directory to write the participants' inputs into."),
+) -> None:
+    """Write what participants may have: per hidden sequence its TSDF, depth, colour, camera parameters and actions
+    (no masks, flow, poses, objects or 2D ground truth), splits/challenge.txt, and digests.json (SHA-256 per file);
+    OUT appears complete or not at all."""
+    from dsr_bench.challenge.host import export_inputs as run
+    from dsr_bench.challenge.layout import open_challenge
+
+    layout, _ = open_challenge(root)
+    run(layout, out)
+    typer.echo(f"wrote the inputs to {out}")
+
+
+@challenge_app.command("add-team")
+def add_team(root: Path = typer.Argument(..., help="Challenge directory."),
+             name: str = typer.Argument(..., help="Team name (1-64 printable characters)."),
+             db: Optional[str] = DbOption) -> None:
+    """Add a team and print its token once (only its argon2 hash is stored: a lost token is revoked and the team
+    added again under another name)."""
+    from dsr_bench.challenge.service import add_team as run
+
+    _, _, sessions = _sessions(root, db)
+    token = run(sessions, name)
+    typer.echo(token)
+    typer.echo(f"team {name.strip()!r} added; give it the token above (shown once)", err=True)
+
+
+@challenge_app.command("revoke-team")
+def revoke_team(root: Path = typer.Argument(..., help="Challenge directory."),
+                name: str = typer.Argument(..., help="Team name."), db: Optional[str] = DbOption) -> None:
+    """Revoke a team's token: every later request with it is refused; its submissions and scores stay."""
+    from dsr_bench.challenge.service import revoke_team as run
+
+    _, _, sessions = _sessions(root, db)
+    run(sessions, name)
+    typer.echo(f"team {name!r} revoked")
+
+
+@challenge_app.command("teams")
+def teams(root: Path = typer.Argument(..., help="Challenge directory."), db: Optional[str] = DbOption) -> None:
+    """List the teams (name, added, revoked)."""
+    from sqlalchemy import select
+
+    from dsr_bench.challenge.db import Team
+
+    _, _, sessions = _sessions(root, db)
+    with sessions() as session:
+        for team in session.scalars(select(Team).order_by(Team.id)):
+            revoked = f", revoked {team.revoked_at:%Y-%m-%d %H:%M}" if team.revoked_at else ""
+            typer.echo(f"{team.name!r}: added {team.created_at:%Y-%m-%d %H:%M}{revoked}")
+
+
+@challenge_app.command("add-phase")
+def add_phase(root: Path = typer.Argument(..., help="Challenge directory."),
+              name: str = typer.Argument(..., help="Phase name, e.g. development or final."),
+              start: str = typer.Option(..., "--start", help="Opens at (ISO date or time, UTC)."),
+              end: str = typer.Option(..., "--end", help="Closes at (ISO date or time, UTC)."),
+              db: Optional[str] = DbOption) -> None:
+    """Add a phase: submissions are accepted only while a phase is open (none defined: always)."""
+    from dsr_bench.challenge.service import add_phase as run, parse_time
+
+    _, _, sessions = _sessions(root, db)
+    run(sessions, name, parse_time(start, "--start"), parse_time(end, "--end"))
+    typer.echo(f"phase {name!r} added")
+
+
+@challenge_app.command("rescore")
+def rescore(root: Path = typer.Argument(..., help="Challenge directory."), db: Optional[str] = DbOption) -> None:
+    """Score every scored or refused submission again with the installed toolkit (after a fix); the running
+    server's workers do it, and each new score records the toolkit version."""
+    from dsr_bench.challenge.service import request_rescore
+
+    _, _, sessions = _sessions(root, db)
+    typer.echo(f"{request_rescore(sessions)} submissions queued to be scored again")
+
+
+@challenge_app.command("reveal")
+def reveal(root: Path = typer.Argument(..., help="Challenge directory."),
+           hide: bool = typer.Option(False, "--hide", help="Hide the private part's scores again.")) -> None:
+    """Show the private part's scores and the final ranking on the leaderboard (at the challenge's end)."""
+    from dsr_bench.challenge.layout import open_challenge, write_config
+
+    layout, config = open_challenge(root)
+    config["reveal_private"] = not hide
+    write_config(layout, config)
+    typer.echo("private scores " + ("hidden" if hide else "shown: the final ranking is on the leaderboard"))
+
+
+@challenge_app.command("download")
+def download(out: Path = typer.Argument(..., help="New directory for the inputs."),
+             server: str = typer.Option(..., "--server", help="The challenge server's URL.")) -> None:
+    """Download a challenge's inputs (each file checked against its digest), ready for `dsr-bench predict --data
+    OUT`."""
+    from dsr_bench.challenge.client import download_inputs
+
+    download_inputs(server, out, typer.echo)
+    typer.echo(f"inputs written to {out}; next: dsr-bench predict --model MODEL --data {out} --out PREDICTIONS")
+
+
+def serve(
+    root: Path = typer.Argument(..., help="Challenge directory (`dsr-bench challenge create`)."),
+    host: str = typer.Option("127.0.0.1", "--host", help="Address to listen on."),
+    port: int = typer.Option(8000, "--port", help="Port to listen on."),
+    db: Optional[str] = DbOption,
+    workers: int = typer.Option(1, "--workers", "-w", help="Evaluation worker processes."),
+) -> None:
+    """Run the challenge's web server (leaderboard, uploads, status) and its evaluation workers; the database is
+    migrated first. Ctrl-C stops both."""
+    import multiprocessing as mp
+
+    import uvicorn
+
+    from dsr_bench.challenge.layout import open_challenge
+    from dsr_bench.challenge.server import create_app
+    from dsr_bench.challenge.worker import worker_main
+    from dsr_bench.errors import UserError
+
+    if workers < 1:
+        raise UserError(f"--workers {workers}: give 1 or more evaluation workers")
+    layout, _ = open_challenge(root)
+    url = db or layout.default_db_url()
+    app = create_app(root, url)
+    context = mp.get_context("spawn")
+    stopping = threading.Event()
+    procs = [context.Process(target=worker_main, args=(str(root), url), daemon=True) for _ in range(workers)]
+
+    def supervise() -> None:  # a worker that died (killed, crashed) is replaced; its job's lease expires
+        for p in procs:
+            p.start()
+        while not stopping.wait(1.0):
+            for i, p in enumerate(procs):
+                if not p.is_alive() and not stopping.is_set():
+                    procs[i] = context.Process(target=worker_main, args=(str(root), url), daemon=True)
+                    procs[i].start()
+
+    supervisor = threading.Thread(target=supervise, daemon=True)
+    supervisor.start()
+    try:
+        uvicorn.run(app, host=host, port=port, log_level="info")
+    finally:
+        stopping.set()
+        supervisor.join()
+        for p in procs:
+            p.terminate()
+        for p in procs:
+            p.join(10)
+
+
+def submit(
+    predictions: Path = typer.Argument(..., help="Predictions directory (one .h5 per sequence, meta.json)."),
+    server: str = typer.Option(..., "--server", help="The challenge server's URL, e.g. http://127.0.0.1:8000."),
+    token: str = typer.Option(..., "--token", envvar="DSR_BENCH_TOKEN", help="Your team's token (or "
+                              "$DSR_BENCH_TOKEN)."),
+    method: str = typer.Option(..., "--method", help="Your method's name, shown on the leaderboard."),
+    no_wait: bool = typer.Option(False, "--no-wait", help="Upload and return; do not follow the submission."),
+    timeout: float = typer.Option(3600.0, "--timeout", help="Seconds to follow the submission before giving up."),
+) -> None:
+    """Upload predictions to a challenge server and follow them until scored (exit 0) or refused or failed (exit
+    1, each problem on one line as `dsr-bench evaluate` prints it)."""
+    from dsr_bench.challenge.client import describe, submit as run
+    from dsr_bench.challenge.layout import check_name
+
+    state, status = run(predictions, server, token, check_name(method, "--method"), typer.echo, timeout=timeout,
+                        follow=not no_wait)
+    if no_wait:
+        return
+    for line in describe(status, predictions):
+        typer.echo(line, err=state != "scored")
+    if state != "scored":
+        raise typer.Exit(1)
+
+
+def register(app: typer.Typer) -> None:
+    app.add_typer(challenge_app, name="challenge")
+    app.command("serve")(serve)
+    app.command("submit")(submit)

@@ -1,0 +1,130 @@
+"""What a challenge directory holds, and its configuration.
+
+DIR/ (mode 0700, made by `dsr-bench challenge create`):
+- `secret_seed` (0600): the base seed of the hidden sequences; read by no route, written once.
+- `challenge.json`: the configuration (split parameters, public and private sequence names, daily quota, upload
+  limits, ranking metrics); `pins.json`: each hidden sequence's scored ground-truth digests.
+- `hidden/`: the hidden sequences (a dataset directory, ground truth included; never served).
+- `inputs/`: what participants may download (`host.export_inputs`).
+- `challenge.db`: the default SQLite database; `submissions/<id>.tar`: accepted uploads; `uploads/`: uploads being
+  received (temporaries); `work/`: submissions being scored (temporaries).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from dsr_bench.atomic import write_text
+from dsr_bench.errors import UserError
+
+CONFIG_FORMAT = "dsr-bench-challenge"
+CONFIG_NAME, PINS_NAME, SEED_NAME = "challenge.json", "pins.json", "secret_seed"
+#: the split of the hidden dataset holding every hidden sequence, and its two parts
+HIDDEN_SPLIT, PARTS = "hidden", ("public", "private")
+#: the split name of the exported inputs (participants see neither part's membership)
+INPUTS_SPLIT = "challenge"
+#: team and method names: shown on pages (escaped anyway) and used in no path
+NAME_PATTERN = re.compile(r"[^\x00-\x1f\x7f]{1,64}")
+#: names of files a submission or the inputs may hold: flat, no separators, no leading dot
+FILE_PATTERN = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.-]{0,127}")
+DEFAULTS: dict[str, Any] = {
+    "daily_limit": 5,  # submissions per team per UTC day
+    "max_upload_bytes": 1 << 30,  # an upload's bytes, enforced while it streams
+    "max_extracted_bytes": 4 << 30,  # an archive's members' bytes together, enforced while they are read
+    "max_ratio": 100.0,  # extracted / uploaded bytes beyond which a compressed archive is refused (a bomb)
+    "max_final": 2,  # submissions a team may select for the final ranking
+    "rank_by": {"3D": "iou_ordered", "2D": "motion_2d"},
+    "reveal_private": False,  # the private part's scores shown (the final ranking): set by `challenge reveal`
+}
+
+
+@dataclass(frozen=True)
+class Layout:
+    """The paths of a challenge directory `root`."""
+
+    root: Path
+
+    @property
+    def config(self) -> Path:
+        return self.root / CONFIG_NAME
+
+    @property
+    def pins(self) -> Path:
+        return self.root / PINS_NAME
+
+    @property
+    def seed(self) -> Path:
+        return self.root / SEED_NAME
+
+    @property
+    def hidden(self) -> Path:
+        return self.root / "hidden"
+
+    @property
+    def inputs(self) -> Path:
+        return self.root / "inputs"
+
+    @property
+    def submissions(self) -> Path:
+        return self.root / "submissions"
+
+    @property
+    def uploads(self) -> Path:
+        return self.root / "uploads"
+
+    @property
+    def work(self) -> Path:
+        return self.root / "work"
+
+    def archive(self, submission_id: str) -> Path:
+        """The stored upload of a submission (its id is 32 hex digits, checked by the caller)."""
+        return self.submissions / f"{submission_id}.tar"
+
+    def default_db_url(self) -> str:
+        """The embedded default database: DIR/challenge.db (SQLite)."""
+        return f"sqlite:///{(self.root / 'challenge.db').absolute()}"
+
+
+def open_challenge(root: str | Path) -> tuple[Layout, dict]:
+    """The layout and configuration of an existing challenge directory, or a UserError naming what is missing."""
+    layout = Layout(Path(root))
+    if not layout.config.is_file():
+        raise UserError(f"{root} is not a challenge directory (no {CONFIG_NAME}); make one with "
+                        f"`dsr-bench challenge create {root} --split procedural-novel-test`")
+    try:
+        config = json.loads(layout.config.read_text())
+    except (OSError, ValueError) as exc:
+        raise UserError(f"{layout.config}: unreadable ({exc}); restore it from a backup") from None
+    if config.get("format") != CONFIG_FORMAT:
+        raise UserError(f"{layout.config}: not a {CONFIG_FORMAT} file; restore it from a backup")
+    return layout, {**DEFAULTS, **config}
+
+
+def write_config(layout: Layout, config: dict) -> None:
+    """Write challenge.json atomically."""
+    write_text(layout.config, json.dumps(config, indent=1, sort_keys=True) + "\n")
+
+
+def write_secret_seed(layout: Layout, seed: int) -> None:
+    """Write the secret seed once, readable by its owner only (0600); refuses to replace one."""
+    try:
+        fd = os.open(layout.seed, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+    except FileExistsError:
+        raise UserError(f"{layout.seed} exists: {layout.root} already holds a challenge; choose another DIR") from None
+    with os.fdopen(fd, "w") as f:
+        f.write(f"{seed}\n")
+        f.flush()
+        os.fsync(f.fileno())
+
+
+def check_name(value: str, what: str) -> str:
+    """`value` stripped when it is a usable team or method name (1-64 printable characters), else a UserError."""
+    value = value.strip()
+    if not NAME_PATTERN.fullmatch(value):
+        raise UserError(f"{what} {value[:80]!r} is not 1-64 printable characters; choose another")
+    return value

@@ -1,0 +1,1 @@
+"""Alembic migrations of the challenge database (`dsr_bench.challenge.db.migrate` runs them)."""

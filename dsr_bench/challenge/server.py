@@ -1,0 +1,447 @@
+"""The challenge's web server: a FastAPI app (`create_app`) that `dsr-bench serve` runs under uvicorn.
+
+Routes (JSON under /api, pages elsewhere; every name shown on a page is HTML-escaped):
+- `GET /api/inputs`, `GET /api/inputs/{file}`: the participants' inputs and their digests (flat names only).
+- `POST /api/submissions?method=NAME` (Bearer token): the tar archive of a team's predictions, as the body or a
+  multipart form's one file, streamed to disk under the size limit; 202 with the submission's id when stored.
+- `GET /api/submissions/{id}`: a submission's state, messages and aggregate scores (its id is 128 random bits).
+- `POST /api/submissions/{id}/final` (Bearer token, {"final": true|false}): choose the final submissions.
+- `GET /api/me/submissions` (Bearer token): the team's history, every state.
+- `GET /api/leaderboard`; pages `/`, `/submissions/{id}`, `/teams/{name}`.
+Nothing here reads the secret seed, the hidden set or another team's archive; scores are the aggregates the
+workers stored.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import html
+import json
+import os
+import re
+import secrets
+import shutil
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from fastapi import FastAPI, HTTPException, Query, Request
+from fastapi.responses import FileResponse, HTMLResponse, JSONResponse
+from sqlalchemy import select
+from starlette.concurrency import run_in_threadpool
+from starlette.requests import ClientDisconnect
+
+from dsr_bench.challenge import service
+from dsr_bench.challenge.auth import FailureThrottle
+from dsr_bench.challenge.db import Submission, Team, open_database, utcnow
+from dsr_bench.challenge.layout import FILE_PATTERN, Layout, check_name, open_challenge
+from dsr_bench.challenge.storage import Received, UploadRefused, check_archive, clean_partials, receive
+from dsr_bench.errors import UserError
+
+SUBMISSION_ID = re.compile(r"[0-9a-f]{32}")
+META_NAME = "meta.json"
+
+
+@dataclass
+class Settings:
+    """Server settings beyond the challenge's configuration: the failed-auth throttle, the upload idle timeout,
+    the free disk kept (bytes), and the configuration's overrides (e.g. daily_limit, max_upload_bytes)."""
+
+    auth_limit: int = 10
+    auth_window: float = 900.0
+    auth_max_delay: float = 2.0
+    idle_timeout: float = 60.0
+    keep_free: int = 1 << 30
+    overrides: dict | None = None
+
+
+def create_app(root: str | Path, db_url: str | None = None, settings: Settings | None = None) -> FastAPI:
+    """The app serving challenge directory `root` with the database `db_url` (default: root/challenge.db),
+    migrated first."""
+    layout, _ = open_challenge(root)
+    settings = settings or Settings()
+    engine, session_factory = open_database(db_url or layout.default_db_url())
+    throttle = FailureThrottle(settings.auth_limit, settings.auth_window, settings.auth_max_delay)
+
+    def config() -> dict:
+        return {**open_challenge(layout.root)[1], **(settings.overrides or {})}
+
+    @asynccontextmanager
+    async def lifespan(_app: FastAPI):
+        await run_in_threadpool(_recover, layout, session_factory)
+        yield
+        engine.dispose()
+
+    app = FastAPI(title="dsr-bench challenge", lifespan=lifespan, docs_url=None, redoc_url=None, openapi_url=None)
+    app.state.layout, app.state.session_factory, app.state.throttle = layout, session_factory, throttle
+
+    async def team_of(request: Request) -> Team:
+        address = request.client.host if request.client else "?"
+        wait = throttle.blocked(address)
+        if wait:
+            raise HTTPException(429, "too many failed token checks from this address; try again later",
+                                headers={"Retry-After": str(int(wait) + 1)})
+        header = request.headers.get("authorization", "")
+        token = header[7:].strip() if header.lower().startswith("bearer ") else ""
+        team = await run_in_threadpool(service.authenticate, session_factory, token) if token else None
+        if team is None:
+            await asyncio.sleep(throttle.failed(address))
+            raise HTTPException(401, "invalid or revoked token; give the token the host sent your team (--token)",
+                                headers={"WWW-Authenticate": "Bearer"})
+        return team
+
+    @app.exception_handler(UserError)
+    async def user_error(_request: Request, exc: UserError) -> JSONResponse:
+        return JSONResponse({"detail": str(exc)}, status_code=400)
+
+    @app.get("/api/inputs")
+    def inputs_index() -> dict:
+        return {"split": "challenge", "files": _input_digests(layout)}
+
+    @app.get("/api/inputs/{name}")
+    def input_file(name: str) -> FileResponse:
+        digests = _input_digests(layout)
+        if not FILE_PATTERN.fullmatch(name) or name not in digests:
+            raise HTTPException(404, "no such input file; GET /api/inputs lists them")
+        return FileResponse(layout.inputs / name, media_type="application/x-hdf5", filename=name)
+
+    @app.post("/api/submissions", status_code=202)
+    async def upload(request: Request, method: str = Query(..., max_length=64)) -> dict:
+        team = await team_of(request)
+        try:
+            method = check_name(method, "method name")
+        except UserError as exc:
+            raise HTTPException(400, str(exc)) from None
+        cfg = config()
+        phase = await run_in_threadpool(_admit, session_factory, team, cfg)
+        limit = int(cfg["max_upload_bytes"])
+        declared = request.headers.get("content-length")
+        if declared is not None and declared.isdigit() and int(declared) > limit:
+            raise HTTPException(413, f"the upload ({declared} bytes) is over the limit of {limit} bytes; submit "
+                                "fewer or smaller files")
+        if shutil.disk_usage(layout.root).free < limit + settings.keep_free:
+            raise HTTPException(507, "the server's disk is full; try again later (the host is told)")
+        content_type = request.headers.get("content-type", "")
+        chunks = (_multipart_chunks(request.stream(), content_type) if content_type.startswith("multipart/")
+                  else request.stream())
+        try:
+            received = await receive(chunks, layout.uploads, limit, settings.idle_timeout)
+        except UploadRefused as exc:
+            raise HTTPException(exc.status, exc.message) from None
+        except ClientDisconnect:
+            raise HTTPException(400, "the upload was cut off; send it again") from None
+        try:
+            sid = await run_in_threadpool(_store, layout, session_factory, team, method, phase, received, cfg)
+        finally:
+            received.path.unlink(missing_ok=True)
+        return {"id": sid, "state": "queued", "status_url": f"/api/submissions/{sid}", "page": f"/submissions/{sid}"}
+
+    def load_submission(sid: str) -> dict:
+        if not SUBMISSION_ID.fullmatch(sid):
+            raise HTTPException(404, "no such submission")
+        with session_factory() as session:
+            sub = session.get(Submission, sid)
+            if sub is None:
+                raise HTTPException(404, "no such submission")
+            return service.submission_view(session, sub, bool(config().get("reveal_private")))
+
+    @app.get("/api/submissions/{sid}")
+    def submission_status(sid: str) -> dict:
+        return load_submission(sid)
+
+    @app.post("/api/submissions/{sid}/final")
+    async def choose_final(sid: str, request: Request) -> dict:
+        team = await team_of(request)
+        try:
+            body = await request.json()
+        except ValueError:
+            raise HTTPException(400, 'send {"final": true} or {"final": false}') from None
+        final = body.get("final") if isinstance(body, dict) else None
+        if not isinstance(final, bool):
+            raise HTTPException(400, 'send {"final": true} or {"final": false}')
+        if not SUBMISSION_ID.fullmatch(sid):
+            raise HTTPException(404, "no such submission")
+        await run_in_threadpool(service.select_final, session_factory, team, sid, final, int(config()["max_final"]))
+        return load_submission(sid)
+
+    @app.get("/api/me/submissions")
+    async def history(request: Request) -> dict:
+        team = await team_of(request)
+
+        def rows() -> list[dict]:
+            reveal = bool(config().get("reveal_private"))
+            with session_factory() as session:
+                subs = session.scalars(select(Submission).where(Submission.team_id == team.id)
+                                       .order_by(Submission.created_at.desc()))
+                return [service.submission_view(session, s, reveal) for s in subs]
+
+        return {"team": team.name, "submissions": await run_in_threadpool(rows)}
+
+    def board() -> dict:
+        cfg = config()
+        with session_factory() as session:
+            data = service.leaderboard(session, cfg)
+            data["open"] = service.open_phase(session, utcnow())
+        return data
+
+    @app.get("/api/leaderboard")
+    def leaderboard_json() -> dict:
+        data = board()
+        data.pop("open")
+        return data
+
+    @app.get("/", response_class=HTMLResponse)
+    def leaderboard_page() -> str:
+        return render_leaderboard(board(), config())
+
+    @app.get("/submissions/{sid}", response_class=HTMLResponse)
+    def submission_page(sid: str) -> str:
+        return render_submission(load_submission(sid))
+
+    @app.get("/teams/{name}", response_class=HTMLResponse)
+    def team_page(name: str) -> str:
+        with session_factory() as session:
+            team = session.scalar(select(Team).where(Team.name == name))
+            if team is None:
+                raise HTTPException(404, "no such team")
+            subs = session.scalars(select(Submission).where(Submission.team_id == team.id,
+                                                            Submission.state == "scored")
+                                   .order_by(Submission.created_at.desc()))
+            views = [service.submission_view(session, s, bool(config().get("reveal_private"))) for s in subs]
+        return render_team(team.name, views)
+
+    @app.get("/healthz")
+    def health() -> dict:
+        return {"ok": True}
+
+    return app
+
+
+def _input_digests(layout: Layout) -> dict[str, str]:
+    try:
+        return json.loads((layout.inputs / "digests.json").read_text())
+    except (OSError, ValueError):
+        return {}
+
+
+def _admit(session_factory, team: Team, cfg: dict) -> str | None:
+    """The open phase (None when no phase is defined), or an HTTPException: closed, or the daily quota used."""
+    with session_factory() as session:
+        now = utcnow()
+        phase, closed = service.open_phase(session, now)
+        if closed:
+            raise HTTPException(403, closed)
+        used = service.used_today(session, team.id, now)
+    if used >= int(cfg["daily_limit"]):
+        raise HTTPException(429, f"team {team.name!r} has used its {cfg['daily_limit']} submissions of today (UTC); "
+                            "submit again after 00:00 UTC")
+    return phase
+
+
+def _store(layout: Layout, session_factory, team: Team, method: str, phase: str | None, received: Received,
+           cfg: dict) -> str:
+    """Check the received archive's members, move it into submissions/ and write its row (the quota checked again
+    in the same transaction); an HTTPException when refused, and then nothing is kept."""
+    allowed = {f"{name}.h5" for name in cfg["sequences"]} | {META_NAME}
+    problems = check_archive(received.path, allowed, int(cfg["max_extracted_bytes"]), float(cfg["max_ratio"]))
+    if problems:
+        raise HTTPException(400, problems[0])
+    sid = secrets.token_hex(16)
+    layout.submissions.mkdir(parents=True, exist_ok=True)
+    target = layout.archive(sid)
+    os.rename(received.path, target)
+    _fsync_dir(layout.submissions)
+    try:
+        with session_factory.begin() as session:
+            locked = session.scalar(select(Team).where(Team.id == team.id).with_for_update())  # serialises a team
+            if locked is None or locked.revoked_at is not None:
+                raise HTTPException(401, "invalid or revoked token")
+            if service.used_today(session, team.id, utcnow()) >= int(cfg["daily_limit"]):
+                raise HTTPException(429, f"team {team.name!r} has used its {cfg['daily_limit']} submissions of today "
+                                    "(UTC); submit again after 00:00 UTC")
+            session.add(Submission(id=sid, team_id=team.id, method=method, phase=phase, state="queued",
+                                   created_at=utcnow(), attempts=0, archive_sha256=received.sha256,
+                                   archive_bytes=received.size, messages="[]", final=False, rescore=False))
+    except BaseException:
+        target.unlink(missing_ok=True)
+        raise
+    return sid
+
+
+def _fsync_dir(path: Path) -> None:
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def _recover(layout: Layout, session_factory) -> None:
+    """At start: remove upload temporaries and stored archives that no submission row names (a server killed
+    between the two), and work directories of evaluations that stopped."""
+    clean_partials(layout.uploads)
+    if layout.work.is_dir():
+        shutil.rmtree(layout.work, ignore_errors=True)
+    if layout.submissions.is_dir():
+        with session_factory() as session:
+            known = set(session.scalars(select(Submission.id)))
+        for path in layout.submissions.glob("*.tar"):
+            if path.stem not in known:
+                path.unlink(missing_ok=True)
+
+
+async def _multipart_chunks(stream: AsyncIterator[bytes], content_type: str) -> AsyncIterator[bytes]:
+    """The bytes of the one file of a multipart/form-data body, as they arrive (python-multipart's streaming
+    parser); UploadRefused unless the body holds exactly one file."""
+    from python_multipart import MultipartParser
+    from python_multipart.multipart import parse_options_header
+
+    _, options = parse_options_header(content_type)
+    boundary = options.get(b"boundary")
+    if not boundary:
+        raise UploadRefused(400, "a multipart upload without a boundary; send the archive as the request body")
+    out: list[bytes] = []
+    state: dict[str, Any] = {"field": b"", "value": b"", "file": False, "files": 0}
+
+    def header_field(data: bytes, start: int, end: int) -> None:
+        state["field"] += data[start:end]
+
+    def header_value(data: bytes, start: int, end: int) -> None:
+        state["value"] += data[start:end]
+
+    def header_end() -> None:
+        if state["field"].lower() == b"content-disposition" and b"filename=" in state["value"]:
+            state["file"] = True
+        state["field"], state["value"] = b"", b""
+
+    def part_begin() -> None:
+        state["file"] = False
+
+    def part_data(data: bytes, start: int, end: int) -> None:
+        if state["file"]:
+            if state["files"]:
+                raise UploadRefused(400, "the form holds more than one file; send one archive")
+            out.append(bytes(data[start:end]))
+
+    def part_end() -> None:
+        state["files"] += bool(state["file"])
+
+    parser = MultipartParser(boundary, {"on_header_field": header_field, "on_header_value": header_value,
+                                        "on_header_end": header_end, "on_part_begin": part_begin,
+                                        "on_part_data": part_data, "on_part_end": part_end})
+    async for chunk in stream:
+        parser.write(chunk)
+        while out:
+            yield out.pop(0)
+    parser.finalize()
+    if state["files"] != 1:
+        raise UploadRefused(400, "the form holds no complete file; send the archive as its one file")
+
+
+# --- pages ---------------------------------------------------------------------------------------------------
+_STYLE = ("body{font-family:sans-serif;margin:2em;max-width:70em}table{border-collapse:collapse;margin:1em 0}"
+          "td,th{border:1px solid #bbb;padding:.3em .6em;text-align:right}td:first-child,th:first-child,"
+          "td.text{text-align:left}.state{font-weight:bold}")
+
+
+def _page(title: str, body: str, refresh: bool = False) -> str:
+    meta = '<meta http-equiv="refresh" content="2">' if refresh else ""
+    return (f'<!doctype html><html lang="en"><head><meta charset="utf-8">{meta}<title>{html.escape(title)}</title>'
+            f"<style>{_STYLE}</style></head><body>{body}</body></html>")
+
+
+def _value(value: Any) -> str:
+    if not isinstance(value, (int, float)) or value != value:
+        return "-"
+    return f"{value:.4g}"
+
+
+def _columns(track: str) -> tuple[str, ...]:
+    from dsr_bench.leaderboard.board import TRACKS
+
+    return TRACKS.get(track, ())
+
+
+def _title(column: str) -> str:
+    from dsr_bench.leaderboard.board import COLUMN_TITLES
+
+    return COLUMN_TITLES.get(column, column)
+
+
+def _table(rows: list[dict], columns: tuple[str, ...], lead: list[tuple[str, str]]) -> str:
+    """An HTML table: the `lead` columns (title, row key; text, escaped, team names linked), then the metrics."""
+    head = "".join(f"<th>{html.escape(t)}</th>" for t, _ in lead) + "".join(
+        f"<th>{html.escape(_title(c))}</th>" for c in columns)
+    body = []
+    for i, row in enumerate(rows, 1):
+        cells = []
+        for _, key in lead:
+            text = str(i) if key == "#" else str(row.get(key, ""))
+            if key == "team":
+                text = f'<a href="/teams/{html.escape(_quote(text))}">{html.escape(text)}</a>'
+            elif key == "method" and row.get("id"):
+                text = f'<a href="/submissions/{html.escape(row["id"])}">{html.escape(text)}</a>'
+            else:
+                text = html.escape(text)
+            cells.append(f'<td class="text">{text}</td>')
+        cells += [f"<td>{_value(row['metrics'].get(c))}</td>" for c in columns]
+        body.append("<tr>" + "".join(cells) + "</tr>")
+    return f"<table><thead><tr>{head}</tr></thead><tbody>{''.join(body)}</tbody></table>"
+
+
+def _quote(text: str) -> str:
+    from urllib.parse import quote
+
+    return quote(text, safe="")
+
+
+def render_leaderboard(data: dict, config: dict) -> str:
+    """The leaderboard page: per track the public part's table, the final ranking once revealed, the phases."""
+    parts = [f"<h1>{html.escape(str(config.get('title') or 'DSR benchmark challenge'))}</h1>"]
+    phase, closed = data.get("open") or (None, None)
+    parts.append(f"<p>{html.escape(closed or (f'phase {phase} is open' if phase else 'submissions are open'))}; "
+                 f"{html.escape(str(config['daily_limit']))} submissions per team per day.</p>")
+    if data.get("final"):
+        for track, rows in sorted(data["final"].items()):
+            parts.append(f"<h2>Final ranking, {html.escape(track)} track (private part)</h2>")
+            parts.append(_table(rows, _columns(track), [("#", "#"), ("team", "team"), ("method", "method")]))
+    for track, rows in sorted(data["tracks"].items()):
+        parts.append(f"<h2>{html.escape(track)} track (public part), ranked by "
+                     f"{html.escape(_title(config['rank_by'].get(track, '')))}</h2>")
+        parts.append(_table(rows, _columns(track), [("#", "#"), ("team", "team"), ("method", "method"),
+                                                    ("date", "date")]))
+    if not data["tracks"]:
+        parts.append("<p>No scored submission yet.</p>")
+    if data.get("phases"):
+        items = "".join(f"<li>{html.escape(p['name'])}: {html.escape(p['start'])} to {html.escape(p['end'])}</li>"
+                        for p in data["phases"])
+        parts.append(f"<h2>Phases</h2><ul>{items}</ul>")
+    return _page("Leaderboard", "".join(parts))
+
+
+def render_submission(view: dict) -> str:
+    """A submission's status page; it reloads itself every 2 s until the submission is scored, refused or failed."""
+    waiting = view["state"] in ("queued", "running")
+    parts = [f"<h1>Submission {html.escape(view['id'])}</h1>",
+             f"<p>team {html.escape(str(view['team']))}, method {html.escape(view['method'])}, "
+             f"submitted {html.escape(view['created'])}</p>",
+             f'<p>state: <span class="state" id="state">{html.escape(view["state"])}</span></p>']
+    if view["messages"]:
+        parts.append("<ul>" + "".join(f"<li>{html.escape(m)}</li>" for m in view["messages"]) + "</ul>")
+    for part, score in sorted(view["scores"].items()):
+        parts.append(f"<h2>{html.escape(part)} part</h2>")
+        parts.append(_table([score], _columns(view.get("track") or "3D"), []))
+    return _page(f"Submission {view['id']}", "".join(parts), refresh=waiting)
+
+
+def render_team(name: str, views: list[dict]) -> str:
+    """A team's public page: its scored submissions and their public aggregate scores."""
+    rows = [{"id": v["id"], "method": v["method"], "date": v["created"][:10], "final": "yes" if v["final"] else "",
+             "metrics": v["scores"].get("public", {}).get("metrics", {})} for v in views]
+    columns = _columns(views[0].get("track") or "3D") if views else ()
+    body = [f"<h1>Team {html.escape(name)}</h1>",
+            _table(rows, columns, [("method", "method"), ("date", "date"), ("final", "final")]) if rows
+            else "<p>No scored submission yet.</p>", '<p><a href="/">leaderboard</a></p>']
+    return _page(f"Team {name}", "".join(body))

@@ -1,0 +1,205 @@
+"""What the commands and the routes do to the database: teams, phases, quotas, submissions, the leaderboard.
+
+The leaderboard is built from each submission's current scores (the newest run, `worker.finish`): the public
+part's aggregates while the challenge runs, and, once the host reveals them (`challenge reveal`), the private
+part's, ranking each team by the best of the submissions it selected as final (its newest scored one when it
+selected none), by the challenge's ranking metric of the track.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import json
+from typing import Any
+
+from sqlalchemy import func, select
+from sqlalchemy.exc import IntegrityError
+from sqlalchemy.orm import Session, sessionmaker
+
+from dsr_bench.challenge import auth
+from dsr_bench.challenge.db import Phase, Score, Submission, Team, utcnow
+from dsr_bench.challenge.layout import check_name
+from dsr_bench.errors import UserError
+
+
+def add_team(session_factory: sessionmaker, name: str) -> str:
+    """Add team `name`; returns its token (shown once: only its argon2 hash is stored)."""
+    name = check_name(name, "team name")
+    key, token = auth.new_token()
+    try:
+        with session_factory.begin() as session:
+            session.add(Team(name=name, key=key, token_hash=auth.hash_token(token), created_at=utcnow()))
+    except IntegrityError:
+        raise UserError(f"team {name!r} exists; choose another name (or revoke it and add a new team)") from None
+    return token
+
+
+def revoke_team(session_factory: sessionmaker, name: str) -> None:
+    """Revoke team `name`'s token: every later request with it is refused; its submissions stay."""
+    with session_factory.begin() as session:
+        team = session.scalar(select(Team).where(Team.name == name))
+        if team is None:
+            raise UserError(f"no team {name!r}; `dsr-bench challenge teams DIR` lists them")
+        team.revoked_at = team.revoked_at or utcnow()
+
+
+def authenticate(session_factory: sessionmaker, token: str) -> Team | None:
+    """The team of a valid, unrevoked token, else None (argon2 verified in constant time, a dummy hash when the
+    key is unknown)."""
+    key = auth.token_key(token)
+    with session_factory() as session:
+        team = session.scalar(select(Team).where(Team.key == key)) if key else None
+    ok = auth.verify_token(token, team.token_hash if team else None)
+    return team if ok and team is not None and team.revoked_at is None else None
+
+
+def parse_time(text: str, option: str) -> dt.datetime:
+    """An ISO 8601 date or time (UTC unless it says otherwise) as naive UTC."""
+    try:
+        value = dt.datetime.fromisoformat(text)
+    except ValueError:
+        raise UserError(f"{option} {text!r} is not an ISO date or time; e.g. 2027-03-01 or 2027-03-01T12:00") from None
+    if value.tzinfo is not None:
+        value = value.astimezone(dt.timezone.utc).replace(tzinfo=None)
+    return value
+
+
+def add_phase(session_factory: sessionmaker, name: str, starts: dt.datetime, ends: dt.datetime) -> None:
+    """Add a phase accepting submissions from `starts` to `ends` (naive UTC); phases may not overlap."""
+    name = check_name(name, "phase name")
+    if ends <= starts:
+        raise UserError(f"phase {name!r} ends ({ends}) before it starts ({starts}); give --end after --start")
+    with session_factory.begin() as session:
+        for other in session.scalars(select(Phase)):
+            if other.name == name:
+                raise UserError(f"phase {name!r} exists; choose another name")
+            if starts < other.ends_at and other.starts_at < ends:
+                raise UserError(f"phase {name!r} overlaps phase {other.name!r} ({other.starts_at} to {other.ends_at})"
+                                "; give dates outside it")
+        session.add(Phase(name=name, starts_at=starts, ends_at=ends))
+
+
+def phases(session: Session) -> list[Phase]:
+    """Every phase, by start."""
+    return list(session.scalars(select(Phase).order_by(Phase.starts_at)))
+
+
+def open_phase(session: Session, now: dt.datetime) -> tuple[str | None, str | None]:
+    """(the phase open at `now` or None, why submissions are closed or None). No phase defined: always open."""
+    defined = phases(session)
+    if not defined:
+        return None, None
+    for phase in defined:
+        if phase.starts_at <= now < phase.ends_at:
+            return phase.name, None
+    upcoming = [p for p in defined if p.starts_at > now]
+    if not upcoming:
+        return None, "submissions are closed: the challenge's last phase has ended"
+    opens = upcoming[0].starts_at.strftime("%Y-%m-%d %H:%M")
+    return None, f"submissions are closed; the next phase, {upcoming[0].name}, opens {opens} UTC"
+
+
+def used_today(session: Session, team_id: int, now: dt.datetime) -> int:
+    """The team's submissions since the start of `now`'s UTC day (every state but failed: a server fault is not
+    counted against a team)."""
+    day = now.replace(hour=0, minute=0, second=0, microsecond=0)
+    return session.scalar(select(func.count()).select_from(Submission).where(
+        Submission.team_id == team_id, Submission.created_at >= day, Submission.state != "failed")) or 0
+
+
+def submission_view(session: Session, sub: Submission, reveal: bool) -> dict[str, Any]:
+    """What a submission's status shows: its state, messages and current aggregate scores (the private part's
+    only when revealed)."""
+    team = session.get(Team, sub.team_id)
+    scores = {}
+    for score in session.scalars(select(Score).where(Score.submission_id == sub.id, Score.current.is_(True))):
+        if score.part == "public" or reveal:
+            scores[score.part] = {**json.loads(score.metrics), "scored_at": f"{score.scored_at:%Y-%m-%dT%H:%M:%SZ}"}
+    return {"id": sub.id, "team": team.name if team else None, "method": sub.method, "phase": sub.phase,
+            "state": sub.state, "track": sub.track, "created": f"{sub.created_at:%Y-%m-%dT%H:%M:%SZ}",
+            "messages": json.loads(sub.messages), "final": sub.final, "scores": scores}
+
+
+def leaderboard(session: Session, config: dict) -> dict[str, Any]:
+    """The leaderboard: per track, the scored submissions' public aggregates (best first by the track's ranking
+    metric), and once revealed the final ranking on the private part."""
+    from dsr_bench.leaderboard.board import LOWER_IS_BETTER
+
+    reveal = bool(config.get("reveal_private"))
+    rows: dict[str, list[dict]] = {}
+    query = (select(Submission, Team.name, Score).join(Team, Team.id == Submission.team_id)
+             .join(Score, Score.submission_id == Submission.id)
+             .where(Score.current.is_(True), Score.part == "public", Submission.track.is_not(None)))
+    for sub, team, score in session.execute(query):
+        metrics = json.loads(score.metrics)
+        rows.setdefault(sub.track or "", []).append({
+            "id": sub.id, "team": team, "method": sub.method, "phase": sub.phase, "final": sub.final,
+            "date": f"{score.scored_at:%Y-%m-%d}", "toolkit_version": score.toolkit_version,
+            "metrics": metrics["metrics"]})
+    for track, table in rows.items():
+        key = config["rank_by"].get(track)
+        sign = 1 if key in LOWER_IS_BETTER else -1
+        table.sort(key=lambda r: (r["metrics"].get(key) is None, sign * (r["metrics"].get(key) or 0.0), r["date"]))
+    out: dict[str, Any] = {"rank_by": config["rank_by"], "tracks": rows, "private_revealed": reveal,
+                           "phases": [{"name": p.name, "start": f"{p.starts_at:%Y-%m-%dT%H:%M:%SZ}",
+                                       "end": f"{p.ends_at:%Y-%m-%dT%H:%M:%SZ}"} for p in phases(session)]}
+    if reveal:
+        out["final"] = final_ranking(session, config)
+    return out
+
+
+def final_ranking(session: Session, config: dict) -> dict[str, list[dict]]:
+    """Per track, each team's best private-part score among the submissions it selected as final (its newest
+    scored submission when it selected none), best first."""
+    from dsr_bench.leaderboard.board import LOWER_IS_BETTER
+
+    query = (select(Submission, Team.name, Score).join(Team, Team.id == Submission.team_id)
+             .join(Score, Score.submission_id == Submission.id)
+             .where(Score.current.is_(True), Score.part == "private", Submission.state == "scored"))
+    by_team: dict[tuple[str, str], list[tuple[Submission, Score]]] = {}
+    for sub, team, score in session.execute(query):
+        by_team.setdefault((sub.track or "", team), []).append((sub, score))
+    out: dict[str, list[dict]] = {}
+    for (track, team), entries in by_team.items():
+        chosen = [e for e in entries if e[0].final] or [max(entries, key=lambda e: e[0].created_at)]
+        key = config["rank_by"].get(track)
+        sign = 1 if key in LOWER_IS_BETTER else -1
+        valid = [e for e in chosen if e[1].rank_value is not None]
+        if not valid:
+            continue
+        sub, score = min(valid, key=lambda e: sign * (e[1].rank_value or 0.0))
+        out.setdefault(track, []).append({"team": team, "method": sub.method, "id": sub.id,
+                                          "metrics": json.loads(score.metrics)["metrics"]})
+    for track, table in out.items():
+        key = config["rank_by"].get(track)
+        sign = 1 if key in LOWER_IS_BETTER else -1
+        table.sort(key=lambda r: sign * r["metrics"][key])
+    return out
+
+
+def select_final(session_factory: sessionmaker, team: Team, sid: str, final: bool, max_final: int) -> None:
+    """Mark (or unmark) a scored submission of `team` as one of its final ones, at most `max_final`."""
+    with session_factory.begin() as session:
+        sub = session.get(Submission, sid)
+        if sub is None or sub.team_id != team.id:
+            raise UserError(f"no submission {sid[:40]!r} of team {team.name!r}")
+        if final and sub.state != "scored":
+            raise UserError(f"submission {sid} is {sub.state}, not scored: only a scored submission can be final")
+        if final and not sub.final:
+            chosen = session.scalar(select(func.count()).select_from(Submission).where(
+                Submission.team_id == team.id, Submission.final.is_(True))) or 0
+            if chosen >= max_final:
+                raise UserError(f"team {team.name!r} has selected {chosen} final submissions, the most allowed; "
+                                "unselect one first")
+        sub.final = final
+
+
+def request_rescore(session_factory: sessionmaker) -> int:
+    """Mark every scored or refused submission to be scored again (after a toolkit fix); returns how many. The
+    workers score them with the installed toolkit, whose version each new score records."""
+    from sqlalchemy import update
+
+    with session_factory.begin() as session:
+        result = session.execute(update(Submission).where(Submission.state.in_(("scored", "refused")))
+                                 .values(rescore=True))
+        return int(result.rowcount)

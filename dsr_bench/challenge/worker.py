@@ -1,0 +1,240 @@
+"""Evaluation workers: processes that claim queued submissions, score them with the toolkit's `evaluate` on the
+hidden ground truth, and record aggregate scores.
+
+A claim is one conditional UPDATE (queued, or running with an expired lease, or scored and marked for a re-score
+-> running, owned by this worker, leased for `lease` seconds), so two workers never take one job; a thread renews
+the lease while the job runs. A worker killed mid-evaluation (SIGKILL) stops renewing: once its lease expires
+another worker (or the restarted one) takes the job again. The result is written by one transaction that
+requires the lease to still be this worker's, so a job is scored once whatever happens. A job that three workers
+died on is marked failed.
+
+Each part (public, private) is scored by `dsr_bench.scoring.evaluate.evaluate` on a directory of hard links to the
+submission's files for that part; its ground truth is recomputed while read and compared with the challenge's
+pins (`host.expected_truth_checksum`). Only the aggregate metrics and breakdowns are kept: per-step and
+per-sequence values are dropped here, never stored. Messages name the submission's files, never a path of the
+server.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import secrets
+import shutil
+import signal
+import threading
+import time
+from dataclasses import dataclass, field
+
+from sqlalchemy import and_, func, or_, select, update
+from sqlalchemy.orm import sessionmaker
+
+from dsr_bench.challenge.db import Score, Submission, open_database, utcnow
+from dsr_bench.challenge.host import expected_truth_checksum, load_pins
+from dsr_bench.challenge.layout import PARTS, Layout, open_challenge
+
+MAX_ATTEMPTS = 3
+META_NAME = "meta.json"
+
+
+@dataclass
+class Outcome:
+    """A scored or refused submission: its state, one-line messages, and per part its aggregate results."""
+
+    state: str
+    messages: list[str] = field(default_factory=list)
+    parts: dict[str, dict] = field(default_factory=dict)
+    track: str | None = None
+
+
+def _claimable(now):
+    """The condition of a submission a worker may take at `now`."""
+    return or_(Submission.state == "queued",
+               and_(Submission.state == "running", Submission.lease_until < now),
+               and_(Submission.state.in_(("scored", "refused")), Submission.rescore.is_(True)))
+
+
+def claim(session_factory: sessionmaker, owner: str, lease: float) -> str | None:
+    """Take the oldest claimable submission for `owner` (None: nothing to do)."""
+    import datetime as dt
+
+    now = utcnow()
+    with session_factory() as session:
+        candidates = session.scalars(select(Submission.id).where(_claimable(now))
+                                     .order_by(Submission.created_at).limit(8)).all()
+        for sid in candidates:
+            result = session.execute(
+                update(Submission).where(Submission.id == sid, _claimable(now))
+                .values(state="running", lease_owner=owner, lease_until=now + dt.timedelta(seconds=lease),
+                        started_at=now, attempts=Submission.attempts + 1))
+            session.commit()
+            if result.rowcount == 1:
+                return sid
+    return None
+
+
+def renew(session_factory: sessionmaker, sid: str, owner: str, lease: float) -> bool:
+    """Extend this worker's lease on `sid`; False when it is no longer this worker's."""
+    import datetime as dt
+
+    with session_factory() as session:
+        result = session.execute(update(Submission).where(Submission.id == sid, Submission.lease_owner == owner,
+                                                          Submission.state == "running")
+                                 .values(lease_until=utcnow() + dt.timedelta(seconds=lease)))
+        session.commit()
+        return result.rowcount == 1
+
+
+def finish(session_factory: sessionmaker, sid: str, owner: str, outcome: Outcome, config: dict) -> bool:
+    """Record `outcome` for `sid` in one transaction, only while `owner` holds its lease; True when recorded."""
+    from dsr_bench import __version__
+
+    with session_factory() as session, session.begin():
+        result = session.execute(
+            update(Submission).where(Submission.id == sid, Submission.lease_owner == owner,
+                                     Submission.state == "running")
+            .values(state=outcome.state, messages=json.dumps(outcome.messages), finished_at=utcnow(),
+                    lease_owner=None, lease_until=None, rescore=False, track=outcome.track))
+        if result.rowcount != 1:
+            raise _Lost()
+        last = session.scalar(select(func.max(Score.run)).where(Score.submission_id == sid)) or 0
+        session.execute(update(Score).where(Score.submission_id == sid).values(current=False))
+        rank_key = config["rank_by"].get(outcome.track or "", None)
+        for part, metrics in outcome.parts.items():
+            value = metrics["metrics"].get(rank_key) if rank_key else None
+            session.add(Score(submission_id=sid, part=part, run=last + 1, current=True, metrics=json.dumps(metrics),
+                              rank_value=value if isinstance(value, float) and value == value else None,
+                              toolkit_version=__version__))
+    return True
+
+
+class _Lost(Exception):
+    """The lease went to another worker: this worker's result is dropped."""
+
+
+def _sanitize(text: str, hide: dict[str, str]) -> str:
+    for path, shown in hide.items():
+        text = text.replace(path, shown)
+    return " ".join(text.split())
+
+
+def evaluate_submission(layout: Layout, config: dict, pins: dict, sid: str) -> Outcome:
+    """Score submission `sid`'s stored archive: extract it (checked) into a fresh work directory, evaluate each
+    part on hard links to its files, verify the ground truth against the pins; returns the outcome."""
+    from dsr_bench.challenge.storage import check_archive
+    from dsr_bench.scoring.evaluate import evaluate
+
+    names = list(config["sequences"])
+    work = layout.work / f"{sid}-{secrets.token_hex(4)}"
+    layout.work.mkdir(parents=True, exist_ok=True)
+    hide = {str(work.resolve()) + "/all/": "", str(work.resolve()): "<submission>", str(work) + "/all/": "",
+            str(work): "<submission>", str(layout.hidden.resolve()): "<hidden>", str(layout.hidden): "<hidden>",
+            str(layout.root.resolve()): "<challenge>", str(layout.root): "<challenge>"}
+    try:
+        work.mkdir(mode=0o700)
+        allowed = {f"{n}.h5" for n in names} | {META_NAME}
+        problems = check_archive(layout.archive(sid), allowed, int(config["max_extracted_bytes"]),
+                                 float(config["max_ratio"]), extract_to=work / "all")
+        if problems:
+            return Outcome("refused", problems)
+        outcome = Outcome("scored")
+        messages: list[str] = []
+        for part in PARTS:
+            part_dir = work / part
+            part_dir.mkdir()
+            for name in config[part]:
+                if (work / "all" / f"{name}.h5").exists():
+                    os.link(work / "all" / f"{name}.h5", part_dir / f"{name}.h5")
+            if (work / "all" / META_NAME).exists():
+                os.link(work / "all" / META_NAME, part_dir / META_NAME)
+            evaluation = evaluate(part_dir, layout.hidden, part, workers=1)
+            messages += [_sanitize(f"{where}: {problem}" if where else problem, hide)
+                         for where, problem in evaluation.problems if f"{where}: {problem}" not in messages]
+            if evaluation.results is not None:
+                results = evaluation.results
+                expected = expected_truth_checksum(pins, list(config[part]), results["metrics"])
+                if results["ground_truth_sha256"] != expected:
+                    return Outcome("failed", ["the server's hidden ground truth failed its check against the "
+                                              "challenge's pins; the host is told (nothing of yours is wrong)"])
+                outcome.parts[part] = {"metrics": results["metrics"], "breakdowns": results["breakdowns"],
+                                       "coverage": results["coverage"], "toolkit_version": results["toolkit_version"],
+                                       "predictions_checksum": results["predictions_checksum"]}
+                outcome.track = "3D" if "motion_full" in results["metrics"] else "2D"
+        if messages or len(outcome.parts) != len(PARTS):
+            return Outcome("refused", messages or ["no score: fix the problems above"])
+        return outcome
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
+
+
+def run_worker(root: str, db_url: str, owner: str | None = None, lease: float = 60.0, poll: float = 0.5,
+               stop: threading.Event | None = None, once: bool = False) -> int:
+    """The worker loop: claim, evaluate, record, until `stop` is set (or, with `once`, until nothing is queued);
+    returns the number of jobs recorded. Runs in its own process (`dsr-bench serve` starts them)."""
+    from dsr_bench.memory import keep_freed_memory
+
+    keep_freed_memory()
+    layout, config = open_challenge(root)
+    pins = load_pins(layout)
+    _, session_factory = open_database(db_url)
+    owner = owner or f"{os.uname().nodename[:32]}-{os.getpid()}-{secrets.token_hex(4)}"
+    stop = stop or threading.Event()
+    done = 0
+    while not stop.is_set():
+        sid = claim(session_factory, owner, lease)
+        if sid is None:
+            if once:
+                break
+            stop.wait(poll)
+            continue
+        with session_factory() as session:
+            attempts = session.get(Submission, sid).attempts
+        lost = threading.Event()
+
+        def heartbeat(sid: str = sid, lost: threading.Event = lost) -> None:
+            while not lost.wait(lease / 3):
+                if not renew(session_factory, sid, owner, lease):
+                    lost.set()
+
+        beat = threading.Thread(target=heartbeat, daemon=True)
+        beat.start()
+        try:
+            if attempts > MAX_ATTEMPTS:
+                outcome = Outcome("failed", [f"its evaluation stopped {MAX_ATTEMPTS} times without finishing; the "
+                                             "host is told"])
+            else:
+                _, config = open_challenge(root)  # the host may have changed limits or ranking
+                try:
+                    outcome = evaluate_submission(layout, config, pins, sid)
+                except Exception as exc:  # a server fault: the job is failed, the worker goes on
+                    outcome = Outcome("failed", [f"the server failed while scoring ({type(exc).__name__}); the host "
+                                                 "is told"])
+            try:
+                finish(session_factory, sid, owner, outcome, config)
+                done += 1
+            except _Lost:
+                pass
+        finally:
+            lost.set()
+            beat.join()
+    return done
+
+
+def worker_main(root: str, db_url: str) -> None:
+    """A worker process's entry point: runs until SIGTERM."""
+    stop = threading.Event()
+    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    signal.signal(signal.SIGINT, lambda *_: stop.set())
+    run_worker(root, db_url, stop=stop)
+
+
+def wait_for(session_factory: sessionmaker, sid: str, states=("scored", "refused", "failed"),
+             timeout: float = 60.0) -> str:
+    """Poll until `sid` is in one of `states` (or `timeout` s pass); returns its state."""
+    end = time.monotonic() + timeout
+    while True:
+        with session_factory() as session:
+            state = session.get(Submission, sid).state
+        if state in states or time.monotonic() > end:
+            return state
+        time.sleep(0.2)
