@@ -46,8 +46,9 @@ def annotate(
                                          help="Export even poses that are not snapped or confirmed."),
     place: Optional[Path] = typer.Option(None, "--place", help="Place step 0 without the window from a JSON file of "
                                          "poses or picks (docs/annotator.md), then snap; runs before --auto/--export."),
-    bop: Optional[Path] = typer.Option(None, "--bop", help="Also (or only) export in the BOP format to this directory "
-                                       "(scene_gt.json, scene_camera.json, rgb/, depth/, mask_visib/ per camera)."),
+    bop: Optional[Path] = typer.Option(None, "--bop", help="Also (or only) export as a BOP dataset to this directory "
+                                       "(camera.json, models/ with models_info.json, test/<scene per camera>/ with "
+                                       "scene_gt, scene_camera, scene_gt_info, rgb, depth, mask, mask_visib)."),
 ) -> None:
     """Annotate object poses in a two-camera capture; without flags, open the annotation window."""
     from annotator.session import Session

@@ -569,7 +569,7 @@ def test_a_bag_capture_goes_through_annotate_and_both_exports_from_the_cli(sim, 
         assert seq.num_steps == 2 and seq.read("action").shape == (2, 3)
         assert np.abs(seq.read("object_poses")[0, :, :3] - truth[0, :, :3]).max() < 0.005  # metres
     for scene in ("000000", "000001"):  # front, back
-        gt = json.loads((bop / scene / "scene_gt.json").read_text())
-        cameras = json.loads((bop / scene / "scene_camera.json").read_text())
+        gt = json.loads((bop / "test" / scene / "scene_gt.json").read_text())
+        cameras = json.loads((bop / "test" / scene / "scene_camera.json").read_text())
         assert sorted(gt) == sorted(cameras) == ["0", "1", "2"]
         assert all(len(entry["cam_t_m2c"]) == 3 and max(map(abs, entry["cam_t_m2c"])) > 100 for entry in gt["0"])
