@@ -200,7 +200,7 @@ def create_app(root: str | Path, db_url: str | None = None, settings: Settings |
     def submission_page(sid: str) -> str:
         return render_submission(load_submission(sid))
 
-    @app.get("/teams/{name}", response_class=HTMLResponse)
+    @app.get("/teams/{name:path}", response_class=HTMLResponse)
     def team_page(name: str) -> str:
         with session_factory() as session:
             team = session.scalar(select(Team).where(Team.name == name))

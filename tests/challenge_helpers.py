@@ -1,0 +1,152 @@
+"""Helpers of the challenge tests: a small challenge directory (2 synthetic sequences of 2 pushes, made once per
+session and copied), static predictions on its exported inputs, a uvicorn server on a loopback port, crafted tar
+archives, and a throwaway PostgreSQL cluster."""
+
+from __future__ import annotations
+
+import io
+import os
+import shutil
+import socket
+import subprocess
+import tarfile
+import threading
+import time
+from pathlib import Path
+
+_TEMPLATE: dict[str, Path] = {}
+
+
+def challenge_template(base: Path) -> tuple[Path, Path]:
+    """(challenge directory, predictions directory of the static model on its inputs), made once under `base`:
+    use `copy_challenge` for a directory a test may change."""
+    if "root" not in _TEMPLATE:
+        from dsr_bench.challenge.host import export_inputs, finish_hidden_set
+        from dsr_bench.challenge.layout import HIDDEN_SPLIT, Layout, write_secret_seed
+        from dsr_bench.models.predictors import load_predictor, predict_split
+        from dsr_bench.testing import write_synthetic_dataset
+
+        root = base / "challenge"
+        root.mkdir(mode=0o700)
+        layout = Layout(root)
+        write_secret_seed(layout, 987654321987654321)
+        write_synthetic_dataset(layout.hidden, num_sequences=2, num_steps=2, split=HIDDEN_SPLIT)
+        finish_hidden_set(layout, {"split": "synthetic"})
+        export_inputs(layout, layout.inputs)
+        predictions = base / "predictions"
+        predict_split(load_predictor("static"), layout.inputs, ["seq_0000", "seq_0001"], predictions)
+        _TEMPLATE.update(root=root, predictions=predictions)
+    return _TEMPLATE["root"], _TEMPLATE["predictions"]
+
+
+def copy_challenge(tmp_path_factory, dest: Path) -> tuple[Path, Path]:
+    """A fresh copy of the template challenge and its predictions under `dest` (the template is made once per
+    session, in the session's base temporary directory)."""
+    base = tmp_path_factory.getbasetemp() / "challenge-template"
+    base.mkdir(exist_ok=True)
+    root, predictions = challenge_template(base)
+    shutil.copytree(root, dest / "challenge")
+    shutil.copytree(predictions, dest / "predictions")
+    return dest / "challenge", dest / "predictions"
+
+
+class LiveServer:
+    """A FastAPI app served by uvicorn on 127.0.0.1 (a free port) in a thread; `url` once entered."""
+
+    def __init__(self, app):
+        import uvicorn
+
+        self.server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=0, log_level="warning"))
+        self.thread = threading.Thread(target=self.server.run, daemon=True)
+        self.url = ""
+
+    def __enter__(self) -> LiveServer:
+        self.thread.start()
+        end = time.monotonic() + 30
+        while not self.server.started:
+            if time.monotonic() > end or not self.thread.is_alive():
+                raise RuntimeError("the test server did not start")
+            time.sleep(0.02)
+        port = self.server.servers[0].sockets[0].getsockname()[1]
+        self.url = f"http://127.0.0.1:{port}"
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.server.should_exit = True
+        self.thread.join(30)
+
+
+def tar_bytes(members: list[tuple[tarfile.TarInfo, bytes | None]], mode: str = "w") -> bytes:
+    """A tar archive (mode "w" or "w:gz") of crafted members: (header, data or None)."""
+    buffer = io.BytesIO()
+    with tarfile.open(fileobj=buffer, mode=mode) as tar:
+        for info, data in members:
+            if data is not None:
+                info.size = len(data)
+                tar.addfile(info, io.BytesIO(data))
+            else:
+                tar.addfile(info)
+    return buffer.getvalue()
+
+
+def member(name: str, kind: bytes = tarfile.REGTYPE, link: str = "") -> tarfile.TarInfo:
+    """A tar header: a regular file by default, or a link, device, FIFO or directory (`kind`)."""
+    info = tarfile.TarInfo(name)
+    info.type = kind
+    info.linkname = link
+    return info
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def postgres_binaries() -> Path | None:
+    """The directory of PostgreSQL's initdb and pg_ctl (Debian's /usr/lib/postgresql/<v>/bin or PATH), or None."""
+    for candidate in sorted(Path("/usr/lib/postgresql").glob("*/bin"), reverse=True):
+        if (candidate / "initdb").exists() and (candidate / "pg_ctl").exists():
+            return candidate
+    found = shutil.which("initdb")
+    return Path(found).resolve().parent if found and shutil.which("pg_ctl") else None
+
+
+class PostgresCluster:
+    """A throwaway PostgreSQL cluster in `base` listening on a Unix socket only (run as the `postgres` user when
+    this process is root, as initdb refuses root); `url(db)` is a SQLAlchemy URL of a fresh database."""
+
+    def __init__(self, base: Path, bin_dir: Path):
+        self.base, self.bin = base, bin_dir
+        self.data, self.socket_dir = base / "data", base / "sock"
+        self.as_root = os.geteuid() == 0
+        self.user = "postgres" if self.as_root else os.environ.get("USER", "postgres")
+        self.port = free_port()
+
+    def _run(self, *args: str) -> subprocess.CompletedProcess:
+        command = [*(["runuser", "-u", "postgres", "--"] if self.as_root else []), *args]
+        return subprocess.run(command, capture_output=True, text=True, timeout=120, check=True)
+
+    def start(self) -> PostgresCluster:
+        self.base.mkdir(parents=True, exist_ok=True)
+        self.socket_dir.mkdir()
+        if self.as_root:
+            shutil.chown(self.base, "postgres")
+            shutil.chown(self.socket_dir, "postgres")
+            os.chmod(self.base, 0o755)
+            parent = self.base.parent
+            while parent != parent.parent:  # the postgres user must reach the directory
+                os.chmod(parent, os.stat(parent).st_mode | 0o011)
+                parent = parent.parent
+        self._run(str(self.bin / "initdb"), "-D", str(self.data), "-A", "trust", "-U", self.user, "--no-sync")
+        self._run(str(self.bin / "pg_ctl"), "-D", str(self.data), "-w", "-l", str(self.base / "log"), "-o",
+                  f"-c listen_addresses='' -k {self.socket_dir} -p {self.port} -c fsync=off", "start")
+        return self
+
+    def url(self, database: str) -> str:
+        self._run(str(self.bin / "createdb"), "-h", str(self.socket_dir), "-p", str(self.port), "-U", self.user,
+                  database)
+        return f"postgresql+psycopg://{self.user}@/{database}?host={self.socket_dir}&port={self.port}"
+
+    def stop(self) -> None:
+        self._run(str(self.bin / "pg_ctl"), "-D", str(self.data), "-m", "immediate", "stop")

@@ -1,0 +1,250 @@
+"""The challenge server's promises: no route, file name or message gives away the hidden ground truth, the secret
+seed or another team's predictions; tokens are checked, revocable and their failures slowed; the daily quota,
+phases, final selections, the private part's reveal and a host's re-score; a worker SIGKILLed mid-evaluation is
+replaced and the job scored once; a server stopped mid-upload leaves nothing visible."""
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+
+pytest.importorskip("fastapi")
+pytest.importorskip("httpx")
+pytest.importorskip("argon2")
+
+import httpx  # noqa: E402
+from challenge_helpers import LiveServer, copy_challenge  # noqa: E402
+
+SEED = "987654321987654321"  # the template challenge's secret seed
+
+
+@pytest.fixture
+def challenge(tmp_path, tmp_path_factory):
+    from dsr_bench.challenge.db import open_database
+    from dsr_bench.challenge.layout import Layout
+    from dsr_bench.challenge.service import add_team
+
+    root, predictions = copy_challenge(tmp_path_factory, tmp_path)
+    layout = Layout(root)
+    engine, sessions = open_database(layout.default_db_url())
+    tokens = {name: add_team(sessions, name) for name in ("alpha", "<script>alert(1)</script>")}
+    yield layout, sessions, tokens, predictions
+    engine.dispose()
+
+
+def _serve(layout, **overrides):
+    """A live server of `layout` with the configuration's `overrides` (e.g. daily_limit=2)."""
+    from dsr_bench.challenge.server import Settings, create_app
+
+    return LiveServer(create_app(layout.root, settings=Settings(keep_free=0, auth_max_delay=0.01,
+                                                                overrides=overrides or None)))
+
+
+def _upload(url, token, predictions, tmp_path, method="static") -> httpx.Response:
+    from dsr_bench.challenge.client import pack
+
+    archive = tmp_path / f"{method}.tar"
+    pack(predictions, archive)
+    return httpx.post(f"{url}/api/submissions", params={"method": method}, content=archive.read_bytes(),
+                      headers={"Authorization": f"Bearer {token}"}, timeout=30)
+
+
+def _score_all(layout) -> int:
+    from dsr_bench.challenge.worker import run_worker
+
+    return run_worker(str(layout.root), layout.default_db_url(), once=True)
+
+
+def test_no_route_gives_away_the_hidden_set_the_seed_or_another_teams_work(challenge, tmp_path):
+    layout, sessions, tokens, predictions = challenge
+    with _serve(layout) as live:
+        mine = _upload(live.url, tokens["alpha"], predictions, tmp_path).json()["id"]
+        (predictions / "seq_0001.h5").unlink()  # a refused one too: its messages are shown
+        refused = _upload(live.url, tokens["alpha"], predictions, tmp_path, "partial").json()["id"]
+        assert _score_all(layout) == 2
+        other = tokens["<script>alert(1)</script>"]
+        pages = ["/", "/api/leaderboard", f"/api/submissions/{mine}", f"/submissions/{mine}",
+                 f"/api/submissions/{refused}", f"/submissions/{refused}", "/teams/alpha", "/api/inputs",
+                 "/api/inputs/seq_0000.h5", "/api/inputs/digests.json"]
+        bodies = {page: httpx.get(live.url + page).content for page in pages}
+        assert all(httpx.get(live.url + page).status_code == 200 for page in pages if "digests" not in page)
+        history = httpx.get(f"{live.url}/api/me/submissions", headers={"Authorization": f"Bearer {other}"})
+        assert history.status_code == 200 and history.json()["submissions"] == []  # not alpha's
+        bodies["history"] = history.content
+        for page, body in bodies.items():
+            assert SEED.encode() not in body, page
+            for leak in (b"per_step", b"per_sequence", b"predictions_sha256", str(layout.root).encode(),
+                         b"ground_truth_sha256", b"secret_seed"):
+                assert leak not in body, (page, leak)
+        status = json.loads(bodies[f"/api/submissions/{mine}"])
+        assert status["state"] == "scored" and set(status["scores"]) == {"public"}  # the private part stays hidden
+        refusal = json.loads(bodies[f"/api/submissions/{refused}"])
+        assert refusal["state"] == "refused"
+        assert "seq_0001.h5: missing prediction file" in refusal["messages"]
+        for name in ("..%2Fsecret_seed", "%2E%2E%2Fchallenge.json", "challenge.json", "pins.json", "secret_seed",
+                     "..%2Fhidden%2Fseq_0000.h5", ".%2E%2Fsubmissions", "digests.json%00"):
+            reply = httpx.get(f"{live.url}/api/inputs/{name}")
+            assert reply.status_code == 404 and SEED.encode() not in reply.content, name
+        raw = httpx.get(f"{live.url}/api/inputs/../secret_seed")  # normalised by the client: still not the seed
+        assert SEED.encode() not in raw.content
+        for path in ["/api/submissions/..%2F..%2Fsecret_seed", f"/api/submissions/{mine}/archive",
+                     f"/submissions/{mine}.tar"]:
+            assert httpx.get(live.url + path).status_code == 404
+    assert SEED not in "".join(p.name for p in layout.root.rglob("*"))
+
+
+def test_pages_escape_team_and_method_names(challenge, tmp_path):
+    layout, sessions, tokens, predictions = challenge
+    with _serve(layout) as live:
+        sid = _upload(live.url, tokens["<script>alert(1)</script>"], predictions, tmp_path,
+                      "<img src=x onerror=alert(2)>").json()["id"]
+        _score_all(layout)
+        for page in ("/", f"/submissions/{sid}", "/teams/%3Cscript%3Ealert(1)%3C%2Fscript%3E"):
+            body = httpx.get(live.url + page).text
+            assert "<script>alert(1)" not in body and "<img src=x" not in body, page
+            assert "&lt;script&gt;alert(1)&lt;/script&gt;" in body or "&lt;img src=x" in body, page
+
+
+def test_tokens_wrong_malformed_revoked_and_slowed(challenge, tmp_path):
+    from dsr_bench.challenge.service import revoke_team
+
+    layout, sessions, tokens, predictions = challenge
+    good = tokens["alpha"]
+    from dsr_bench.challenge.server import Settings, create_app
+
+    with LiveServer(create_app(layout.root, settings=Settings(keep_free=0, auth_limit=4,
+                                                              auth_max_delay=0.01))) as live:
+        def me(token):
+            return httpx.get(f"{live.url}/api/me/submissions", headers={"Authorization": f"Bearer {token}"})
+
+        assert me(good).status_code == 200
+        wrong = good[:-4] + ("AAAA" if not good.endswith("AAAA") else "BBBB")
+        for bad in (wrong, "garbage", "dsrc_000000000000_" + "x" * 43):
+            assert me(bad).status_code == 401
+        assert httpx.get(f"{live.url}/api/me/submissions").status_code == 401
+        blocked = me(good)  # 4 failures from this address: even the right token waits now
+        assert blocked.status_code == 429 and int(blocked.headers["retry-after"]) > 0
+    with _serve(layout) as live:
+        revoke_team(sessions, "alpha")
+        assert _upload(live.url, good, predictions, tmp_path).status_code == 401
+
+
+def test_daily_quota(challenge, tmp_path):
+    layout, sessions, tokens, predictions = challenge
+    with _serve(layout, daily_limit=2) as live:
+        assert _upload(live.url, tokens["alpha"], predictions, tmp_path).status_code == 202
+        assert _upload(live.url, tokens["alpha"], predictions, tmp_path).status_code == 202
+        third = _upload(live.url, tokens["alpha"], predictions, tmp_path)
+        assert third.status_code == 429 and "2 submissions of today" in third.json()["detail"]
+        assert _upload(live.url, tokens["<script>alert(1)</script>"], predictions, tmp_path).status_code == 202
+
+
+def test_phases_final_selection_reveal_and_rescore(challenge, tmp_path):
+    import datetime as dt
+
+    from sqlalchemy import select
+
+    from dsr_bench.challenge.db import Score, utcnow
+    from dsr_bench.challenge.layout import open_challenge, write_config
+    from dsr_bench.challenge.service import add_phase, request_rescore
+
+    layout, sessions, tokens, predictions = challenge
+    now = utcnow()
+    add_phase(sessions, "final", now + dt.timedelta(days=1), now + dt.timedelta(days=2))
+    with _serve(layout) as live:
+        closed = _upload(live.url, tokens["alpha"], predictions, tmp_path)
+        assert closed.status_code == 403 and "opens" in closed.json()["detail"]
+    add_phase(sessions, "development", now - dt.timedelta(hours=1), now + dt.timedelta(hours=1))
+    auth = {"Authorization": f"Bearer {tokens['alpha']}"}
+    with _serve(layout, max_final=1) as live:
+        first = _upload(live.url, tokens["alpha"], predictions, tmp_path).json()["id"]
+        second = _upload(live.url, tokens["alpha"], predictions, tmp_path, "again").json()["id"]
+        assert httpx.post(f"{live.url}/api/submissions/{first}/final", json={"final": True},
+                          headers=auth).status_code == 400  # queued, not scored yet
+        _score_all(layout)
+        assert httpx.get(f"{live.url}/api/submissions/{first}").json()["phase"] == "development"
+        chosen = httpx.post(f"{live.url}/api/submissions/{first}/final", json={"final": True}, headers=auth)
+        assert chosen.status_code == 200 and chosen.json()["final"] is True
+        over = httpx.post(f"{live.url}/api/submissions/{second}/final", json={"final": True}, headers=auth)
+        assert over.status_code == 400 and "unselect one first" in over.json()["detail"]
+        other = {"Authorization": f"Bearer {tokens['<script>alert(1)</script>']}"}
+        assert httpx.post(f"{live.url}/api/submissions/{second}/final", json={"final": True},
+                          headers=other).status_code == 400  # not that team's
+        board = httpx.get(f"{live.url}/api/leaderboard").json()
+        assert len(board["tracks"]["3D"]) == 2 and "final" not in board
+        config = open_challenge(layout.root)[1]
+        write_config(layout, {**config, "reveal_private": True})
+        board = httpx.get(f"{live.url}/api/leaderboard").json()
+        assert [row["id"] for row in board["final"]["3D"]] == [first]
+        assert "private" in httpx.get(f"{live.url}/api/submissions/{first}").json()["scores"]
+        assert "Final ranking" in httpx.get(live.url + "/").text
+    assert request_rescore(sessions) == 2
+    assert _score_all(layout) == 2
+    with sessions() as session:
+        scores = session.scalars(select(Score).where(Score.submission_id == first)).all()
+    from dsr_bench import __version__
+
+    assert sorted((s.run, s.current) for s in scores) == [(1, False), (1, False), (2, True), (2, True)]
+    assert {s.toolkit_version for s in scores} == {__version__}
+    old = {s.part: json.loads(s.metrics) for s in scores if s.run == 1}
+    new = {s.part: json.loads(s.metrics) for s in scores if s.run == 2}
+    assert old == new  # the same toolkit scores the same
+
+
+WORKER = """
+import sys, time
+import dsr_bench.challenge.worker as w
+real = w.evaluate_submission
+def slow(*args):
+    print("evaluating", flush=True)
+    time.sleep(60)
+    return real(*args)
+w.evaluate_submission = slow
+w.run_worker(sys.argv[1], sys.argv[2], lease=1.0)
+"""
+
+
+def test_a_worker_killed_mid_evaluation_is_replaced_and_the_job_scored_once(challenge, tmp_path):
+    from sqlalchemy import func, select
+
+    from dsr_bench.challenge.db import Score, Submission
+    from dsr_bench.challenge.worker import run_worker
+
+    layout, sessions, tokens, predictions = challenge
+    with _serve(layout) as live:
+        sid = _upload(live.url, tokens["alpha"], predictions, tmp_path).json()["id"]
+    proc = subprocess.Popen([sys.executable, "-c", WORKER, str(layout.root), layout.default_db_url()],
+                            stdout=subprocess.PIPE, text=True)
+    try:
+        assert proc.stdout.readline().strip() == "evaluating"
+        with sessions() as session:
+            assert session.get(Submission, sid).state == "running"
+    finally:
+        os.kill(proc.pid, signal.SIGKILL)
+        proc.wait()
+    time.sleep(1.2)  # its lease (1 s) expires
+    assert run_worker(str(layout.root), layout.default_db_url(), once=True) == 1
+    with sessions() as session:
+        sub = session.get(Submission, sid)
+        assert sub.state == "scored" and sub.attempts == 2
+        assert session.scalar(select(func.count()).select_from(Score).where(Score.submission_id == sid)) == 2
+
+
+def test_what_a_stopped_server_left_is_never_visible(challenge, tmp_path):
+    layout, sessions, tokens, predictions = challenge
+    layout.uploads.mkdir(exist_ok=True)
+    layout.submissions.mkdir(exist_ok=True)
+    (layout.uploads / ".part-deadbeef").write_bytes(b"half an upload")
+    orphan = layout.submissions / ("ab" * 16 + ".tar")  # renamed, but the server died before its row
+    orphan.write_bytes(b"x")
+    with _serve(layout) as live:
+        assert not list(layout.uploads.iterdir()) and not orphan.exists()
+        assert httpx.get(f"{live.url}/api/submissions/{'ab' * 16}").status_code == 404
+        sid = _upload(live.url, tokens["alpha"], predictions, tmp_path).json()["id"]
+    with _serve(layout) as live:  # a restart keeps what was accepted
+        assert httpx.get(f"{live.url}/api/submissions/{sid}").json()["state"] == "queued"
+        assert layout.archive(sid).is_file()
