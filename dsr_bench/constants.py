@@ -117,6 +117,15 @@ UNMATCHED_POSITION_MSE: float = 100.0
 MATCH_TIE_BREAK: float = 1e-3
 #: The furthest a start point is backed off from the chosen cell of an object, in cells (10 cm).
 MAX_BACKOFF_CELLS: int = 25
+#: How far a clear push's sweep is checked, in cells from its start (44 cells, 17.6 cm): the tool stays below the
+#: objects' height along the push (about 14.6 cm) and the start of its lift (to about 16 cm; generators/arm.py).
+CLEAR_SWEEP_CELLS: int = 44
+#: Clear pushes (`dsr_bench.planning.sampling.sample_clear`) among a step's candidates: a plan may keep the scene.
+CLEAR_CANDIDATES: int = 10
+#: A learned planner's margin (cost units: an IoU of 1 on one object is 1): it pushes an object only when that
+#: push's predicted cost beats the best clear push's by more than this, else it keeps the scene (a clear push).
+#: Chosen on the validation tasks `plan-val` (training objects), never on plan-novel-test (docs/planning.md).
+PLAN_MARGIN: float = 0.2
 #: Voxels at or above this z index count as above the table for footprints (8 mm > FREE_HEIGHT).
 FOOTPRINT_MIN_Z: int = 2
 

@@ -139,7 +139,8 @@ def generate_captures(
 
 def generate_plan_tasks(
     tasks: str = typer.Option("plan-novel-test", "--tasks",
-                              help="Task set: plan-novel-test (100) | plan-novel-mini (4)."),
+                              help="Task set: plan-novel-test (100) | plan-novel-mini (4) | plan-val (50, "
+                              "training objects)."),
     out: Path | None = typer.Option(None, "--out", "-o", help="Directory to write (default data/<task set>)."),
     workers: int = typer.Option(1, "--workers", "-w", help="Parallel worker processes."),
     num_tasks: int | None = typer.Option(None, "--num-tasks", "-n", help="Only the first N tasks of the set."),
@@ -183,6 +184,9 @@ def plan(
     device: str = typer.Option("cpu", "--device", help="cpu or cuda (learned models)."),
     num_tasks: int | None = typer.Option(None, "--num-tasks", "-n", help="Only the first N tasks (partial "
                                             "results)."),
+    margin: float | None = typer.Option(None, "--margin", help="Push an object only when its predicted cost beats "
+                                        "the best clear push's by this (default: 0.2 for a learned model, 0 for "
+                                        "the oracle)."),
 ) -> None:
     """Plan 3 pushes per task with MPC (sample candidates, score by the paper's cost, execute the best in pybullet),
     write a plan file per task and results.json (final-vs-target voxel IoU per task and mean).
@@ -197,7 +201,8 @@ def plan(
     with Progress(transient=True) as bar:
         job = bar.add_task(f"plan {model}", total=num_tasks or _size(tasks))
         r = plan_tasks(model, tasks, out, candidates, workers, seed, checkpoint, device, num_tasks,
-                       progress=lambda: bar.advance(job), warn=lambda line: typer.echo(f"warning: {line}", err=True))
+                       progress=lambda: bar.advance(job), warn=lambda line: typer.echo(f"warning: {line}", err=True),
+                       margin=margin)
     m = r["metrics"]
     typer.echo(f"{r['method']} on {r['task_set']} ({r['coverage']['scored']}/{r['coverage']['expected']} tasks"
                f"{', pinned' if r['pinned'] else ''}): IoU {m['iou']:.4f} (start {m['start_iou']:.4f}), occupancy IoU "

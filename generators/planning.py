@@ -11,6 +11,7 @@ task file (the objects' solids and poses), so it never depends on the generator'
 
 from __future__ import annotations
 
+import math
 import os
 import shlex
 import time
@@ -215,11 +216,11 @@ def _plan_job(job: tuple) -> tuple[str, dict, str | None]:
     from dsr_bench.planning.results import score_plan
     from dsr_bench.planning.tasks import read_task
 
-    task_path, out, model, checkpoint, device, candidates, seed, batch, name, ground_truth = job
+    task_path, out, model, checkpoint, device, candidates, seed, batch, name, ground_truth, margin = job
     task = read_task(task_path)  # the digests recomputed from its arrays
     if task.name != name or task.ground_truth_sha256 != ground_truth:
         raise UserError(f"{task_path} changed after it was verified (another process writing the tasks?); run again")
-    done, note = _finished(Path(out) / f"{name}.h5", task, model, checkpoint, candidates, seed)
+    done, note = _finished(Path(out) / f"{name}.h5", task, model, checkpoint, candidates, seed, margin)
     if done is not None:
         return name, done, None
     _one_thread()
@@ -227,7 +228,7 @@ def _plan_job(job: tuple) -> tuple[str, dict, str | None]:
     try:
         planner = _planner(model, env, checkpoint, device)
         start = time.perf_counter()
-        record = run_plan(task, planner, env, candidates, seed=seed, batch=batch)
+        record = run_plan(task, planner, env, candidates, seed=seed, batch=batch, margin=margin, clear=_clear())
         seconds = time.perf_counter() - start
     finally:
         env.close()
@@ -237,7 +238,7 @@ def _plan_job(job: tuple) -> tuple[str, dict, str | None]:
     attrs = {"task": task.name, "task_file": task.path.name, "task_ground_truth_sha256": task.ground_truth_sha256,
              "model": model, "checkpoint": str(checkpoint or ""), "planner": planner.name,
              "description": planner.description, "candidates": candidates, "seed": seed, "lambda": _lambda(),
-             **scores}
+             "margin": margin, "clear": _clear(), **scores}
     write_plan(Path(out) / f"{name}.h5", arrays, attrs)
     return name, scores, note
 
@@ -249,18 +250,19 @@ def _steps() -> int:
 
 
 def _finished(path: Path, task, model: str, checkpoint: str | None, candidates: int,
-              seed: int) -> tuple[dict | None, str | None]:
+              seed: int, margin: float) -> tuple[dict | None, str | None]:
     """(scores, None) of an existing plan file of this task made with the same planner, checkpoint, candidates,
-    seed and lambda (a rerun resumes): recomputed from its stored final state against the verified task, never
-    read from its attributes. (None, None) when there is no such file or it is another run's (planned again, the
-    file replaced); (None, a warning line) when the file is not a valid plan of its task (planned again too)."""
+    seed, lambda, margin and clear candidates (a rerun resumes): recomputed from its stored final state against the
+    verified task, never read from its attributes. (None, None) when there is no such file or it is another run's
+    (planned again, the file replaced); (None, a warning line) when the file is not a valid plan of its task
+    (planned again too)."""
     from dsr_bench.planning.plans import read_plan_attrs
     from dsr_bench.planning.verify import PlanMismatch, plan_scores
 
     if not path.is_file():
         return None, None
     same = {"model": model, "checkpoint": str(checkpoint or ""), "candidates": candidates, "seed": seed,
-            "lambda": _lambda()}
+            "lambda": _lambda(), "margin": margin, "clear": _clear()}
     try:
         attrs = read_plan_attrs(path)
     except UserError as exc:
@@ -280,15 +282,23 @@ def _lambda() -> float:
     return COST_LAMBDA
 
 
+def _clear() -> int:
+    from dsr_bench.planning.protocol import CLEAR_CANDIDATES
+
+    return CLEAR_CANDIDATES
+
+
 def plan_tasks(model: str, tasks: str, out: Path, candidates: int, workers: int = 1, seed: int = 0,
                checkpoint: Path | None = None, device: str = "cpu", num_tasks: int | None = None,
-               batch: int | None = None, progress=None, warn=None) -> dict:
+               batch: int | None = None, progress=None, warn=None, margin: float | None = None) -> dict:
     """Run a planner on a task directory (or a named set's data/<name>), write one plan file per task and
     OUT/results.json; return the results (`dsr_bench.planning.results.build_results`). The tasks are verified first
     (`dsr_bench.planning.verify.verify_tasks`: a task that differs from the pin is one line to `warn` and makes
     the results unpinned). Plan files already in `out` made for the same task with the same planner, candidates
     and seed are kept and rescored from their final states (a rerun resumes); an invalid one is planned again
-    with a line to `warn`."""
+    with a line to `warn`. `margin`: what an object push's predicted cost must beat the best clear push's by
+    (`dsr_bench.planning.runner.choose`; default the planner's own: PLAN_MARGIN for a learned model, 0 for the
+    oracle)."""
     import json
 
     from dsr_bench.atomic import write_text
@@ -309,6 +319,9 @@ def plan_tasks(model: str, tasks: str, out: Path, candidates: int, workers: int 
         raise UserError(f"--candidates {candidates}: must be at least 1")
     if workers < 1:
         raise UserError(f"--workers {workers}: must be at least 1")
+    if margin is not None and not (math.isfinite(margin) and margin >= 0):
+        raise UserError(f"--margin {margin}: must be a finite number >= 0 (cost units; the default "
+                        "is the planner's own)")
     verified = verify_tasks(tasks)  # before anything is written
     warn = warn or (lambda line: None)
     for line in verified.warnings:
@@ -319,11 +332,12 @@ def plan_tasks(model: str, tasks: str, out: Path, candidates: int, workers: int 
         make_planner(model, checkpoint=checkpoint, device=device)  # fails fast on a bad model or checkpoint
     if model not in ("random", "oracle"):  # in this process, the workers' planner (workers=1) is this one
         _WORKER["planner"], _WORKER["planner_key"] = describe, (model, str(checkpoint) if checkpoint else None, device)
+    margin = float(describe.margin if margin is None else margin)
     check_writable(out)
     out.mkdir(parents=True, exist_ok=True)
     batch = batch or DEFAULT_BATCH
     jobs = [(str(verified.path(name)), str(out), model, str(checkpoint) if checkpoint else None, device, candidates,
-             seed, batch, name, verified.digests[name]) for name in names]
+             seed, batch, name, verified.digests[name], margin) for name in names]
     outcomes = run_in_order(_plan_job, jobs, workers, (lambda done, total: progress()) if progress else None)
     per_task = {}
     for name, scores, note in outcomes:
@@ -336,7 +350,7 @@ def plan_tasks(model: str, tasks: str, out: Path, candidates: int, workers: int 
              "make: the directory is not one run's (`dsr_bench.planning.verify.recompute_results` refuses it); "
              "remove them")
     command = shlex.join(["dsr-bench", "plan", "--model", model, "--tasks", str(tasks), "--out", str(out),
-                          "--candidates", str(candidates), "--seed", str(seed)]
+                          "--candidates", str(candidates), "--seed", str(seed), "--margin", repr(margin)]
                          + (["--num-tasks", str(num_tasks)] if num_tasks else [])
                          + (["--checkpoint", str(checkpoint)] if checkpoint else []))
     planner = {"name": describe.name, "description": describe.description}
@@ -344,7 +358,8 @@ def plan_tasks(model: str, tasks: str, out: Path, candidates: int, workers: int 
         planner["weights"] = describe.weights
     if getattr(describe, "grid", None):
         planner["grid"] = [int(g) for g in describe.grid]
-    parameters = {"candidates": candidates, "seed": seed, "lambda": _lambda(), "steps": _steps(),
+    parameters = {"candidates": candidates, "seed": seed, "lambda": _lambda(), "steps": _steps(), "margin": margin,
+                  "clear": _clear(),
                   "hardware": f"{os.cpu_count()} CPU cores", "workers": workers}
     # the checksum recomputed from the task files (tasks.json is never trusted); a prefix of a named set is partial
     out_results = build_results(per_task, planner, {"task_set": verified.task_set, "checksum": verified.checksum},

@@ -93,6 +93,41 @@ def test_sampling_stays_in_the_workspace_on_free_cells_and_aims_at_an_object():
     assert sample_around_masks(np.zeros(GRID_SHAPE, np.uint8), rng, 7).shape == (7, 3)  # nothing seen: uniform
 
 
+def test_a_clear_push_sweeps_only_free_cells():
+    """A push is clear when every cell of its sweep (CLEAR_SWEEP_CELLS ahead of its start) is free or off the grid."""
+    from dsr_bench.constants import CLEAR_SWEEP_CELLS
+    from dsr_bench.planning.sampling import clear_pushes, sample_clear
+
+    occupied = np.zeros(GRID_SHAPE[:2], bool)
+    occupied[60:72, 60:72] = True  # one object; free cells lie more than START_FREE_RADIUS_PX from it
+    edge = 60 - START_FREE_RADIUS_PX - 1  # the last free column before it on row 66
+    acts = np.array([
+        [0, 66, edge - CLEAR_SWEEP_CELLS],      # +x (columns up): the sweep ends on the last free cell: clear
+        [0, 66, edge - CLEAR_SWEEP_CELLS + 1],  # one cell later: its sweep ends within the free disc: not clear
+        [4, 66, 30],                            # -x, away from the object and off the grid: clear
+        [2, 20, 66],                            # +y (rows up) from row 20 straight into the object: not clear
+        [6, 20, 66],                            # -y, away from it: clear
+    ])
+    assert clear_pushes(occupied, acts).tolist() == [True, False, True, False, True]
+    rng = np.random.default_rng(3)
+    keep = sample_clear(occupied, rng, 40)
+    assert keep.shape == (40, 3) and clear_pushes(occupied, keep).all()
+    assert np.array_equal(keep, sample_clear(occupied, np.random.default_rng(3), 40))  # seeded
+    assert sample_clear(np.ones(GRID_SHAPE[:2], bool), rng, 5).shape == (0, 3)  # no room: none
+    assert sample_clear(occupied, rng, 0).shape == (0, 3)
+
+
+def test_an_object_push_must_beat_the_best_clear_push_by_the_margin():
+    from dsr_bench.planning.runner import choose
+
+    costs = np.array([-0.5, -0.3, -0.2, -0.25])
+    clear = np.array([False, False, True, True])
+    assert choose(costs, clear, 0.0) == 0 and choose(costs, clear, 0.2) == 0  # -0.5 < -0.25 - 0.2
+    assert choose(costs, clear, 0.25) == 3 and choose(costs, clear, 1.0) == 3  # not by more: keep the scene
+    assert choose(costs, np.zeros(4, bool), 9.0) == 0  # no clear push: the cheapest
+    assert choose(costs, np.ones(4, bool), 0.0) == 0
+
+
 def test_labels_move_by_their_rounded_flow_and_leave_the_grid():
     torch = pytest.importorskip("torch")  # noqa: F841 - learned.py needs torch
     from dsr_bench.planning.learned import move_labels
@@ -243,6 +278,29 @@ def test_oracle_prediction_is_the_executed_push(one_task):
     for k in range(2):
         assert np.array_equal(record.predicted[k], record.states[k + 1].mask_3d)
         assert record.costs[k][record.chosen[k]] == record.costs[k].min()
+
+
+def test_a_learned_plan_keeps_the_scene_unless_a_push_beats_the_margin(one_task):
+    """With an unreachable margin the DSR-Net planner executes only clear pushes, and the scene stays as it was
+    (objects settle by a few voxels when a push's world is rebuilt); with margin 0 it executes the cheapest."""
+    pytest.importorskip("torch")
+    from dsr_bench.planning.planners import make_planner
+    from dsr_bench.planning.runner import run_plan
+    from dsr_bench.planning.tasks import read_task
+    from generators.planning import SimEnvironment
+
+    task = read_task(one_task / "task_0000.h5")
+    planner = make_planner("dsr")
+    env = SimEnvironment()
+    try:
+        kept = run_plan(task, planner, env, candidates=14, steps=2, margin=1e9, clear=10)
+        pushed = run_plan(task, planner, env, candidates=14, steps=1, margin=0.0, clear=10)
+    finally:
+        env.close()
+    for k in range(2):
+        assert kept.clear[k].sum() == 10 and kept.clear[k][kept.chosen[k]]
+    assert matched_iou(kept.states[-1].mask_3d, task.start_mask, task.num_objects) > 0.97
+    assert pushed.costs[0][pushed.chosen[0]] == pushed.costs[0].min()
 
 
 def test_replaying_the_reference_pushes_reaches_the_target_exactly(one_task):

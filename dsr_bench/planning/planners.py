@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from dsr_bench.constants import MAX_OBJECTS_PER_SCENE
+from dsr_bench.constants import MAX_OBJECTS_PER_SCENE, PLAN_MARGIN
 from dsr_bench.errors import UserError
 
 PLANNER_NAMES = ("random", "oracle", "dsr", "single", "nowarp", "3dflow")
@@ -23,7 +23,7 @@ PLANNER_NAMES = ("random", "oracle", "dsr", "single", "nowarp", "3dflow")
 class RandomPlanner:
     """A uniformly random valid action per step (start on a free cell of what the TSDF sees)."""
 
-    name, predicts, num_slots = "random", False, 0
+    name, predicts, num_slots, margin = "random", False, 0, 0.0
     description = "random: a uniformly drawn valid push per step (lower bound)"
 
     def reset(self) -> None:
@@ -45,6 +45,7 @@ class OraclePlanner:
     leaving the world as it was (the simulator restores its saved state after each)."""
 
     name, predicts, num_slots = "oracle", True, MAX_OBJECTS_PER_SCENE
+    margin = 0.0  # its predictions are the outcomes: any predicted gain is a true one
     description = "oracle: candidates scored on the simulator's true next states (upper bound)"
 
     def __init__(self, current: Callable[[], np.ndarray], simulate: Callable[[np.ndarray], np.ndarray]):
@@ -67,6 +68,7 @@ class LearnedPlanner:
     """A learned model's predictions (`dsr_bench.planning.learned.BatchedModel`)."""
 
     predicts = True
+    margin = PLAN_MARGIN
 
     def __init__(self, predictor):
         from dsr_bench.planning.learned import BatchedModel

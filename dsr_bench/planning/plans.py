@@ -7,14 +7,15 @@
   target/mask_3d (Y, X, Z) u1, target/object_poses (N, 7) f8   the task's target (a copy)
   actions (S, 3) i8                      the executed pushes (d, row, col)
   candidates (S, C, 3) i8, costs (S, C) f8, chosen (S,) i8      every candidate, its cost, the one executed
+  clear (S, C) bool                      whether each candidate is a clear push (touches nothing seen)
   cost_position_mse (S, C, N) f8 (cm^2), cost_iou (S, C, N) f8  each candidate's terms per target object
   planner_masks (S, Y, X, Z) u1          the planner's masks of the current state (what it sampled around)
   predicted (S, Y, X, Z) u1              the executed candidate's predicted next masks
   seconds (S,) f8                        planning time per step (simulation of the push excluded)
 
 Root attributes: format, version, task, task_file, task_ground_truth_sha256, planner, description, candidates,
-seed, lambda, toolkit_version, and the scores (`dsr_bench.planning.results.score_plan`): iou, iou_occupancy,
-iou_identity, start_iou, start_iou_identity,
+seed, lambda, margin, clear (clear candidates per step), toolkit_version, and the scores
+(`dsr_bench.planning.results.score_plan`): iou, iou_occupancy, iou_identity, start_iou, start_iou_identity,
 start_iou_occupancy, iou_per_object (JSON), seconds. The stored scores are a record for people, never read back: a
 rerun and `dsr_bench.planning.verify` recompute them from states/mask_3d[-1] and the verified task.
 """
@@ -47,6 +48,7 @@ def plan_arrays(task: Task, record: PlanRecord) -> dict[str, np.ndarray]:
         "cost_position_mse": _pad(record.position_mse, task.num_objects, np.nan),
         "cost_iou": _pad(record.object_iou, task.num_objects, np.nan),
         "chosen": np.array(record.chosen, np.int64),
+        "clear": _pad(record.clear, None, 0).astype(bool),
         "planner_masks": np.stack(record.planner_masks).astype(np.uint8),
         "predicted": np.stack(record.predicted).astype(np.uint8),
         "seconds": np.array(record.seconds, np.float64),

@@ -11,8 +11,9 @@ from typing import Protocol
 import numpy as np
 
 # The track's constants live with the benchmark's others (`dsr_bench.constants`, "Planning track").
-from dsr_bench.constants import (COST_LAMBDA, DEFAULT_CANDIDATES, DEFAULT_BATCH, FOOTPRINT_MIN_Z,  # noqa: E402,F401
-                                 MATCH_TIE_BREAK, MAX_BACKOFF_CELLS, PLAN_STEPS, UNMATCHED_POSITION_MSE)
+from dsr_bench.constants import (CLEAR_CANDIDATES, CLEAR_SWEEP_CELLS, COST_LAMBDA, DEFAULT_BATCH,  # noqa: E402,F401
+                                 DEFAULT_CANDIDATES, FOOTPRINT_MIN_Z, MATCH_TIE_BREAK, MAX_BACKOFF_CELLS, PLAN_MARGIN,
+                                 PLAN_STEPS, UNMATCHED_POSITION_MSE)
 
 
 class Planner(Protocol):
@@ -26,6 +27,8 @@ class Planner(Protocol):
     description: str
     predicts: bool
     num_slots: int
+    #: the cost an object push must beat the best clear push by (`dsr_bench.planning.runner.choose`)
+    margin: float
 
     def reset(self) -> None:
         """Forget the history: a new task starts."""

@@ -1,6 +1,10 @@
 """The MPC loop of the track: for each of PLAN_STEPS steps, observe (the front camera's TSDF), sample
-candidate actions (around the planner's masks, or uniformly), score each by the cost of its predicted next
-state against the target, execute the cheapest in the world, repeat. The world is an `Environment` (the
+candidate actions (around the planner's masks and CLEAR_CANDIDATES clear pushes that touch nothing seen, or one
+uniformly), score each by the cost of its predicted next state against the target, execute the cheapest, repeat.
+A push of an object is executed only when its predicted cost beats the best clear push's by the planner's
+`margin` (cost units: an IoU of 1 is 1): the plan keeps the scene when no push is predicted to bring it
+closer to the target by more than what the model's error can explain (pushes are never skipped: a clear
+push is the plan's way of leaving the scene as it is). The world is an `Environment` (the
 simulator implements it in `generators.planning`); this module imports no simulator.
 
 Randomness: candidates are drawn from numpy's Generator seeded with (--seed, the task's seed), the same for
@@ -17,8 +21,8 @@ from typing import Protocol
 import numpy as np
 
 from dsr_bench.planning.cost import centroids, plan_cost
-from dsr_bench.planning.protocol import COST_LAMBDA, DEFAULT_BATCH, PLAN_STEPS
-from dsr_bench.planning.sampling import free_cells, sample_around_masks, sample_uniform, tsdf_footprint
+from dsr_bench.planning.protocol import CLEAR_CANDIDATES, COST_LAMBDA, DEFAULT_BATCH, PLAN_STEPS
+from dsr_bench.planning.sampling import free_cells, sample_around_masks, sample_clear, sample_uniform, tsdf_footprint
 from dsr_bench.planning.tasks import Task
 
 
@@ -55,14 +59,28 @@ class PlanRecord:
     position_mse: list[np.ndarray] = field(default_factory=list)  # (C, N) cm^2
     object_iou: list[np.ndarray] = field(default_factory=list)  # (C, N)
     chosen: list[int] = field(default_factory=list)
+    clear: list[np.ndarray] = field(default_factory=list)  # (C,) bool per step: the candidate is a clear push
     planner_masks: list[np.ndarray] = field(default_factory=list)  # (Y, X, Z) the masks sampled around per step
     predicted: list[np.ndarray] = field(default_factory=list)  # (Y, X, Z) the chosen candidate's predicted next masks
     seconds: list[float] = field(default_factory=list)  # planning (not simulation) seconds per step
 
 
+def choose(costs: np.ndarray, clear: np.ndarray, margin: float) -> int:
+    """The executed candidate: the cheapest push of an object if its cost (C,) is below the cheapest clear push's
+    (`clear` (C,) bool) minus `margin`, else the cheapest clear push (the cheapest of all when there is none of
+    one kind)."""
+    pushes, keeps = np.flatnonzero(~clear), np.flatnonzero(clear)
+    if len(keeps) == 0 or len(pushes) == 0:
+        return int(np.argmin(costs))
+    push, keep = pushes[np.argmin(costs[pushes])], keeps[np.argmin(costs[keeps])]
+    return int(push if costs[push] < costs[keep] - margin else keep)
+
+
 def run_plan(task: Task, planner, env: Environment, candidates: int, seed: int = 0, batch: int = DEFAULT_BATCH,
-             lam: float = COST_LAMBDA, steps: int = PLAN_STEPS) -> PlanRecord:
-    """Plan and execute `steps` pushes from the task's start towards its target; see the module doc."""
+             lam: float = COST_LAMBDA, steps: int = PLAN_STEPS, margin: float = 0.0,
+             clear: int = CLEAR_CANDIDATES) -> PlanRecord:
+    """Plan and execute `steps` pushes from the task's start towards its target, with `clear` of the `candidates`
+    clear pushes and an object push's `margin` over them (see the module doc)."""
     rng = np.random.default_rng([int(seed), int(task.seed)])
     n = task.num_objects
     target = task.target_mask
@@ -78,19 +96,24 @@ def run_plan(task: Task, planner, env: Environment, candidates: int, seed: int =
         if not planner.predicts:
             acts = sample_uniform(free_cells(tsdf_footprint(state.tsdf)), rng, 1)
             costs, pos, iou = np.full(1, np.nan), np.full((1, n), np.nan), np.full((1, n), np.nan)
-            best, best_pred = 0, zeros
+            best, best_pred, is_clear = 0, zeros, np.zeros(1, bool)
         else:
-            acts = sample_around_masks(masks, rng, candidates)
+            keep = sample_clear(tsdf_footprint(state.tsdf), rng, min(clear, candidates - 1))
+            acts = np.concatenate([sample_around_masks(masks, rng, candidates - len(keep)), keep])
+            is_clear = np.arange(len(acts)) >= len(acts) - len(keep)
             costs = np.zeros(len(acts))
             pos, iou = np.zeros((len(acts), n)), np.zeros((len(acts), n))
-            best, best_pred = -1, zeros
+            cheapest: dict[bool, tuple[int, np.ndarray]] = {}  # per kind (clear or not): the cheapest so far
             for lo in range(0, len(acts), batch):
                 preds = planner.predict(acts[lo: lo + batch])
                 for j, pred in enumerate(preds):
                     terms = plan_cost(pred, target, planner.num_slots, n, lam, target_c)
                     costs[lo + j], pos[lo + j], iou[lo + j] = terms.total, terms.position_mse, terms.iou
-                    if best < 0 or terms.total < costs[best]:
-                        best, best_pred = lo + j, pred.copy()
+                    kind = bool(is_clear[lo + j])
+                    if kind not in cheapest or terms.total < costs[cheapest[kind][0]]:
+                        cheapest[kind] = (lo + j, pred.copy())
+            best = choose(costs, is_clear, margin)
+            best_pred = cheapest[bool(is_clear[best])][1]
         action = acts[best]
         planner.executed(action)
         record.seconds.append(time.perf_counter() - start)
@@ -102,6 +125,7 @@ def run_plan(task: Task, planner, env: Environment, candidates: int, seed: int =
         record.position_mse.append(pos)
         record.object_iou.append(iou)
         record.chosen.append(int(best))
+        record.clear.append(is_clear)
         record.planner_masks.append(zeros if masks is None else np.asarray(masks, np.uint8))
         record.predicted.append(best_pred)
     return record

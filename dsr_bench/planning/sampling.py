@@ -17,7 +17,7 @@ import numpy as np
 
 from dsr_bench.constants import GRID_SHAPE, NUM_DIRECTIONS, START_FREE_RADIUS_PX
 from dsr_bench.geometry import direction_vector
-from dsr_bench.planning.protocol import FOOTPRINT_MIN_Z, MAX_BACKOFF_CELLS
+from dsr_bench.planning.protocol import CLEAR_SWEEP_CELLS, FOOTPRINT_MIN_Z, MAX_BACKOFF_CELLS
 
 _MAX_ROUNDS = 20
 
@@ -53,6 +53,39 @@ def sample_uniform(free: np.ndarray, rng: np.random.Generator, count: int) -> np
         cells = np.argwhere(np.ones(GRID_SHAPE[:2], bool))
     pick = cells[rng.integers(0, len(cells), count)]
     return np.column_stack([rng.integers(0, NUM_DIRECTIONS, count), pick]).astype(np.int64)
+
+
+def clear_pushes(occupied: np.ndarray, actions: np.ndarray) -> np.ndarray:
+    """(B,) bool: whether each action (B, 3) (d, row, col) sweeps only free cells (`free_cells` of `occupied`
+    (Y, X)): every cell at 0, 1, ..., CLEAR_SWEEP_CELLS steps from its start along its direction, rounded, is
+    free or off the grid (the workspace grid is all a TSDF sees). A clear push touches nothing that was seen."""
+    acts = np.asarray(actions, np.int64).reshape(-1, 3)
+    free = free_cells(occupied)
+    v = direction_vector(acts[:, 0])[:, ::-1]  # (B, 2) as (d row, d col)
+    steps = np.arange(CLEAR_SWEEP_CELLS + 1, dtype=np.float64)
+    cells = np.rint(acts[:, None, 1:] + steps[None, :, None] * v[:, None, :]).astype(np.int64)  # (B, S, 2)
+    inside = np.all((cells >= 0) & (cells < np.array(GRID_SHAPE[:2])), axis=-1)
+    clipped = np.clip(cells, 0, np.array(GRID_SHAPE[:2]) - 1)
+    return np.all(~inside | free[clipped[..., 0], clipped[..., 1]], axis=1)
+
+
+def sample_clear(occupied: np.ndarray, rng: np.random.Generator, count: int) -> np.ndarray:
+    """Up to `count` clear pushes (count', 3) int64 (`clear_pushes`): the candidates that move nothing, so that a
+    plan can keep the scene as it is when no push is predicted to bring it closer to the target (a push is never
+    skipped). Drawn as `sample_uniform` and kept when clear; fewer (possibly none) when the scene leaves no room."""
+    if count <= 0:
+        return np.zeros((0, 3), np.int64)
+    free = free_cells(occupied)
+    found: list[np.ndarray] = []
+    have = 0
+    for _ in range(_MAX_ROUNDS):
+        acts = sample_uniform(free, rng, 4 * count)
+        acts = acts[clear_pushes(occupied, acts)]
+        found.append(acts)
+        have += len(acts)
+        if have >= count:
+            break
+    return np.concatenate(found)[:count].astype(np.int64)
 
 
 def sample_around_masks(mask: np.ndarray, rng: np.random.Generator, count: int) -> np.ndarray:

@@ -65,6 +65,9 @@ TASK_SETS: dict[str, TaskSet] = {s.name: s for s in (
             "The planning track's 100 tasks: novel objects (as procedural-novel-test), 3 heuristic pushes to the "
             "target"),
     TaskSet("plan-novel-mini", "procedural-novel", 4, 71_000, "Four planning tasks for a first look and the tests"),
+    TaskSet("plan-val", "procedural", 50, 72_000,
+            "Validation tasks on the training objects, for choosing a planner's settings (never reported as a "
+            "result: the novel-object tasks of plan-novel-test are)"),
 )}
 
 
