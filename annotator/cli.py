@@ -129,7 +129,8 @@ def import_capture(
     src: Path = typer.Argument(..., help="Folder of <camera>_color_<N>.png / <camera>_depth_<N>.png (cameras front, "
                                          "back) with rig.json, or of RealSense recordings front.bag / back.bag with "
                                          "rig.json and steps.json (docs/annotator.md, 'Real captures in')."),
-    out: Path = typer.Option(..., "--out", "-o", help="Capture directory to write (e.g. captures/seq_0000)."),
+    out: Optional[Path] = typer.Option(None, "--out", "-o", help="Capture directory to write (e.g. "
+                                       "captures/seq_0000); required unless --inspect."),
     rig: Optional[Path] = typer.Option(None, "--rig", help="The rig file: intrinsics, distortion, depth scale, "
                                        "extrinsics or ChArUco board, objects (default SRC/rig.json)."),
     pushes: Optional[Path] = typer.Option(None, "--pushes", help="The robot's push log, start [x, y] m and direction "
@@ -141,12 +142,33 @@ def import_capture(
                                                "time to its colour frame and from it to its depth frame (default 50)."),
     name: Optional[str] = typer.Option(None, "--name", help="Capture name (default the rig file's, else OUT's name)."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace OUT if it exists."),
+    inspect: bool = typer.Option(False, "--inspect", help="Only report what the recording holds (streams, frame "
+                                 "counts and gaps, intrinsics, distortion, depth units, board detections per camera, "
+                                 "step times, pushes) and what the import would refuse; convert and write nothing."),
 ) -> None:
     """Import a real rig's colour and depth (PNGs, or RealSense .bag recordings: depth registered to colour) as a
     capture: undistort, calibrate to the table (ChArUco board or given extrinsics), map the logged pushes to
     benchmark actions."""
     from annotator.importer import import_capture as run_import
+    from dsr_bench.errors import UserError
 
+    if inspect:
+        from annotator.inspect import inspect_source
+
+        if out is not None or name is not None or overwrite:
+            raise UserError("--inspect converts nothing: drop --out, --name and --overwrite (or drop --inspect to "
+                            "import)")
+        found = inspect_source(src, rig=rig, pushes=pushes, steps=steps, max_gap_ms=max_gap_ms)
+        for line in found.lines:
+            typer.echo(line)
+        if found.problems:
+            raise UserError(f"{src}: {len(found.problems)} problem(s) the import would refuse (marked PROBLEM above); "
+                            f"the first: {found.problems[0]}")
+        typer.echo(f"{src}: nothing the import would refuse was found")
+        return
+    if out is None:
+        raise UserError("import-capture needs --out CAPTURE (the capture directory to write), or --inspect to only "
+                        "report what SRC holds")
     path, report = run_import(src, out, rig=rig, pushes=pushes, steps=steps, max_gap_ms=max_gap_ms, name=name,
                               overwrite=overwrite)
     for cam, how in report["extrinsics"].items():
