@@ -342,8 +342,8 @@ async def _multipart_chunks(stream: AsyncIterator[bytes], content_type: str) -> 
 
 # --- pages ---------------------------------------------------------------------------------------------------
 _STYLE = ("body{font-family:sans-serif;margin:2em;max-width:70em}table{border-collapse:collapse;margin:1em 0}"
-          "td,th{border:1px solid #bbb;padding:.3em .6em;text-align:right}td:first-child,th:first-child,"
-          "td.text{text-align:left}.state{font-weight:bold}")
+          "td,th{border:1px solid #bbb;padding:.3em .6em;text-align:right}.text{text-align:left}"
+          ".state{font-weight:bold}")
 
 
 def _page(title: str, body: str, refresh: bool = False) -> str:
@@ -372,7 +372,7 @@ def _title(column: str) -> str:
 
 def _table(rows: list[dict], columns: tuple[str, ...], lead: list[tuple[str, str]]) -> str:
     """An HTML table: the `lead` columns (title, row key; text, escaped, team names linked), then the metrics."""
-    head = "".join(f"<th>{html.escape(t)}</th>" for t, _ in lead) + "".join(
+    head = "".join(f'<th class="text">{html.escape(t)}</th>' for t, _ in lead) + "".join(
         f"<th>{html.escape(_title(c))}</th>" for c in columns)
     body = []
     for i, row in enumerate(rows, 1):
