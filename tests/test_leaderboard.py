@@ -89,19 +89,19 @@ def test_build_tables_keep_paper_rows_apart_and_mark_the_best(board, tmp_path):
     _put(board, _results("Other", motion_visible=4.0, iou_unordered=0.5, iou_ordered=0.4))
     _add(board, tmp_path, "static", "reference (no training)", motion_visible=6.0, motion_full=0.07,
          iou_unordered=0.3, iou_ordered=0.2)
-    md = (board / "README.md").read_text()
+    md = _plain((board / "README.md").read_text())
     assert "## procedural-novel-mini: 3D track (reproduced)" in md
     assert "## ycb-test: 3D track (reported in the paper)" in md
     assert "## real-test: 2D track (reported in the paper)" in md
     mine = next(line for line in md.splitlines() if line.startswith("| MyNet"))
     theirs = next(line for line in md.splitlines() if line.startswith("| Other"))
-    assert "**0.700**" in mine and "**4**" in theirs and "short schedule" in mine
+    assert "**0.700**" in mine and "**4.000**" in theirs and "short schedule" in mine
     dsr = next(line for line in md.splitlines() if line.startswith("| DSR-Net |") and "0.772" in line)
     assert "**5.54**" in dsr and "**0.772**" in dsr  # best among the paper's sim rows that are not oracles
     gtwarp = next(line for line in md.splitlines() if line.startswith("| GTWarp (oracle warp)") and "0.807" in line)
     assert "**" not in gtwarp  # the oracle warp is higher, but an oracle is never the best
     page = (board / "index.html").read_text()
-    assert "sortTable" in page and page.count("<table") == md.count("## ")
+    assert "sortTable" in page and page.count("<table class=board") == md.count("## ")
 
 
 def test_oracles_are_never_best_and_rows_worse_than_no_motion_are_marked(board, tmp_path):
@@ -111,12 +111,13 @@ def test_oracles_are_never_best_and_rows_worse_than_no_motion_are_marked(board, 
          iou_unordered=0.19, iou_ordered=0.13)
     _add(board, tmp_path, "Trained", motion_visible=43.6, motion_full=0.20, iou_unordered=0.36, iou_ordered=0.33)
     _add(board, tmp_path, "gtwarp-cpu", motion_visible=39.0, motion_full=0.25, iou_unordered=0.30, iou_ordered=0.40)
-    md = build(board)[0].read_text()
-    rows = {line.split(" | ")[0][2:]: line for line in md.splitlines() if line.startswith("| ")}
+    md = _plain(build(board)[0].read_text())
+    table = _markdown_tables(md)["procedural-novel-mini: 3D track (reproduced)"]
+    rows = {row[0]: " | ".join(row) for row in table[1:]}
     assert "**" not in rows["oracle"]
     assert "**" not in rows["gtwarp-cpu"] and "**0.330**" in rows["Trained"]  # GTWarp warps by the true flow: an oracle
-    assert "43.6 \u25bc" in rows["Trained"] and "**0.2**" in rows["Trained"] and "**0.360**" in rows["Trained"]
-    assert "**40**" in rows["static"] and "\u25bc" not in rows["static"]
+    assert "43.60 \u25bc" in rows["Trained"] and "**0.2000**" in rows["Trained"] and "**0.360**" in rows["Trained"]
+    assert "**40.00**" in rows["static"] and "\u25bc" not in rows["static"]
     page = (board / "index.html").read_text()
     assert page.count('class="worse"') == 1 and 'class="best"' in page
 
@@ -126,6 +127,7 @@ def test_a_table_without_the_no_motion_row_marks_no_best(board, tmp_path):
     md = build(board)[0].read_text()
     current = md.split("## procedural-novel-mini: 3D track (reproduced)")[1].split("## ")[0]
     assert "No no-motion (static) row" in current and "**" not in current
+    assert "Paired differences" not in current  # nothing to pair with
 
 
 _BROWSERS = ("chromium", "chromium-browser", "chromium-headless-shell", "google-chrome", "google-chrome-stable")
@@ -240,7 +242,7 @@ def chromium(tmp_path):
 
 #: What the page shows, read from the rendered DOM: per table, its heading, whether it is drawn, its header cells
 #: and rows; per cell its text, whether it is drawn bold (computed font weight), in red (worse than static).
-_SEEN = """[...document.querySelectorAll('table')].map(t => {
+_SEEN = """[...document.querySelectorAll('table.board')].map(t => {
   let h = t.previousElementSibling; while (h.tagName !== 'H2') h = h.previousElementSibling;
   const box = t.getBoundingClientRect();
   const shown = box.width > 0 && box.height > 0 && getComputedStyle(t).visibility === 'visible';
@@ -251,14 +253,24 @@ _SEEN = """[...document.querySelectorAll('table')].map(t => {
 
 
 def _markdown_tables(md: str) -> dict[str, list[list[str]]]:
-    """README.md's tables by heading: the header line's cells, then each row's cells."""
-    tables, heading = {}, None
+    """README.md's first table under each heading (the paired differences that follow it left out): the header
+    line's cells, then each row's cells."""
+    tables, heading, ended = {}, None, False
     for line in md.splitlines():
         if line.startswith("## "):
-            heading = line[3:]
-        elif line.startswith("| ") and heading is not None:
+            heading, ended = line[3:], False
+        elif line.startswith("| ") and heading is not None and not ended:
             tables.setdefault(heading, []).append([c.strip() for c in line.strip("|").split(" | ")])
+        elif heading in tables and not line.startswith("|---"):
+            ended = True
     return tables
+
+
+def _plain(md: str) -> str:
+    """README.md without the 95% intervals' half-widths (" ± 0.012")."""
+    import re
+
+    return re.sub(" \u00b1 [0-9.]+", "", md)
 
 
 def test_real_headless_browser_shows_the_tables_marks_plots_links_and_sorts(board, tmp_path, chromium):
@@ -302,11 +314,14 @@ def test_real_headless_browser_shows_the_tables_marks_plots_links_and_sorts(boar
     # the plot: one image, under the reproduced table, a file of the build that the browser decoded and drew
     images = chromium.js("[...document.images].map(i => ({src: i.src, w: i.naturalWidth, h: i.naturalHeight,"
                          "shown: i.getBoundingClientRect().width,"
-                         "under: document.querySelector('table').nextElementSibling === i.closest('figure')}))")
-    plot_file = board / "plots" / "procedural-novel-mini-3d.png"
+                         "under: (() => {const t = document.querySelector('table.board'), f = i.closest('figure'),"
+                         "h = document.querySelectorAll('h2')[1]; return !!(t.compareDocumentPosition(f) & 4) &&"
+                         "!!(f.compareDocumentPosition(h) & 4);})()}))")  # after its table, before the next heading
+    plot_file = board / "plots" / "procedural-novel-mini-3d.svg"
     assert [Path(url2pathname(urlparse(i["src"]).path)) for i in images] == [plot_file]
-    with Image.open(plot_file) as plot:
-        assert (images[0]["w"], images[0]["h"]) == plot.size and images[0]["shown"] > 0 and images[0]["under"]
+    with Image.open(plot_file.with_suffix(".png")) as plot:  # the PNG beside it: the same figure at twice the pixels
+        assert (2 * images[0]["w"], 2 * images[0]["h"]) == plot.size
+    assert images[0]["shown"] == images[0]["w"] == 860 and images[0]["under"]  # shown at the size it was drawn
     # every link of the page leads to a file of the build
     links = chromium.js("[...document.links].map(a => a.href)")
     assert links and all(urlparse(u).scheme == "file" and Path(url2pathname(urlparse(u).path)).is_file() for u in links)
@@ -352,7 +367,7 @@ def test_entry_of_an_earlier_pin_is_shown_apart_and_unranked(board, tmp_path):
     old = {**_results("OldNet", checksum="0123456789ab" + "f" * 52, iou_ordered=0.9), "toolkit_version": "0.1.0"}
     _put(board, old)
     md, _ = build(board)
-    text = md.read_text()
+    text = _plain(md.read_text())
     current = text.split("## procedural-novel-mini: 3D track (reproduced)")[1].split("## ")[0]
     earlier = text.split("## procedural-novel-mini: 3D track (reproduced on an earlier version of the split, "
                          "0123456789ab)")[1].split("## ")[0]
@@ -382,20 +397,21 @@ def test_a_2d_only_entry_joins_the_2d_track_only(board, tmp_path):
             results["meta"] = {"parameters": {"image": [120, 160]}}
         _put(board, results)
     build(board)
-    tables = _markdown_tables((board / "README.md").read_text())
+    tables = _markdown_tables(_plain((board / "README.md").read_text()))
     assert "procedural-novel-mini: 3D track (reproduced)" not in tables  # only 2D-only entries: no 3D table
     two_d = tables["procedural-novel-mini: 2D track (reproduced)"]
     assert two_d[0][:3] == ["method", "model grid", "2D flow MSE (cm²)"]
-    assert [row[:3] for row in two_d[1:]] == [["Flow2D", "240x320", "3"], ["SE3Net", "120x160", "5"]]
+    assert [row[:3] for row in two_d[1:]] == [["Flow2D", "240x320", "3.000"], ["SE3Net", "120x160", "5.000"]]
     assert (board / "plots" / "procedural-novel-mini-2d.png").exists()
     assert not (board / "plots" / "procedural-novel-mini-3d.png").exists()
     _add(board, tmp_path, "static", "reference (no training)", motion_visible=6.0, motion_full=0.07,
          iou_unordered=0.3, iou_ordered=0.2, motion_2d=4.0)
-    tables = _markdown_tables((board / "README.md").read_text())
+    tables = _markdown_tables(_plain((board / "README.md").read_text()))
     three_d = tables["procedural-novel-mini: 3D track (reproduced)"]
     assert [row[0] for row in three_d[1:]] == ["static"]  # the 2D-only rows are not in it, not even empty
     two_d = tables["procedural-novel-mini: 2D track (reproduced)"]
-    assert [(row[0], row[2]) for row in two_d[1:]] == [("Flow2D", "**3**"), ("SE3Net", "5 \u25bc"), ("static", "4")]
+    assert [(row[0], row[2]) for row in two_d[1:]] == [("Flow2D", "**3.000**"), ("SE3Net", "5.000 \u25bc"),
+                                                       ("static", "4.000")]
 
 
 def _plan_results(method, iou, pinned=True, partial=False):
@@ -428,3 +444,126 @@ def test_planning_results_fill_the_planning_column_beside_the_papers(board, tmp_
                      ({**_plan_results("z", 0.5), "metrics": {**_plan_results("z", 0.5)["metrics"], "iou": 1.5}},
                       "metrics iou is not a number in [0, 1]")):
         assert any(why in p for p in check_entry(bad)), check_entry(bad)
+
+
+def _varied(method, offset, spread_=0.2):
+    """An entry whose 8 sequences differ (ordered IoU 0.1 + offset + spread_ * i / 7, other metrics constant), as
+    `evaluate` aggregates them."""
+    from dsr_bench import __version__
+    from dsr_bench.scoring.evaluate import aggregate
+
+    seqs = {}
+    for i in range(8):
+        iou = 0.1 + offset + spread_ * i / 7
+        seqs[f"seq_{i:04d}"] = {
+            "motion_visible": [5.0, 5.0], "motion_full": [0.08, 0.08], "iou_unordered": [iou, iou],
+            "iou_ordered": [iou, iou], "iou_unordered_official": [iou, iou], "iou_ordered_official": [iou, iou],
+            "motion_moved": [1.0, 1.0], "motion_static": [0.0, 0.0], "motion_2d": [0.0, 0.0],
+            "iou_occluded_objects": [[], []], "iou_visible_objects": [[0.5], [0.5]], "has_2d": False, "has_3d": True}
+    return {"format": "dsr-bench-results", "version": 1, "method": method, "meta": {"name": method}, "split": SPLIT,
+            "split_checksum": "c" * 64, "pinned": True, "toolkit_version": __version__,
+            "predictions_checksum": hashlib.sha256(method.encode()).hexdigest(), "date": "2026-11-22T00:00:00Z",
+            "coverage": {"scored": 8, "expected": 8, "partial": False},
+            **json.loads(json.dumps(aggregate(seqs)))}
+
+
+def test_intervals_and_paired_differences_come_from_the_per_sequence_values(board):
+    """A row's ± is the 95% t-interval of its per-sequence means; the paired differences from static (and push)
+    pair the sequences: a row 0.05 better on every sequence differs by +0.050 ± 0.000, though the rows' own
+    intervals overlap."""
+    from dsr_bench.scoring.spread import spread
+
+    _put(board, _varied("static", 0.0))
+    _put(board, _varied("push", 0.0))
+    _put(board, _varied("MyNet", 0.05))
+    md = build(board)[0].read_text()
+    table = _markdown_tables(md)["procedural-novel-mini: 3D track (reproduced)"]
+    column = table[0].index("IoU ordered")
+    mine = next(row for row in table if row[0] == "MyNet")
+    values = [0.15 + 0.2 * i / 7 for i in range(8)]
+    s = spread(values)
+    assert mine[column] == f"**{s.mean:.3f} \u00b1 {s.half:.3f}**" and s.half > 0.05
+    assert [row[0] for row in table[1:]] == ["MyNet", "push", "static"]  # reference rows last
+    section = md.split("## procedural-novel-mini: 3D track (reproduced)")[1].split("## ")[0]
+    for yardstick in ("static", "push"):
+        diffs = section.split(f"Paired differences from {yardstick} ")[1].split("\n\n")[1].splitlines()
+        header = [c.strip() for c in diffs[0].strip("|").split(" | ")]
+        row = [c.strip() for c in next(line for line in diffs if line.startswith("| MyNet")).strip("|").split(" | ")]
+        assert row[header.index(f"IoU ordered - {yardstick}")] == "+0.050 \u00b1 0.000"
+        assert row[header.index("sequences")] == "8"
+    # a table row holds what the entry's per-sequence values say: change them, and the interval changes with them
+    wider = _varied("MyNet", 0.05, spread_=0.4)
+    for path in (board / "entries").glob("mynet-*.json"):
+        path.unlink()
+    _put(board, wider)
+    table = _markdown_tables(build(board)[0].read_text())["procedural-novel-mini: 3D track (reproduced)"]
+    half = spread([0.15 + 0.4 * i / 7 for i in range(8)]).half
+    assert next(row for row in table if row[0] == "MyNet")[column].endswith(f"\u00b1 {half:.3f}**")
+
+
+def _plan_varied(method, ious, starts):
+    from dsr_bench.planning.results import build_results
+    from dsr_bench.planning.tasks import pinned_checksums
+
+    per_task = {f"task_{i:04d}": {"iou": iou, "iou_identity": iou, "iou_occupancy": iou, "start_iou": start,
+                                  "start_iou_identity": start, "start_iou_occupancy": start,
+                                  "iou_per_object": [iou], "seconds": 1.0}
+                for i, (iou, start) in enumerate(zip(ious, starts))}
+    r = build_results(per_task, {"name": method, "description": "x"},
+                      {"task_set": "plan-novel-test", "checksum": pinned_checksums()["plan-novel-test"]}, 100, [],
+                      f"dsr-bench plan --model {method}", {"candidates": 100})
+    return {**r, "date": "2026-11-25T00:00:00Z"}
+
+
+def _planning_table(board, planners):
+    (board / "planning").mkdir(exist_ok=True)
+    for path in (board / "planning").glob("*.json"):
+        path.unlink()
+    for results in planners:
+        assert check_entry(results) == []
+        (board / "planning" / entry_name(results)).write_text(json.dumps(results))
+    md = build(board)[0].read_text()
+    return md, _markdown_tables(md)["plan-novel-test: planning track (reproduced)"]
+
+
+def test_planning_table_bolds_a_planner_only_where_it_beats_no_push_and_random(board):
+    """No push (the start IoUs) and random are reference rows, never bold; a learned planner is bold only when its
+    paired differences from both have 95% intervals above 0 (issue 30 part 3: 3DFlow's 0.337 against random's
+    0.321 and no push's 0.362 is no better than either)."""
+    rng = np.random.default_rng(0)
+    starts = rng.uniform(0.2, 0.6, 100)
+    random_ = np.clip(starts - 0.04 + rng.normal(0, 0.05, 100), 0, 1)
+    close = np.clip(random_ + 0.01 + rng.normal(0, 0.2, 100), 0, 1)  # above random on average, within the noise
+    md, table = _planning_table(board, [_plan_varied("random", random_, starts),
+                                        _plan_varied("3dflow-cpu", close, starts)])
+    header = table[0]
+    assert header[2:5] == ["planning IoU", "vs no push (paired, \u00b1 SE)", "vs random (paired, \u00b1 SE)"]
+    rows = {row[0]: row for row in table[1:]}
+    assert list(rows) == ["3dflow-cpu (planning)", "random (planning)", "no push (planning)"]
+    assert rows["no push (planning)"][2].startswith(f"{starts.mean():.3f} \u00b1")
+    assert "reference" in rows["no push (planning)"][5] and "reference" in rows["random (planning)"][5]
+    assert "**" not in "".join(" ".join(r) for r in table)  # the reference rows are higher but never bold
+    assert (board / "plots" / "plan-novel-test-planning.png").exists()
+    assert (board / "plots" / "plan-novel-test-planning.svg").exists()
+    better = np.clip(starts + 0.05 + rng.normal(0, 0.02, 100), 0, 1)  # beats both, task by task
+    md, table = _planning_table(board, [_plan_varied("random", random_, starts),
+                                        _plan_varied("3dflow-cpu", close, starts),
+                                        _plan_varied("dsr-cpu", better, starts)])
+    bold = [row[0] for row in table[1:] if any(c.startswith("**") for c in row)]
+    assert bold == ["dsr-cpu (planning)"]
+    d = float(next(row for row in table if row[0] == "dsr-cpu (planning)")[3].split(" ")[0])
+    assert d == pytest.approx(float(np.mean(better - starts)), abs=5e-4)
+    md, table = _planning_table(board, [_plan_varied("dsr-cpu", better, starts)])  # random missing: none bold
+    assert "**" not in "".join(" ".join(r) for r in table) and "lacks the no push or the random" in md
+
+
+def test_paper_image_space_rows_show_no_voxel_grid_and_rows_say_their_split_version(board):
+    _put(board, _results())
+    md = build(board)[0].read_text()
+    tables = _markdown_tables(md)
+    for row in tables["ycb-test: 2D track (reported in the paper)"][1:]:
+        assert row[1] == "-"  # SE3-Net and 2DFlow work on images: no 128x128x48 grid
+    three = tables["procedural-novel-mini: 3D track (reproduced)"]
+    assert three[0][-3:] == ["toolkit", "date", "split checksum"] and three[1][-3] != ""
+    section = md.split("## procedural-novel-mini: 3D track (reproduced)")[1].split("## ")[0]
+    assert "pinned version (checksum cccccccccccc" in section

@@ -13,8 +13,10 @@ from dsr_bench import __version__
 from dsr_bench.cli import main
 from dsr_bench.leaderboard.entries import step_mean
 from dsr_bench.leaderboard.board import build
-from dsr_bench.scoring.plots import (leaderboard_series, step_series, steps_plot_path, write_leaderboard_plot,
+from dsr_bench.scoring.plots import (FIGURE_WIDTH_PX, leaderboard_figure, leaderboard_series, method_style,
+                                     step_series, steps_figure, steps_plot_path, write_leaderboard_plot,
                                      write_steps_plot)
+from dsr_bench.scoring.spread import spread
 from dsr_bench.testing import write_synthetic_dataset
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -43,6 +45,16 @@ def _png(path: Path) -> tuple[int, int]:
         assert image.format == "PNG"
         image.load()  # the whole file decodes
         return image.size
+
+
+def _svg_size(path: Path) -> tuple[int, int]:
+    """The CSS pixels an SVG of matplotlib's is shown at (its width and height are in points: 1 pt = 4/3 px); for a
+    PNG path, the SVG beside it."""
+    import re
+
+    head = path.with_suffix(".svg").read_text()[:2000]
+    width, height = (float(re.search(rf'{k}="([0-9.]+)pt"', head).group(1)) for k in ("width", "height"))
+    return round(width * 4 / 3), round(height * 4 / 3)
 
 
 def _same(a: list[float], b: list) -> bool:
@@ -140,17 +152,19 @@ def test_leaderboard_build_writes_and_shows_one_plot_per_table(board, tmp_path):
     (board / "plots" / "gone-3d.png").write_bytes(b"stale")  # a table that no longer exists
     md, page = build(board)
     plots = sorted(p.name for p in (board / "plots").iterdir())
-    assert plots == ["procedural-novel-mini-0123456789ab-3d.png", "procedural-novel-mini-3d.png"]
-    for name in plots:
-        width, height = _png(board / "plots" / name)
-        assert width >= 500 and height >= 300
+    assert plots == ["procedural-novel-mini-0123456789ab-3d.png", "procedural-novel-mini-0123456789ab-3d.svg",
+                     "procedural-novel-mini-3d.png", "procedural-novel-mini-3d.svg"]
+    for name in plots[::2]:
+        assert _png(board / "plots" / name) == (2 * FIGURE_WIDTH_PX, 2 * _svg_size(board / "plots" / name)[1])
     text, html = md.read_text(), page.read_text()
     current = text.split("## procedural-novel-mini: 3D track (reproduced)")[1].split("## ")[0]
-    assert "](plots/procedural-novel-mini-3d.png)" in current
+    # markdown shows the PNG at its drawn size (half its pixels: sharp on dense screens), the page the SVG
+    assert f'<img src="plots/procedural-novel-mini-3d.png" width="{FIGURE_WIDTH_PX}"' in current
     earlier = text.split("0123456789ab)")[1].split("## ")[0]
-    assert "](plots/procedural-novel-mini-0123456789ab-3d.png)" in earlier
-    assert '<img src="plots/procedural-novel-mini-3d.png"' in html
-    assert '<img src="plots/procedural-novel-mini-0123456789ab-3d.png"' in html
+    assert '<img src="plots/procedural-novel-mini-0123456789ab-3d.png"' in earlier
+    assert '<img src="plots/procedural-novel-mini-3d.svg"' in html
+    assert '<img src="plots/procedural-novel-mini-0123456789ab-3d.svg"' in html
+    assert "width=" not in html.split("<figure>")[1]  # the browser shows the SVG at the size it was drawn
     paper = text.split("(reported in the paper)")[1]
     assert "plots/" not in paper  # paper rows have no per-step values
 
@@ -164,9 +178,10 @@ def test_leaderboard_entries_without_per_step_values_get_no_plot(board):
 
 def test_leaderboard_plot_is_a_valid_png(tmp_path):
     panels = leaderboard_series([_results("static"), _results("oracle"), _results("MyNet")], "3D")
-    path = write_leaderboard_plot(panels, "procedural-novel-mini: 3D track", tmp_path / "p" / "x-3d.png")
+    path = write_leaderboard_plot(panels, "procedural-novel-mini: 3D track", tmp_path / "p" / "x-3d.png", svg=True)
     width, height = _png(path)
-    assert 500 <= width <= 2000 and 300 <= height <= 1500
+    assert width == 2 * FIGURE_WIDTH_PX and 300 <= height <= 1500
+    assert _svg_size(path.with_suffix(".svg")) == (FIGURE_WIDTH_PX, height // 2)  # the same figure, as drawn
 
 
 def test_without_matplotlib_the_plot_is_skipped_with_the_fix(tmp_path, monkeypatch):
@@ -175,3 +190,79 @@ def test_without_matplotlib_the_plot_is_skipped_with_the_fix(tmp_path, monkeypat
     monkeypatch.setattr(plots, "matplotlib_missing", lambda: True)
     assert write_steps_plot(_results(), tmp_path / "r-steps.png") == (None, plots.MISSING_MATPLOTLIB)
     assert "pip install" in plots.MISSING_MATPLOTLIB and not (tmp_path / "r-steps.png").exists()
+
+
+def test_one_style_per_method_whatever_its_track_or_spelling():
+    """dsr-cpu, the paper's DSR-Net and the DSR-Net planner are one method: one colour, line and marker; the
+    reference rows differ from each other and from every trained row."""
+    assert method_style("dsr-cpu") == method_style("DSR-Net") == method_style("dsr-cpu (planning)") == \
+        method_style("dsr")
+    assert method_style("single-cpu") == method_style("SingleStep")
+    assert method_style("GTWarp (oracle warp)") == method_style("gtwarp-cpu")
+    known = ["static", "push", "oracle", "random", "dsr", "single", "nowarp", "gtwarp", "3dflow", "2dflow", "se3net",
+             "se3posenet"]
+    colours = [method_style(m)["color"] for m in known]
+    assert len(set(colours)) == len(colours)
+    assert method_style("MyNet") == method_style("MyNet")  # an unknown method: the same colour in every figure
+    assert {method_style(m)["linestyle"] for m in ("static", "push", "oracle", "random")}.isdisjoint({"-"})
+
+
+def _drawn_lines(ax) -> dict:
+    return {line.get_label(): line for line in ax.get_lines() if not line.get_label().startswith("_")}
+
+
+def test_a_method_has_its_colour_in_the_3d_2d_and_evaluate_figures():
+    entries = [_results("static"), _results("push"), _results("dsr-cpu")]
+    for e in entries:
+        e["per_step"]["motion_2d"] = [3.0, 2.0, 1.0]
+    three = leaderboard_figure(leaderboard_series(entries, "3D"), "3D")
+    two = leaderboard_figure(leaderboard_series(entries, "2D"), "2D")
+    for fig in (three, two):
+        lines = _drawn_lines(fig.axes[0])
+        for method in ("static", "push", "dsr-cpu"):
+            assert lines[method].get_color() == method_style(method)["color"]
+            assert lines[method].get_marker() == method_style(method)["marker"]
+    fig, _ = steps_figure(_results("dsr-cpu"))
+    assert {line.get_color() for line in _drawn_lines(fig.axes[0]).values()} == {method_style("dsr-cpu")["color"]}
+
+
+def test_iou_panel_names_the_oracle_off_its_axis_and_shows_push_under_static():
+    """The oracle at 1.0 does not squeeze the models (the axis is chosen on them, the oracle named on the panel);
+    push's line equal to static's is drawn with its own marker and said to be equal."""
+    static, push, oracle, mine = _results("static"), _results("push"), _results("oracle"), _results("MyNet")
+    oracle["per_step"]["iou_ordered"] = [1.0, 1.0, 1.0]
+    static["per_step"]["iou_ordered"] = push["per_step"]["iou_ordered"] = [0.12, 0.13, 0.11]
+    mine["per_step"]["iou_ordered"] = [0.25, 0.3, 0.28]
+    fig = leaderboard_figure(leaderboard_series([static, push, oracle, mine], "3D"), "t")
+    iou = fig.axes[0]
+    lines = _drawn_lines(iou)
+    assert "oracle" not in lines and iou.get_ylim()[0] == 0 and iou.get_ylim()[1] < 0.5
+    notes = " ".join(t.get_text() for t in iou.texts)
+    assert "oracle: 1.000 at every step (off this axis)" in notes and "push = static" in notes
+    assert lines["push"].get_marker() != lines["static"].get_marker()
+    assert lines["push"].get_linestyle() != lines["static"].get_linestyle()
+    flow = _drawn_lines(fig.axes[1])
+    assert "oracle" in flow  # 0 flow error lies on the flow axis: drawn there
+
+
+def test_evaluate_plot_has_bands_the_no_motion_line_and_axes_from_zero():
+    results = _results("MyNet")
+    per_sequence = {"seq_0000": {"iou_ordered": [0.5, 0.6, 0.7], "iou_unordered": [0.6, 0.7, 0.8]},
+                    "seq_0001": {"iou_ordered": [0.7, 0.8, None], "iou_unordered": [0.8, 0.9, 1.0]},
+                    "seq_0002": {"iou_ordered": [0.6, 0.5, 0.7], "iou_unordered": [0.7, 0.6, 0.6]}}
+    static = _results("static")
+    static["per_step"]["iou_ordered"] = [0.1, 0.2, 0.15]
+    series, _ = step_series(results, per_sequence, static)
+    iou = series["panels"][0]
+    low, high = iou["bands"]["ordered"]
+    step0 = spread([0.5, 0.7, 0.6])
+    assert (low[0], high[0]) == (step0.low, step0.high)
+    step2 = spread([0.7, 0.7])  # a sequence without a value at a step is left out there
+    assert (low[2], high[2]) == (step2.low, step2.high)
+    assert iou["references"]["no motion (static): ordered"] == [0.1, 0.2, 0.15]
+    fig, _ = steps_figure(results, per_sequence, static)
+    assert all(ax.get_ylim()[0] == 0 for ax in fig.axes if ax.get_visible())
+    assert "no motion (static): ordered" in _drawn_lines(fig.axes[0])
+    assert len(fig.axes[0].collections) == 2  # a band under each IoU line
+    fig, _ = steps_figure(results, no_motion_note="no no-motion line: none of this split")
+    assert "no no-motion line: none of this split" in fig.get_supxlabel()

@@ -156,9 +156,12 @@ def evaluate(
         out.parent.mkdir(parents=True, exist_ok=True)
         write_text(out, json.dumps(evaluation.results, indent=1, sort_keys=True) + "\n")
         console.print(f"results written to {out}")
+        from dsr_bench.leaderboard.board import no_motion_entry
         from dsr_bench.scoring.plots import steps_plot_path, write_steps_plot
 
-        plot, why = write_steps_plot(evaluation.results, steps_plot_path(out))
+        no_motion, no_motion_note = no_motion_entry(evaluation.results)  # the static row of the same split version
+        plot, why = write_steps_plot(evaluation.results, steps_plot_path(out), evaluation.per_sequence_steps,
+                                     no_motion, no_motion_note)
         typer.echo(f"per-step plots written to {_printable(str(plot))}" if plot else f"no per-step plots: {why}",
                    err=True)  # unwrapped: a path to copy
     else:

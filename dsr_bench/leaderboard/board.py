@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import html
 import json
+import math
 import re
 import sys
 from collections.abc import Callable
@@ -28,6 +29,8 @@ from dsr_bench.models.predictors import REFERENCE_MODELS
 from dsr_bench.leaderboard.entries import (PLAN_RESULTS_FORMAT, RESULTS_FORMAT, check_entry, entry_identity,
                                        entry_name, first_difference, is_2d_only, markdown_cell, show)
 from dsr_bench.scoring.metrics import METRICS, TRACKS as METRIC_TRACKS, metric_keys
+from dsr_bench.scoring.plots import FIGURE_WIDTH_PX, is_reference_method
+from dsr_bench.scoring.spread import Spread, paired_difference, spread, unit_values
 
 #: each track's columns: its headline metrics (`dsr_bench.scoring.metrics.METRICS`), titled and ranked as they say
 TRACKS = {track: metric_keys((track,), ("headline",)) for track in METRIC_TRACKS}
@@ -238,17 +241,20 @@ def load_rows(root: str | Path = "leaderboard", warn: Callable[[str], None] | No
         default = IMAGE_SHAPE if is_2d_only(r.get("metrics") or {}) else GRID_SHAPE
         grid = params.get("grid") or params.get("image") or list(default)
         rows.append({"method": r["method"], "split": r["split"], "kind": kind, "label": r.get("label", ""),
-                     "grid": "x".join(str(int(g)) for g in grid),
+                     "grid": "x".join(str(int(g)) for g in grid), "toolkit": str(r.get("toolkit_version", "")),
                      "date": r.get("date", "")[:10], "checksum": r.get("split_checksum", "")[:12],
-                     **{k: v for k, v in r["metrics"].items()}})
+                     SEQ: r.get("per_sequence") or {}, **{k: v for k, v in r["metrics"].items()}})
     plans = _read_valid(sorted((root / "planning").glob("*.json")), PLAN_RESULTS_FORMAT, warn or _stderr)
     rows += planning_rows([path for path, _ in plans], include_paper=False)  # paper.json has them
     paper = root / "paper.json"
     if paper.exists():
         for r in json.loads(paper.read_text())["rows"]:
-            rows.append({"method": r["method"], "split": r["split"], "kind": "reported in the paper",
-                         "grid": "x".join(map(str, GRID_SHAPE)),
-                         "label": r.get("source", ""), "date": "2020", "checksum": "", **r["metrics"]})
+            # an image-space model of the paper (2D flow alone) has no voxel grid, and the paper gives its image
+            # size nowhere we quote: "-", never the 3D models' grid
+            grid = "-" if set(r["metrics"]) == {"motion_2d"} else "x".join(map(str, GRID_SHAPE))
+            rows.append({"method": r["method"], "split": r["split"], "kind": "reported in the paper", "grid": grid,
+                         "toolkit": "", "label": r.get("source", ""), "date": "2020", "checksum": "", SEQ: {},
+                         **r["metrics"]})
     return rows
 
 
@@ -257,26 +263,43 @@ PLANNING_PAPER_ROWS = (("DSR-Net", 0.72), ("SE3-Net (planning)", 0.31), ("SE3Pos
 
 
 def planning_rows(results_files: list[str | Path], include_paper: bool = True) -> list[dict]:
-    """Rows for the leaderboard's planning column, in `load_rows`'s shape (method, split, kind, label, grid, date,
-    checksum, planning_iou): one per results file of `dsr-bench plan` (`dsr_bench.planning.results.build_results`;
-    kind "reproduced" when its task set matches the pin), and the paper's three rows."""
-    rows = []
+    """Rows for the leaderboard's planning tables, in `load_rows`'s shape (method, split, kind, label, grid,
+    toolkit, date, checksum, planning_iou, and the per-task IoUs under `SEQ`): one per results file of `dsr-bench
+    plan` (`dsr_bench.planning.results.build_results`; kind "reproduced" when its task set matches the pin), a
+    "no push" reference row per task set and kind (the tasks' start IoUs, as the first of its results files
+    holds them: every planner starts from the same states), and the paper's three rows."""
+    rows, start_rows = [], {}
     for path in results_files:
         r = json.loads(Path(path).read_text())
         # the planner's model grid where the results record it (a learned planner); "-" for oracle and random
         grid = "x".join(str(int(g)) for g in (r.get("planner") or {}).get("grid") or ()) or "-"
         kind = "reproduced" if r.get("pinned") else f"task set not pinned ({r.get('task_checksum', '')[:12]})"
         partial = r["coverage"]["partial"]
-        rows.append({"method": f"{r['method']} (planning)", "split": r["task_set"], "kind": kind,
+        tasks = r.get("per_task") or {}
+        common = {"split": r["task_set"], "kind": kind, "toolkit": str(r.get("toolkit_version", "")),
+                  "date": r.get("date", "")[:10], "checksum": r.get("task_checksum", "")[:12]}
+        rows.append({"method": f"{r['method']} (planning)", **common,
                      "label": f"{r['coverage']['scored']}/{r['coverage']['expected']} tasks"
-                              + (" (partial)" if partial else ""),
-                     "grid": grid, "date": r.get("date", "")[:10], "checksum": r.get("task_checksum", "")[:12],
+                              + (" (partial)" if partial else ""), "grid": grid,
+                     SEQ: {t: {"planning_iou": v.get("iou")} for t, v in tasks.items()},
                      "planning_iou": r["metrics"]["iou"]})
+        if (r["task_set"], kind) not in start_rows and "start_iou" in r["metrics"]:
+            start_rows[(r["task_set"], kind)] = {
+                "method": NO_PUSH, **common, "label": "the start state's IoU with the target", "grid": "-",
+                SEQ: {t: {"planning_iou": v.get("start_iou")} for t, v in tasks.items()},
+                "planning_iou": r["metrics"]["start_iou"]}
+    rows += list(start_rows.values())
     if include_paper:
         rows += [{"method": m, "split": "ycb-test", "kind": "reported in the paper", "label": "Sec. 4.3",
-                  "grid": "x".join(map(str, GRID_SHAPE)),
-                  "date": "2020", "checksum": "", "planning_iou": v} for m, v in PLANNING_PAPER_ROWS]
+                  "grid": "x".join(map(str, GRID_SHAPE)), "toolkit": "",
+                  "date": "2020", "checksum": "", SEQ: {}, "planning_iou": v} for m, v in PLANNING_PAPER_ROWS]
     return rows
+
+
+#: the planning tables' reference row of not pushing at all (the tasks' start IoUs)
+NO_PUSH = "no push (planning)"
+#: where a row keeps its per-unit values ({sequence or task: {column: value}}), from which spread is computed
+SEQ = "_per_unit"
 
 
 def _tables(rows: list[dict]):
@@ -285,15 +308,18 @@ def _tables(rows: list[dict]):
     frame = pd.DataFrame(rows)
     for (split, kind), group in frame.groupby(["split", "kind"], sort=True):
         if "planning_iou" in group and group["planning_iou"].notna().all():  # a planning task set's own table
-            yield split, kind, "planning", group[["method", "grid", "planning_iou", "label", "date", "checksum"]
-                                                 ].reset_index(drop=True), ["planning_iou"]
+            group = group.iloc[sorted(range(len(group)), key=lambda i: is_reference_method(group["method"].iloc[i]))]
+            yield split, kind, "planning", group[["method", "grid", "planning_iou", "label", "toolkit", "date",
+                                                  "checksum", SEQ]].reset_index(drop=True), ["planning_iou"]
             continue
         for track, columns in TRACKS.items():
             cols = [c for c in columns + (("planning_iou",) if track == "3D" else ()) if c in group]
             sub = group.dropna(subset=[c for c in cols if c in group], how="all")
+            cols = [c for c in cols if sub[c].notna().any()]  # a column no row of this table has a value of
             if sub.empty or not cols:
                 continue
-            table = sub[["method", "grid", *cols, "label", "date", "checksum"]].reset_index(drop=True)
+            sub = sub.iloc[sorted(range(len(sub)), key=lambda i: is_reference_method(sub["method"].iloc[i]))]
+            table = sub[["method", "grid", *cols, "label", "toolkit", "date", "checksum", SEQ]].reset_index(drop=True)
             yield split, kind, track, table, cols
 
 
@@ -330,10 +356,139 @@ def _worse_than_no_motion(table, column, row) -> bool:
     return row[column] > ref.iloc[0] if column in LOWER_IS_BETTER else row[column] < ref.iloc[0]
 
 
-def _fmt(value, column) -> str:
+def _decimals(value: float, column: str) -> int:
+    """Decimals shown for a value of `column`: 3 for an IoU, else 4 significant digits."""
+    if column.startswith(("iou", "planning")):
+        return 3
+    if value == 0 or value != value or math.isinf(value):
+        return 0
+    return max(0, 3 - math.floor(math.log10(abs(value))))
+
+
+def _fmt(value, column, published: bool = False) -> str:
+    """A value as shown: an IoU with 3 decimals, a flow MSE with 4 significant digits (0 as "0"; a `published`
+    number as the paper prints it, at most 4 digits), "-" for none."""
     if value is None or value != value:
         return "-"
-    return f"{value:.3f}" if column.startswith(("iou", "planning")) else f"{value:.4g}"
+    if published and not column.startswith(("iou", "planning")):
+        return f"{value:.4g}"
+    return f"{value:.{_decimals(value, column)}f}"
+
+
+def _plus_minus(value: float, half: float, column: str) -> str:
+    """`half` (a spread's half-width or standard error) with the decimals of `value`, or 2 significant digits
+    when `value` is 0."""
+    if half != half:
+        return ""
+    digits = _decimals(value, column) if value else max(0, 1 - math.floor(math.log10(half))) if half > 0 else 0
+    return f" \u00b1 {half:.{digits}f}"
+
+
+def _spread_of(row, column) -> Spread:
+    """The spread of a row's per-unit (sequence or task) values of `column`."""
+    return spread(list(unit_values(row[SEQ], column).values()))
+
+
+def _cell(row, column) -> str:
+    """A metric's cell: the row's value and, where the row holds per-unit values, the half-width of its 95%
+    interval over them."""
+    text = _fmt(row[column], column)
+    s = _spread_of(row, column)
+    return text + (_plus_minus(row[column], s.half, column) if text != "-" and s.n >= 2 else "")
+
+
+def _difference(d: Spread, column: str) -> str:
+    """A paired difference's cell: its mean with sign and its standard error; "-" without two units."""
+    if d.n < 2:
+        return "-"
+    digits = 3 if column.startswith(("iou", "planning")) else max(
+        0, 1 - math.floor(math.log10(d.se))) if d.se > 0 else 3
+    return f"{d.mean:+.{digits}f} \u00b1 {d.se:.{digits}f}"
+
+
+def _yardsticks(table, track: str) -> list[str]:
+    """The reference rows a table's rows are compared with, pairwise: static and push, or in a planning table
+    no push and random."""
+    names = (NO_PUSH, "random (planning)") if track == "planning" else (NO_MOTION, "push")
+    return [n for n in names if (table["method"] == n).any()]
+
+
+def _learned_best(table, yardsticks: list[str]) -> float | None:
+    """The planning IoU to bold: the highest of the planners (not a reference row) whose paired difference from
+    each yardstick (no push, random) has a 95% interval above 0; None when none has, or a yardstick is missing."""
+    if len(yardsticks) < 2:
+        return None
+    bases = [unit_values(table[table["method"] == y].iloc[0][SEQ], "planning_iou") for y in yardsticks]
+    winners = [r["planning_iou"] for _, r in table.iterrows() if not is_reference_method(r["method"]) and all(
+        (d := paired_difference(unit_values(r[SEQ], "planning_iou"), b)).excludes_zero and d.mean > 0 for b in bases)]
+    return max(winners) if winners else None
+
+
+def _md_row(cells: list[str]) -> str:
+    return "| " + " | ".join(cells) + " |"
+
+
+def _html_table(header: list[str], rows: list[list[tuple[str, str | None, str]]], css: str) -> str:
+    """A sortable table: rows of (text, sort value, classes) cells."""
+    ths = "".join(f"<th onclick=\"sortTable(this)\">{html.escape(h)}</th>" for h in header)
+    body = []
+    for cells in rows:
+        tds = []
+        for text, value, classes in cells:
+            attrs = (f' data-v="{html.escape(value)}"' if value is not None else "") + \
+                (f' class="{classes}"' if classes else "")
+            tds.append(f"<td{attrs}>{text}</td>")
+        body.append("<tr>" + "".join(tds) + "</tr>")
+    return f"<table class={css}><thead><tr>{ths}</tr></thead><tbody>{''.join(body)}</tbody></table>"
+
+
+def _difference_tables(table, track: str, cols: list[str]) -> tuple[list[str], str]:
+    """Markdown and HTML of a reproduced table's paired differences: per yardstick, every other row that is not an
+    oracle, row - yardstick per sequence (task), mean and standard error over the units both scored."""
+    unit = "task" if track == "planning" else "sequence"
+    md: list[str] = []
+    page = []
+    for yard in _yardsticks(table, track):
+        base = table[table["method"] == yard].iloc[0]
+        others = [r for _, r in table.iterrows() if r["method"] != yard and not is_oracle(r["method"])]
+        if not others:
+            continue
+        name = yard.replace(" (planning)", "")
+        cols = [c for c in cols if len(unit_values(base[SEQ], c)) >= 2]
+        if not cols:
+            continue
+        header = ["method", *[f"{COLUMN_TITLES[c]} - {name}" for c in cols], f"{unit}s"]
+        title = (f"Paired differences from {name} (row - {name}, {unit} by {unit}; mean \u00b1 standard error over "
+                 f"the {unit}s both scored):")
+        md += [title, "", _md_row(header), "|" + "---|" * len(header)]
+        html_rows = []
+        for r in others:
+            diffs = [paired_difference(unit_values(r[SEQ], c), unit_values(base[SEQ], c)) for c in cols]
+            n = max((d.n for d in diffs), default=0)
+            md.append(_md_row([markdown_cell(r["method"]), *[_difference(d, c) for d, c in zip(diffs, cols)],
+                               str(n)]))
+            html_rows.append([(html.escape(str(r["method"])), None, ""),
+                              *[(html.escape(_difference(d, c)), "" if d.n < 2 else repr(d.mean), "")
+                                for d, c in zip(diffs, cols)], (str(n), str(n), "")])
+        md.append("")
+        page.append(f"<p class=note>{html.escape(title)}</p>" + _html_table(header, html_rows, "diff"))
+    return md, "".join(page)
+
+
+def _version_line(split: str, kind: str, table) -> str:
+    """Which version of the split a table's rows were scored on, and by which toolkit versions."""
+    from dsr_bench.dataset.splits import SPLITS
+
+    if kind == "reported in the paper":
+        return ""
+    checksums = sorted({c for c in table["checksum"] if c})
+    toolkits = ", ".join(sorted({t for t in table["toolkit"] if t})) or "?"
+    what = "task set" if split not in SPLITS or kind.startswith("task set") else "split"
+    if kind == "reproduced":
+        return (f"Every row was scored on this {what}'s pinned version (checksum {', '.join(checksums)}; toolkit "
+                f"{toolkits}). Rows scored on another version of it are in a table of their own, never in this one.")
+    return (f"These rows were scored on a {what} version that is not this toolkit's pin (checksum "
+            f"{', '.join(checksums)}; toolkit {toolkits}): they are kept apart and compared with nothing else.")
 
 
 def build(root: str | Path = "leaderboard", warn: Callable[[str], None] | None = None) -> tuple[Path, Path]:
@@ -346,91 +501,132 @@ def build(root: str | Path = "leaderboard", warn: Callable[[str], None] | None =
     rows = load_rows(root, warn, entries)
     plotted: set[Path] = set()
     md = ["# dsr-bench leaderboard", "",
-          "Built by `dsr-bench leaderboard build` from `entries/` (results of `dsr-bench evaluate`) and",
-          "`paper.json` (numbers reported in the paper, never mixed with reproduced rows). In each table of reproduced",
-          "results the reference rows (oracle, static = predicting no motion, push = every object voxel moved along",
-          "the push) sit beside the trained rows of the same version of the split. Bold: the best value that is not an",
-          "oracle's, marked only where the table holds the no-motion row to compare with. " + _WORSE_MARK + ": worse",
-          "than predicting no motion.", ""]
+          "Built by `dsr-bench leaderboard build` from `entries/` and `planning/` (results of `dsr-bench evaluate`",
+          "and `dsr-bench plan`, recomputed by `leaderboard add` from the predictions and plans) and `paper.json`",
+          "(numbers reported in the paper, never mixed with reproduced rows). In each table of reproduced results the",
+          "reference rows (oracle; static = predicting no motion; push = every object voxel moved along the push; in",
+          "planning: no push and random pushes) sit beside the trained rows of the same version of the split.",
+          "",
+          "A reproduced value is the benchmark's metric \u00b1 the half-width of the 95% confidence interval of the",
+          "mean over the sequences (tasks), from each row's per-sequence (per-task) values (Student t). Under each",
+          "table, paired differences from the reference rows (row - reference, sequence by sequence) with their",
+          "standard errors. Bold: the best value that is not an oracle's, marked only where the table holds the",
+          "no-motion row to compare with; in a planning table, the best planner only where it beats both no push",
+          "and random (the 95% interval of each paired difference above 0). " + _WORSE_MARK + ": worse than",
+          "predicting no motion.",
+          "Model grid: a 3D model's voxel grid, or the image (H x W) of an image-space model (\"-\" where the paper",
+          "does not say).", ""]
     body = []
     for split, kind, track, table, cols in _tables(rows):
         md += [f"## {split}: {track} track ({kind})", ""]
         if split in SPLITS:
             md += [f"{SPLITS[split].description}.", ""]
-        header = ["method", "model grid", *[COLUMN_TITLES[c] for c in cols], "note", "date", "split checksum"]
-        # a planning table compares planners with each other (random is its yardstick), not with a no-motion row
-        comparable = kind != "reported in the paper" and (track == "planning" or (table["method"] == NO_MOTION).any())
-        best = {c: _best(table, c) if comparable or kind == "reported in the paper" else None for c in cols}
-        if kind != "reported in the paper" and not comparable:
-            md += ["No no-motion (static) row was scored on this version of the split: these rows cannot be compared "
-                   "with predicting no motion, and none is marked best.", ""]
-        md += ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+        version = _version_line(split, kind, table)
+        if version:
+            md += [version, ""]
+        paper = kind == "reported in the paper"
+        yardsticks = _yardsticks(table, track) if not paper else []
+        inline = yardsticks if track == "planning" else []  # a planning table's paired differences: its own columns
+        header = ["method", "model grid", *[COLUMN_TITLES[c] for c in cols],
+                  *[f"vs {y.replace(' (planning)', '')} (paired, \u00b1 SE)" for y in inline], "note", "toolkit",
+                  "date", "split checksum"]
+        if track == "planning":
+            comparable = not paper and len(yardsticks) == 2
+            best = {c: _learned_best(table, yardsticks) if not paper else _best(table, c) for c in cols}
+        else:
+            comparable = not paper and (table["method"] == NO_MOTION).any()
+            best = {c: _best(table, c) if comparable or paper else None for c in cols}
+        if not paper and not comparable:
+            md += [("This table lacks the no push or the random reference row: no planner is marked best." if
+                    track == "planning" else "No no-motion (static) row was scored on this version of the split: "
+                    "these rows cannot be compared with predicting no motion, and none is marked best."), ""]
+        md += [_md_row(header), "|" + "---|" * len(header)]
         html_rows = []
         for _, r in table.iterrows():
             cells, tds = [], []
             for c in cols:
-                text, top = _fmt(r[c], c), best[c] is not None and r[c] == best[c] and not is_oracle(r["method"])
+                text = _cell(r, c) if not paper else _fmt(r[c], c, published=True)
+                top = best[c] is not None and r[c] == best[c] and not is_oracle(r["method"]) and not (
+                    track == "planning" and is_reference_method(r["method"]))
                 worse = _worse_than_no_motion(table, c, r)
                 cells.append((f"**{text}**" if top else text) + (f" {_WORSE_MARK}" if worse else ""))
                 classes = " ".join(k for k, on in (("best", top), ("worse", worse)) if on)
-                value = "" if r[c] != r[c] else r[c]  # NaN: no value to sort on
-                tds.append(f'<td data-v="{value}"{f" class={chr(34)}{classes}{chr(34)}" if classes else ""}>'
-                           f"{html.escape(_fmt(r[c], c))}{f' {_WORSE_MARK}' if worse else ''}</td>")
-            md.append("| " + " | ".join([markdown_cell(r["method"]), markdown_cell(r["grid"]), *cells,
-                                         markdown_cell(r["label"]), markdown_cell(r["date"]),
-                                         markdown_cell(r["checksum"])]) + " |")
-            html_rows.append(f"<tr><td>{html.escape(str(r['method']))}</td><td>{html.escape(str(r['grid']))}</td>"
-                             f"{''.join(tds)}<td>{html.escape(str(r['label']))}"
-                             f"</td><td>{html.escape(str(r['date']))}</td><td><code>{html.escape(str(r['checksum']))}</code>"
-                             "</td></tr>")
+                value = "" if r[c] != r[c] else repr(float(r[c]))  # NaN: no value to sort on
+                tds.append((html.escape(text) + (f" {_WORSE_MARK}" if worse else ""), value, classes))
+            for y in inline:
+                base = table[table["method"] == y].iloc[0]
+                d = paired_difference(unit_values(r[SEQ], "planning_iou"), unit_values(base[SEQ], "planning_iou"))
+                text = "-" if r["method"] == y else _difference(d, "planning_iou")
+                cells.append(text)
+                tds.append((html.escape(text), "" if text == "-" else repr(d.mean), ""))
+            label = r["label"]
+            if not paper and is_reference_method(r["method"]) and "reference" not in str(label):
+                label = "reference" + (f"; {label}" if label else "")
+            md.append(_md_row([markdown_cell(r["method"]), markdown_cell(r["grid"]), *cells, markdown_cell(label),
+                               markdown_cell(r["toolkit"]), markdown_cell(r["date"]), markdown_cell(r["checksum"])]))
+            html_rows.append([(html.escape(str(r["method"])), None, ""), (html.escape(str(r["grid"])), None, ""),
+                              *tds, (html.escape(str(label)), None, ""), (html.escape(str(r["toolkit"])), None, ""),
+                              (html.escape(str(r["date"])), None, ""),
+                              (f"<code>{html.escape(str(r['checksum']))}</code>", None, "")])
         md.append("")
-        plot = _table_plot(root, entries, split, kind, track)
+        diff_md, diff_html = _difference_tables(table, track, cols) if not paper and not inline else ([], "")
+        md += diff_md
+        plot = _table_plot(root, entries, split, kind, track) if track != "planning" else \
+            _planning_plot(root, table, split, kind)
+        figure = ""
         if plot is not None:
-            plotted.add(plot)
+            plotted |= {plot, plot.with_suffix(".svg")}
             rel = plot.relative_to(root).as_posix()
-            md += ["Per step (one line per row; dashed: reference rows):", "",
-                   f"![{split}, {track} track: per-step curves]({rel})", ""]
-        ths = "".join(f"<th onclick=\"sortTable(this)\">{html.escape(h)}</th>" for h in header)
-        note = ("" if comparable or kind == "reported in the paper" else
-                "<p class=note>No no-motion (static) row on this version of the split: not comparable, none marked "
-                "best.</p>")
+            svg = plot.with_suffix(".svg").relative_to(root).as_posix()
+            caption = PLANNING_CAPTION if track == "planning" else STEPS_CAPTION
+            alt = f"{split}, {track} track: " + ("planning IoU and paired differences" if track == "planning" else
+                                                  "per-step curves and 95% intervals")
+            width = FIGURE_WIDTH_PX
+            md += [caption, "", f'<img src="{rel}" width="{width}" alt="{html.escape(alt)}">', ""]
+            figure = (f'<figure><a href="{html.escape(svg)}"><img src="{html.escape(svg)}" alt="{html.escape(alt)}">'
+                      f"</a><figcaption>{html.escape(caption)}</figcaption></figure>")
+        note = ("" if comparable or paper else
+                "<p class=note>" + ("No no push or random row: no planner marked best." if track == "planning" else
+                                    "No no-motion (static) row on this version of the split: not comparable, none "
+                                    "marked best.") + "</p>")
         about = f"<p>{html.escape(SPLITS[split].description)}.</p>" if split in SPLITS else ""
-        figure = ("" if plot is None else
-                  f'<figure><a href="{html.escape(rel)}"><img src="{html.escape(rel)}" alt="{html.escape(split)}, '
-                  f'{track} track: per-step curves" width="860"></a><figcaption>Per step, one line per row '
-                  "(dashed: reference rows).</figcaption></figure>")
+        about += f"<p class=note>{html.escape(version)}</p>" if version else ""
         body.append(f"<h2>{html.escape(split)}: {track} track ({html.escape(kind)})</h2>\n{about}{note}"
-                    f"<table class=board><thead><tr>{ths}</tr></thead><tbody>{''.join(html_rows)}</tbody></table>"
-                    f"{figure}")
+                    f"{_html_table(header, html_rows, 'board')}{diff_html}{figure}")
     if not rows:
         md.append("No entries yet.")
     page = _PAGE.replace("{body}", "\n".join(body) or "<p>No entries yet.</p>")
     write_text(root / "README.md", "\n".join(md) + "\n")
     write_text(root / "index.html", page)
-    for stale in sorted((root / PLOTS_DIR).glob("*-[23]d.png")):  # a plot of a table that no longer exists
-        if stale not in plotted:
+    for stale in sorted((root / PLOTS_DIR).glob("*")):  # a plot of a table that no longer exists
+        if stale.suffix in (".png", ".svg") and stale not in plotted:
             stale.unlink(missing_ok=True)
     return root / "README.md", root / "index.html"
 
 
-#: Where `build` writes the per-step plots, under the leaderboard's root.
+STEPS_CAPTION = ("Top: each row step by step (reference rows dashed or dotted, open markers). Bottom: each row's "
+                 "mean over the sequences with its 95% interval.")
+PLANNING_CAPTION = ("Left: each row's planning IoU, mean over the tasks with its 95% interval. Right: each "
+                    "planner's paired difference from no push and from random, task by task, with its 95% interval.")
+
+#: Where `build` writes the figures, under the leaderboard's root.
 PLOTS_DIR = "plots"
 
 
 def plot_name(split: str, kind: str, track: str) -> str:
-    """The file name of a table's per-step plot: <split>-3d.png, or <split>-<checksum>-3d.png for an earlier
-    version of the split."""
-    version = "" if kind == "reproduced" else "-" + kind.rsplit(", ", 1)[-1]
+    """The file name of a table's figure (PNG; the SVG beside it has .svg): <split>-3d.png (-2d, -planning), or
+    <split>-<checksum>-3d.png for an earlier version of the split."""
+    version = "" if kind == "reproduced" else "-" + kind.rsplit(", ", 1)[-1].strip("()").rsplit(" ", 1)[-1]
     return re.sub(r"[^A-Za-z0-9._-]+", "-", f"{split}{version}") + f"-{track.lower()}.png"
 
 
 def _table_plot(root: Path, entries: list[dict], split: str, kind: str, track: str) -> Path | None:
-    """Write the per-step plot of one table of reproduced rows (None: paper rows, or no entry has per-step
+    """Write the figure of one table of reproduced rows, PNG and SVG (None: paper rows, or no entry has per-step
     values for the track)."""
     from dsr_bench.scoring.plots import MISSING_MATPLOTLIB, leaderboard_series, matplotlib_missing, \
         write_leaderboard_plot
 
-    if not kind.startswith("reproduced") or track == "planning":  # plans have no per-step prediction values
+    if not kind.startswith("reproduced"):
         return None
     panels = leaderboard_series([e for e in entries if e["split"] == split and e["kind"] == kind], track)
     if not panels:
@@ -438,7 +634,44 @@ def _table_plot(root: Path, entries: list[dict], split: str, kind: str, track: s
     if matplotlib_missing():
         raise UserError(f"cannot draw {root / PLOTS_DIR}: {MISSING_MATPLOTLIB}")
     title = f"{split}: {track} track" + ("" if kind == "reproduced" else f" ({kind})")
-    return write_leaderboard_plot(panels, title, root / PLOTS_DIR / plot_name(split, kind, track))
+    return write_leaderboard_plot(panels, title, root / PLOTS_DIR / plot_name(split, kind, track), svg=True)
+
+
+def _planning_plot(root: Path, table, split: str, kind: str) -> Path | None:
+    """Write the figure of one planning table (PNG and SVG): its rows' IoUs and paired differences (None: paper
+    rows, or no row holds per-task values)."""
+    from dsr_bench.scoring.plots import MISSING_MATPLOTLIB, matplotlib_missing, write_planning_plot
+
+    if kind == "reported in the paper":
+        return None
+    rows = [(str(r["method"]).replace(" (planning)", ""), unit_values(r[SEQ], "planning_iou"))
+            for _, r in table.iterrows()]
+    rows = [(m, v) for m, v in rows if v]
+    if not rows:
+        return None
+    if matplotlib_missing():
+        raise UserError(f"cannot draw {root / PLOTS_DIR}: {MISSING_MATPLOTLIB}")
+    # planners first, then the reference rows
+    rows = [r for r in rows if not is_reference_method(r[0])] + [r for r in rows if is_reference_method(r[0])]
+    title = f"{split}: planning track" + ("" if kind == "reproduced" else f" ({kind})")
+    return write_planning_plot(rows, title, root / PLOTS_DIR / plot_name(split, kind, "planning"), svg=True)
+
+
+def no_motion_entry(results: dict, root: str | Path | None = None) -> tuple[dict | None, str]:
+    """The leaderboard's static (no-motion) entry scored on the same split version as `results`, with per-step
+    values, for evaluate's plot; else (None, why not). `root`: the leaderboard directory (default: the one beside
+    this package, in a clone of the repository)."""
+    root = Path(root) if root is not None else Path(__file__).resolve().parents[2] / "leaderboard"
+    if results.get("method") == NO_MOTION:
+        return None, "no separate no-motion line: these results are the no-motion row's"
+    if not (root / "entries").is_dir():
+        return None, f"no no-motion line: no leaderboard at {root}"
+    for entry in load_entries(root, warn=lambda line: None):
+        if entry["method"] == NO_MOTION and entry["split"] == results.get("split") and \
+                entry.get("split_checksum") == results.get("split_checksum") and entry.get("per_step"):
+            return entry, ""
+    return None, (f"no no-motion line: the leaderboard holds no static entry scored on this version of "
+                  f"{results.get('split')!r}")
 
 
 _PAGE = """<!doctype html>

@@ -54,6 +54,8 @@ class Evaluation:
     problems: list[tuple[str, str]] = field(default_factory=list)
     results: dict | None = None
     warnings: list[str] = field(default_factory=list)
+    #: each scored sequence's per-step values ({sequence: {per_step key: [values]}}), for the plot's spread bands
+    per_sequence_steps: dict[str, dict[str, list]] = field(default_factory=dict)
 
 
 def pin_warning(manifest: dict, split: str, data_dir: str | Path | None = None) -> str | None:
@@ -387,4 +389,6 @@ def evaluate(pred_dir: str | Path, data_dir: str | Path, split: str | None = Non
         **scores,
     }
     evaluation.results = results
+    evaluation.per_sequence_steps = {name: {k: v for k, v in values.items() if k in results["per_step"]}
+                                     for name, values in sorted(scored.items())}
     return evaluation
