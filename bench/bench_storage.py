@@ -41,7 +41,8 @@ def stored_bytes(path: Path) -> dict[str, int]:
 
 
 def restore(src: Path, dst: Path) -> None:
-    """Re-write a sequence file through `write_sequence` (today's layout), from its arrays as read."""
+    """Re-write a sequence file through `write_sequence` (today's layout), from its arrays as read: the stored ones
+    and those the file leaves out and derives on reading (a schema-3 file's camera points, from its depth)."""
     from dsr_bench.dataset.sequence import SequenceReader, write_sequence
 
     with SequenceReader(src) as seq, h5py.File(src, "r") as f:
@@ -51,6 +52,8 @@ def restore(src: Path, dst: Path) -> None:
             if isinstance(obj, h5py.Dataset) and not name.startswith("meshes/"):
                 (extras if name.startswith("official/") else arrays)[name] = obj[()]
         f.visititems(collect)
+        for name in sorted(seq.derived):  # write_sequence needs every array; it leaves these out again
+            arrays[name] = seq.read(name)
         meshes = {i: seq.mesh(i) for i in range(seq.num_objects) if seq.mesh(i) is not None}
         attrs = {k: v for k, v in seq.attrs.items() if k not in ("format", "schema_version")}
     write_sequence(dst, arrays, attrs, meshes, extras)
