@@ -382,6 +382,32 @@ def test_bench_storage_runs_on_a_freshly_generated_schema_3_dataset(generated_da
     assert out["mb_per_step"]["current layout"] == pytest.approx(out["mb_per_step"]["as stored"], rel=0.01)
 
 
+def test_bench_table_layer_reads_the_free_voxels_of_the_bottom_layer(tmp_path, capsys):
+    """The table layer's figure (DATASHEET) is the z = 0 layer at the voxels no object occupies, on both sides."""
+    import h5py
+
+    import bench_table_layer
+    from dsr_bench.testing import write_synthetic_dataset
+
+    tsdf = np.ones((4, 4, 3), np.float32)
+    tsdf[:, :, 0] = -0.5
+    tsdf[0, 0, 0] = 0.25  # under an object: left out
+    mask = np.zeros((4, 4, 3), np.uint8)
+    mask[0, 0, 0] = 1
+    assert bench_table_layer.table_layer(tsdf, mask).tolist() == [-0.5] * 15
+    reference = tmp_path / "reference.h5"
+    with h5py.File(reference, "w") as f:
+        for name in ("seq_0000", "seq_0001"):
+            f[f"{name}/tsdf_step0"], f[f"{name}/mask_3d_step0"] = tsdf, mask
+        f["seq_0002/positions"] = np.zeros(3)  # a sequence without step-0 volumes: not counted
+    data = write_synthetic_dataset(tmp_path / "data", num_sequences=1, num_steps=1)
+    out = bench_table_layer.main([str(data), "--reference", str(reference)])
+    assert out["theirs"] == {"median_per_scene": [-0.5, -0.5], "median": -0.5, "negative_share": 1.0}
+    assert len(out["ours"]["median_per_scene"]) == 1 and "theirs z = 0 layer" in capsys.readouterr().out
+    with pytest.raises(SystemExit, match="no such file"):
+        bench_table_layer.main([str(data), "--reference", str(tmp_path / "missing.h5")])
+
+
 def test_bench_evaluate_times_a_baseline_checkout_beside_this_one(tmp_path, capsys):
     """--baseline-repo: a bad path is one line; a checkout (here this one) is timed beside this one, alternated, and
     the difference printed."""
