@@ -40,7 +40,7 @@ def _serve(layout, **overrides):
     """A live server of `layout` with the configuration's `overrides` (e.g. daily_limit=2)."""
     from dsr_bench.challenge.server import Settings, create_app
 
-    return LiveServer(create_app(layout.root, settings=Settings(keep_free=0, auth_max_delay=0.01,
+    return LiveServer(create_app(layout.root, settings=Settings(keep_free=0, auth_max_delay=0.01, board_cache=0.0,
                                                                 overrides=overrides or None)))
 
 

@@ -21,6 +21,8 @@ import os
 import re
 import secrets
 import shutil
+import threading
+import time
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 from dataclasses import dataclass
@@ -47,7 +49,8 @@ META_NAME = "meta.json"
 @dataclass
 class Settings:
     """Server settings beyond the challenge's configuration: the failed-auth throttle, the upload idle timeout,
-    the free disk kept (bytes), and the configuration's overrides (e.g. daily_limit, max_upload_bytes)."""
+    the free disk kept (bytes), the configuration's overrides (e.g. daily_limit, max_upload_bytes) and how long
+    (seconds) the leaderboard is served from its last computation."""
 
     auth_limit: int = 10
     auth_window: float = 900.0
@@ -55,6 +58,7 @@ class Settings:
     idle_timeout: float = 60.0
     keep_free: int = 1 << 30
     overrides: dict | None = None
+    board_cache: float = 1.0
 
 
 def create_app(root: str | Path, db_url: str | None = None, settings: Settings | None = None) -> FastAPI:
@@ -65,8 +69,13 @@ def create_app(root: str | Path, db_url: str | None = None, settings: Settings |
     engine, session_factory = open_database(db_url or layout.default_db_url())
     throttle = FailureThrottle(settings.auth_limit, settings.auth_window, settings.auth_max_delay)
 
-    def config() -> dict:
-        return {**open_challenge(layout.root)[1], **(settings.overrides or {})}
+    loaded: dict[str, Any] = {"mtime": None, "config": {}}
+
+    def config() -> dict:  # challenge.json, read again only when the host changed it
+        mtime = layout.config.stat().st_mtime_ns
+        if mtime != loaded["mtime"]:
+            loaded.update(mtime=mtime, config={**open_challenge(layout.root)[1], **(settings.overrides or {})})
+        return loaded["config"]
 
     @asynccontextmanager
     async def lifespan(_app: FastAPI):
@@ -179,22 +188,30 @@ def create_app(root: str | Path, db_url: str | None = None, settings: Settings |
 
         return {"team": team.name, "submissions": await run_in_threadpool(rows)}
 
-    def board() -> dict:
-        cfg = config()
-        with session_factory() as session:
-            data = service.leaderboard(session, cfg)
-            data["open"] = service.open_phase(session, utcnow())
-        return data
+    cache: dict[str, Any] = {"until": 0.0}
+    cache_lock = threading.Lock()
+
+    def board() -> tuple[dict, str]:
+        """The leaderboard's JSON and page, computed at most once per `settings.board_cache` seconds (however many
+        readers ask)."""
+        with cache_lock:
+            if time.monotonic() >= cache["until"]:
+                cfg = config()
+                with session_factory() as session:
+                    data = service.leaderboard(session, cfg)
+                    data["open"] = service.open_phase(session, utcnow())
+                page = render_leaderboard(data, cfg)
+                data.pop("open")
+                cache.update(until=time.monotonic() + settings.board_cache, data=data, page=page)
+            return cache["data"], cache["page"]
 
     @app.get("/api/leaderboard")
     def leaderboard_json() -> dict:
-        data = board()
-        data.pop("open")
-        return data
+        return board()[0]
 
     @app.get("/", response_class=HTMLResponse)
     def leaderboard_page() -> str:
-        return render_leaderboard(board(), config())
+        return board()[1]
 
     @app.get("/submissions/{sid}", response_class=HTMLResponse)
     def submission_page(sid: str) -> str:
@@ -359,15 +376,11 @@ def _value(value: Any) -> str:
 
 
 def _columns(track: str) -> tuple[str, ...]:
-    from dsr_bench.leaderboard.board import TRACKS
-
-    return TRACKS.get(track, ())
+    return service.COLUMNS.get(track, ())
 
 
 def _title(column: str) -> str:
-    from dsr_bench.leaderboard.board import COLUMN_TITLES
-
-    return COLUMN_TITLES.get(column, column)
+    return service.TITLES.get(column, column)
 
 
 def _table(rows: list[dict], columns: tuple[str, ...], lead: list[tuple[str, str]]) -> str:

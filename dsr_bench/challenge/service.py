@@ -20,6 +20,13 @@ from dsr_bench.challenge import auth
 from dsr_bench.challenge.db import Phase, Score, Submission, Team, utcnow
 from dsr_bench.challenge.layout import check_name
 from dsr_bench.errors import UserError
+from dsr_bench.scoring.metrics import METRICS, TRACKS as METRIC_TRACKS, metric_keys
+
+#: the columns of each track's table (its headline metrics) and those where lower is better: the same choice as
+#: the local leaderboard's tables (dsr_bench/leaderboard/board.py), made from the metrics' table
+COLUMNS = {track: metric_keys((track,), ("headline",)) for track in METRIC_TRACKS}
+LOWER_IS_BETTER = {m.key for m in METRICS if m.role == "headline" and m.lower_is_better}
+TITLES = {m.key: m.column for m in METRICS if m.column}
 
 
 def add_team(session_factory: sessionmaker, name: str) -> str:
@@ -123,8 +130,6 @@ def submission_view(session: Session, sub: Submission, reveal: bool) -> dict[str
 def leaderboard(session: Session, config: dict) -> dict[str, Any]:
     """The leaderboard: per track, the scored submissions' public aggregates (best first by the track's ranking
     metric), and once revealed the final ranking on the private part."""
-    from dsr_bench.leaderboard.board import LOWER_IS_BETTER
-
     reveal = bool(config.get("reveal_private"))
     rows: dict[str, list[dict]] = {}
     query = (select(Submission, Team.name, Score).join(Team, Team.id == Submission.team_id)
@@ -151,8 +156,6 @@ def leaderboard(session: Session, config: dict) -> dict[str, Any]:
 def final_ranking(session: Session, config: dict) -> dict[str, list[dict]]:
     """Per track, each team's best private-part score among the submissions it selected as final (its newest
     scored submission when it selected none), best first."""
-    from dsr_bench.leaderboard.board import LOWER_IS_BETTER
-
     query = (select(Submission, Team.name, Score).join(Team, Team.id == Submission.team_id)
              .join(Score, Score.submission_id == Submission.id)
              .where(Score.current.is_(True), Score.part == "private", Submission.state == "scored"))
