@@ -144,6 +144,37 @@ def test_labels_move_by_their_rounded_flow_and_leave_the_grid():
     assert np.array_equal(out[1], mask)
     assert np.count_nonzero(out[0] == 2) == 64 and out[0][10:14, 13:17, 0:4].min() == 2
     assert np.count_nonzero(out[0] == 1) == 4 * 1 * 4  # (y, x, z): 3 of its 4 x columns moved out of the grid
+    # two voxels landing on one: the later in C order stays
+    two = np.zeros(GRID_SHAPE, np.uint8)
+    two[5, 5, 5], two[5, 6, 5] = 3, 4
+    v2 = np.argwhere(two > 0)
+    onto = np.zeros((1, 3, 2), np.float32)
+    onto[0, 1, 0] = 1.0  # (5, 5, 5) -> (5, 6, 5), where (5, 6, 5) stays
+    moved = move_labels(two, onto, v2)[0]
+    assert moved[5, 6, 5] == 4 and np.count_nonzero(moved) == 1
+
+
+def test_the_sparse_cost_is_the_dense_cost_bit_for_bit():
+    from dsr_bench.matching import overlap
+    from dsr_bench.planning.cost import SparseLabels, TargetStats
+
+    rng = np.random.default_rng(5)
+    target = _two_boxes()
+    for _ in range(5):
+        pred = np.zeros(GRID_SHAPE, np.uint8)
+        for label in range(1, 5):
+            _box(pred, label, *rng.integers(0, 100, 2), rng.integers(0, 20), size=int(rng.integers(2, 9)))
+        dense = plan_cost(pred, target, 4, 2)
+        sparse = plan_cost(SparseLabels.of(pred), target, 4, 2, stats=TargetStats.of(target, 2))
+        assert dense.total == sparse.total and np.array_equal(dense.slot, sparse.slot)
+        assert np.array_equal(dense.position_mse, sparse.position_mse) and np.array_equal(dense.iou, sparse.iou)
+        assert np.array_equal(SparseLabels.of(pred).dense(), pred)
+        # against the dense overlap counts and centroids over the whole volume
+        ov, pc, tc = overlap(pred, target, 4, 2), centroids(pred, 4)[0], centroids(target, 2)[0]
+        for obj, slot in enumerate(sparse.slot):
+            if slot:
+                assert sparse.iou[obj] == ov.iou[slot - 1, obj]
+                assert sparse.position_mse[obj] == (((pc[slot - 1] - tc[obj]) * 0.4) ** 2).mean()
 
 
 def _synthetic_task_arrays():

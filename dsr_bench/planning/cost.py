@@ -18,7 +18,7 @@ import numpy as np
 
 from dsr_bench import matching
 from dsr_bench.constants import VOXEL_SIZE
-from dsr_bench.matching import assignment, overlap
+from dsr_bench.matching import Overlap, assignment, overlap
 from dsr_bench.planning.protocol import COST_LAMBDA, MATCH_TIE_BREAK, UNMATCHED_POSITION_MSE
 
 _CM_PER_VOXEL = VOXEL_SIZE * 100.0
@@ -49,13 +49,71 @@ def centroids(mask: np.ndarray, num_labels: int) -> tuple[np.ndarray, np.ndarray
         return sums / counts[:, None], counts
 
 
-def plan_cost(pred: np.ndarray, target: np.ndarray, num_slots: int, num_objects: int, lam: float = COST_LAMBDA,
-              target_centroids: np.ndarray | None = None) -> CostTerms:
-    """The cost of predicted next masks `pred` (Y, X, Z) uint8 (slot ids 1..num_slots) against the target's
-    amodal masks (Y, X, Z) uint8 (object ids 1..num_objects); see the module doc."""
-    ov = overlap(pred, target, num_slots, num_objects)
-    pc, _ = centroids(pred, num_slots)
-    tc = centroids(target, num_objects)[0] if target_centroids is None else target_centroids
+@dataclass(frozen=True)
+class SparseLabels:
+    """A label volume of `shape` (Y, X, Z) as its labelled voxels: flat C-order indices (M,) int64, ascending and
+    unique, and their labels (M,) uint8, all > 0."""
+
+    flat: np.ndarray
+    labels: np.ndarray
+    shape: tuple[int, ...]
+
+    @staticmethod
+    def of(volume: np.ndarray) -> SparseLabels:
+        """The labelled voxels of a volume (Y, X, Z)."""
+        v = np.asarray(volume)
+        flat = np.flatnonzero(v)
+        return SparseLabels(flat, v.reshape(-1)[flat].astype(np.uint8), tuple(v.shape))
+
+    def dense(self) -> np.ndarray:
+        """The volume (Y, X, Z) uint8."""
+        out = np.zeros(int(np.prod(self.shape)), np.uint8)
+        out[self.flat] = self.labels
+        return out.reshape(self.shape)
+
+
+def _sparse_centroids(sparse: SparseLabels, num_labels: int) -> np.ndarray:
+    """Centroids (L, 3) in voxels of labels 1..L (NaN when empty): the same sums in the same order as `centroids`
+    of the dense volume, so the same bits."""
+    keep = sparse.labels <= num_labels
+    flat, labels = sparse.flat[keep], sparse.labels[keep].astype(np.int64)
+    counts = np.bincount(labels, minlength=num_labels + 1)[1:].astype(np.float64)
+    coords = np.unravel_index(flat, sparse.shape)
+    sums = np.stack([np.bincount(labels, weights=c, minlength=num_labels + 1)[1:] for c in coords], 1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return sums / counts[:, None]
+
+
+@dataclass(frozen=True)
+class TargetStats:
+    """What the cost needs of a target (Y, X, Z) uint8 with object ids 1..N, computed once per plan: its voxel
+    counts (N,) and centroids (N, 3) in voxels."""
+
+    sizes: np.ndarray
+    centroids: np.ndarray
+
+    @staticmethod
+    def of(target: np.ndarray, num_objects: int) -> TargetStats:
+        c, n = centroids(target, num_objects)
+        return TargetStats(n, c)
+
+
+def plan_cost(pred: np.ndarray | SparseLabels, target: np.ndarray, num_slots: int, num_objects: int,
+              lam: float = COST_LAMBDA, stats: TargetStats | None = None) -> CostTerms:
+    """The cost of predicted next masks `pred` (Y, X, Z) uint8 (slot ids 1..num_slots), dense or as its
+    `SparseLabels` (the same bits, in time proportional to its labelled voxels), against the target's amodal
+    masks (Y, X, Z) uint8 (object ids 1..num_objects; `stats`: its `TargetStats`, if computed); see the module
+    doc."""
+    sparse = pred if isinstance(pred, SparseLabels) else SparseLabels.of(pred)
+    stats = TargetStats.of(target, num_objects) if stats is None else stats
+    g1 = num_objects + 1
+    labels = sparse.labels.astype(np.int64)
+    keep = labels <= num_slots
+    joint = np.bincount(labels[keep] * g1 + target.reshape(-1)[sparse.flat[keep]].astype(np.int64),
+                        minlength=(num_slots + 1) * g1).reshape(num_slots + 1, g1)
+    ov = Overlap(joint[1:, 1:].astype(np.float64), joint[1:].sum(1).astype(np.float64), stats.sizes)
+    pc = _sparse_centroids(sparse, num_slots)
+    tc = stats.centroids
     diff = (pc[:, None, :] - tc[None, :, :]) * _CM_PER_VOXEL  # (S, N, 3) cm
     mse = (diff * diff).mean(-1)
     usable = (ov.pred_size > 0)[:, None] & np.isfinite(mse)

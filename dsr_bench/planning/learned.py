@@ -19,21 +19,30 @@ import numpy as np
 import torch
 
 from dsr_bench.constants import GRID_SHAPE
+from dsr_bench.planning.cost import SparseLabels
 
 
-def move_labels(mask: np.ndarray, motion_at: np.ndarray, voxels: np.ndarray) -> np.ndarray:
-    """Forward-warp labels: mask (Y, X, Z) uint8, voxels (M, 3) int64 the labelled voxels' indices, motion_at
-    (B, 3, M) their flow in voxels (dy, dx, dz) -> (B, Y, X, Z) uint8 (labels at round(index + flow))."""
-    b = motion_at.shape[0]
+def moved_labels(mask: np.ndarray, motion_at: np.ndarray, voxels: np.ndarray) -> list[SparseLabels]:
+    """Forward-warp labels: mask (Y, X, Z) uint8, voxels (M, 3) int64 the labelled voxels' indices (C order),
+    motion_at (B, 3, M) their flow in voxels (dy, dx, dz) -> B label volumes (labels at round(index + flow)) as
+    `SparseLabels`; a voxel moved out of the grid is dropped, and of two landing on one the later in C order
+    stays."""
     labels = mask[voxels[:, 0], voxels[:, 1], voxels[:, 2]]
     target = np.rint(voxels.T[None].astype(np.float32) + motion_at).astype(np.int64)  # (B, 3, M)
     shape = np.array(GRID_SHAPE).reshape(1, 3, 1)
     inside = np.all((target >= 0) & (target < shape), axis=1)  # (B, M)
     flat = (target[:, 0] * GRID_SHAPE[1] + target[:, 1]) * GRID_SHAPE[2] + target[:, 2]
-    out = np.zeros((b, int(np.prod(GRID_SHAPE))), np.uint8)
-    rows = np.broadcast_to(np.arange(b)[:, None], flat.shape)
-    out[rows[inside], flat[inside]] = np.broadcast_to(labels, flat.shape)[inside]
-    return out.reshape((b,) + GRID_SHAPE)
+    out = []
+    for f, keep in zip(flat, inside):
+        reversed_flat, reversed_labels = f[keep][::-1], labels[keep][::-1]
+        unique, last = np.unique(reversed_flat, return_index=True)  # the first of the reversed: the last written
+        out.append(SparseLabels(unique, reversed_labels[last], GRID_SHAPE))
+    return out
+
+
+def move_labels(mask: np.ndarray, motion_at: np.ndarray, voxels: np.ndarray) -> np.ndarray:
+    """`moved_labels` as dense volumes (B, Y, X, Z) uint8."""
+    return np.stack([s.dense() for s in moved_labels(mask, motion_at, voxels)])
 
 
 class BatchedModel:
@@ -104,8 +113,8 @@ class BatchedModel:
                 out.append(self.model.motion_of(rep, mask, maps[part]))
         return torch.cat(out)
 
-    def predict(self, actions: np.ndarray) -> np.ndarray:
-        """Candidate actions (B, 3) -> predicted next masks (B, Y, X, Z) uint8 (see the module doc)."""
+    def predict_labels(self, actions: np.ndarray) -> list[SparseLabels]:
+        """Candidate actions (B, 3) -> predicted next masks as `SparseLabels` (see the module doc)."""
         motion = self.motion(actions).cpu().numpy()  # (B, 3, *grid) model voxels
         v = self._voxels
         assert v is not None and self._labels is not None, "observe(tsdf) first"
@@ -114,7 +123,11 @@ class BatchedModel:
         else:
             c = v // self.factor
             at = motion[:, :, c[:, 0], c[:, 1], c[:, 2]] * np.float32(self.factor)
-        return move_labels(self._labels, at.astype(np.float32), v)
+        return moved_labels(self._labels, at.astype(np.float32), v)
+
+    def predict(self, actions: np.ndarray) -> np.ndarray:
+        """Candidate actions (B, 3) -> predicted next masks (B, Y, X, Z) uint8 (see the module doc)."""
+        return np.stack([s.dense() for s in self.predict_labels(actions)])
 
     @torch.no_grad()
     def executed(self, action: np.ndarray) -> None:

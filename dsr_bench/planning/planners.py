@@ -91,6 +91,10 @@ class LearnedPlanner:
     def predict(self, actions: np.ndarray) -> np.ndarray:
         return self._model.predict(actions)
 
+    def predict_labels(self, actions: np.ndarray) -> list:
+        """`predict` as `dsr_bench.planning.cost.SparseLabels` (the runner's path: no dense volumes)."""
+        return self._model.predict_labels(actions)
+
     def executed(self, action: np.ndarray) -> None:
         self._model.executed(action)
 

@@ -20,7 +20,7 @@ from typing import Protocol
 
 import numpy as np
 
-from dsr_bench.planning.cost import centroids, plan_cost
+from dsr_bench.planning.cost import SparseLabels, TargetStats, plan_cost
 from dsr_bench.planning.protocol import CLEAR_CANDIDATES, COST_LAMBDA, DEFAULT_BATCH, PLAN_STEPS
 from dsr_bench.planning.sampling import free_cells, sample_around_masks, sample_clear, sample_uniform, tsdf_footprint
 from dsr_bench.planning.tasks import Task
@@ -65,6 +65,14 @@ class PlanRecord:
     seconds: list[float] = field(default_factory=list)  # planning (not simulation) seconds per step
 
 
+def predicted_labels(planner, actions: np.ndarray) -> list[SparseLabels]:
+    """A planner's predicted next masks of actions (B, 3) as `SparseLabels`: its `predict_labels` where it has one
+    (learned models: no dense volumes), else its dense `predict`."""
+    if hasattr(planner, "predict_labels"):
+        return planner.predict_labels(actions)
+    return [SparseLabels.of(p) for p in planner.predict(actions)]
+
+
 def choose(costs: np.ndarray, clear: np.ndarray, margin: float) -> int:
     """The executed candidate: the cheapest push of an object if its cost (C,) is below the cheapest clear push's
     (`clear` (C,) bool) minus `margin`, else the cheapest clear push (the cheapest of all when there is none of
@@ -84,7 +92,7 @@ def run_plan(task: Task, planner, env: Environment, candidates: int, seed: int =
     rng = np.random.default_rng([int(seed), int(task.seed)])
     n = task.num_objects
     target = task.target_mask
-    target_c = centroids(target, n)[0]
+    stats = TargetStats.of(target, n)
     record = PlanRecord()
     state = env.reset(task)
     record.states.append(state)
@@ -103,17 +111,16 @@ def run_plan(task: Task, planner, env: Environment, candidates: int, seed: int =
             is_clear = np.arange(len(acts)) >= len(acts) - len(keep)
             costs = np.zeros(len(acts))
             pos, iou = np.zeros((len(acts), n)), np.zeros((len(acts), n))
-            cheapest: dict[bool, tuple[int, np.ndarray]] = {}  # per kind (clear or not): the cheapest so far
+            cheapest: dict[bool, tuple[int, SparseLabels]] = {}  # per kind (clear or not): the cheapest so far
             for lo in range(0, len(acts), batch):
-                preds = planner.predict(acts[lo: lo + batch])
-                for j, pred in enumerate(preds):
-                    terms = plan_cost(pred, target, planner.num_slots, n, lam, target_c)
+                for j, pred in enumerate(predicted_labels(planner, acts[lo: lo + batch])):
+                    terms = plan_cost(pred, target, planner.num_slots, n, lam, stats)
                     costs[lo + j], pos[lo + j], iou[lo + j] = terms.total, terms.position_mse, terms.iou
                     kind = bool(is_clear[lo + j])
                     if kind not in cheapest or terms.total < costs[cheapest[kind][0]]:
-                        cheapest[kind] = (lo + j, pred.copy())
+                        cheapest[kind] = (lo + j, pred)
             best = choose(costs, is_clear, margin)
-            best_pred = cheapest[bool(is_clear[best])][1]
+            best_pred = cheapest[bool(is_clear[best])][1].dense()
         action = acts[best]
         planner.executed(action)
         record.seconds.append(time.perf_counter() - start)
