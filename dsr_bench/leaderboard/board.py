@@ -591,7 +591,9 @@ def build(root: str | Path = "leaderboard", warn: Callable[[str], None] | None =
                                     "marked best.") + "</p>")
         about = f"<p>{html.escape(SPLITS[split].description)}.</p>" if split in SPLITS else ""
         about += f"<p class=note>{html.escape(version)}</p>" if version else ""
-        body.append(f"<h2>{html.escape(split)}: {track} track ({html.escape(kind)})</h2>\n{about}{note}"
+        anchor = re.sub(r"[^a-z0-9]+", "-", f"{split} {track} {kind}".lower()).strip("-")  # a link to the table
+        body.append(f"<h2 id=\"{anchor}\">{html.escape(split)}: {track} track ({html.escape(kind)})</h2>\n"
+                    f"{about}{note}"
                     f"{_html_table(header, html_rows, 'board')}{diff_html}{figure}")
     if not rows:
         md.append("No entries yet.")
@@ -678,15 +680,19 @@ _PAGE = """<!doctype html>
 <html lang="en"><head><meta charset="utf-8"><title>dsr-bench leaderboard</title>
 <style>
 body{font-family:system-ui,sans-serif;margin:2em;max-width:1100px}
-table{border-collapse:collapse;margin-bottom:2em}th,td{border:1px solid #ccc;padding:4px 8px;text-align:right}
+table{border-collapse:collapse;margin-bottom:1.2em;font-size:14px}
+th,td{border:1px solid #ccc;padding:3px 6px;text-align:right}td{white-space:nowrap}
 td:first-child,th:first-child{text-align:left}th{cursor:pointer;background:#f4f4f4}.best{font-weight:bold}
 .worse{color:#a00}.note{color:#555}figure{margin:0 0 2em 0}img{max-width:100%}
 </style></head><body>
 <h1>dsr-bench leaderboard</h1>
-<p>Reproduced results (<code>dsr-bench evaluate</code>) and numbers reported in the paper, in separate tables.
-Reference rows (oracle, static = predicting no motion, push) sit beside the trained rows of the same version of a split.
-Click a column to sort. Bold: the best value that is not an oracle's. &#9660; (red): worse than predicting no \
-motion.</p>
+<p>Reproduced results (<code>dsr-bench evaluate</code>, <code>dsr-bench plan</code>) and numbers reported in the
+paper, in separate tables. Reference rows (oracle; static = predicting no motion; push; in planning: no push and
+random) sit beside the trained rows of the same version of a split. A reproduced value is the metric &plusmn; the
+half-width of the 95% confidence interval of the mean over the sequences (tasks); under each table, paired
+differences from the reference rows with their standard errors. Click a column to sort. Bold: the best value that is
+not an oracle's (in planning: only a planner that beats no push and random, paired). &#9660; (red): worse than
+predicting no motion.</p>
 {body}
 <script>
 function sortTable(th){
