@@ -266,3 +266,20 @@ def test_evaluate_plot_has_bands_the_no_motion_line_and_axes_from_zero():
     assert len(fig.axes[0].collections) == 2  # a band under each IoU line
     fig, _ = steps_figure(results, no_motion_note="no no-motion line: none of this split")
     assert "no no-motion line: none of this split" in fig.get_supxlabel()
+
+
+def test_evaluate_finds_the_no_motion_row_of_the_same_split_version(board):
+    """evaluate's plot takes the leaderboard's static entry scored on the same version of the split, and says why
+    when there is none."""
+    from dsr_bench.leaderboard.board import no_motion_entry
+
+    mine = _results("MyNet")
+    assert no_motion_entry(mine, board)[0] is None  # an empty leaderboard
+    _entry(board, _results("static"), "static")
+    found, why = no_motion_entry(mine, board)
+    assert found["method"] == "static" and found["per_step"] == _results("static")["per_step"] and why == ""
+    other = {**mine, "split_checksum": "0123456789ab" + "f" * 52}  # an earlier version of the split
+    found, why = no_motion_entry(other, board)
+    assert found is None and "no static entry scored on this version of 'procedural-novel-mini'" in why
+    assert no_motion_entry(_results("static"), board)[0] is None  # static's own plot: no second line
+    assert "no leaderboard" in no_motion_entry(mine, board / "missing")[1]
