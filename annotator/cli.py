@@ -62,7 +62,8 @@ def annotate(
         check_writable(export, "--export", directory=False)
     if bop is not None:
         check_writable(bop, "--bop")
-    session = Session.open(resolve_capture(capture, captures), work)
+    changes = place is not None or auto or not (status or export is not None or bop is not None)  # else only reads
+    session = Session.open(resolve_capture(capture, captures), work, read_only=not changes)
     for note in session.notes:  # e.g. a journal record a crash cut short, resumed without it
         typer.echo(f"annotate: {note}", err=True)
     if place is not None:

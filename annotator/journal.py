@@ -218,3 +218,88 @@ def append_record(journal: Path, record: dict) -> None:
         f.write(line)
         f.flush()
         os.fsync(f.fileno())
+
+
+# --- the write lock ---------------------------------------------------------------------------------------------------
+#: The lock file in the work directory: held (flock, exclusive) by the one process that may change the annotation; it
+#: names its holder (pid, host, command, since when). The kernel releases it when that process ends, however it ends.
+LOCK_FILE = "lock"
+#: Locks this process holds: the lock file's resolved path -> [file descriptor, sessions sharing it]. Sessions of one
+#: process share the lock (the API's caller orders its own calls); another process is refused.
+_HELD: dict[str, list[int]] = {}
+
+
+def _holder(fd: int) -> str:
+    """Who holds a lock, from what its holder wrote into the lock file."""
+    try:
+        d = json.loads(os.pread(fd, 4096, 0).decode("utf-8") or "{}")
+    except (OSError, ValueError):
+        d = {}
+    if not isinstance(d, dict) or "pid" not in d:
+        return "another process (it has not written its name yet)"
+    return (f"pid {d.get('pid')} on {d.get('host', '?')} (`{str(d.get('command', '?'))[:120]}`, since "
+            f"{d.get('since', '?')})")
+
+
+def acquire_lock(work_dir: Path) -> str:
+    """Take the write lock of the annotation in `work_dir` (created if missing) for this process; returns its key for
+    `release_lock` (and `name_holder`). Another process holding it: a one-line UserError naming the holder (as it
+    wrote itself into the file) and what to do."""
+    import fcntl
+
+    work_dir = Path(work_dir)
+    try:
+        work_dir.mkdir(parents=True, exist_ok=True)
+        path = work_dir / LOCK_FILE
+        key = str(path.resolve())
+        if key in _HELD:
+            _HELD[key][1] += 1
+            return key
+        fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+    except OSError as exc:
+        raise UserError(f"{work_dir}: cannot create the annotation's lock file ({exc.strerror}); give a --work "
+                        "directory you can write to") from None
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        holder = _holder(fd)
+        os.close(fd)
+        raise UserError(f"{work_dir}: this annotation is open for changes by {holder}; close that window or let that "
+                        "command finish, then try again (--status, --export and --bop read it without changing it)"
+                        ) from None
+    _HELD[key] = [fd, 1]
+    return key
+
+
+def name_holder(key: str) -> None:
+    """Write this process (pid, host, command, time) into a lock it holds, for a refused process to name it. Done
+    once the session has opened, so that an open refused for another reason leaves the work directory as it was."""
+    import sys
+    import time
+
+    from dsr_bench.atomic import host_name
+
+    fd = _HELD[key][0]
+    me = {"pid": os.getpid(), "host": host_name(), "command": " ".join(os.path.basename(a) if i == 0 else a
+                                                                        for i, a in enumerate(sys.argv)),
+          "since": time.strftime("%Y-%m-%d %H:%M:%S")}
+    data = json.dumps(me).encode("utf-8")
+    if os.pread(fd, 4096, 0) != data:
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, data, 0)
+
+
+def release_lock(key: str) -> None:
+    """Give back one session's share of a lock taken by `acquire_lock`; the last share unlocks it (the file stays)."""
+    import fcntl
+
+    held = _HELD.get(key)
+    if held is None:
+        return
+    held[1] -= 1
+    if held[1] <= 0:
+        del _HELD[key]
+        try:
+            fcntl.flock(held[0], fcntl.LOCK_UN)
+        finally:
+            os.close(held[0])

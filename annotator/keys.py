@@ -136,11 +136,13 @@ def _go(delta: int, ctl: "Controller") -> None:
 
 
 def _undo(ctl: "Controller") -> None:
-    ctl.view.message = "undone" if ctl.session.undo() else "nothing to undo"
+    what = ctl.session.describe_undo()
+    ctl.view.message = f"undone: {what}; now at step {ctl.session.step}" if ctl.session.undo() else "nothing to undo"
 
 
 def _redo(ctl: "Controller") -> None:
-    ctl.view.message = "redone" if ctl.session.redo() else "nothing to redo"
+    what = ctl.session.describe_redo()
+    ctl.view.message = f"redone: {what}; now at step {ctl.session.step}" if ctl.session.redo() else "nothing to redo"
 
 
 def _from_previous(ctl: "Controller") -> None:

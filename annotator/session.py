@@ -28,9 +28,10 @@ import numpy as np
 
 from annotator import align
 from annotator.align import FitScore
-from annotator.journal import (JOURNAL_FILE, JOURNAL_FORMAT, STATE_FILE, Saved, append_record, capture_digest,
-                               check_file, read_saved, write_snapshot)
-from annotator.state import ACTION_KINDS, AnnotationState, StateError
+from annotator.journal import (JOURNAL_FILE, JOURNAL_FORMAT, STATE_FILE, Saved, acquire_lock, append_record,
+                               capture_digest, check_file, name_holder, read_saved, release_lock,
+                               write_snapshot)
+from annotator.state import ACTION_KINDS, AnnotationState, StateError, describe
 from dsr_bench.atomic import check_writable
 from dsr_bench.dataset.capture import Capture, load_capture
 from dsr_bench.constants import RIG_PUSHER_RADIUS
@@ -155,24 +156,49 @@ class Session:
         self._capture_sha256 = capture_sha256 or capture_digest(capture)  # what state.json and the journal are bound to
         self._state_sha256: str | None = None  # sha256 of the last state.json written or read
         self.notes: list[str] = []  # what resuming had to leave out (a journal's cut-short tail)
+        self.read_only = False  # opened to read (--status, --export): nothing is written, no lock is held
+        self._lock: str | None = None  # the work directory's write lock this session holds (`annotator.journal`)
 
     # opening and saving ------------------------------------------------------------------------------------------
     @classmethod
-    def open(cls, capture_dir: str | Path, work_dir: str | Path | None = None) -> Session:
+    def open(cls, capture_dir: str | Path, work_dir: str | Path | None = None, read_only: bool = False) -> Session:
         """Open a capture (validated) and resume `<work_dir>/state.json` plus its journal if present (default work
         dir: `<capture_dir>/annotation/`). Raises UserError (one line, nothing written) when the saved state is
         unreadable or belongs to another capture, or the journal is not its own or is malformed
         (`annotator.journal`). A journal whose last record is cut short (a crash mid-write) resumes without it,
-        with a note in `notes` (the library prints nothing: `dsr-bench annotate` prints them)."""
+        with a note in `notes` (the library prints nothing: `dsr-bench annotate` prints them).
+
+        To change the annotation the session takes the work directory's write lock first (`annotator.journal.
+        acquire_lock`; held until `close` or the process ends): while another process holds it, opening is refused
+        in one line naming that process. `read_only`: read state.json and its journal without the lock and write
+        nothing (not even the fold of the journal); every change is then refused."""
         capture = load_capture(capture_dir)
         work = Path(work_dir) if work_dir is not None else capture.path / WORK_DIRNAME
-        path = work / STATE_FILE
         digest = capture_digest(capture)
         check_file(work / JOURNAL_FILE, "journal")
-        if not check_file(path, "state"):
+        lock = None
+        if not read_only:
             check_writable(work, "--work")
+            lock = acquire_lock(work)  # before reading: what this process reads is what it alone will change
+        try:
+            session = cls._resume(capture, work, digest, read_only)
+        except BaseException:
+            if lock is not None:
+                release_lock(lock)
+            raise
+        if lock is not None:
+            name_holder(lock)
+        session._lock = lock
+        return session
+
+    @classmethod
+    def _resume(cls, capture: Capture, work: Path, digest: str, read_only: bool) -> Session:
+        path = work / STATE_FILE
+        if not check_file(path, "state"):
             session = cls(capture, work, AnnotationState(capture.name, capture.num_steps, capture.num_objects), digest)
-            session._write_snapshot()
+            session.read_only = read_only
+            if not read_only:
+                session._write_snapshot()
             return session
         try:
             saved = read_saved(work, capture, digest)
@@ -182,10 +208,29 @@ class Session:
         session = cls(capture, work, saved.state, digest)
         session._generation, session._state_sha256 = saved.generation, saved.state_sha256
         session.notes = saved.notes
-        if saved.replayed or saved.notes or not saved.journal_current or not saved.bound:
-            check_writable(work, "--work")
+        session.read_only = read_only
+        if not read_only and (saved.replayed or saved.notes or not saved.journal_current or not saved.bound):
             session._write_snapshot()  # fold the journal in, start one (none yet, or a stale one), or bind them
         return session
+
+    def close(self) -> None:
+        """Give back the write lock (a later `open`, in any process, may change the annotation); the session can
+        no longer be changed. Everything was already saved."""
+        if self._lock is not None:
+            release_lock(self._lock)
+            self._lock = None
+        self.read_only = True
+
+    def __enter__(self) -> Session:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def _writable(self) -> None:
+        if self.read_only:
+            raise UserError(f"{self.work_dir}: this annotation was opened read-only (--status, --export, --bop) or "
+                            "closed; open it without them to change it")
 
     @property
     def state_path(self) -> Path:
@@ -198,6 +243,7 @@ class Session:
     def _write_snapshot(self) -> None:
         """Fold everything into state.json under the next journal generation, bound to the capture's digest, then
         start that generation's journal (`annotator.journal.write_snapshot`: both atomic)."""
+        self._writable()
         self._generation += 1
         self._state_sha256 = write_snapshot(self.work_dir, self.state, self._generation, self._capture_sha256,
                                             self._state_sha256)
@@ -207,6 +253,7 @@ class Session:
         """Make the change just applied in memory durable before the call returns: append its record to the journal
         and fsync it (a few hundred bytes, whatever the history's length); every COMPACT_RECORDS records the
         journal is folded into state.json instead."""
+        self._writable()
         if self._records >= COMPACT_RECORDS:
             self._write_snapshot()
             return
@@ -364,6 +411,7 @@ class Session:
 
     # mutations --------------------------------------------------------------------------------------------------------
     def _commit(self, kind: str, changes: dict, cursor: int | None = None, visit: list[int] | None = None) -> None:
+        self._writable()
         op = self.state.operation(kind, changes, cursor=cursor, visit=visit)
         self.state.apply(op)
         self.state.count(kind)
@@ -376,12 +424,14 @@ class Session:
 
     def select(self, obj: int) -> None:
         """Select object `obj` (the target of the window's keys); saved, not an undoable action."""
+        self._writable()
         self.state.selected = self._check_obj(obj)
         self._save("select")
 
     def init_from_picks(self, obj: int, mesh_points: np.ndarray, cloud_points: np.ndarray) -> np.ndarray:
         """Place object `obj` at the current step from k >= 3 picked pairs: mesh points (k, 3) in the object
         frame and cloud points (k, 3) in the world, metres. Returns the pose (7,); status 'initialised'."""
+        self._writable()
         obj = self._check_obj(obj)
         pose = matrix_to_pose(align.kabsch(mesh_points, cloud_points))
         self._set_pose("pick", obj, pose, "initialised")
@@ -390,6 +440,7 @@ class Session:
     def place(self, obj: int, matrix: np.ndarray) -> np.ndarray:
         """Place object `obj` at the current step at a given 4x4 pose (object -> table frame, metres; e.g. from a
         poses file, `annotator.placement`). Returns the pose (7,); status 'initialised'."""
+        self._writable()
         obj = self._check_obj(obj)
         m = np.asarray(matrix, dtype=np.float64)
         if m.shape != (4, 4) or not np.all(np.isfinite(m)):
@@ -407,6 +458,7 @@ class Session:
 
     def init_from_previous(self, obj: int) -> None:
         """Copy object `obj`'s pose from the nearest earlier step that has one; status 'initialised'."""
+        self._writable()
         obj, step = self._check_obj(obj), self.state.step
         found = self._previous_pose(obj, step)
         if found is None:
@@ -417,6 +469,7 @@ class Session:
         """Move object `obj` at the current step: translation (3,) m and rotation (3,) axis-angle rad about the
         object's centre (its mesh's bounding-box centre), both in table axes (`frame='table'`) or the object's
         axes (`frame='object'`). Status becomes 'initialised'."""
+        self._writable()
         obj = self._check_obj(obj)
         if frame not in ("table", "object"):
             raise UserError(f"frame {frame!r}: use 'table' or 'object'")
@@ -446,6 +499,7 @@ class Session:
         as they were (the snap is counted in memory; the count is written with the next change). Returns the
         score of the kept result, or for a rejection the start pose's score with `accepted` False and the reason;
         `kept` says which (see `SnapScore`)."""
+        self._writable()
         obj, step = self._check_obj(obj), self.state.step
         pose = self._require_pose(obj, step)
         start = pose_to_matrix(pose)
@@ -477,19 +531,30 @@ class Session:
 
     def confirm(self, obj: int) -> None:
         """Mark object `obj`'s pose at the current step as checked by the user ('confirmed')."""
+        self._writable()
         obj, step = self._check_obj(obj), self.state.step
         self._set_pose("confirm", obj, self._require_pose(obj, step), "confirmed")
 
     def undo(self) -> bool:
-        """Revert the latest change exactly; False if there is none."""
+        """Revert the latest change exactly; False if there is none (`describe_undo` says what it reverts)."""
+        self._writable()
         if self.state.undo() is None:
             return False
         self.state.count("undo")
         self._save("undo")
         return True
 
+    def describe_undo(self) -> str | None:
+        """What `undo` would revert now, in words (`annotator.state.describe`); None when there is nothing."""
+        return describe(self.state.undo_stack[-1]) if self.state.undo_stack else None
+
+    def describe_redo(self) -> str | None:
+        """What `redo` would re-apply now, in words; None when there is nothing."""
+        return describe(self.state.redo_stack[-1]) if self.state.redo_stack else None
+
     def redo(self) -> bool:
-        """Re-apply the latest undone change; False if there is none."""
+        """Re-apply the latest undone change; False if there is none (`describe_redo` says what it re-applies)."""
+        self._writable()
         if self.state.redo() is None:
             return False
         self.state.count("redo")
@@ -507,6 +572,7 @@ class Session:
         Moving to a visited step only moves the cursor (not an undoable action); visiting a new step is one.
         """
         step = self._check_step(step)
+        self._writable()
         if self.state.visited[step]:
             if step != self.state.step:
                 self.state.step = step
@@ -625,6 +691,7 @@ class Session:
         each step did (keep it when the fit holds, else snap, search along the push, search the unexplained cloud),
         in step order, each from its (re-carried) source. One undoable action; the other objects and every pose
         set by hand stay as they are. Returns the re-carried steps ([] when nothing is stale)."""
+        self._writable()
         obj = self._check_obj(obj)
         plan = self._recarry_plan(obj, self._step(step))
         if not plan:
@@ -935,6 +1002,7 @@ class Session:
         """Visit every step not yet visited in order (carry forward + snap what moved); returns the objects
         snapped per newly visited step. Step 0 must be initialised (every object posed). `progress(step, last
         step, objects snapped)`: called after each step visited."""
+        self._writable()
         missing = [i for i in range(self.num_objects) if self.state.pose(0, i) is None]
         if missing:
             raise UserError(f"step 0 has objects without a pose ({', '.join(str(i + 1) for i in missing)}): place them "

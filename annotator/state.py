@@ -185,6 +185,47 @@ def _clean_score(score: dict | None) -> dict | None:
     return {k: (None if isinstance(v, float) and math.isnan(v) else v) for k, v in score.items()}
 
 
+#: How an operation kind reads in "undone: ..." / "redone: ..." (the window's message).
+_KIND_WORDS = {"pick": "placing by picked points", "place": "placing", "previous": "taking the previous step's pose",
+               "nudge": "nudge", "snap": "snap", "confirm": "confirming", "step": "the visit of a new step",
+               "recarry": "re-carry"}
+
+
+def _numbers(values) -> str:
+    values = sorted(set(values))
+    return ", ".join(str(v) for v in values[:6]) + (" ..." if len(values) > 6 else "")
+
+
+def _moved(before: list[float] | None, after: list[float] | None) -> str:
+    """How far a pose moved: translation (mm) and rotation (degrees) between two poses (x, y, z, qx, qy, qz, qw)."""
+    if before is None or after is None:
+        return ""
+    a, b = np.asarray(before, np.float64), np.asarray(after, np.float64)
+    qa, qb = a[3:] / np.linalg.norm(a[3:]), b[3:] / np.linalg.norm(b[3:])
+    angle = math.degrees(2.0 * math.acos(min(1.0, abs(float(qa @ qb)))))
+    return f" ({float(np.linalg.norm(b[:3] - a[:3])) * 1000:.1f} mm, {angle:.1f} deg)"
+
+
+def describe(op: Operation) -> str:
+    """What an operation changed, in words, objects numbered from 1 as the window numbers them: "nudge of object 2 at
+    step 3 (4.0 mm, 0.0 deg)", "the visit of a new step: step 4, carrying objects 1, 2, 3"."""
+    words = _KIND_WORDS.get(op.kind, op.kind)
+    objects = _numbers(i + 1 for _, i, _, _ in op.cells)
+    steps = _numbers(st for st, _, _, _ in op.cells)
+    if op.kind == "step":
+        new = [st for st, _, after in op.visited if after] or [op.cursor[1]]
+        return f"{words}: step {_numbers(new)}, carrying object{'s' if len(op.cells) != 1 else ''} {objects or '-'}"
+    if not op.cells:
+        return words
+    plural_o = "s" if len({i for _, i, _, _ in op.cells}) > 1 else ""
+    plural_s = "s" if len({st for st, _, _, _ in op.cells}) > 1 else ""
+    moved = _moved(op.cells[0][2].pose, op.cells[0][3].pose) if len(op.cells) == 1 else ""
+    status = ""
+    if len(op.cells) == 1 and op.cells[0][2].status != op.cells[0][3].status:
+        status = f", status {op.cells[0][2].status} <-> {op.cells[0][3].status}"
+    return f"{words} of object{plural_o} {objects} at step{plural_s} {steps}{moved}{status}"
+
+
 class AnnotationState:
     """Poses, statuses, scores and history of one capture with `num_steps` pushes (T + 1 steps) and N objects."""
 
