@@ -513,7 +513,8 @@ def build(root: str | Path = "leaderboard", warn: Callable[[str], None] | None =
           "standard errors. Bold: the best value that is not an oracle's, marked only where the table holds the",
           "no-motion row to compare with; in a planning table, the best planner only where it beats both no push",
           "and random (the 95% interval of each paired difference above 0). " + _WORSE_MARK + ": worse than",
-          "predicting no motion.",
+          "predicting no motion. Outside planning, bold marks the best mean, not a significant difference: the paired",
+          "differences say whether two rows differ.",
           "Model grid: a 3D model's voxel grid, or the image (H x W) of an image-space model (\"-\" where the paper",
           "does not say).", ""]
     body = []
@@ -691,8 +692,8 @@ paper, in separate tables. Reference rows (oracle; static = predicting no motion
 random) sit beside the trained rows of the same version of a split. A reproduced value is the metric &plusmn; the
 half-width of the 95% confidence interval of the mean over the sequences (tasks); under each table, paired
 differences from the reference rows with their standard errors. Click a column to sort. Bold: the best value that is
-not an oracle's (in planning: only a planner that beats no push and random, paired). &#9660; (red): worse than
-predicting no motion.</p>
+not an oracle's (in planning: only a planner that beats no push and random, paired; elsewhere the best mean, not a
+significant difference). &#9660; (red): worse than predicting no motion.</p>
 {body}
 <script>
 function sortTable(th){
