@@ -34,6 +34,9 @@ OFFICIAL_BN_BATCH = 12
 KERNEL_WORDS = {FLOOR: "floor: ours (base corner floor(p), weights in [0, 1])",
                 OFFICIAL: "official: the authors' kernel (base corner int(p), truncated toward zero)"}
 NO_WARP = "none (this model does not warp its history)"
+#: The fast path in words, for the predictions' meta.json (`fast.FastDSRNet`)
+FAST_WORDS = ("fast: BatchNorm's running statistics folded into the convs, channels_last_3d, fp32 "
+              "(dsr_bench.models.fast; equal to the eager network up to rounding)")
 
 
 @dataclass(frozen=True)
@@ -60,6 +63,15 @@ def batchnorm_words(official_bn: bool, bn_batch: int = 1) -> str:
             "the last batch holds the rest")
 
 
+def fast_by_default(model: DSRNet, device: torch.device, official_bn: bool, bf16: bool) -> bool:
+    """Whether a predictor runs `fast.FastDSRNet` unless told: on a CPU, fp32, with BatchNorm's running statistics
+    (a dsr-bench checkpoint, or the authors' weights with official_bn=False), for a network on the benchmark's full
+    128 x 128 x 48 grid, where a step takes a fraction of a second and the copy pays for itself. The CPU track's
+    32 x 32 x 16 networks keep the eager path, so their shipped predictions stay the same bit for bit."""
+    return (device.type == "cpu" and not official_bn and not bf16 and model.config.voxel_factor == 1
+            and tuple(model.config.grid) == GRID_SHAPE)
+
+
 def warp_name(model: DSRNet) -> str:
     """The kernel that warps the model's history (`warp.WARP_KERNELS`), or "none" for a model that does not warp."""
     return model.warp_kernel if model.config.history in ("warp", "gtwarp") else "none"
@@ -80,16 +92,24 @@ class ModelPredictor:
     step's own statistics, as the official code evaluates: over the sequences run together, `bn_batch`
     of them (`predict_sequences`; `predict_split` groups a split's sequences so). Either way the model's
     running statistics are left as they are (`dsr_net.batchnorm_statistics`). The history is warped with
-    the model's `warp_kernel`."""
+    the model's `warp_kernel`.
+
+    `fast`: run the steps through `fast.FastDSRNet`, a copy of the network made at the first prediction (later
+    changes to the model's weights are not seen), equal to it up to rounding (docs/models.md, "Inference speed
+    on CPU"); None: on where `fast_by_default` says so."""
 
     #: where the weights came from (source, file, sha256, BatchNorm mode, warp kernel), set by the loaders
     weights: dict[str, str]
 
     def __init__(self, model: DSRNet, device: torch.device, official_bn: bool = False, bf16: bool = False,
-                 bn_batch: int = 1):
+                 bn_batch: int = 1, fast: bool | None = None):
         if bn_batch < 1:
             raise UserError(f"--bn-batch {bn_batch}: sequences per batch must be at least 1")
         self.model, self.device, self.bf16, self.official_bn = model, device, bf16, official_bn
+        #: steps run through `fast.FastDSRNet` (BatchNorm folded, channels_last_3d, the restructured warp): `set_fast`
+        self.fast = False
+        self._runner: DSRNet | None = None
+        self.set_fast(fast)
         #: sequences run side by side by `predict_split` (BatchNorm's batch when official_bn)
         self.bn_batch = bn_batch
         config = model.config
@@ -100,6 +120,33 @@ class ModelPredictor:
         #: the grid the network works on (y, x, z), recorded in the predictions' meta.json
         self.grid = tuple(config.grid)
         model.eval()  # the statistics BatchNorm uses are chosen for each sequence (_predict)
+
+    def set_fast(self, fast: bool | None) -> None:
+        """Run the steps through `fast.FastDSRNet` (True), the network itself (False), or where `fast_by_default`
+        says (None). UserError for True with batch statistics (official_bn) or bf16: only running statistics fold
+        into fp32 convs."""
+        if fast and (self.official_bn or self.bf16):
+            raise UserError("fast inference folds BatchNorm's running statistics into fp32 convs: not with batch "
+                            "statistics (the authors' protocol) or bf16; run the network as it is (fast=False)")
+        self.fast = fast_by_default(self.model, self.device, self.official_bn, self.bf16) if fast is None else fast
+        self._runner = None
+
+    @property
+    def runner(self) -> DSRNet:
+        """The network the steps run through: the model, or with `fast` its `FastDSRNet` copy (made once, with the
+        model's warp kernel at that time; made again if the kernel changes)."""
+        if not self.fast:
+            return self.model
+        if self._runner is None or self._runner.warp_kernel != self.model.warp_kernel:
+            from dsr_bench.models.fast import FastDSRNet
+
+            self._runner = FastDSRNet.from_network(self.model)
+        return self._runner
+
+    @property
+    def inference(self) -> str:
+        """How the steps are run, in words, for the predictions' meta.json."""
+        return FAST_WORDS if self.fast else "eager: the network as trained"
 
     def predict_sequence(self, seq: SequenceReader) -> dict[str, np.ndarray]:
         """{"mask": (T, Y, X, Z) uint8, "motion": (T, 3, Y, X, Z) float32} for one sequence (read step by step),
@@ -183,7 +230,7 @@ class ModelPredictor:
             with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=self.bf16), \
                     batchnorm_statistics(self.model, batch=self.official_bn):
                 try:
-                    out = self.model(tsdf.to(self.device), action, state)
+                    out = self.runner(tsdf.to(self.device), action, state)
                 except ValueError as exc:  # batch statistics of a single value (a small grid at batch 1)
                     if self.official_bn and "more than 1 value per channel" in str(exc):
                         raise UserError(f"official BatchNorm (batch statistics) at batch {len(active)} needs more "
@@ -211,26 +258,26 @@ class ModelPredictor:
                         gt_masks.append(np.asarray(mask, np.int64))
                     gt_flow = torch.from_numpy(np.stack(flows)).to(self.device)
                     gt_mask = torch.from_numpy(np.stack(gt_masks)).to(self.device)
-                state = self.model.next_state(out, gt_flow, gt_mask)
+                state = self.runner.next_state(out, gt_flow, gt_mask)
             active = [active[row] for row in going]
             t += 1
         return [{"mask": mask, "motion": motion} for mask, motion in zip(masks, motions)]
 
 
 def load_predictor(model: str, checkpoint: Path, device: str = "cpu", official_bn: bool = False,
-                   bf16: bool = False, warp: str = FLOOR) -> ModelPredictor:
+                   bf16: bool = False, warp: str = FLOOR, fast: bool | None = None) -> ModelPredictor:
     """A predictor from a dsr-bench weights file of a 3D-track model (any role and version of the one weights
     format, `training.checkpoints`: a run's last.pt, a CPU-track weights file, the shipped weights). Our models
-    warp with `warp.FLOOR`, the kernel they were trained with; `warp` overrides it."""
+    warp with `warp.FLOOR`, the kernel they were trained with; `warp` overrides it. fast: `ModelPredictor`'s."""
     dev = torch_device(device)
     net = cast(DSRNet, read_weights(Path(checkpoint), dev, kind=registry.VOXEL, model=model).network(dev))  # VOXEL
     net.set_warp_kernel(check_kernel(warp))
-    return ModelPredictor(net, dev, official_bn, bf16)
+    return ModelPredictor(net, dev, official_bn, bf16, fast=fast)
 
 
 def load_official_predictor(model: str, weights: Path, device: str = "cpu", official_bn: bool = True,
                             bf16: bool = False, warp: str = OFFICIAL,
-                            bn_batch: int = OFFICIAL_BN_BATCH) -> ModelPredictor:
+                            bn_batch: int = OFFICIAL_BN_BATCH, fast: bool | None = None) -> ModelPredictor:
     """A predictor from the authors' released weights (dsr.pth, dsr_ft.pth, single.pth, nowarp.pth,
     gtwarp.pth, 3dflow.pth; `dsr_bench.models.official_weights`) on the official 128 x 128 x 48 grid, run
     as the authors ran them by default: the history warped with their kernel (`warp.OFFICIAL`, which they
@@ -238,7 +285,8 @@ def load_official_predictor(model: str, weights: Path, device: str = "cpu", offi
     `bn_batch` = 12 consecutive sequences of a split (`predict_split`; the last batch holds the rest, as
     their unshuffled DataLoader's last batch does). `warp=warp.FLOOR`, `bn_batch=1` or official_bn=False
     (running statistics) depart from it. The predictor's `weights` records the file (source, name,
-    sha256), the BatchNorm mode and the warp kernel, and its description says the same."""
+    sha256), the BatchNorm mode and the warp kernel, and its description says the same. fast: `ModelPredictor`'s
+    (it applies with official_bn=False only)."""
     from dsr_bench.dataset.manifest import file_sha256
     from dsr_bench.models.official_weights import check_release_name, convert_official_state, read_official_file
 
@@ -249,7 +297,7 @@ def load_official_predictor(model: str, weights: Path, device: str = "cpu", offi
     net = DSRNet(ModelConfig.for_model(model))
     net.load_state_dict(state)  # strict: the converter returns exactly our keys, shapes checked
     net.set_warp_kernel(check_kernel(warp))
-    predictor = ModelPredictor(net.to(dev), dev, official_bn, bf16, bn_batch if official_bn else 1)
+    predictor = ModelPredictor(net.to(dev), dev, official_bn, bf16, bn_batch if official_bn else 1, fast=fast)
     predictor.weights = {"source": "official", "file": weights.name, "sha256": file_sha256(weights),
                          "batchnorm": batchnorm_words(official_bn, predictor.bn_batch), "warp": warp_words(net)}
     warps = warp_name(net)

@@ -123,14 +123,17 @@ def shipped_weights(model: str) -> Path | None:
 
 
 def load_predictor(model: str, checkpoint: Path | None = None, device: str = "cpu", weights: Path | None = None,
-                   official_bn: bool | None = None, warp: str | None = None, bn_batch: int | None = None) -> Predictor:
+                   official_bn: bool | None = None, warp: str | None = None, bn_batch: int | None = None,
+                   fast: bool | None = None) -> Predictor:
     """The predictor `model` (an entry of `dsr_bench.models.registry`, whose kind chooses the loader): a learned
     model needs a dsr-bench `checkpoint` or the authors' released `weights` (dsr.pth ... 3dflow.pth). official_bn:
     BatchNorm with batch statistics (the official code's way) or running statistics (eval); None: batch statistics
     for the authors' weights, eval mode for a dsr-bench checkpoint. warp: the history warp's kernel
     (`warp.WARP_KERNELS`); None: the authors' ("official") for their weights, ours ("floor") for a dsr-bench
     checkpoint. bn_batch: sequences normalised together with the authors' weights; None: their test protocol's
-    12 (`inference.OFFICIAL_BN_BATCH`)."""
+    12 (`inference.OFFICIAL_BN_BATCH`). fast: a 3D-track model's steps through `models.fast.FastDSRNet` (equal up
+    to rounding); None: where `inference.fast_by_default` says (on a CPU, fp32, BatchNorm's running statistics,
+    the full 128 x 128 x 48 grid), which `dsr-bench predict` relies on."""
     entry = registry.model_entry(model)
     if weights is not None and not entry.released:
         raise UserError(f"--weights is for the authors' released models ({', '.join(registry.released())}), "
@@ -148,7 +151,12 @@ def load_predictor(model: str, checkpoint: Path | None = None, device: str = "cp
                         "a dsr-bench checkpoint runs BatchNorm with its running statistics")
     if bn_batch is not None and bn_batch < 1:
         raise UserError(f"--bn-batch {bn_batch}: sequences per batch must be at least 1 (12: the authors' protocol)")
-    return _LOADERS[entry.kind](entry, checkpoint, device, weights, official_bn, warp, bn_batch)
+    if fast and entry.kind != registry.VOXEL:
+        raise UserError(f"fast inference is for the 3D track's learned models, not --model {model}")
+    predictor = _LOADERS[entry.kind](entry, checkpoint, device, weights, official_bn, warp, bn_batch)
+    if fast is not None and entry.kind == registry.VOXEL:
+        predictor.set_fast(fast)  # type: ignore[attr-defined]  # (a ModelPredictor)
+    return predictor
 
 
 def _load_reference(entry: registry.ModelEntry, checkpoint: Path | None, device: str, weights: Path | None,
@@ -254,6 +262,8 @@ def predict_split(predictor: Predictor, data_dir: str | Path, names: list[str], 
                               else {"grid": list(getattr(predictor, "grid", GRID_SHAPE))})},
             "seconds_per_step": seconds / max(steps, 1),
             "hardware": f"{os.cpu_count()} CPU cores"}
+    if getattr(predictor, "fast", False):  # how the steps were run, where it is not the eager network
+        meta["parameters"]["inference"] = predictor.inference  # type: ignore[attr-defined]
     weights = getattr(predictor, "weights", None)
     if weights:  # where a learned model's weights came from; also under parameters, which results carry
         meta["weights"] = weights
