@@ -125,7 +125,7 @@ CLEAR_CANDIDATES: int = 10
 #: A learned planner's margin (cost units: an IoU of 1 on one object is 1): it pushes an object only when that
 #: push's predicted cost beats the best clear push's by more than this, else it keeps the scene (a clear push).
 #: Chosen on the validation tasks `plan-val` (training objects), never on plan-novel-test (docs/planning.md).
-PLAN_MARGIN: float = 0.2
+PLAN_MARGIN: float = 0.75
 #: Voxels at or above this z index count as above the table for footprints (8 mm > FREE_HEIGHT).
 FOOTPRINT_MIN_Z: int = 2
 

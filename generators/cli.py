@@ -11,7 +11,7 @@ import typer
 
 from dsr_bench.engine_options import (RayAddress, Slurm, SlurmLocal, SlurmLogs, SlurmPartition, SlurmTasks,
                                          SlurmTime)
-from dsr_bench.constants import CAMERAS, MODEL_CAMERA
+from dsr_bench.constants import CAMERAS, MODEL_CAMERA, PLAN_MARGIN
 from generators.objects import OBJECT_SET_NAMES
 
 OBJECT_SETS_HELP = " | ".join(OBJECT_SET_NAMES)
@@ -185,8 +185,10 @@ def plan(
     num_tasks: int | None = typer.Option(None, "--num-tasks", "-n", help="Only the first N tasks (partial "
                                             "results)."),
     margin: float | None = typer.Option(None, "--margin", help="Push an object only when its predicted cost beats "
-                                        "the best clear push's by this (default: 0.2 for a learned model, 0 for "
-                                        "the oracle)."),
+                                        f"the best clear push's by this (default: {PLAN_MARGIN} for a learned "
+                                        "model, 0 for the oracle)."),
+    masks: str = typer.Option("model", "--masks", help="A learned planner's objects of the current state: model "
+                              "(its mask head) | observed (from the TSDF's geometry)."),
 ) -> None:
     """Plan 3 pushes per task with MPC (sample candidates, score by the paper's cost, execute the best in pybullet),
     write a plan file per task and results.json (final-vs-target voxel IoU per task and mean).
@@ -202,7 +204,7 @@ def plan(
         job = bar.add_task(f"plan {model}", total=num_tasks or _size(tasks))
         r = plan_tasks(model, tasks, out, candidates, workers, seed, checkpoint, device, num_tasks,
                        progress=lambda: bar.advance(job), warn=lambda line: typer.echo(f"warning: {line}", err=True),
-                       margin=margin)
+                       margin=margin, masks=masks)
     m = r["metrics"]
     typer.echo(f"{r['method']} on {r['task_set']} ({r['coverage']['scored']}/{r['coverage']['expected']} tasks"
                f"{', pinned' if r['pinned'] else ''}): IoU {m['iou']:.4f} (start {m['start_iou']:.4f}), occupancy IoU "

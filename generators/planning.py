@@ -196,14 +196,15 @@ def _not_simulated(*args):
     raise RuntimeError("this planner only describes the run: its plans run in the workers' simulators")
 
 
-def _planner(model: str, env: SimEnvironment, checkpoint: str | None, device: str):
+def _planner(model: str, env: SimEnvironment, checkpoint: str | None, device: str, masks: str):
     from dsr_bench.planning.planners import make_planner
 
     if model == "oracle":
         return make_planner("oracle", (env.current_mask, env.simulate))
-    key = (model, checkpoint, device)
+    key = (model, checkpoint, device, masks)
     if _WORKER.get("planner_key") != key:
-        _WORKER["planner"] = make_planner(model, checkpoint=Path(checkpoint) if checkpoint else None, device=device)
+        _WORKER["planner"] = make_planner(model, checkpoint=Path(checkpoint) if checkpoint else None, device=device,
+                                          masks=masks)
         _WORKER["planner_key"] = key
     return _WORKER["planner"]
 
@@ -216,17 +217,17 @@ def _plan_job(job: tuple) -> tuple[str, dict, str | None]:
     from dsr_bench.planning.results import score_plan
     from dsr_bench.planning.tasks import read_task
 
-    task_path, out, model, checkpoint, device, candidates, seed, batch, name, ground_truth, margin = job
+    task_path, out, model, checkpoint, device, candidates, seed, batch, name, ground_truth, margin, masks = job
     task = read_task(task_path)  # the digests recomputed from its arrays
     if task.name != name or task.ground_truth_sha256 != ground_truth:
         raise UserError(f"{task_path} changed after it was verified (another process writing the tasks?); run again")
-    done, note = _finished(Path(out) / f"{name}.h5", task, model, checkpoint, candidates, seed, margin)
+    done, note = _finished(Path(out) / f"{name}.h5", task, model, checkpoint, candidates, seed, margin, masks)
     if done is not None:
         return name, done, None
     _one_thread()
     env = SimEnvironment()
     try:
-        planner = _planner(model, env, checkpoint, device)
+        planner = _planner(model, env, checkpoint, device, masks)
         start = time.perf_counter()
         record = run_plan(task, planner, env, candidates, seed=seed, batch=batch, margin=margin, clear=_clear())
         seconds = time.perf_counter() - start
@@ -238,7 +239,7 @@ def _plan_job(job: tuple) -> tuple[str, dict, str | None]:
     attrs = {"task": task.name, "task_file": task.path.name, "task_ground_truth_sha256": task.ground_truth_sha256,
              "model": model, "checkpoint": str(checkpoint or ""), "planner": planner.name,
              "description": planner.description, "candidates": candidates, "seed": seed, "lambda": _lambda(),
-             "margin": margin, "clear": _clear(), **scores}
+             "margin": margin, "clear": _clear(), "masks": masks, **scores}
     write_plan(Path(out) / f"{name}.h5", arrays, attrs)
     return name, scores, note
 
@@ -250,19 +251,19 @@ def _steps() -> int:
 
 
 def _finished(path: Path, task, model: str, checkpoint: str | None, candidates: int,
-              seed: int, margin: float) -> tuple[dict | None, str | None]:
-    """(scores, None) of an existing plan file of this task made with the same planner, checkpoint, candidates,
-    seed, lambda, margin and clear candidates (a rerun resumes): recomputed from its stored final state against the
-    verified task, never read from its attributes. (None, None) when there is no such file or it is another run's
-    (planned again, the file replaced); (None, a warning line) when the file is not a valid plan of its task
-    (planned again too)."""
+              seed: int, margin: float, masks: str) -> tuple[dict | None, str | None]:
+    """(scores, None) of an existing plan file of this task made with the same planner, checkpoint, candidates, seed,
+    lambda, margin, clear candidates and masks (a rerun resumes): recomputed from its stored final state against
+    the verified task, never read from its attributes. (None, None) when there is no such file or it is another
+    run's (planned again, the file replaced); (None, a warning line) when the file is not a valid plan of its
+    task (planned again too)."""
     from dsr_bench.planning.plans import read_plan_attrs
     from dsr_bench.planning.verify import PlanMismatch, plan_scores
 
     if not path.is_file():
         return None, None
     same = {"model": model, "checkpoint": str(checkpoint or ""), "candidates": candidates, "seed": seed,
-            "lambda": _lambda(), "margin": margin, "clear": _clear()}
+            "lambda": _lambda(), "margin": margin, "clear": _clear(), "masks": masks}
     try:
         attrs = read_plan_attrs(path)
     except UserError as exc:
@@ -290,7 +291,8 @@ def _clear() -> int:
 
 def plan_tasks(model: str, tasks: str, out: Path, candidates: int, workers: int = 1, seed: int = 0,
                checkpoint: Path | None = None, device: str = "cpu", num_tasks: int | None = None,
-               batch: int | None = None, progress=None, warn=None, margin: float | None = None) -> dict:
+               batch: int | None = None, progress=None, warn=None, margin: float | None = None,
+               masks: str = "model") -> dict:
     """Run a planner on a task directory (or a named set's data/<name>), write one plan file per task and
     OUT/results.json; return the results (`dsr_bench.planning.results.build_results`). The tasks are verified first
     (`dsr_bench.planning.verify.verify_tasks`: a task that differs from the pin is one line to `warn` and makes
@@ -298,7 +300,8 @@ def plan_tasks(model: str, tasks: str, out: Path, candidates: int, workers: int 
     and seed are kept and rescored from their final states (a rerun resumes); an invalid one is planned again
     with a line to `warn`. `margin`: what an object push's predicted cost must beat the best clear push's by
     (`dsr_bench.planning.runner.choose`; default the planner's own: PLAN_MARGIN for a learned model, 0 for the
-    oracle)."""
+    oracle). `masks`: a learned planner's masks of the current state, its network's ("model") or the objects its
+    TSDF shows ("observed", `dsr_bench.planning.observed`)."""
     import json
 
     from dsr_bench.atomic import write_text
@@ -328,16 +331,17 @@ def plan_tasks(model: str, tasks: str, out: Path, candidates: int, workers: int 
         warn(line)
     names = verified.names[: num_tasks] if num_tasks else verified.names
     _one_thread()
-    describe = make_planner(model, (_not_simulated, _not_simulated)) if model in ("random", "oracle") else \
-        make_planner(model, checkpoint=checkpoint, device=device)  # fails fast on a bad model or checkpoint
+    describe = make_planner(model, (_not_simulated, _not_simulated), masks=masks) if model in ("random", "oracle") \
+        else make_planner(model, checkpoint=checkpoint, device=device, masks=masks)  # fails fast on bad options
     if model not in ("random", "oracle"):  # in this process, the workers' planner (workers=1) is this one
-        _WORKER["planner"], _WORKER["planner_key"] = describe, (model, str(checkpoint) if checkpoint else None, device)
+        _WORKER["planner"] = describe
+        _WORKER["planner_key"] = (model, str(checkpoint) if checkpoint else None, device, masks)
     margin = float(describe.margin if margin is None else margin)
     check_writable(out)
     out.mkdir(parents=True, exist_ok=True)
     batch = batch or DEFAULT_BATCH
     jobs = [(str(verified.path(name)), str(out), model, str(checkpoint) if checkpoint else None, device, candidates,
-             seed, batch, name, verified.digests[name], margin) for name in names]
+             seed, batch, name, verified.digests[name], margin, masks) for name in names]
     outcomes = run_in_order(_plan_job, jobs, workers, (lambda done, total: progress()) if progress else None)
     per_task = {}
     for name, scores, note in outcomes:
@@ -352,14 +356,15 @@ def plan_tasks(model: str, tasks: str, out: Path, candidates: int, workers: int 
     command = shlex.join(["dsr-bench", "plan", "--model", model, "--tasks", str(tasks), "--out", str(out),
                           "--candidates", str(candidates), "--seed", str(seed), "--margin", repr(margin)]
                          + (["--num-tasks", str(num_tasks)] if num_tasks else [])
-                         + (["--checkpoint", str(checkpoint)] if checkpoint else []))
+                         + (["--checkpoint", str(checkpoint)] if checkpoint else [])
+                         + (["--masks", masks] if masks != "model" else []))
     planner = {"name": describe.name, "description": describe.description}
     if getattr(describe, "weights", None):
         planner["weights"] = describe.weights
     if getattr(describe, "grid", None):
         planner["grid"] = [int(g) for g in describe.grid]
     parameters = {"candidates": candidates, "seed": seed, "lambda": _lambda(), "steps": _steps(), "margin": margin,
-                  "clear": _clear(),
+                  "clear": _clear(), "masks": masks,
                   "hardware": f"{os.cpu_count()} CPU cores", "workers": workers}
     # the checksum recomputed from the task files (tasks.json is never trusted); a prefix of a named set is partial
     out_results = build_results(per_task, planner, {"task_set": verified.task_set, "checksum": verified.checksum},

@@ -70,17 +70,19 @@ class LearnedPlanner:
     predicts = True
     margin = PLAN_MARGIN
 
-    def __init__(self, predictor):
+    def __init__(self, predictor, masks: str = "model"):
         from dsr_bench.planning.learned import BatchedModel
 
         self.predictor = predictor
-        self.name = predictor.name
-        self.description = predictor.description
+        self.masks = masks
+        self.name = predictor.name if masks == "model" else f"{predictor.name}+{masks}"
+        self.description = predictor.description + ("" if masks == "model" else
+                                                    "; the current state's objects from the TSDF's geometry")
         self.num_slots = predictor.num_slots
         self.weights = getattr(predictor, "weights", None)
         #: the grid the network works on (y, x, z), recorded in the results and shown on the leaderboard
         self.grid = tuple(getattr(predictor, "grid", ()))
-        self._model = BatchedModel(predictor)
+        self._model = BatchedModel(predictor, masks)
 
     def reset(self) -> None:
         self._model.reset()
@@ -100,9 +102,16 @@ class LearnedPlanner:
 
 
 def make_planner(name: str, oracle_callbacks: tuple[Callable, Callable] | None = None,
-                 checkpoint: Path | None = None, device: str = "cpu"):
+                 checkpoint: Path | None = None, device: str = "cpu", masks: str = "model"):
     """A planner by name. `oracle` needs `oracle_callbacks` = (current, simulate) from a simulator; a learned
-    model loads `checkpoint` or, without one, the shipped CPU-track weights."""
+    model loads `checkpoint` or, without one, the shipped CPU-track weights, and takes its masks of the current
+    state from `masks` (`dsr_bench.planning.learned.PLANNER_MASKS`)."""
+    from dsr_bench.planning.learned import PLANNER_MASKS
+
+    if masks not in PLANNER_MASKS:
+        raise UserError(f"--masks {masks!r}: choose one of {', '.join(PLANNER_MASKS)}")
+    if masks != "model" and name in ("random", "oracle"):
+        raise UserError(f"--masks {masks}: only a learned model's masks can be replaced ({name} has none to replace)")
     if name == "random":
         return RandomPlanner()
     if name == "oracle":
@@ -117,4 +126,4 @@ def make_planner(name: str, oracle_callbacks: tuple[Callable, Callable] | None =
     if name not in LEARNED_MODELS or name == "gtwarp":
         raise UserError(f"--model {name!r}: choose one of {', '.join(PLANNER_NAMES)} (gtwarp needs ground-truth "
                         "flow, which a plan has not)")
-    return LearnedPlanner(load_predictor(name, checkpoint, device))
+    return LearnedPlanner(load_predictor(name, checkpoint, device), masks)

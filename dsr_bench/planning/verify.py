@@ -15,8 +15,8 @@ verified").
   differences        the fields where two results dicts differ
 
 Recomputed: method and planner name and description (from the plan files), task_set, split, task_checksum,
-split_checksum, pinned, plans_checksum, coverage, parameters candidates/seed/lambda/steps/margin/clear (from the plan
-files), every per-task score and every metric but tasks_per_minute. Self-reported (read from results.json or, for
+split_checksum, pinned, plans_checksum, coverage, parameters candidates/seed/lambda/steps/margin/clear/masks (from the
+plan files), every per-task score and every metric but tasks_per_minute. Self-reported (read from results.json or, for
 seconds, the plan files, and never ranked on): per-task seconds and tasks_per_minute (timing), planner weights and
 grid, parameters hardware and workers, command, toolkit_version and date. The final state in a plan file is the record
 of what the simulator did; it is checked for shape and range, not re-simulated.
@@ -38,7 +38,7 @@ from dsr_bench.errors import UserError
 
 SCORE_KEYS = ("iou", "iou_identity", "iou_occupancy", "start_iou", "start_iou_identity", "start_iou_occupancy")
 #: the plan attributes that say how a plan was made (one run's plans share them)
-RUN_KEYS = ("model", "checkpoint", "planner", "description", "candidates", "seed", "lambda", "margin", "clear")
+RUN_KEYS = ("model", "checkpoint", "planner", "description", "candidates", "seed", "lambda", "margin", "clear", "masks")
 TASK_NAME = re.compile(r"task_\d{4}")
 _HEX64 = re.compile(r"[0-9a-f]{64}")
 
@@ -264,6 +264,7 @@ def recompute_results(plans_dir: Path, tasks: str | Path | None = None) -> dict:
         reported = {}
     parameters = {"candidates": _plain(run["candidates"]), "seed": _plain(run["seed"]), "lambda": _plain(run["lambda"]),
                   "steps": PLAN_STEPS, "margin": _plain(run["margin"]), "clear": _plain(run["clear"]),
+                  "masks": _plain(run["masks"]),
                   "hardware": reported.get("hardware"), "workers": reported.get("workers")}
     out = build_results(per_task, planner, {"task_set": verified.task_set, "checksum": verified.checksum},
                         verified.expected, [plans_dir / f"{name}.h5" for name in planned], submitted.get("command"),
