@@ -31,7 +31,9 @@ motion (voxels). Speed: `--repeats` rounds, in each every variant in turn runs `
 first sequence (interleaved, so a change of the shared machine's load falls on all variants alike); per
 variant the median wall time of a step over all rounds (steps/s = 1 / median) and the median process CPU
 time of a step (all threads; under load it counts only the time this process ran). The machine's load average
-is printed before and after: the figures mean something only next to it.
+is printed before and after: the figures mean something only next to it, and so is OMP_WAIT_POLICY: on a
+shared machine OpenMP's default spin-waiting makes two threads far slower than one whenever another process holds
+a core (docs/models.md, "Inference speed on CPU"); it is read when torch loads, so set it in the environment.
 """
 
 from __future__ import annotations
@@ -226,7 +228,8 @@ def main() -> None:
 
     print(f"DSR-Net ({args.model}) on the 128 x 128 x 48 grid, full width, random weights in the authors' layout "
           f"(seed {args.seed}), BatchNorm running statistics, batch 1")
-    print(f"machine: {cpu_name()}, {os.cpu_count()} cores, torch {torch.__version__}, {args.threads} threads; "
+    print(f"machine: {cpu_name()}, {os.cpu_count()} cores, torch {torch.__version__}, {args.threads} threads, "
+          f"OMP_WAIT_POLICY={os.environ.get('OMP_WAIT_POLICY', '(unset)')}; "
           f"load average (1, 5, 15 min) before {tuple(round(x, 2) for x in load_before)}, "
           f"after {tuple(round(x, 2) for x in load_after)}")
     print(f"equality: {len(sequences)} sequences of {args.data} ({split}), steps 0-{args.steps - 1}, chained; "
@@ -246,7 +249,8 @@ def main() -> None:
     if args.json:
         figures = {"model": args.model, "seed": args.seed, "data": str(args.data), "split": split, "sequences": names,
                    "steps": args.steps, "repeats": args.repeats, "timed_steps": args.timed_steps,
-                   "threads": args.threads, "machine": cpu_name(), "cores": os.cpu_count(),
+                   "threads": args.threads, "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY"),
+                   "machine": cpu_name(), "cores": os.cpu_count(),
                    "torch": torch.__version__, "load_before": load_before, "load_after": load_after, "rows": rows}
         write_text(Path(args.json), json.dumps(figures, indent=1) + "\n")
 

@@ -153,3 +153,19 @@ def test_predict_runs_a_full_grid_checkpoint_through_the_fast_path(generated_dat
     with h5py.File(out / f"{names[0]}.h5", "r") as f:
         mask, motion = f["mask"][()], f["motion"][()].astype(np.float32)
     _within_tolerance(mask, motion, want)
+
+
+def test_slot_labels_are_the_first_argmax_in_either_memory_layout():
+    """`labels.slot_labels` (argmax over channels laid out last, then a table): the labels of the plain argmax,
+    ties going to the first slot, for contiguous and channels-last masks."""
+    from dsr_bench.models.labels import slot_labels
+
+    g = torch.Generator().manual_seed(3)
+    mask = torch.softmax(torch.randn(2, 5, 6, 7, 4, generator=g), 1)
+    mask[:, :, 0] = 0.2  # every slot tied on one plane: the first (slot 0 -> label 1) wins
+    argmax = mask.argmax(1)
+    expected = torch.where(argmax == 4, 0, argmax + 1).to(torch.uint8)
+    for layout in (torch.contiguous_format, torch.channels_last_3d):
+        got = slot_labels(mask.contiguous(memory_format=layout))
+        assert got.dtype == torch.uint8 and torch.equal(got, expected)
+    assert (expected[:, 0] == 1).all() and set(expected.unique().tolist()) == {0, 1, 2, 3, 4}

@@ -6,8 +6,8 @@ running statistics (eval mode), fp32, in less time on a CPU:
 - **BatchNorm folded into the convolutions**: every conv -> BatchNorm pair becomes one conv with a bias
   (w' = w * gamma / sqrt(var + eps), b' = beta - mean * gamma / sqrt(var + eps), computed in fp64), so
   oneDNN runs one kernel where eager ran two passes over the volume;
-- **channels_last_3d** weights and inputs: every 3D conv runs through oneDNN (in the default layout torch
-  sends the convs on the small volumes of the encoder's bottom to its slow reference kernel);
+- **channels_last_3d** weights and inputs, and every 3D conv through oneDNN (`OneDNNConv3d`: torch sends the
+  batch-1 convs on the small volumes of the encoder's bottom and the SE(3) head to its slow reference kernel);
 - **the history warp restructured** (`fast_forward_warp`): the per-axis corner weights, bounds and index
   strides computed once instead of once per corner, and the splat accumulated channel-major. It gives the
   same bits as `warp.forward_warp` for both kernels (the same products in the same order, the same
@@ -29,6 +29,28 @@ from torch import nn
 
 from dsr_bench.models.dsr_net import ConvBlock, DSRNet, ResBlock, batchnorm_layers
 from dsr_bench.models.warp import FLOOR, check_kernel
+
+
+class OneDNNConv3d(nn.Conv3d):
+    """A Conv3d that a CPU always runs through oneDNN (fp32). torch sends a batch-1 conv whose batch x channels x
+    D0 x D1 is under 20,480 to its slow reference kernel: the encoder's bottom and the SE(3) head (64 channels on
+    16 x 16 x 6: 13.5 ms there, 0.7 ms in oneDNN). Elsewhere (a GPU, bf16) it is a plain Conv3d."""
+
+    def _conv_forward(self, input: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | None) -> torch.Tensor:
+        if (input.device.type == "cpu" and input.dtype == torch.float32 == weight.dtype and self.padding_mode == "zeros"
+                and isinstance(self.padding, tuple) and torch.backends.mkldnn.is_available()):
+            return torch.ops.aten.mkldnn_convolution(input, weight, bias, self.padding, self.stride, self.dilation,
+                                                     self.groups)
+        return super()._conv_forward(input, weight, bias)
+
+
+def _onednn(conv: nn.Conv3d) -> OneDNNConv3d:
+    """The same conv (its weights shared) as a OneDNNConv3d."""
+    out = OneDNNConv3d(conv.in_channels, conv.out_channels, cast(tuple, conv.kernel_size), cast(tuple, conv.stride),
+                       cast(tuple, conv.padding), cast(tuple, conv.dilation), conv.groups, conv.bias is not None,
+                       device="meta")
+    out.weight, out.bias = conv.weight, conv.bias
+    return out
 
 
 def _folded(conv: nn.Module, norm: nn.Module) -> nn.Module:
@@ -125,6 +147,10 @@ class FastDSRNet(DSRNet):
         fast.load_state_dict(net.state_dict())
         fast.to(net.coords.device)
         fold_batchnorm_(fast)
+        for parent in list(fast.modules()):
+            for name, child in list(parent.named_children()):
+                if type(child) is nn.Conv3d:
+                    setattr(parent, name, _onednn(child))
         fast.to_channels_last()
         fast.set_warp_kernel(net.warp_kernel)
         return fast.eval()
