@@ -2,6 +2,9 @@
 
     python bench/bench_plan.py [--tasks DIR] [--num-tasks 2] [--candidates 100] [--planners random,oracle,dsr]
 
+A planner is a name, or name:masks for a learned one (e.g. 3dflow:observed, `dsr-bench plan --masks`); each runs
+with its own margin (`dsr-bench plan`'s default).
+
 Without --tasks it generates the first --num-tasks tasks of plan-novel-mini in a temporary directory. Each
 planner runs once over the tasks in this process (`dsr_bench.planning.runner.run_plan` in
 `generators.planning.SimEnvironment`; the dsr planner with the shipped CPU-track weights), after a warm-up task
@@ -45,21 +48,23 @@ def main() -> None:
         tasks = [read_task(task_dir / e["file"]) for e in entries]
         print(f"{len(tasks)} tasks of {task_dir}, {args.candidates} candidates per step, 1 process, "
               f"torch threads {torch.get_num_threads()}")
-        print(f"{'planner':<8} {'s/task wall':>12} {'s/task CPU':>11} {'tasks/min':>10} {'planning %':>11} {'IoU':>7}")
+        print(f"{'planner':<16} {'s/task wall':>12} {'s/task CPU':>11} {'tasks/min':>10} {'planning %':>11} {'IoU':>7}")
         for name in args.planners.split(","):
             env = SimEnvironment()
-            planner = make_planner(name, (env.current_mask, env.simulate)) if name == "oracle" else make_planner(name)
+            model, _, masks = name.partition(":")
+            planner = make_planner(model, (env.current_mask, env.simulate)) if model == "oracle" else \
+                make_planner(model, masks=masks or "model")
             run_plan(tasks[0], planner, env, min(args.candidates, 4), steps=1)  # warm-up
             wall0, cpu0, planning, ious = time.perf_counter(), time.process_time(), 0.0, []
             for task in tasks:
-                record = run_plan(task, planner, env, args.candidates)
+                record = run_plan(task, planner, env, args.candidates, margin=planner.margin)
                 planning += sum(record.seconds)
                 ious.append(score_plan(record.states[-1].mask_3d, record.states[0].mask_3d, task.target_mask,
                                        task.num_objects)["iou"])
             wall, cpu = time.perf_counter() - wall0, time.process_time() - cpu0
             env.close()
             n = len(tasks)
-            print(f"{name:<8} {wall / n:>12.2f} {cpu / n:>11.2f} {60 * n / wall:>10.2f} "
+            print(f"{name:<16} {wall / n:>12.2f} {cpu / n:>11.2f} {60 * n / wall:>10.2f} "
                   f"{100 * planning / wall:>10.0f}% {float(np.mean(ious)):>7.3f}")
 
 

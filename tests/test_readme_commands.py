@@ -57,7 +57,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
         ("needs", "`dsr-bench generate --split cpu-train --out "),
     "dsr-bench generate-plan-tasks --tasks plan-novel-test --out data/plan-novel-test":
         ("long", "simulates the 100 planning tasks"),
-    "dsr-bench plan --model dsr --tasks plan-novel-test --out plans/dsr":
+    "dsr-bench plan --model 3dflow --masks observed --tasks plan-novel-test --out plans/3dflow":
         ("needs", "`dsr-bench generate-plan-tasks --tasks plan-novel-test --out data/plan-novel-test`"),
     "dsr-bench generate-captures --out captures -n 5": ("long", "simulates 5 captures"),
     "dsr-bench annotate seq_0000 --captures captures": ("window", "captures/seq_0000"),
