@@ -2,7 +2,7 @@
 
     nice -n 5 python bench/bench_inference.py --data DIR [--split NAME] [--sequences 2] [--steps 4]
         [--repeats 3] [--timed-steps 3] [--variants eager fast ...] [--threads 2] [--model dsr] [--seed 0]
-        [--json OUT.json]
+        [--end-to-end] [--json OUT.json]
 
 The network: random weights in the authors' layout on the benchmark's 128 x 128 x 48 grid at full width
 (`bench_official_protocol.random_official_state`: fan-in scaled convs, BatchNorm running statistics near
@@ -23,14 +23,19 @@ Variants (each a network run step by step: forward, then the warped history for 
 - `fast-compile`: `fast`'s forward through torch.compile (inductor, freezing; compile time printed; the warp
   compiled was slower than `fast_forward_warp`, 0.25 vs 0.12-0.16 s, so it stays eager);
 - `fast-bf16`: `fast` under bf16 autocast (the softmax, pivots, blending and warp stay fp32);
-- `fast-1-thread`: `fast` with torch.set_num_threads(1) (the others use `--threads`).
+- `fast-1-thread`: `fast` with torch.set_num_threads(1) (the others use `--threads`);
+- `onnxruntime`: `fast`'s network (BatchNorm folded, plain layout) exported to ONNX (opset 17) and run by ONNX
+  Runtime's CPU provider with `--threads` threads; the warp stays `fast_forward_warp` (needs `onnx` and
+  `onnxruntime`, not dependencies of dsr-bench).
 
 Equality, per variant: every step of every sequence run as a chain (its own history), against `eager`'s chain:
 the share of voxels whose predicted slot (argmax) agrees, and the largest and mean absolute difference of the
 motion (voxels). Speed: `--repeats` rounds, in each every variant in turn runs `--timed-steps` steps of the
 first sequence (interleaved, so a change of the shared machine's load falls on all variants alike); per
 variant the median wall time of a step over all rounds (steps/s = 1 / median) and the median process CPU
-time of a step (all threads; under load it counts only the time this process ran). The machine's load average
+time of a step (all threads; under load it counts only the time this process ran). `--end-to-end` also times
+`predict_split` over the first sequence (the network saved as a dsr-bench weights file, eager and fast in turn):
+reading, predicting (with the 2D flow when the data has the front camera) and writing. The machine's load average
 is printed before and after: the figures mean something only next to it, and so is OMP_WAIT_POLICY: on a
 shared machine OpenMP's default spin-waiting makes two threads far slower than one whenever another process holds
 a core (docs/models.md, "Inference speed on CPU"); it is read when torch loads, so set it in the environment.
@@ -52,7 +57,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # bench_official_protocol: the random weights
 
 VARIANTS = ("eager", "eager-1-thread", "channels-last", "fast", "fast-jit", "fast-compile", "fast-bf16",
-            "fast-1-thread")
+            "fast-1-thread", "onnxruntime")
 
 
 def cpu_name() -> str:
@@ -110,6 +115,30 @@ class _Forward:
         return lambda tsdf, action, state: dict(zip(self.keys, fn(tsdf, action, state)))
 
 
+def _onnx_forward(wrapper: _Forward, fast, threads: int, example: tuple):
+    """The folded network exported to ONNX and run by ONNX Runtime: (tsdf, action, state) -> outputs dict."""
+    try:
+        import onnxruntime as ort
+    except ImportError:
+        raise SystemExit("error: the onnxruntime variant needs `pip install onnx onnxruntime`") from None
+    import torch
+
+    fast.channels_last = False  # ONNX has no memory formats: export the plain layout
+    with tempfile.TemporaryDirectory(prefix="dsr-bench-onnx-") as tmp, torch.no_grad():
+        path = Path(tmp) / "dsr.onnx"
+        torch.onnx.export(wrapper.module, example, str(path), dynamo=False, opset_version=17,
+                          input_names=["tsdf", "action", "state"], output_names=list(_Forward.keys))
+        options = ort.SessionOptions()
+        options.intra_op_num_threads, options.inter_op_num_threads = threads, 1
+        session = ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
+
+    def forward(tsdf, action, state):
+        feeds = {"tsdf": tsdf.numpy(), "action": action.numpy(), "state": state.contiguous().numpy()}
+        return dict(zip(_Forward.keys, (torch.from_numpy(a) for a in session.run(None, feeds))))
+
+    return forward
+
+
 def make_runner(name: str, net, threads: int, example: tuple):
     """The variant `name` of the eval-mode network `net` (not changed); `example` (tsdf, action, state) for
     tracing and compiling."""
@@ -121,11 +150,17 @@ def make_runner(name: str, net, threads: int, example: tuple):
         return Runner(name, net, 1 if name == "eager-1-thread" else threads)
     if name == "channels-last":
         return Runner(name, copy.deepcopy(net).to_channels_last(), threads)
-    fast = FastDSRNet.from_network(net)
+    fast = FastDSRNet.from_network(net, onednn=name not in ("fast-compile", "onnxruntime"))  # plain convs there
     if name in ("fast", "fast-bf16", "fast-1-thread"):
         return Runner(name, fast, 1 if name == "fast-1-thread" else threads, bf16=name == "fast-bf16")
     runner = Runner(name, fast, threads)
     wrapper = _Forward(fast)
+    if name == "onnxruntime":
+        start = time.perf_counter()
+        runner.forward = _onnx_forward(wrapper, fast, threads, example)
+        runner.step(*example)
+        runner.setup_seconds = time.perf_counter() - start
+        return runner
     start = time.perf_counter()
     torch.set_num_threads(threads)
     with torch.no_grad():
@@ -145,6 +180,31 @@ def make_runner(name: str, net, threads: int, example: tuple):
     return runner
 
 
+def predict_split_times(net, data: str, name: str, repeats: int) -> dict[str, list]:
+    """`predict_split` of sequence `name` with `net` saved as a dsr-bench weights file and loaded as `predict
+    --checkpoint` loads it, eager (fast=False) and fast in turn, `repeats` times: per run the wall time per step
+    and meta.json's seconds_per_step (reading and predicting, without writing)."""
+    from dsr_bench.dataset.sequence import SequenceReader
+    from dsr_bench.models.predictors import load_predictor, predict_split
+    from dsr_bench.models.training.checkpoints import save_weights
+
+    with SequenceReader(Path(data) / f"{name}.h5") as seq:
+        steps = seq.num_steps
+    out: dict[str, list] = {"eager": [], "fast": []}
+    with tempfile.TemporaryDirectory(prefix="dsr-bench-inference-") as tmp:
+        weights = save_weights(Path(tmp) / "full.pt", net.config, net.state_dict(), "weights")
+        predictors = {label: load_predictor(net.config.name, weights, fast=label == "fast") for label in out}
+        for _ in range(repeats):
+            for label, predictor in predictors.items():
+                target = Path(tmp) / label
+                start = time.perf_counter()
+                predict_split(predictor, data, [name], target)
+                wall = time.perf_counter() - start
+                meta = json.loads((target / "meta.json").read_text())
+                out[label].append({"wall_per_step": wall / steps, "predict_per_step": meta["seconds_per_step"]})
+    return out
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--data", required=True, help="Dataset directory on the benchmark's grid.")
@@ -157,6 +217,9 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=2, help="torch threads (the aim: 2 cores).")
     parser.add_argument("--model", default="dsr", help="dsr, single, nowarp or 3dflow (gtwarp needs the truth).")
     parser.add_argument("--seed", type=int, default=0, help="Seed of the random weights.")
+    parser.add_argument("--end-to-end", action="store_true",
+                        help="Also time `predict_split` (what `dsr-bench predict --checkpoint` runs) over the first "
+                             "sequence, eager and fast in turn, `--repeats` times: reading, predicting and writing.")
     parser.add_argument("--json", help="Also write the figures to this JSON file.")
     args = parser.parse_args()
     if args.model == "gtwarp":
@@ -224,6 +287,9 @@ def main() -> None:
     for _ in range(args.repeats):
         for runner in runners:
             chain(runner, tsdf, actions, min(args.timed_steps, len(tsdf)), times[runner.name])
+    end_to_end: dict[str, list] = {"eager": [], "fast": []}
+    if args.end_to_end:
+        end_to_end = predict_split_times(net, args.data, names[0], args.repeats)
     load_after = os.getloadavg()
 
     print(f"DSR-Net ({args.model}) on the 128 x 128 x 48 grid, full width, random weights in the authors' layout "
@@ -246,8 +312,16 @@ def main() -> None:
                      "setup_s": runner.setup_seconds, "step_times_s": [t[0] for t in times[runner.name]], **eq})
         print(f"{runner.name:14s} {1 / wall:8.2f} {wall:9.3f} {cpu:7.2f} {runner.setup_seconds:8.1f} "
               f"{eq['mask_agreement_pct']:14.4f} {eq['motion_max_abs_diff']:11.3g} {eq['motion_mean_abs_diff']:12.3g}")
+    for label, runs in end_to_end.items():
+        if runs:
+            wall = statistics.median(r["wall_per_step"] for r in runs)
+            predicting = statistics.median(r["predict_per_step"] for r in runs)
+            print(f"predict_split, {label}: {1 / wall:.2f} steps/s end to end ({wall:.3f} s a step, median of "
+                  f"{len(runs)}), of which {predicting:.3f} s reading and predicting and {wall - predicting:.3f} s "
+                  "writing the predictions")
     if args.json:
-        figures = {"model": args.model, "seed": args.seed, "data": str(args.data), "split": split, "sequences": names,
+        figures = {"end_to_end": end_to_end,
+                   "model": args.model, "seed": args.seed, "data": str(args.data), "split": split, "sequences": names,
                    "steps": args.steps, "repeats": args.repeats, "timed_steps": args.timed_steps,
                    "threads": args.threads, "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY"),
                    "machine": cpu_name(), "cores": os.cpu_count(),

@@ -34,11 +34,13 @@ from dsr_bench.models.warp import FLOOR, check_kernel
 class OneDNNConv3d(nn.Conv3d):
     """A Conv3d that a CPU always runs through oneDNN (fp32). torch sends a batch-1 conv whose batch x channels x
     D0 x D1 is under 20,480 to its slow reference kernel: the encoder's bottom and the SE(3) head (64 channels on
-    16 x 16 x 6: 13.5 ms there, 0.7 ms in oneDNN). Elsewhere (a GPU, bf16) it is a plain Conv3d."""
+    16 x 16 x 6: 13.5 ms there, 0.7 ms in oneDNN). Elsewhere (a GPU, bf16, under torch.compile) it is a plain
+    Conv3d."""
 
     def _conv_forward(self, input: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | None) -> torch.Tensor:
         if (input.device.type == "cpu" and input.dtype == torch.float32 == weight.dtype and self.padding_mode == "zeros"
-                and isinstance(self.padding, tuple) and torch.backends.mkldnn.is_available()):
+                and isinstance(self.padding, tuple) and torch.backends.mkldnn.is_available()
+                and not torch.compiler.is_compiling()):  # (the op has no fake-tensor rule; inductor picks its own)
             return torch.ops.aten.mkldnn_convolution(input, weight, bias, self.padding, self.stride, self.dilation,
                                                      self.groups)
         return super()._conv_forward(input, weight, bias)
@@ -140,14 +142,15 @@ class FastDSRNet(DSRNet):
     place of the network for forward passes and `next_state`; it is not for training (no BatchNorm)."""
 
     @classmethod
-    def from_network(cls, net: DSRNet) -> FastDSRNet:
+    def from_network(cls, net: DSRNet, onednn: bool = True) -> FastDSRNet:
         """The fast copy of `net` (its weights, running statistics and warp kernel; `net` is not changed).
+        `onednn=False` keeps plain Conv3d modules (for torch.compile, which lowers the convs itself).
         ValueError if a BatchNorm layer of `net` keeps no running statistics."""
         fast = cls(net.config)
         fast.load_state_dict(net.state_dict())
         fast.to(net.coords.device)
         fold_batchnorm_(fast)
-        for parent in list(fast.modules()):
+        for parent in list(fast.modules()) if onednn else []:
             for name, child in list(parent.named_children()):
                 if type(child) is nn.Conv3d:
                     setattr(parent, name, _onednn(child))
