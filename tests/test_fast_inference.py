@@ -110,6 +110,24 @@ def test_fast_predictor_equals_the_eager_one_within_tolerance_along_a_sequence()
     assert batchnorm_layers(net)
 
 
+@pytest.mark.parametrize("model", ["nowarp", "single", "3dflow", "gtwarp"])
+def test_every_voxel_model_runs_fast_within_tolerance_in_a_batch_of_unequal_sequences(model):
+    """The baselines (their history unwarped, none, 3DFlow's conv motion, GTWarp warped by the ground truth), two
+    sequences of 4 and 2 steps run side by side (`predict_arrays_batch`: the shorter one leaves the batch)."""
+    net = _network(model, seed=1)
+    seqs = []
+    for seed, steps in ((5, 4), (6, 2)):
+        tsdf, actions = _sequence(seed, steps)
+        flow = np.zeros((steps, 3) + SMALL, np.float32)
+        flow[:, 1][tsdf < 0] = 1.0  # the box moves one voxel along D1 a step
+        seqs.append((tsdf, actions, flow, (tsdf < 0).astype(np.uint8)))
+    eager = ModelPredictor(net, torch.device("cpu"), fast=False).predict_arrays_batch(seqs)
+    fast = ModelPredictor(net, torch.device("cpu"), fast=True).predict_arrays_batch(seqs)
+    for want, got in zip(eager, fast):
+        assert got["mask"].shape == want["mask"].shape
+        _within_tolerance(got["mask"], got["motion"], want)
+
+
 def test_fast_runner_follows_the_networks_warp_kernel():
     net = _network()
     predictor = ModelPredictor(net, torch.device("cpu"), fast=True)
