@@ -330,4 +330,9 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    from dsr_bench.errors import UserError
+
+    try:
+        main()
+    except UserError as exc:  # a missing dataset or split: one line, not a traceback
+        raise SystemExit(f"error: {exc}") from None
