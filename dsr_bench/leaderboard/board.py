@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import html
 import json
-import math
 import re
 import sys
 from collections.abc import Callable
@@ -28,14 +27,11 @@ from dsr_bench.errors import UserError
 from dsr_bench.models.predictors import REFERENCE_MODELS
 from dsr_bench.leaderboard.entries import (PLAN_RESULTS_FORMAT, RESULTS_FORMAT, check_entry, entry_identity,
                                        entry_name, first_difference, is_2d_only, markdown_cell, show)
-from dsr_bench.scoring.metrics import METRICS, TRACKS as METRIC_TRACKS, metric_keys
+from dsr_bench.leaderboard.table import (COLUMN_TITLES, LOWER_IS_BETTER, NO_MOTION, NO_PUSH, SEQ, TRACKS,  # noqa: F401
+                                         _WORSE_MARK, _difference, _yardsticks, html_table, is_oracle, md_row,
+                                         render_table)
 from dsr_bench.scoring.plots import FIGURE_WIDTH_PX, is_reference_method
-from dsr_bench.scoring.spread import Spread, paired_difference, spread, unit_values
-
-#: each track's columns: its headline metrics (`dsr_bench.scoring.metrics.METRICS`), titled and ranked as they say
-TRACKS = {track: metric_keys((track,), ("headline",)) for track in METRIC_TRACKS}
-LOWER_IS_BETTER = {m.key for m in METRICS if m.role == "headline" and m.lower_is_better}
-COLUMN_TITLES = {**{m.key: m.column for m in METRICS if m.column}, "planning_iou": "planning IoU"}
+from dsr_bench.scoring.spread import paired_difference, unit_values
 
 
 def add_entry(results_path: str | Path, root: str | Path = "leaderboard", label: str | None = None,
@@ -296,12 +292,6 @@ def planning_rows(results_files: list[str | Path], include_paper: bool = True) -
     return rows
 
 
-#: the planning tables' reference row of not pushing at all (the tasks' start IoUs)
-NO_PUSH = "no push (planning)"
-#: where a row keeps its per-unit values ({sequence or task: {column: value}}), from which spread is computed
-SEQ = "_per_unit"
-
-
 def _tables(rows: list[dict]):
     import pandas as pd
 
@@ -323,125 +313,6 @@ def _tables(rows: list[dict]):
             yield split, kind, track, table, cols
 
 
-_WORSE_MARK = "\u25bc"
-
-
-#: Rows that bound the benchmark from above: never "best" (ground truth as predictions, or a model
-#: warped with the ground-truth flow).
-def is_oracle(method: str) -> bool:
-    """Whether a row is an oracle: its method is `oracle` or says "oracle" (e.g. "GTWarp (oracle warp)"), or it is
-    GTWarp (`gtwarp`, `gtwarp-cpu`: its history is warped by the ground-truth flow)."""
-    name = str(method).lower()
-    return "oracle" in name or name.startswith("gtwarp")
-
-
-#: The reference row every trained row must beat: predicting no motion.
-NO_MOTION = "static"
-
-
-def _best(table, column):
-    """The best non-oracle value of a column, or None (no bold) when the table has no no-motion reference row
-    of reproduced results: a best that cannot be compared with predicting no motion is not marked."""
-    values = table[[not is_oracle(m) for m in table["method"]]][column].dropna()
-    if values.empty:
-        return None
-    return values.min() if column in LOWER_IS_BETTER else values.max()
-
-
-def _worse_than_no_motion(table, column, row) -> bool:
-    """Whether a trained row's value is worse than the no-motion reference row's in the same table."""
-    ref = table[table["method"] == NO_MOTION][column].dropna()
-    if ref.empty or row["method"] == NO_MOTION or is_oracle(row["method"]) or row[column] != row[column]:
-        return False
-    return row[column] > ref.iloc[0] if column in LOWER_IS_BETTER else row[column] < ref.iloc[0]
-
-
-def _decimals(value: float, column: str) -> int:
-    """Decimals shown for a value of `column`: 3 for an IoU, else 4 significant digits."""
-    if column.startswith(("iou", "planning")):
-        return 3
-    if value == 0 or value != value or math.isinf(value):
-        return 0
-    return max(0, 3 - math.floor(math.log10(abs(value))))
-
-
-def _fmt(value, column, published: bool = False) -> str:
-    """A value as shown: an IoU with 3 decimals, a flow MSE with 4 significant digits (0 as "0"; a `published`
-    number as the paper prints it, at most 4 digits), "-" for none."""
-    if value is None or value != value:
-        return "-"
-    if published and not column.startswith(("iou", "planning")):
-        return f"{value:.4g}"
-    return f"{value:.{_decimals(value, column)}f}"
-
-
-def _plus_minus(value: float, half: float, column: str) -> str:
-    """`half` (a spread's half-width or standard error) with the decimals of `value`, or 2 significant digits
-    when `value` is 0."""
-    if half != half:
-        return ""
-    digits = _decimals(value, column) if value else max(0, 1 - math.floor(math.log10(half))) if half > 0 else 0
-    return f" \u00b1 {half:.{digits}f}"
-
-
-def _spread_of(row, column) -> Spread:
-    """The spread of a row's per-unit (sequence or task) values of `column`."""
-    return spread(list(unit_values(row[SEQ], column).values()))
-
-
-def _cell(row, column) -> str:
-    """A metric's cell: the row's value and, where the row holds per-unit values, the half-width of its 95%
-    interval over them."""
-    text = _fmt(row[column], column)
-    s = _spread_of(row, column)
-    return text + (_plus_minus(row[column], s.half, column) if text != "-" and s.n >= 2 else "")
-
-
-def _difference(d: Spread, column: str) -> str:
-    """A paired difference's cell: its mean with sign and its standard error; "-" without two units."""
-    if d.n < 2:
-        return "-"
-    digits = 3 if column.startswith(("iou", "planning")) else max(
-        0, 1 - math.floor(math.log10(d.se))) if d.se > 0 else 3
-    return f"{d.mean:+.{digits}f} \u00b1 {d.se:.{digits}f}"
-
-
-def _yardsticks(table, track: str) -> list[str]:
-    """The reference rows a table's rows are compared with, pairwise: static and push, or in a planning table
-    no push and random."""
-    names = (NO_PUSH, "random (planning)") if track == "planning" else (NO_MOTION, "push")
-    return [n for n in names if (table["method"] == n).any()]
-
-
-def _learned_best(table, yardsticks: list[str]) -> float | None:
-    """The planning IoU to bold: the highest of the planners (not a reference row) whose paired difference from
-    each yardstick (no push, random) has a 95% interval above 0; None when none has, or a yardstick is missing."""
-    if len(yardsticks) < 2:
-        return None
-    bases = [unit_values(table[table["method"] == y].iloc[0][SEQ], "planning_iou") for y in yardsticks]
-    winners = [r["planning_iou"] for _, r in table.iterrows() if not is_reference_method(r["method"]) and all(
-        (d := paired_difference(unit_values(r[SEQ], "planning_iou"), b)).excludes_zero and d.mean > 0 for b in bases)]
-    return max(winners) if winners else None
-
-
-def _md_row(cells: list[str]) -> str:
-    return "| " + " | ".join(cells) + " |"
-
-
-def _html_table(header: list[str], rows: list[list[tuple[str, str | None, str]]], css: str) -> str:
-    """A sortable table: rows of (text, sort value, classes) cells."""
-    ths = "".join(f"<th onclick=\"sortTable(this)\">{html.escape(h)}</th>" for h in header)
-    body = []
-    for cells in rows:
-        tds = []
-        for text, value, classes in cells:
-            attrs = (f' data-v="{html.escape(value)}"' if value is not None else "") + \
-                (f' class="{classes}"' if classes else "")
-            tds.append(f"<td{attrs}>{text}</td>")
-        body.append("<tr>" + "".join(tds) + "</tr>")
-    return f"<table class={css}><thead><tr>{ths}</tr></thead><tbody>{''.join(body)}</tbody></table>"
-
-
 def _difference_tables(table, track: str, cols: list[str]) -> tuple[list[str], str]:
     """Markdown and HTML of a reproduced table's paired differences: per yardstick, every other row that is not an
     oracle, row - yardstick per sequence (task), mean and standard error over the units both scored."""
@@ -460,18 +331,18 @@ def _difference_tables(table, track: str, cols: list[str]) -> tuple[list[str], s
         header = ["method", *[f"{COLUMN_TITLES[c]} - {name}" for c in cols], f"{unit}s"]
         title = (f"Paired differences from {name} (row - {name}, {unit} by {unit}; mean \u00b1 standard error over "
                  f"the {unit}s both scored):")
-        md += [title, "", _md_row(header), "|" + "---|" * len(header)]
+        md += [title, "", md_row(header), "|" + "---|" * len(header)]
         html_rows = []
         for r in others:
             diffs = [paired_difference(unit_values(r[SEQ], c), unit_values(base[SEQ], c)) for c in cols]
             n = max((d.n for d in diffs), default=0)
-            md.append(_md_row([markdown_cell(r["method"]), *[_difference(d, c) for d, c in zip(diffs, cols)],
+            md.append(md_row([markdown_cell(r["method"]), *[_difference(d, c) for d, c in zip(diffs, cols)],
                                str(n)]))
             html_rows.append([(html.escape(str(r["method"])), None, ""),
                               *[(html.escape(_difference(d, c)), "" if d.n < 2 else repr(d.mean), "")
                                 for d, c in zip(diffs, cols)], (str(n), str(n), "")])
         md.append("")
-        page.append(f"<p class=note>{html.escape(title)}</p>" + _html_table(header, html_rows, "diff"))
+        page.append(f"<p class=note>{html.escape(title)}</p>" + html_table(header, html_rows, "diff"))
     return md, "".join(page)
 
 
@@ -526,49 +397,13 @@ def build(root: str | Path = "leaderboard", warn: Callable[[str], None] | None =
         if version:
             md += [version, ""]
         paper = kind == "reported in the paper"
-        yardsticks = _yardsticks(table, track) if not paper else []
-        inline = yardsticks if track == "planning" else []  # a planning table's paired differences: its own columns
-        header = ["method", "model grid", *[COLUMN_TITLES[c] for c in cols],
-                  *[f"vs {y.replace(' (planning)', '')} (paired, \u00b1 SE)" for y in inline], "note", "toolkit",
-                  "date", "split checksum"]
-        if track == "planning":
-            comparable = not paper and len(yardsticks) == 2
-            best = {c: _learned_best(table, yardsticks) if not paper else _best(table, c) for c in cols}
-        else:
-            comparable = not paper and (table["method"] == NO_MOTION).any()
-            best = {c: _best(table, c) if comparable or paper else None for c in cols}
+        rendered = render_table(table, track, cols, published=paper)
+        comparable, inline = rendered.comparable, track == "planning"
         if not paper and not comparable:
             md += [("This table lacks the no push or the random reference row: no planner is marked best." if
                     track == "planning" else "No no-motion (static) row was scored on this version of the split: "
                     "these rows cannot be compared with predicting no motion, and none is marked best."), ""]
-        md += [_md_row(header), "|" + "---|" * len(header)]
-        html_rows = []
-        for _, r in table.iterrows():
-            cells, tds = [], []
-            for c in cols:
-                text = _cell(r, c) if not paper else _fmt(r[c], c, published=True)
-                top = best[c] is not None and r[c] == best[c] and not is_oracle(r["method"]) and not (
-                    track == "planning" and is_reference_method(r["method"]))
-                worse = _worse_than_no_motion(table, c, r)
-                cells.append((f"**{text}**" if top else text) + (f" {_WORSE_MARK}" if worse else ""))
-                classes = " ".join(k for k, on in (("best", top), ("worse", worse)) if on)
-                value = "" if r[c] != r[c] else repr(float(r[c]))  # NaN: no value to sort on
-                tds.append((html.escape(text) + (f" {_WORSE_MARK}" if worse else ""), value, classes))
-            for y in inline:
-                base = table[table["method"] == y].iloc[0]
-                d = paired_difference(unit_values(r[SEQ], "planning_iou"), unit_values(base[SEQ], "planning_iou"))
-                text = "-" if r["method"] == y else _difference(d, "planning_iou")
-                cells.append(text)
-                tds.append((html.escape(text), "" if text == "-" else repr(d.mean), ""))
-            label = r["label"]
-            if not paper and is_reference_method(r["method"]) and "reference" not in str(label):
-                label = "reference" + (f"; {label}" if label else "")
-            md.append(_md_row([markdown_cell(r["method"]), markdown_cell(r["grid"]), *cells, markdown_cell(label),
-                               markdown_cell(r["toolkit"]), markdown_cell(r["date"]), markdown_cell(r["checksum"])]))
-            html_rows.append([(html.escape(str(r["method"])), None, ""), (html.escape(str(r["grid"])), None, ""),
-                              *tds, (html.escape(str(label)), None, ""), (html.escape(str(r["toolkit"])), None, ""),
-                              (html.escape(str(r["date"])), None, ""),
-                              (f"<code>{html.escape(str(r['checksum']))}</code>", None, "")])
+        md += rendered.markdown
         md.append("")
         diff_md, diff_html = _difference_tables(table, track, cols) if not paper and not inline else ([], "")
         md += diff_md
@@ -595,7 +430,7 @@ def build(root: str | Path = "leaderboard", warn: Callable[[str], None] | None =
         anchor = re.sub(r"[^a-z0-9]+", "-", f"{split} {track} {kind}".lower()).strip("-")  # a link to the table
         body.append(f"<h2 id=\"{anchor}\">{html.escape(split)}: {track} track ({html.escape(kind)})</h2>\n"
                     f"{about}{note}"
-                    f"{_html_table(header, html_rows, 'board')}{diff_html}{figure}")
+                    f"{rendered.html('board')}{diff_html}{figure}")
     if not rows:
         md.append("No entries yet.")
     page = _PAGE.replace("{body}", "\n".join(body) or "<p>No entries yet.</p>")
