@@ -66,7 +66,7 @@ def _folded(conv: nn.Module, norm: nn.Module) -> nn.Module:
     if conv.bias is not None:
         bias = bias + conv.bias.detach().double() * scale
     fused = type(conv)(conv.in_channels, conv.out_channels, cast(tuple, conv.kernel_size), cast(tuple, conv.stride),
-                       cast(tuple, conv.padding), bias=True)
+                       cast(tuple, conv.padding), cast(tuple, conv.dilation), conv.groups, bias=True)
     shape = (-1,) + (1,) * (conv.weight.dim() - 1)
     with torch.no_grad():
         fused.weight.copy_((conv.weight.detach().double() * scale.view(shape)).to(conv.weight.dtype))
