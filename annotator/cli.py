@@ -49,11 +49,21 @@ def annotate(
     bop: Optional[Path] = typer.Option(None, "--bop", help="Also (or only) export as a BOP dataset to this directory "
                                        "(camera.json, models/ with models_info.json, test/<scene per camera>/ with "
                                        "scene_gt, scene_camera, scene_gt_info, rgb, depth, mask, mask_visib)."),
+    window_size: Optional[str] = typer.Option(None, "--window-size", help="Screen size WxH (px) to lay the windows "
+                                              "out in, e.g. 1600x1000 (default: the display's)."),
 ) -> None:
     """Annotate object poses in a two-camera capture; without flags, open the annotation window."""
     from annotator.session import Session
     from dsr_bench.errors import UserError
 
+    screen = None
+    if window_size is not None:  # checked before any work
+        from annotator.layout import MIN_SCREEN, parse_window_size
+
+        screen = parse_window_size(window_size)
+        if screen[0] < MIN_SCREEN[0] or screen[1] < MIN_SCREEN[1]:
+            raise UserError(f"--window-size {window_size} is smaller than {MIN_SCREEN[0]}x{MIN_SCREEN[1]}; "
+                            "give a larger screen size")
     if allow_unchecked and export is None and bop is None:
         raise UserError("--allow-unchecked only applies to --export OUT.h5 or --bop DIR")
     from dsr_bench.atomic import check_writable
@@ -107,7 +117,7 @@ def annotate(
     except ImportError as exc:
         raise UserError(f"the annotation window is unavailable ({exc}); use --status, --auto or --export") from None
     try:
-        window.run(session)
+        window.run(session, screen=screen)
     except UserError:
         raise
     except Exception as exc:  # noqa: BLE001 - GL/display failures surface as various errors

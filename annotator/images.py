@@ -20,6 +20,10 @@ STATUS_COLORS: dict[str, tuple[float, float, float]] = {
     "snapped": (0.2, 0.8, 0.85),
     "confirmed": (0.25, 0.8, 0.3),
 }
+#: Capture colours in the 3D view keep at most this saturation (HSV), so that no object's own colour can be taken for
+#: a status colour (`muted_colors`); every status colour drawn in 3D is at least STATUS_MIN_SATURATION.
+MUTED_SATURATION = 0.3
+STATUS_MIN_SATURATION = 0.6
 #: Silhouettes keep the parts of a mesh at least this far in front of the camera (m, camera z): a ray through a
 #: pixel centre sees what lies in front of the camera, and the projection of points nearer than this overflows.
 SILHOUETTE_NEAR = 1e-6
@@ -154,3 +158,19 @@ def resize_image(image: np.ndarray, width: int, height: int) -> np.ndarray:
     if image.shape[:2] == (height, width):
         return np.asarray(image, np.uint8)
     return np.asarray(Image.fromarray(np.asarray(image, np.uint8)).resize((width, height), Image.Resampling.BILINEAR))
+
+
+def muted_colors(colors: np.ndarray, saturation: float = MUTED_SATURATION) -> np.ndarray:
+    """RGB colours (M, 3) 0..1 with their HSV saturation scaled down to at most `saturation` (hue and value kept):
+    the 3D view's capture colours, which then cannot be mistaken for the saturated status colours."""
+    rgb = np.clip(np.asarray(colors, np.float64), 0.0, 1.0)
+    mx = rgb.max(-1, keepdims=True)
+    return mx - (mx - rgb) * float(saturation)
+
+
+def residual_ramp(x: np.ndarray) -> np.ndarray:
+    """RGB (M, 3) 0..1 of residuals x (M,) as fractions of the scale: blue (0) through green and yellow to red (1),
+    the ramp of `annotator.session.Session.residual_colors`."""
+    x = np.clip(np.asarray(x, np.float64), 0.0, 1.0)
+    return np.stack([np.clip(2 * x, 0, 1), np.clip(2 - 2 * x, 0, 1) * np.clip(2 * x + 0.5, 0, 1),
+                     np.clip(1 - 2 * x, 0, 1)], axis=1)

@@ -11,7 +11,8 @@ from typing import Sequence
 
 import numpy as np
 
-from annotator.images import object_colors, outline_overlay, resize_image, scaled_camera
+from annotator.images import (SELECTED_COLOR, STATUS_COLORS, object_colors, outline_overlay, residual_ramp,
+                               resize_image, scaled_camera)
 from annotator.keys import ViewState, format_score, key_help_lines, object_name
 from dsr_bench.errors import UserError
 
@@ -19,6 +20,11 @@ from dsr_bench.errors import UserError
 PANEL_TEXT_WIDTH = 380
 PANEL_IMAGE_WIDTH = 480
 PANEL_FONT_SIZE = 14
+#: The colour legend: (label, RGB 0..1) of the selected object and each status, as meshes and outlines use them.
+LEGEND: list[tuple[str, tuple[float, float, float]]] = [("selected", SELECTED_COLOR)] + [
+    (name, rgb) for name, rgb in STATUS_COLORS.items()]
+#: The residual colour scale's top (m): `Session.residual_colors`' default `max_residual`.
+RESIDUAL_SCALE = 0.01
 #: Panel-sized colour images kept in memory ((step, camera) pairs).
 IMAGE_CACHE = 8
 #: Fit scores kept in memory before the cache is emptied.
@@ -74,11 +80,14 @@ def _font(size: int):
 
 
 def panel_image(lines: Sequence[str], images: Sequence[tuple[str, np.ndarray]], *,
-                text_width: int = PANEL_TEXT_WIDTH, font_size: int = PANEL_FONT_SIZE) -> np.ndarray:
+                text_width: int = PANEL_TEXT_WIDTH, font_size: int = PANEL_FONT_SIZE, height: int | None = None,
+                legend: bool = True) -> np.ndarray:
     """(H, W, 3) uint8: the text lines in a dark column on the left, the titled images stacked on the right.
 
-    A line "keys\tlabel" is drawn in two aligned columns; other lines wrap at the column width. H fits
-    the taller of the text and the images; W = text_width + the widest image.
+    A line "keys\tlabel" is drawn in two aligned columns; other lines wrap at the column width. With `legend`, the
+    colour legend follows the text: a swatch per mesh colour (`LEGEND`) and the depth-residual scale
+    (0 .. `RESIDUAL_SCALE`, `residual_ramp`). H = `height` when given (the window's height: what does not fit is
+    cut off at the bottom), else the taller of the text and the images; W = text_width + the widest image.
     """
     from PIL import Image, ImageDraw
 
@@ -104,13 +113,17 @@ def panel_image(lines: Sequence[str], images: Sequence[tuple[str, np.ndarray]], 
         rows.append((current, ""))
     img_w = max([im.shape[1] for _, im in images], default=0)
     img_h = sum(im.shape[0] + title_h for _, im in images)
-    height = max(img_h, len(rows) * line_h + 10)
-    canvas = Image.new("RGB", (text_width + img_w, height), (24, 24, 28))
+    legend_h = (2 + (len(LEGEND) + 1) // 2) * line_h + 14 if legend else 0
+    if height is None:
+        height = max(img_h, len(rows) * line_h + 10 + legend_h)
+    canvas = Image.new("RGB", (text_width + img_w, int(height)), (24, 24, 28))
     draw = ImageDraw.Draw(canvas)
     for k, (left, right) in enumerate(rows):
         draw.text((8, 5 + k * line_h), left, fill=(235, 235, 235), font=font)
         if right:
             draw.text((tab_x, 5 + k * line_h), right, fill=(200, 220, 255), font=font)
+    if legend:
+        _draw_legend(draw, font, 8, 5 + len(rows) * line_h + 6, text_width - 16, line_h)
     y = 0
     for title, im in images:
         draw.text((text_width + 6, y + 2), title, fill=(255, 210, 120), font=font)
@@ -119,12 +132,37 @@ def panel_image(lines: Sequence[str], images: Sequence[tuple[str, np.ndarray]], 
     return np.asarray(canvas)
 
 
+def _draw_legend(draw, font, x: int, y: int, width: int, line_h: int) -> None:
+    """The colour legend at (x, y) px, `width` px wide: mesh colours two to a row, then the residual scale."""
+    def rgb(c) -> tuple[int, int, int]:
+        r, g, b = (int(round(255 * float(v))) for v in c)
+        return r, g, b
+
+    draw.text((x, y), "colours (meshes, outlines):", fill=(235, 235, 235), font=font)
+    box = line_h - 6
+    for k, (label, color) in enumerate(LEGEND):
+        cx, cy = x + (k % 2) * (width // 2), y + (1 + k // 2) * line_h
+        draw.rectangle([cx, cy + 2, cx + box, cy + 2 + box], fill=rgb(color))
+        draw.text((cx + box + 6, cy), label, fill=(235, 235, 235), font=font)
+    y += (1 + (len(LEGEND) + 1) // 2) * line_h + 4
+    label = f"residual (R): 0 .. {RESIDUAL_SCALE * 1000:g}+ mm"
+    draw.text((x, y), label, fill=(235, 235, 235), font=font)
+    bar_x = x + int(draw.textlength(label, font=font)) + 8
+    bar_w = max(20, x + width - bar_x)
+    ramp = residual_ramp(np.linspace(0.0, 1.0, bar_w))
+    for i, color in enumerate(ramp):
+        draw.line([bar_x + i, y + 2, bar_x + i, y + 2 + box], fill=rgb(color))
+
+
 class Panel:
     """Draws the panel of a Session and a ViewState, keeping the panel-sized colour images of recent steps."""
 
-    def __init__(self, session, view: ViewState):
+    def __init__(self, session, view: ViewState, *, text_width: int = PANEL_TEXT_WIDTH,
+                 image_width: int = PANEL_IMAGE_WIDTH, font_size: int = PANEL_FONT_SIZE, height: int | None = None):
+        """text_width, image_width, font_size: px; height: the panel window's height (px), None to fit."""
         self.session = session
         self.view = view
+        self.text_width, self.image_width, self.font_size, self.height = text_width, image_width, font_size, height
         self._images: dict[tuple[int, str], np.ndarray] = {}  # panel-sized colour images by (step, camera)
 
     def image(self) -> np.ndarray:
@@ -135,7 +173,7 @@ class Panel:
         meshes = [capture.mesh(i) for i in range(s.num_objects)]
         overlays = []
         for name, cam in capture.cameras.items():
-            small = scaled_camera(cam.camera, PANEL_IMAGE_WIDTH)
+            small = scaled_camera(cam.camera, self.image_width)
             key = (s.step, name)
             if key not in self._images:
                 if len(self._images) >= IMAGE_CACHE:
@@ -143,4 +181,5 @@ class Panel:
                 self._images[key] = resize_image(capture.color(*key), small.width, small.height)
             overlays.append((name, outline_overlay(self._images[key], small, meshes, s.poses(), colors=colors,
                                                    selected=s.selected)))
-        return panel_image(help_lines(s, self.view), overlays)
+        return panel_image(help_lines(s, self.view), overlays, text_width=self.text_width,
+                           font_size=self.font_size, height=self.height)

@@ -31,8 +31,9 @@ from functools import partial
 
 import numpy as np
 
-from annotator.images import object_colors, posed
+from annotator.images import muted_colors, object_colors, posed
 from annotator.keys import KEYMAP, Controller, KeyCoalescer, glfw_code
+from annotator.layout import Layout, screen_size, window_layout
 from annotator.panel import Panel
 from dsr_bench.display import no_display
 from dsr_bench.errors import UserError
@@ -105,17 +106,26 @@ class AnnotatorWindow:
     session: an `annotator.session.Session`; picker, echo: as for `Controller` (default: `pick_points`, rich).
     """
 
-    def __init__(self, session, *, width: int = 1280, height: int = 800, picker=None, echo=None):
+    def __init__(self, session, *, width: int | None = None, height: int | None = None, picker=None, echo=None,
+                 screen: tuple[int, int] | None = None):
+        """screen: (width, height) px to lay the windows out in (`annotator.layout.window_layout`; default the
+        display's, `screen_size`); width, height: the 3D view's size instead of the layout's (px)."""
         import open3d as o3d
 
         problem = display_problem()
         if problem is not None:
             raise UserError(f"no display for the annotator window ({problem}); {NO_DISPLAY_HINT}")
         self._o3d = o3d
+        self.layout = layout_for(session, screen)
+        vx, vy, vw, vh = self.layout.view
+        width, height = width or vw, height or vh
         self.ctl = Controller(session, picker=picker or pick_points, echo=echo)
-        self.panel = Panel(session, self.ctl.view)
+        self.panel = Panel(session, self.ctl.view, text_width=self.layout.text_width,
+                           image_width=self.layout.image_width, font_size=self.layout.font_size,
+                           height=self.layout.panel[3])
         self.vis = o3d.visualization.VisualizerWithKeyCallback()
-        if not self.vis.create_window("dsr-bench annotator: 3D (Esc quits)", width=width, height=height):
+        if not self.vis.create_window("dsr-bench annotator: 3D (Esc quits)", width=width, height=height, left=vx,
+                                      top=vy):
             raise UserError(f"could not create the annotator window (no OpenGL display); {NO_DISPLAY_HINT}")
         self.panel_vis = None
         self.keys = KeyCoalescer()
@@ -125,8 +135,9 @@ class AnnotatorWindow:
             self._build_scene()
             panel = self.panel.image()
             self.panel_vis = o3d.visualization.Visualizer()
+            px, py, _, _ = self.layout.panel
             if not self.panel_vis.create_window("dsr-bench annotator: cameras and keys", width=panel.shape[1],
-                                                height=panel.shape[0], left=width + 60, top=50):
+                                                height=panel.shape[0], left=px, top=py):
                 raise UserError(f"could not create the annotator's panel window; {NO_DISPLAY_HINT}")
             self.panel_image = o3d.geometry.Image(np.ascontiguousarray(panel))
             self.panel_vis.add_geometry(self.panel_image)
@@ -140,7 +151,7 @@ class AnnotatorWindow:
     # scene ---------------------------------------------------------------------------------------
     def _build_scene(self) -> None:
         o3d, ctl = self._o3d, self.ctl
-        points, colors = ctl.cloud()
+        points, colors = self._cloud()
         self.cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
         self.cloud.colors = o3d.utility.Vector3dVector(colors)
         self.mesh_data = ctl.meshes()
@@ -212,8 +223,14 @@ class AnnotatorWindow:
             self.gizmo.vertices = o3d.utility.Vector3dVector(np.zeros_like(self.gizmo_base) + HIDDEN_POINT)
         return changed
 
-    def _update_cloud(self) -> None:
+    def _cloud(self) -> tuple[np.ndarray, np.ndarray]:
+        """The cloud's points and the colours the 3D view draws: the residual's, or the capture's muted
+        (`muted_colors`: no object's own colour reads as a status colour)."""
         points, colors = self.ctl.cloud()
+        return points, (colors if self.ctl.view.residual else muted_colors(colors))
+
+    def _update_cloud(self) -> None:
+        points, colors = self._cloud()
         self.cloud.points = self._o3d.utility.Vector3dVector(points)
         self.cloud.colors = self._o3d.utility.Vector3dVector(colors)
 
@@ -321,13 +338,27 @@ class AnnotatorWindow:
         self.panel_vis = None
 
 
-def run(session, *, width: int = 1280, height: int = 800) -> None:
+def layout_for(session, screen: tuple[int, int] | None = None) -> Layout:
+    """The windows' layout for a session's cameras (image aspect and native width of the first) on `screen`
+    ((width, height) px; default the display's, `annotator.layout.screen_size`)."""
+    cams = list(session.capture.cameras.values())
+    cam = cams[0].camera if cams else None
+    aspect = cam.height / cam.width if cam is not None else 0.75
+    max_width = cam.width if cam is not None else 960
+    if screen is not None:
+        return window_layout(int(screen[0]), int(screen[1]), image_aspect=aspect, max_image_width=max_width)
+    w, h, x, y = screen_size()
+    return window_layout(w, h, image_aspect=aspect, max_image_width=max_width, origin=(x, y))
+
+
+def run(session, *, screen: tuple[int, int] | None = None) -> None:
     """Open the annotator window on the session's current step; return when the user quits.
 
+    screen: (width, height) px to lay the windows out in (default: the display's size, else 1600 x 1000).
     Every key acts through the Session, which autosaves each change, so quitting (Esc, or closing a
     window) loses nothing. Raises UserError when no window can be created (no display).
     """
-    window = AnnotatorWindow(session, width=width, height=height)
+    window = AnnotatorWindow(session, screen=screen)
     try:
         window.ctl.echo("annotator: keys are listed in the panel window; Esc quits (every change is saved)")
         window.loop()

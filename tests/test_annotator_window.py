@@ -416,6 +416,39 @@ def test_help_lines_and_panel(session, capture):
     assert np.all(image[:, panel.PANEL_TEXT_WIDTH:] == selected_rgb, axis=-1).sum() > 20  # the selected outline
 
 
+@pytest.mark.parametrize("screen", [(1920, 1080), (1600, 1000), (1024, 700)])
+def test_panel_is_drawn_at_its_window_size_with_the_legend(session, screen):
+    lay = win.layout_for(session, screen)
+    view = keys.ViewState(message="No point has been picked")
+    pan = panel.Panel(session, view, text_width=lay.text_width, image_width=lay.image_width,
+                      font_size=lay.font_size, height=lay.panel[3])
+    image = pan.image()
+    assert image.shape == (lay.panel[3], lay.panel[2], 3)  # exactly the panel window: shown 1:1, nothing cut
+    text = image[:, : lay.text_width]
+    for label, color in panel.LEGEND:  # a swatch of every mesh colour in the text column
+        rgb = np.round(np.asarray(color) * 255).astype(np.uint8)
+        assert np.all(text == rgb, axis=-1).sum() >= 25, label
+    ramp = np.round(images.residual_ramp(np.array([0.0, 0.5, 1.0])) * 255).astype(np.uint8)
+    for rgb in ramp:  # the residual scale's ends and middle
+        assert np.all(np.abs(text.astype(int) - rgb) <= 3, axis=-1).sum() >= 5
+    # the legend lies below the text rows and within the window on 1600 x 1000 and larger
+    natural = panel.Panel(session, view, text_width=lay.text_width, image_width=lay.image_width,
+                          font_size=lay.font_size).image()
+    if screen[1] >= 1000:
+        assert natural.shape[0] <= lay.panel[3]
+
+
+def test_residual_scale_is_the_sessions(session):
+    colors = session.residual_colors()
+    coloured = colors[np.ptp(colors, axis=1) > 1e-6]  # the points near a mesh (the others are grey)
+    assert len(coloured) > 50
+    ramp = images.residual_ramp(np.linspace(0, 1, 2001))
+    from scipy.spatial import cKDTree
+
+    d, _ = cKDTree(ramp).query(coloured)
+    assert d.max() < 2e-3  # every residual colour the cloud shows is on the legend's scale
+
+
 def test_format_score():
     from annotator.align import FitScore
 

@@ -1,0 +1,119 @@
+"""The annotator windows' layout on a screen (pure: no display) and the colours the window draws: the legend's
+palette against the muted capture colours, and the residual scale against the Session's."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from annotator import images, layout
+from dsr_bench.errors import UserError
+
+
+def _inside(rect, screen) -> bool:
+    x, y, w, h = rect
+    return x >= 0 and y >= 0 and x + w <= screen[0] and y + h <= screen[1] and w > 0 and h > 0
+
+
+@pytest.mark.parametrize("screen", [(1920, 1080), (1600, 1000), (1024, 700)])
+@pytest.mark.parametrize("aspect", [0.75, 0.5625])
+def test_both_windows_fit_the_screen_side_by_side(screen, aspect):
+    lay = layout.window_layout(*screen, image_aspect=aspect, max_image_width=1280)
+    assert _inside(lay.view, screen) and _inside(lay.panel, screen)
+    vx, _, vw, _ = lay.view
+    px, _, pw, ph = lay.panel
+    assert vx + vw <= px  # side by side, not overlapping
+    # the panel's content (text column + image; two images stacked under their titles) fits its window
+    assert lay.text_width + lay.image_width == pw
+    assert 2 * (lay.image_height + layout.TITLE_HEIGHT) <= ph
+    assert lay.image_height == round(lay.image_width * aspect)
+    assert vw >= 0.4 * screen[0]  # the 3D view keeps a usable share
+
+
+def test_larger_screens_get_larger_camera_images():
+    sizes = [layout.window_layout(w, h).image_width for w, h in ((1024, 700), (1600, 1000), (1920, 1080))]
+    assert sizes == sorted(sizes) and sizes[0] < sizes[-1]
+    assert layout.window_layout(1920, 1080).image_width > 480  # the old fixed panel's images were 480 wide
+    assert layout.window_layout(1920, 1080, max_image_width=320).image_width == 320  # never above native width
+
+
+def test_layout_follows_the_monitor_origin_and_refuses_tiny_screens():
+    a, b = layout.window_layout(1600, 1000), layout.window_layout(1600, 1000, origin=(1920, 0))
+    assert b.view[0] - a.view[0] == 1920 and b.panel[0] - a.panel[0] == 1920 and b.view[1:] == a.view[1:]
+    with pytest.raises(UserError, match="--window-size") as err:
+        layout.window_layout(640, 480)
+    assert "\n" not in str(err.value)
+
+
+def test_parse_window_size():
+    assert layout.parse_window_size("1600x1000") == (1600, 1000)
+    assert layout.parse_window_size(" 1920X1080 ") == (1920, 1080)
+    for bad in ("1600", "1600x", "axb", "1600x1000x2", "-5x10"):
+        with pytest.raises(UserError, match="WIDTHxHEIGHT"):
+            layout.parse_window_size(bad)
+
+
+def test_screen_size_falls_back_without_a_display(monkeypatch):
+    monkeypatch.delenv("DISPLAY", raising=False)
+    monkeypatch.setattr(layout.shutil, "which", lambda name: None)  # no xrandr
+    assert layout.screen_size() == (*layout.FALLBACK_SCREEN, 0, 0)
+
+
+def test_screen_size_reads_the_primary_monitor_from_xrandr(monkeypatch):
+    out = ("Screen 0: minimum 8 x 8, current 3520 x 1080, maximum 32767 x 32767\n"
+           "HDMI-1 connected 1600x900+0+180 (normal left inverted right) 477mm x 268mm\n"
+           "DP-1 connected primary 1920x1080+1600+0 (normal left inverted right) 527mm x 296mm\n"
+           "DP-2 disconnected (normal left inverted right x axis y axis)\n")
+
+    class Done:
+        stdout = out
+
+    monkeypatch.setattr(layout.shutil, "which", lambda name: "/usr/bin/xrandr")
+    monkeypatch.setattr(layout.subprocess, "run", lambda *a, **k: Done())
+    assert layout.screen_size() == (1920, 1080, 1600, 0)
+    Done.stdout = out.replace(" primary", "")
+    assert layout.screen_size() == (1600, 900, 0, 180)  # no primary: the first connected monitor
+
+
+# --- colours -------------------------------------------------------------------------------------------------
+
+
+def _saturation(rgb: np.ndarray) -> np.ndarray:
+    rgb = np.asarray(rgb, np.float64).reshape(-1, 3)
+    mx, mn = rgb.max(-1), rgb.min(-1)
+    return np.where(mx > 0, (mx - mn) / np.maximum(mx, 1e-12), 0.0)
+
+
+def _hue(rgb: np.ndarray) -> np.ndarray:
+    import colorsys
+
+    return np.array([colorsys.rgb_to_hsv(*c)[0] for c in np.asarray(rgb, np.float64).reshape(-1, 3)])
+
+
+def test_muted_capture_colours_never_read_as_status_colours():
+    grid = np.stack(np.meshgrid(*[np.linspace(0, 1, 18)] * 3, indexing="ij"), -1).reshape(-1, 3)
+    muted = images.muted_colors(grid)
+    drawn = [images.SELECTED_COLOR] + [c for name, c in images.STATUS_COLORS.items() if name != "unset"]
+    # every status colour drawn in 3D is saturated, every muted capture colour is not: the palettes do not meet
+    assert _saturation(drawn).min() >= images.STATUS_MIN_SATURATION
+    assert _saturation(muted).max() <= images.MUTED_SATURATION + 1e-9
+    assert images.MUTED_SATURATION < images.STATUS_MIN_SATURATION
+    dist = np.linalg.norm(muted[:, None] - np.asarray(drawn)[None], axis=-1)
+    assert dist.min() > 0.2
+    # the status colours differ from each other in hue (orange, blue, cyan, green)
+    hues = np.sort(_hue(drawn))
+    assert np.diff(np.r_[hues, hues[0] + 1]).min() > 0.05
+    # muting keeps hue and brightness
+    keep = _saturation(grid) > 0.2
+    assert np.allclose(_hue(muted[keep]), _hue(grid[keep]), atol=1e-9)
+    assert np.allclose(muted.max(-1), grid.max(-1))
+
+
+@pytest.mark.parametrize("value, says", [("big", "WIDTHxHEIGHT"), ("640x480", "smaller than 800x600")])
+def test_cli_refuses_a_bad_window_size_in_one_line(tmp_path, capsys, value, says):
+    from dsr_bench.cli import main
+
+    # refused before the capture is even looked for
+    assert main(["annotate", str(tmp_path / "none"), "--window-size", value]) == 2
+    err = capsys.readouterr().err.strip()
+    assert says in err and "--window-size" in err and len(err.splitlines()) == 1, err
