@@ -3,8 +3,10 @@ seed or another team's predictions; tokens are checked, revocable and their fail
 phases, final selections, the private part's reveal and a host's re-score; a worker SIGKILLed mid-evaluation is
 replaced and the job scored once; a server stopped mid-upload leaves nothing visible."""
 
+import html
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -36,12 +38,13 @@ def challenge(tmp_path, tmp_path_factory):
     engine.dispose()
 
 
-def _serve(layout, **overrides):
-    """A live server of `layout` with the configuration's `overrides` (e.g. daily_limit=2)."""
+def _serve(layout, leaderboard=None, **overrides):
+    """A live server of `layout` with the configuration's `overrides` (e.g. daily_limit=2) and the local
+    `leaderboard` folder (default: the clone's)."""
     from dsr_bench.challenge.server import Settings, create_app
 
     return LiveServer(create_app(layout.root, settings=Settings(keep_free=0, auth_max_delay=0.01, board_cache=0.0,
-                                                                overrides=overrides or None)))
+                                                                overrides=overrides or None, leaderboard=leaderboard)))
 
 
 def _upload(url, token, predictions, tmp_path, method="static") -> httpx.Response:
@@ -107,6 +110,63 @@ def test_pages_escape_team_and_method_names(challenge, tmp_path):
             body = httpx.get(live.url + page).text
             assert "<script>alert(1)" not in body and "<img src=x" not in body, page
             assert "&lt;script&gt;alert(1)&lt;/script&gt;" in body or "&lt;img src=x" in body, page
+
+
+def _board_rows(page: str, heading: str) -> tuple[str, list[str]]:
+    """The header row and the body rows (each `<tr>...</tr>` as served) of the table that follows `heading`."""
+    table = page[page.index(heading):]
+    table = table[table.index("<table"):table.index("</table>")]
+    head = re.search(r"<thead>(.*?)</thead>", table).group(1)
+    return head, re.findall(r"<tr>.*?</tr>", table[table.index("<tbody>"):])
+
+
+def test_server_and_local_leaderboard_render_rows_alike_and_escape_method_names(challenge, tmp_path, board):
+    """The challenge's leaderboard shows the local leaderboard's reference rows of its split, each rendered cell for
+    cell as the local index.html renders it (the one renderer), and a hostile method name is escaped on both."""
+    from test_leaderboard import _put, _results
+
+    from dsr_bench.leaderboard.board import build
+    from dsr_bench.leaderboard.entries import markdown_cell
+
+    layout, sessions, tokens, predictions = challenge
+    split = "procedural-novel-mini"  # pinned to "c" * 64 by the board fixture
+    _put(board, _results("static", motion_visible=0.9, motion_full=0.05, iou_ordered=0.2, iou_unordered=0.25))
+    _put(board, _results("push", motion_visible=3.0, motion_full=0.07, iou_ordered=0.5, iou_unordered=0.55))
+    _put(board, _results("oracle", motion_visible=0.0, motion_full=0.0, iou_ordered=1.0, iou_unordered=1.0))
+    build(board)
+    local_head, local_rows = _board_rows((board / "index.html").read_text(), f'id="{split}-3d-reproduced"')
+    assert len(local_rows) == 3 and any(r.startswith("<tr><td>static</td>") for r in local_rows)
+
+    hostile = "<img src=x onerror=alert(3)>|*x*"
+    with _serve(layout, leaderboard=board, split=split) as live:
+        head, rows = _board_rows(httpx.get(live.url + "/").text, "3D track (public part)")
+        lead = "<td></td><td></td>"  # a reference row has no rank and no team
+        assert head == ('<tr><th onclick="sortTable(this)">#</th><th onclick="sortTable(this)">team</th>'
+                        + local_head[len("<tr>"):])
+        assert rows == ["<tr>" + lead + r[len("<tr>"):] for r in local_rows]
+        api = httpx.get(live.url + "/api/leaderboard").json()
+        assert api["reference_split"] == split
+        static = {r["method"]: r for r in api["reference_rows"]["3D"]}["static"]
+        assert sorted(r["method"] for r in api["reference_rows"]["3D"]) == ["oracle", "push", "static"]
+        assert static["metrics"]["iou_ordered"] == pytest.approx(0.2) and static["split_checksum"] == "c" * 12
+
+        sid = _upload(live.url, tokens["alpha"], predictions, tmp_path, hostile).json()["id"]
+        _score_all(layout)
+        page = httpx.get(live.url + "/").text
+        head, rows = _board_rows(page, "3D track (public part)")
+        assert len(rows) == 4 and rows[0].startswith('<tr><td>1</td><td><a href="/teams/alpha">alpha</a></td>')
+        assert f'<a href="/submissions/{sid}">{html.escape(hostile)}</a>' in rows[0]
+        assert "<img src=x" not in page
+        for path in (f"/submissions/{sid}", "/teams/alpha"):
+            shown = httpx.get(live.url + path).text
+            assert "<img src=x" not in shown and html.escape(hostile) in shown, path
+
+    _put(board, _results(hostile, iou_ordered=0.4))
+    build(board)
+    readme, index = (board / "README.md").read_text(), (board / "index.html").read_text()
+    assert "<img src=x" not in readme and "<img src=x" not in index
+    assert f"| {markdown_cell(hostile)} |" in readme and "\\|" in markdown_cell(hostile)
+    assert f"<td>{html.escape(hostile)}</td>" in index
 
 
 def test_tokens_wrong_malformed_revoked_and_slowed(challenge, tmp_path):

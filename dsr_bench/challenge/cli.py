@@ -135,6 +135,9 @@ def serve(
     port: int = typer.Option(8000, "--port", help="Port to listen on."),
     db: Optional[str] = DbOption,
     workers: int = typer.Option(1, "--workers", "-w", help="Evaluation worker processes."),
+    leaderboard: Optional[Path] = typer.Option(
+        None, "--leaderboard", help="Local leaderboard folder whose reference rows (static, push, oracle) of the "
+        "challenge's split are shown beside the submissions [default: the clone's leaderboard/, if any]."),
 ) -> None:
     """Run the challenge's web server (leaderboard, uploads, status) and its evaluation workers; the database is
     migrated first. Ctrl-C stops both."""
@@ -143,15 +146,18 @@ def serve(
     import uvicorn
 
     from dsr_bench.challenge.layout import open_challenge
-    from dsr_bench.challenge.server import create_app
+    from dsr_bench.challenge.server import Settings, create_app
     from dsr_bench.challenge.worker import worker_main
     from dsr_bench.errors import UserError
 
     if workers < 1:
         raise UserError(f"--workers {workers}: give 1 or more evaluation workers")
+    if leaderboard is not None and not (leaderboard / "entries").is_dir():
+        raise UserError(f"--leaderboard {leaderboard}: not a leaderboard folder (no entries/); give the folder "
+                        "`dsr-bench leaderboard build` writes, e.g. leaderboard")
     layout, _ = open_challenge(root)
     url = db or layout.default_db_url()
-    app = create_app(root, url)
+    app = create_app(root, url, Settings(leaderboard=leaderboard))
     context = mp.get_context("spawn")
     stopping = threading.Event()
     procs = [context.Process(target=worker_main, args=(str(root), url), daemon=True) for _ in range(workers)]

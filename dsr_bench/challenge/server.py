@@ -7,7 +7,10 @@ Routes (JSON under /api, pages elsewhere; every name shown on a page is HTML-esc
 - `GET /api/submissions/{id}`: a submission's state, messages and aggregate scores (its id is 128 random bits).
 - `POST /api/submissions/{id}/final` (Bearer token, {"final": true|false}): choose the final submissions.
 - `GET /api/me/submissions` (Bearer token): the team's history, every state.
-- `GET /api/leaderboard`; pages `/`, `/submissions/{id}`, `/teams/{name}`.
+- `GET /api/leaderboard`; pages `/`, `/submissions/{id}`, `/teams/{name}`. The leaderboard shows, beside the
+  submissions, the reference rows (static, push, oracle) of the challenge's split from the local leaderboard folder
+  (`Settings.leaderboard`), and every table is rendered by `dsr_bench.leaderboard.table.render_table`, the code
+  that renders the local leaderboard's.
 Nothing here reads the secret seed, the hidden set or another team's archive; scores are the aggregates the
 workers stored.
 """
@@ -41,6 +44,7 @@ from dsr_bench.challenge.db import Submission, Team, open_database, utcnow
 from dsr_bench.challenge.layout import FILE_PATTERN, Layout, check_name, open_challenge
 from dsr_bench.challenge.storage import Received, UploadRefused, check_archive, clean_partials, receive
 from dsr_bench.errors import UserError
+from dsr_bench.leaderboard.table import COLUMN_TITLES, LINKS, SORT_SCRIPT, render_table
 
 SUBMISSION_ID = re.compile(r"[0-9a-f]{32}")
 META_NAME = "meta.json"
@@ -49,8 +53,9 @@ META_NAME = "meta.json"
 @dataclass
 class Settings:
     """Server settings beyond the challenge's configuration: the failed-auth throttle, the upload idle timeout,
-    the free disk kept (bytes), the configuration's overrides (e.g. daily_limit, max_upload_bytes) and how long
-    (seconds) the leaderboard is served from its last computation."""
+    the free disk kept (bytes), the configuration's overrides (e.g. daily_limit, max_upload_bytes), how long
+    (seconds) the leaderboard is served from its last computation, and the local leaderboard folder whose reference
+    rows of the challenge's split are shown beside the submissions (None: `default_leaderboard()`)."""
 
     auth_limit: int = 10
     auth_window: float = 900.0
@@ -59,6 +64,13 @@ class Settings:
     keep_free: int = 1 << 30
     overrides: dict | None = None
     board_cache: float = 1.0
+    leaderboard: str | Path | None = None
+
+
+def default_leaderboard() -> Path | None:
+    """The leaderboard/ folder of the clone this toolkit runs from, when there is one (an installed wheel has none)."""
+    root = Path(__file__).resolve().parents[2] / "leaderboard"
+    return root if (root / "entries").is_dir() else None
 
 
 def create_app(root: str | Path, db_url: str | None = None, settings: Settings | None = None) -> FastAPI:
@@ -190,6 +202,21 @@ def create_app(root: str | Path, db_url: str | None = None, settings: Settings |
 
     cache: dict[str, Any] = {"until": 0.0}
     cache_lock = threading.Lock()
+    board_root = Path(settings.leaderboard) if settings.leaderboard is not None else default_leaderboard()
+    refs: dict[str, Any] = {"key": None, "rows": {}}
+
+    def references(split: str) -> dict[str, list[dict]]:
+        """The local leaderboard's reference rows of `split` per track, read again only when its entries change."""
+        if board_root is None or not split:
+            return {}
+        try:
+            files = sorted((p.name, p.stat().st_mtime_ns) for p in (board_root / "entries").glob("*.json"))
+        except OSError:
+            files = []
+        key = (split, tuple(files))
+        if key != refs["key"]:
+            refs.update(key=key, rows=service.reference_rows(board_root, split))
+        return refs["rows"]
 
     def board() -> tuple[dict, str]:
         """The leaderboard's JSON and page, computed at most once per `settings.board_cache` seconds (however many
@@ -200,8 +227,12 @@ def create_app(root: str | Path, db_url: str | None = None, settings: Settings |
                 with session_factory() as session:
                     data = service.leaderboard(session, cfg)
                     data["open"] = service.open_phase(session, utcnow())
-                page = render_leaderboard(data, cfg)
+                rows = references(str(cfg.get("split", "")))
+                page = render_leaderboard(data, cfg, rows)
                 data.pop("open")
+                data["reference_split"] = cfg.get("split") if rows else None
+                data["reference_rows"] = {track: [service.reference_view(r, service.COLUMNS[track]) for r in table]
+                                          for track, table in rows.items()}
                 cache.update(until=time.monotonic() + settings.board_cache, data=data, page=page)
             return cache["data"], cache["page"]
 
@@ -359,49 +390,45 @@ async def _multipart_chunks(stream: AsyncIterator[bytes], content_type: str) -> 
 
 # --- pages ---------------------------------------------------------------------------------------------------
 _STYLE = ("body{font-family:sans-serif;margin:2em;max-width:70em}table{border-collapse:collapse;margin:1em 0}"
-          "td,th{border:1px solid #bbb;padding:.3em .6em;text-align:right}.text{text-align:left}"
-          ".state{font-weight:bold}")
+          "td,th{border:1px solid #bbb;padding:.3em .6em;text-align:right}td{white-space:nowrap}"
+          "td:first-child,th:first-child{text-align:left}th{cursor:pointer;background:#f4f4f4}.best{font-weight:bold}"
+          ".worse{color:#a00}.note{color:#555}.state{font-weight:bold}")
 
 
 def _page(title: str, body: str, refresh: bool = False) -> str:
     meta = '<meta http-equiv="refresh" content="2">' if refresh else ""
     return (f'<!doctype html><html lang="en"><head><meta charset="utf-8">{meta}<title>{html.escape(title)}</title>'
-            f"<style>{_STYLE}</style></head><body>{body}</body></html>")
+            f"<style>{_STYLE}</style></head><body>{body}<script>{SORT_SCRIPT}</script></body></html>")
 
 
-def _value(value: Any) -> str:
-    if not isinstance(value, (int, float)) or value != value:
-        return "-"
-    return f"{value:.4g}"
+#: the leaderboard table's columns before the method: the rank and the team (linked to its page)
+LEAD = (("#", "rank"), ("team", "team"))
 
 
-def _columns(track: str) -> tuple[str, ...]:
-    return service.COLUMNS.get(track, ())
+def _columns(track: str, rows: list[dict]) -> list[str]:
+    """The track's columns (the local leaderboard's) that some row of the table has a value of."""
+    return [c for c in service.COLUMNS.get(track, ()) if any(_has_value(r.get(c)) for r in rows)]
 
 
-def _title(column: str) -> str:
-    return service.TITLES.get(column, column)
+def _has_value(value: Any) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and value == value
 
 
-def _table(rows: list[dict], columns: tuple[str, ...], lead: list[tuple[str, str]]) -> str:
-    """An HTML table: the `lead` columns (title, row key; text, escaped, team names linked), then the metrics."""
-    head = "".join(f'<th class="text">{html.escape(t)}</th>' for t, _ in lead) + "".join(
-        f"<th>{html.escape(_title(c))}</th>" for c in columns)
-    body = []
-    for i, row in enumerate(rows, 1):
-        cells = []
-        for _, key in lead:
-            text = str(i) if key == "#" else str(row.get(key, ""))
-            if key == "team":
-                text = f'<a href="/teams/{html.escape(_quote(text))}">{html.escape(text)}</a>'
-            elif key == "method" and row.get("id"):
-                text = f'<a href="/submissions/{html.escape(row["id"])}">{html.escape(text)}</a>'
-            else:
-                text = html.escape(text)
-            cells.append(f'<td class="text">{text}</td>')
-        cells += [f"<td>{_value(row['metrics'].get(c))}</td>" for c in columns]
-        body.append("<tr>" + "".join(cells) + "</tr>")
-    return f"<table><thead><tr>{head}</tr></thead><tbody>{''.join(body)}</tbody></table>"
+def _table(rows: list[dict], track: str, lead: tuple[tuple[str, str], ...] = ()) -> str:
+    """An HTML table of rows in `dsr_bench.leaderboard.table`'s shape, rendered by its `render_table`: the very code
+    that renders the local leaderboard's tables (every text cell escaped)."""
+    return render_table(rows, track, _columns(track, rows), lead=lead).html("board")
+
+
+def _submission_row(row: dict, rank: int | None = None) -> dict:
+    """A scored submission (`service.leaderboard` or `final_ranking` row) as a table row: no model grid or split
+    checksum (the hidden set's are not shown); its phase and final choice as the note."""
+    note = ", ".join(n for n in (f"phase {row['phase']}" if row.get("phase") else "",
+                                 "final" if row.get("final") else "") if n)
+    return {**row["metrics"], "rank": "" if rank is None else str(rank), "team": row.get("team", ""),
+            "method": row["method"], "grid": "-", "label": note, "toolkit": row.get("toolkit_version") or "",
+            "date": row.get("date", ""), "checksum": "",
+            LINKS: {"team": f"/teams/{_quote(str(row.get('team', '')))}", "method": f"/submissions/{row['id']}"}}
 
 
 def _quote(text: str) -> str:
@@ -410,21 +437,36 @@ def _quote(text: str) -> str:
     return quote(text, safe="")
 
 
-def render_leaderboard(data: dict, config: dict) -> str:
-    """The leaderboard page: per track the public part's table, the final ranking once revealed, the phases."""
+def _reference_note(split: str) -> str:
+    return (f"<p class=note>Reference rows (unranked, below the submissions): the local leaderboard's static, push "
+            f"and oracle rows of {html.escape(split)}, scored by <code>dsr-bench evaluate</code> on that split's "
+            "pinned public sequences, not on this challenge's hidden ones (drawn with the split's objects and "
+            "policy from a secret seed): a yardstick, not a paired comparison. Bold and &#9660; compare the means "
+            "as on the local leaderboard.</p>")
+
+
+def render_leaderboard(data: dict, config: dict, references: dict[str, list[dict]] | None = None) -> str:
+    """The leaderboard page: per track the public part's table with the reference rows of the challenge's split
+    (`service.reference_rows`) beside the submissions, the final ranking once revealed, the phases."""
+    references = references or {}
+    split = str(config.get("split", ""))
     parts = [f"<h1>{html.escape(str(config.get('title') or 'DSR benchmark challenge'))}</h1>"]
     phase, closed = data.get("open") or (None, None)
     parts.append(f"<p>{html.escape(closed or (f'phase {phase} is open' if phase else 'submissions are open'))}; "
                  f"{html.escape(str(config['daily_limit']))} submissions per team per day.</p>")
+    if references:
+        parts.append(_reference_note(split))
     if data.get("final"):
         for track, rows in sorted(data["final"].items()):
             parts.append(f"<h2>Final ranking, {html.escape(track)} track (private part)</h2>")
-            parts.append(_table(rows, _columns(track), [("#", "#"), ("team", "team"), ("method", "method")]))
-    for track, rows in sorted(data["tracks"].items()):
+            parts.append(_table([_submission_row(r, i) for i, r in enumerate(rows, 1)] + references.get(track, []),
+                                track, LEAD))
+    for track in sorted(set(data["tracks"]) | set(references)):
+        rows = data["tracks"].get(track, [])
         parts.append(f"<h2>{html.escape(track)} track (public part), ranked by "
-                     f"{html.escape(_title(config['rank_by'].get(track, '')))}</h2>")
-        parts.append(_table(rows, _columns(track), [("#", "#"), ("team", "team"), ("method", "method"),
-                                                    ("date", "date")]))
+                     f"{html.escape(COLUMN_TITLES.get(config['rank_by'].get(track, ''), ''))}</h2>")
+        parts.append(_table([_submission_row(r, i) for i, r in enumerate(rows, 1)] + references.get(track, []),
+                            track, LEAD))
     if not data["tracks"]:
         parts.append("<p>No scored submission yet.</p>")
     if data.get("phases"):
@@ -445,16 +487,18 @@ def render_submission(view: dict) -> str:
         parts.append("<ul>" + "".join(f"<li>{html.escape(m)}</li>" for m in view["messages"]) + "</ul>")
     for part, score in sorted(view["scores"].items()):
         parts.append(f"<h2>{html.escape(part)} part</h2>")
-        parts.append(_table([score], _columns(view.get("track") or "3D"), []))
+        row = {**score.get("metrics", {}), "method": view["method"], "grid": "-", "label": f"{part} part",
+               "date": str(score.get("scored_at", ""))[:10]}
+        parts.append(_table([row], view.get("track") or "3D"))
     return _page(f"Submission {view['id']}", "".join(parts), refresh=waiting)
 
 
 def render_team(name: str, views: list[dict]) -> str:
     """A team's public page: its scored submissions and their public aggregate scores."""
-    rows = [{"id": v["id"], "method": v["method"], "date": v["created"][:10], "final": "yes" if v["final"] else "",
-             "metrics": v["scores"].get("public", {}).get("metrics", {})} for v in views]
-    columns = _columns(views[0].get("track") or "3D") if views else ()
+    rows = [{**v["scores"].get("public", {}).get("metrics", {}), "method": v["method"], "grid": "-",
+             "label": "final" if v["final"] else "", "date": v["created"][:10],
+             LINKS: {"method": f"/submissions/{v['id']}"}} for v in views]
     body = [f"<h1>Team {html.escape(name)}</h1>",
-            _table(rows, columns, [("method", "method"), ("date", "date"), ("final", "final")]) if rows
-            else "<p>No scored submission yet.</p>", '<p><a href="/">leaderboard</a></p>']
+            _table(rows, views[0].get("track") or "3D") if rows else "<p>No scored submission yet.</p>",
+            '<p><a href="/">leaderboard</a></p>']
     return _page(f"Team {name}", "".join(body))

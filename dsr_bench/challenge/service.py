@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import datetime as dt
 import json
+import math
+from pathlib import Path
 from typing import Any
 
 from sqlalchemy import func, select
@@ -20,13 +22,8 @@ from dsr_bench.challenge import auth
 from dsr_bench.challenge.db import Phase, Score, Submission, Team, utcnow
 from dsr_bench.challenge.layout import check_name
 from dsr_bench.errors import UserError
-from dsr_bench.scoring.metrics import METRICS, TRACKS as METRIC_TRACKS, metric_keys
-
-#: the columns of each track's table (its headline metrics) and those where lower is better: the same choice as
-#: the local leaderboard's tables (dsr_bench/leaderboard/board.py), made from the metrics' table
-COLUMNS = {track: metric_keys((track,), ("headline",)) for track in METRIC_TRACKS}
-LOWER_IS_BETTER = {m.key for m in METRICS if m.role == "headline" and m.lower_is_better}
-TITLES = {m.key: m.column for m in METRICS if m.column}
+#: each track's columns and those where lower is better: the local leaderboard's (dsr_bench.leaderboard.table)
+from dsr_bench.leaderboard.table import LOWER_IS_BETTER, TRACKS as COLUMNS
 
 
 def add_team(session_factory: sessionmaker, name: str) -> str:
@@ -195,6 +192,34 @@ def select_final(session_factory: sessionmaker, team: Team, sid: str, final: boo
                 raise UserError(f"team {team.name!r} has selected {chosen} final submissions, the most allowed; "
                                 "unselect one first")
         sub.final = final
+
+
+def reference_rows(leaderboard: str | Path, split: str) -> dict[str, list[dict[str, Any]]]:
+    """Per track ("3D", "2D"), the reference rows (static, push, oracle: `scoring.plots.is_reference_method`) of the
+    local leaderboard directory `leaderboard` scored on the pinned version of `split`, in `board.load_rows`'s
+    shape (per-sequence values included, for their intervals), in the local table's order; {} when it has none.
+    Invalid entry files are skipped silently (`dsr-bench leaderboard build` names them)."""
+    from dsr_bench.leaderboard.board import _tables, load_rows
+    from dsr_bench.scoring.plots import is_reference_method
+
+    if not (Path(leaderboard) / "entries").is_dir():
+        return {}
+    rows = [r for r in load_rows(leaderboard, warn=lambda line: None)
+            if r["split"] == split and r["kind"] == "reproduced"]
+    out: dict[str, list[dict[str, Any]]] = {}
+    if not rows:
+        return out
+    for _, _, track, table, _ in _tables(rows):
+        if track in COLUMNS and track != "planning":
+            out[track] = [r for r in table.to_dict("records") if is_reference_method(r["method"])]
+    return {track: table for track, table in out.items() if table}
+
+
+def reference_view(row: dict[str, Any], columns: tuple[str, ...] | list[str]) -> dict[str, Any]:
+    """A reference row as the JSON API shows it: its method, split version, toolkit, date and mean values."""
+    metrics = {c: row[c] for c in columns if isinstance(row.get(c), float) and not math.isnan(row[c])}
+    return {"method": row["method"], "split_checksum": row["checksum"], "toolkit_version": row["toolkit"],
+            "date": row["date"], "label": row["label"], "metrics": metrics}
 
 
 def request_rescore(session_factory: sessionmaker) -> int:

@@ -27,9 +27,9 @@ from dsr_bench.errors import UserError
 from dsr_bench.models.predictors import REFERENCE_MODELS
 from dsr_bench.leaderboard.entries import (PLAN_RESULTS_FORMAT, RESULTS_FORMAT, check_entry, entry_identity,
                                        entry_name, first_difference, is_2d_only, markdown_cell, show)
-from dsr_bench.leaderboard.table import (COLUMN_TITLES, LOWER_IS_BETTER, NO_MOTION, NO_PUSH, SEQ, TRACKS,  # noqa: F401
-                                         _WORSE_MARK, _difference, _yardsticks, html_table, is_oracle, md_row,
-                                         render_table)
+from dsr_bench.leaderboard.table import (COLUMN_TITLES, LOWER_IS_BETTER, NO_MOTION, NO_PUSH, SEQ,  # noqa: F401
+                                         SORT_SCRIPT, TRACKS, _WORSE_MARK, _difference, _yardsticks, html_table,
+                                         is_oracle, md_row, render_table)
 from dsr_bench.scoring.plots import FIGURE_WIDTH_PX, is_reference_method
 from dsr_bench.scoring.spread import paired_difference, unit_values
 
@@ -531,12 +531,5 @@ not an oracle's (in planning: only a planner that beats no push and random, pair
 significant difference). &#9660; (red): worse than predicting no motion.</p>
 {body}
 <script>
-function sortTable(th){
-  const table=th.closest('table'), i=[...th.parentNode.children].indexOf(th), body=table.tBodies[0];
-  const asc=th.dataset.asc!=='1'; th.dataset.asc=asc?'1':'0';
-  const key=r=>{const c=r.children[i]; const v=c.dataset.v; return v!==undefined&&v!==''?parseFloat(v):c.textContent;};
-  [...body.rows].sort((a,b)=>{const x=key(a),y=key(b); return (x>y?1:x<y?-1:0)*(asc?1:-1);})\
-.forEach(r=>body.appendChild(r));
-}
-</script></body></html>
-"""
+{script}</script></body></html>
+""".replace("{script}", SORT_SCRIPT)

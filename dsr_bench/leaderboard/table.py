@@ -24,6 +24,17 @@ from dsr_bench.scoring.spread import Spread, paired_difference, spread, unit_val
 TRACKS = {track: metric_keys((track,), ("headline",)) for track in METRIC_TRACKS}
 LOWER_IS_BETTER = {m.key for m in METRICS if m.role == "headline" and m.lower_is_better}
 COLUMN_TITLES = {**{m.key: m.column for m in METRICS if m.column}, "planning_iou": "planning IoU"}
+#: the script that sorts a table (`html_table`) by the column whose header is clicked; pages embed it
+SORT_SCRIPT = (
+    'function sortTable(th){\n'
+    "  const table=th.closest('table'), i=[...th.parentNode.children].indexOf(th), body=table.tBodies[0];\n"
+    "  const asc=th.dataset.asc!=='1'; th.dataset.asc=asc?'1':'0';\n"
+    "  const key=r=>{const c=r.children[i]; const v=c.dataset.v; "
+    "return v!==undefined&&v!==''?parseFloat(v):c.textContent;};\n"
+    '  [...body.rows].sort((a,b)=>{const x=key(a),y=key(b); return (x>y?1:x<y?-1:0)*(asc?1:-1);})'
+    '.forEach(r=>body.appendChild(r));\n'
+    '}\n')
+
 #: an HTML row's cell: (its HTML, text escaped; its sort value, or None; its CSS classes)
 Cell = tuple[str, str | None, str]
 
