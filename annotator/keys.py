@@ -359,9 +359,9 @@ def rich_echo(text: str) -> None:
 class Controller:
     """Keys -> Session calls and the view state; no window (testable without a display).
 
-    session: an `annotator.session.Session`; picker(points (M,3), colors (M,3) or None, title) -> picked indices
-    (the window passes `annotator.window.pick_points`; without one, pick mode says so); echo(text): terminal
-    output (default: rich).
+    session: an `annotator.session.Session`; picker(points (M,3), colors (M,3) or None, title, mesh) -> picked
+    indices, mesh: None for the cloud, the object's (vertices, faces) for its samples (the window passes its
+    `ClickPicker`; without one, pick mode says so); echo(text): terminal output (default: rich).
     """
 
     def __init__(self, session, picker: Callable[..., np.ndarray] | None = None,
@@ -434,15 +434,18 @@ class Controller:
             raise UserError("pick mode needs the annotator window (no picker)")
         s, obj = self.session, self.session.selected
         points, colors = self.cloud()
-        cloud_idx = self.picker(points, colors, "pick >= 3 cloud points (shift+click), then close with Q")
+        self.view.message = "pick mode: shift + click 3 or more points on the cloud, then Q"
+        cloud_idx = self.picker(points, colors, "pick >= 3 cloud points (shift+click), then close with Q", None)
         if len(cloud_idx) < 3:
             self.view.message = f"pick: {len(cloud_idx)} cloud points picked; need 3 or more (shift+click)"
             return
         vertices, faces = s.capture.mesh(obj)
         samples = mesh_samples(vertices, faces)
         shade = np.tile(np.asarray(SELECTED_COLOR), (len(samples), 1))
+        self.view.message = (f"pick mode: shift + click the same {len(cloud_idx)} points on the mesh in the same "
+                             "order, then Q")
         mesh_idx = self.picker(samples, shade, f"pick the same {len(cloud_idx)} points on the mesh, in order, "
-                                               "then close with Q")
+                                               "then close with Q", (vertices, faces))
         if len(mesh_idx) != len(cloud_idx):
             self.view.message = (f"pick: {len(mesh_idx)} mesh points for {len(cloud_idx)} cloud points; "
                                  "pick the same number in the same order (M to retry)")

@@ -16,10 +16,13 @@ Frames: the key callbacks only queue keys (`annotator.keys.KeyCoalescer`); each 
 window events, acts on the queued keys through `annotator.keys.Controller` (keys -> Session calls; a held nudge
 key's repeats merged into one nudge, at most `MAX_REPEAT` steps a frame, so releasing it stops the motion at the
 next frame), then redraws what changed once from the session's latest state (`redraw`: cloud, meshes, panel), not
-once per key. Messages (errors) and the progress table (key F) also go to the terminal. Pick mode (key M) opens
-open3d's `VisualizerWithEditing` twice (cloud, then mesh, `pick_points`); it runs after the key callbacks
-return, and the main window ignores keys meanwhile. The display is checked before open3d is asked (open3d 0.20
-otherwise falls back silently to an invisible offscreen context).
+once per key. Messages are shown in the panel (errors also go to the terminal, as does the progress table, key F).
+Pick mode (key M) opens a `annotator.picking.ClickPicker` twice over the 3D view's place (the cloud, then the
+mesh shaded and opaque with its samples; a shift + click picks the nearest visible point within a tolerance), its
+messages in the panel; it runs after the key callbacks return, and the main window ignores keys meanwhile. The
+windows are laid out within the screen (`annotator.layout`); the window manager moves and resizes them. The
+display is checked before open3d is asked (open3d 0.20 otherwise falls back silently to an invisible offscreen
+context).
 """
 
 from __future__ import annotations
@@ -83,21 +86,17 @@ def display_problem() -> str | None:
     return None
 
 
-def pick_points(points: np.ndarray, colors: np.ndarray | None, title: str) -> np.ndarray:
-    """Indices of the points a user shift-clicks in an open3d `VisualizerWithEditing` (closed with Q / Esc)."""
-    import open3d as o3d
+def pick_points(points: np.ndarray, colors: np.ndarray | None, title: str,
+                mesh: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
+    """Indices of the points a user shift-clicks in a `annotator.picking.ClickPicker` window (closed with Q / Esc),
+    messages to the terminal (the annotator window shows them in its panel instead)."""
+    from annotator.picking import ClickPicker
 
-    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, np.float64)))
-    if colors is not None:
-        pcd.colors = o3d.utility.Vector3dVector(np.asarray(colors, np.float64))
-    vis = o3d.visualization.VisualizerWithEditing()
-    if not vis.create_window(title, width=1024, height=768):
-        raise UserError(f"could not open the picking window; {NO_DISPLAY_HINT}")
-    vis.add_geometry(pcd)
-    vis.get_render_option().point_size = 4.0  # bigger targets for shift + click
-    vis.run()
-    vis.destroy_window()
-    return np.asarray(vis.get_picked_points(), dtype=np.int64)
+    try:
+        picker = ClickPicker(points, colors, title, mesh=mesh)
+    except RuntimeError:
+        raise UserError(f"could not open the picking window; {NO_DISPLAY_HINT}") from None
+    return picker.run()
 
 
 class AnnotatorWindow:
@@ -119,7 +118,7 @@ class AnnotatorWindow:
         self.layout = layout_for(session, screen)
         vx, vy, vw, vh = self.layout.view
         width, height = width or vw, height or vh
-        self.ctl = Controller(session, picker=picker or pick_points, echo=echo)
+        self.ctl = Controller(session, picker=picker or self.pick, echo=echo)
         self.panel = Panel(session, self.ctl.view, text_width=self.layout.text_width,
                            image_width=self.layout.image_width, font_size=self.layout.font_size,
                            height=self.layout.panel[3])
@@ -233,6 +232,32 @@ class AnnotatorWindow:
         points, colors = self._cloud()
         self.cloud.points = self._o3d.utility.Vector3dVector(points)
         self.cloud.colors = self._o3d.utility.Vector3dVector(colors)
+
+    # pick mode -------------------------------------------------------------------------------------------------
+    def say(self, text: str) -> None:
+        """Show a message in the panel now (while a pick window runs its own loop)."""
+        self.ctl.view.message = text
+        self._update_panel()
+        if self.panel_vis is not None:
+            self.panel_vis.update_renderer()
+            self.panel_vis.poll_events()
+
+    def pick(self, points: np.ndarray, colors: np.ndarray | None, title: str,
+             mesh: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
+        """The Controller's picker: a `ClickPicker` over the 3D view's place, its messages in the panel."""
+        from annotator.picking import ClickPicker
+
+        x, y, w, h = self.layout.view
+        self.say(self.ctl.view.message)  # what to pick (the Controller set it)
+        try:
+            picker = ClickPicker(points, colors, title, mesh=mesh, say=self.say, width=w, height=h, left=x, top=y)
+        except RuntimeError:
+            raise UserError(f"could not open the picking window; {NO_DISPLAY_HINT}") from None
+        return picker.run(idle=self._poll_panel)
+
+    def _poll_panel(self) -> None:
+        if self.panel_vis is not None:
+            self.panel_vis.poll_events()
 
     # keys and frames ---------------------------------------------------------------------------------
     def _on_key(self, key: str, _vis) -> bool:

@@ -117,3 +117,44 @@ def test_cli_refuses_a_bad_window_size_in_one_line(tmp_path, capsys, value, says
     assert main(["annotate", str(tmp_path / "none"), "--window-size", value]) == 2
     err = capsys.readouterr().err.strip()
     assert says in err and "--window-size" in err and len(err.splitlines()) == 1, err
+
+
+# --- picking -------------------------------------------------------------------------------------------------
+
+
+def test_project_is_the_pinhole_model():
+    from annotator.picking import project
+
+    k = np.array([[500.0, 0, 320], [0, 500.0, 240], [0, 0, 1]])
+    ext = np.eye(4)
+    ext[:3, 3] = [0.0, 0.0, 1.0]  # the world origin 1 m in front of the camera
+    uv, z = project(np.array([[0.0, 0.0, 0.0], [0.1, -0.2, 1.0], [0.0, 0.0, -2.0]]), k, ext)
+    assert np.allclose(uv[0], [320, 240]) and np.allclose(uv[1], [320 + 25, 240 - 50]) and np.allclose(z, [1, 2, -1])
+
+
+def test_a_click_between_samples_picks_the_nearest_within_the_tolerance():
+    from annotator.picking import nearest_pick
+
+    uv = np.array([[100.0, 100.0], [110.0, 100.0], [100.0, 130.0]])
+    z = np.array([1.0, 1.0, 1.0])
+    assert nearest_pick(uv, z, (104.0, 101.0)) == 0  # between samples 0 and 1, nearer 0
+    assert nearest_pick(uv, z, (107.0, 99.0)) == 1
+    assert nearest_pick(uv, z, (100.0, 118.0), tolerance=12) == 2  # 12 px from sample 2, 18 from sample 0
+    assert nearest_pick(uv, z, (100.0, 118.0), tolerance=11) is None  # nothing within 11 px: no pick
+    assert nearest_pick(uv, z, (300.0, 300.0)) is None
+    assert nearest_pick(uv, np.array([-1.0, 1.0, 1.0]), (101.0, 100.0)) == 1  # behind the camera: never
+
+
+def test_a_click_never_picks_a_hidden_point():
+    from annotator.picking import nearest_pick
+
+    # a can seen from above: its bottom sample (z 1.10) projects next to the click, its top sample (z 1.00) a bit
+    # further; the drawn depth there is the top's
+    uv = np.array([[50.0, 50.0], [53.0, 50.0]])
+    z = np.array([1.10, 1.00])
+    buffer = np.full((100, 100), 1.0)
+    assert nearest_pick(uv, z, (50.0, 50.0)) == 0  # without depth: the nearest in pixels
+    assert nearest_pick(uv, z, (50.0, 50.0), depth_buffer=buffer) == 1  # the bottom is hidden by the top
+    assert nearest_pick(uv, z, (50.0, 50.0), depth_buffer=np.zeros((100, 100))) == 0  # nothing drawn: not hidden
+    assert nearest_pick(np.array([[50.0, 50.0], [50.0, 50.0]]), np.array([1.2, 1.1]), (50, 50)) == 1  # tie: nearer
+    assert nearest_pick(np.array([[150.0, 50.0]]), np.array([1.0]), (145.0, 50.0), depth_buffer=buffer) is None

@@ -660,6 +660,63 @@ def test_window_renders_and_moves_the_selected_mesh_under_xvfb(capture_dir, tmp_
     assert "need 3 or more" in messages[0]  # pick mode opened its window, which closed with no picks
 
 
+def picker_child(out: str) -> None:
+    """Run under Xvfb: a mesh pick window on a can with sparse samples; click between samples and on nothing."""
+    import trimesh
+    from scipy.spatial import cKDTree
+
+    from annotator.picking import PICK_DEPTH_MARGIN, ClickPicker, project
+
+    can = trimesh.creation.cylinder(radius=0.033, height=0.12)
+    v, f = np.asarray(can.vertices), np.asarray(can.faces)
+    samples = keys.mesh_samples(v, f, count=400)  # sparse: gaps of several pixels between samples
+    said: list[str] = []
+    picker = ClickPicker(samples, None, "pick test", mesh=(v, f), say=said.append, width=640, height=480)
+    for _ in range(3):
+        picker.vis.poll_events()
+        picker.vis.update_renderer()
+    params = picker.vis.get_view_control().convert_to_pinhole_camera_parameters()
+    uv, z = project(samples, params.intrinsic.intrinsic_matrix, params.extrinsic)
+    depth = np.asarray(picker.vis.capture_depth_float_buffer(do_render=True), np.float64)
+    px = np.clip(np.round(uv).astype(int), 0, [depth.shape[1] - 1, depth.shape[0] - 1])
+    visible = z <= depth[px[:, 1], px[:, 0]] + PICK_DEPTH_MARGIN
+    # a pixel on the drawn mesh between samples: 3-8 px from the nearest visible one
+    drawn = np.argwhere(depth > 0)[:, ::-1].astype(np.float64)
+    gap, _ = cKDTree(uv[visible]).query(drawn)
+    between = drawn[(gap >= 3) & (gap <= 8)][0]
+    nearest_visible = np.flatnonzero(visible)[cKDTree(uv[visible]).query(between)[1]]
+    hidden_near = int((~visible & (np.linalg.norm(uv - between, axis=1) < 12)).sum())
+    got = picker.click(*between)
+    first_message = said[-1]
+    missed = picker.click(2.0, 2.0)  # a corner: nothing drawn near it
+    picker.drop_last()
+    left = len(picker.picked)
+    picker.done = True
+    picker.run()
+    np.savez(out, got=-1 if got is None else got, nearest=nearest_visible, visible=visible, hidden_near=hidden_near,
+             gap=float(np.linalg.norm(uv[nearest_visible] - between)), missed=-1 if missed is None else missed,
+             left=left, said=np.array([first_message, *said[-2:]]), frac_visible=visible.mean())
+
+
+def test_mesh_pick_window_picks_the_nearest_visible_sample_under_xvfb(tmp_path):
+    prefix = _display_command()
+    out = tmp_path / "pick.npz"
+    code = (f"import sys; sys.path.insert(0, {str(Path(__file__).parent)!r}); import test_annotator_window as t; "
+            f"t.picker_child({str(out)!r})")
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).parents[1])}
+    proc = subprocess.run([*prefix, sys.executable, "-c", code], capture_output=True, text=True, timeout=90, env=env,
+                          cwd=str(Path(__file__).parents[1]))
+    assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-3000:]
+    r = np.load(out)
+    assert 0.2 < float(r["frac_visible"]) < 0.8  # the far side of the can is hidden by its near side
+    assert float(r["gap"]) >= 3  # the click was between samples ...
+    assert int(r["got"]) == int(r["nearest"]) and bool(r["visible"][int(r["got"])])  # ... and picked the nearest
+    said = [str(m) for m in r["said"]]
+    assert said[0].startswith("picked point 1")
+    assert int(r["missed"]) == -1 and said[1].startswith("no point within")  # a click on nothing: said so
+    assert int(r["left"]) == 0 and "dropped" in said[2]
+
+
 def test_keys_drive_a_real_session(capture_dir, tmp_path):
     session = Session.open(capture_dir, tmp_path / "work")  # every object unset
     rec = Recorder(session)
