@@ -717,6 +717,63 @@ def test_mesh_pick_window_picks_the_nearest_visible_sample_under_xvfb(tmp_path):
     assert int(r["left"]) == 0 and "dropped" in said[2]
 
 
+def mouse_child(out: str) -> None:
+    """Run under Xvfb with xdotool: a left drag rotates the pick window's view, a real shift + click picks."""
+    import trimesh
+
+    from annotator.picking import ClickPicker
+
+    can = trimesh.creation.cylinder(radius=0.033, height=0.12)
+    v, f = np.asarray(can.vertices), np.asarray(can.faces)
+    picker = ClickPicker(keys.mesh_samples(v, f, count=400), None, "mouse test", mesh=(v, f), say=lambda s: None,
+                         width=400, height=300, left=0, top=0)
+
+    def frames(n: int = 5) -> None:
+        for _ in range(n):
+            picker.vis.poll_events()
+            picker.vis.update_renderer()
+            time.sleep(0.02)
+
+    def xdo(*args: str) -> None:
+        subprocess.run(["xdotool", *args], check=True, timeout=10)
+
+    frames()
+    view = picker.vis.get_view_control()
+    before = view.convert_to_pinhole_camera_parameters().extrinsic.copy()
+    wid = subprocess.run(["xdotool", "search", "--name", "mouse test"], capture_output=True, text=True,
+                         timeout=10).stdout.split()[0]
+    xdo("mousemove", "--window", wid, "200", "150", "mousedown", "1")
+    frames(2)
+    for i in range(10):
+        xdo("mousemove", "--window", wid, str(200 + 10 * i), "150")
+        frames(1)
+    xdo("mouseup", "1")
+    frames()
+    rotated = not np.allclose(before, view.convert_to_pinhole_camera_parameters().extrinsic)
+    picked_by_drag = len(picker.picked)
+    xdo("mousemove", "--window", wid, "200", "150", "keydown", "shift", "click", "1", "keyup", "shift")
+    frames()
+    np.savez(out, rotated=rotated, picked_by_drag=picked_by_drag, picked=len(picker.picked))
+    picker.done = True
+    picker.run()
+
+
+def test_pick_window_mouse_rotates_and_shift_click_picks_under_xvfb(tmp_path):
+    prefix = _display_command()
+    if shutil.which("xdotool") is None:
+        pytest.skip("xdotool is not installed: no real mouse events")
+    out = tmp_path / "mouse.npz"
+    code = (f"import sys; sys.path.insert(0, {str(Path(__file__).parent)!r}); import test_annotator_window as t; "
+            f"t.mouse_child({str(out)!r})")
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).parents[1])}
+    proc = subprocess.run([*prefix, sys.executable, "-c", code], capture_output=True, text=True, timeout=90, env=env,
+                          cwd=str(Path(__file__).parents[1]))
+    assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-3000:]
+    r = np.load(out)
+    assert bool(r["rotated"]) and int(r["picked_by_drag"]) == 0  # a plain drag turns the view and picks nothing
+    assert int(r["picked"]) == 1  # shift + click on the can's middle picks a sample
+
+
 def test_keys_drive_a_real_session(capture_dir, tmp_path):
     session = Session.open(capture_dir, tmp_path / "work")  # every object unset
     rec = Recorder(session)
