@@ -11,8 +11,8 @@ from typing import Sequence
 
 import numpy as np
 
-from annotator.images import (SELECTED_COLOR, STATUS_COLORS, object_colors, outline_overlay, residual_ramp,
-                               resize_image, scaled_camera)
+from annotator.images import (SELECTED_COLOR, STATUS_COLORS, muted_colors, object_colors, outline_overlay,
+                               residual_ramp, resize_image, scaled_camera)
 from annotator.keys import ViewState, format_score, key_help_lines, object_name
 from dsr_bench.errors import UserError
 
@@ -166,7 +166,8 @@ class Panel:
         self._images: dict[tuple[int, str], np.ndarray] = {}  # panel-sized colour images by (step, camera)
 
     def image(self) -> np.ndarray:
-        """The panel image (H, W, 3) uint8: help/status text beside both cameras' outline overlays."""
+        """The panel image (H, W, 3) uint8: help/status text and the legend beside both cameras' images (muted,
+        `muted_colors`) with every mesh's outline."""
         s = self.session
         capture = s.capture
         colors = object_colors(s.status(), s.selected)
@@ -178,7 +179,9 @@ class Panel:
             if key not in self._images:
                 if len(self._images) >= IMAGE_CACHE:
                     self._images.pop(next(iter(self._images)))
-                self._images[key] = resize_image(capture.color(*key), small.width, small.height)
+                small_color = resize_image(capture.color(*key), small.width, small.height)
+                # muted like the 3D view's cloud: no object's own colour reads as a status colour of an outline
+                self._images[key] = np.round(muted_colors(small_color / 255.0) * 255).astype(np.uint8)
             overlays.append((name, outline_overlay(self._images[key], small, meshes, s.poses(), colors=colors,
                                                    selected=s.selected)))
         return panel_image(help_lines(s, self.view), overlays, text_width=self.text_width,

@@ -158,3 +158,15 @@ def test_a_click_never_picks_a_hidden_point():
     assert nearest_pick(uv, z, (50.0, 50.0), depth_buffer=np.zeros((100, 100))) == 0  # nothing drawn: not hidden
     assert nearest_pick(np.array([[50.0, 50.0], [50.0, 50.0]]), np.array([1.2, 1.1]), (50, 50)) == 1  # tie: nearer
     assert nearest_pick(np.array([[150.0, 50.0]]), np.array([1.0]), (145.0, 50.0), depth_buffer=buffer) is None
+
+
+def test_screenshot_composes_the_windows_at_their_layout_positions():
+    pytest.importorskip("PIL")
+    from annotator.screenshot import compose
+
+    view = np.full((50, 80, 3), 200, np.uint8)
+    panel = np.full((40, 30, 3), 90, np.uint8)
+    out = compose((200, 120), [((10, 30), "3D", view), ((100, 30), "panel", panel)], title_height=20)
+    assert out.shape == (120, 200, 3)
+    assert np.all(out[30:80, 10:90] == 200) and np.all(out[30:70, 100:130] == 90)
+    assert not np.all(out[10:30, 10:90] == out[0, 0])  # a title bar above each window

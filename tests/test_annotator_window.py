@@ -431,6 +431,16 @@ def test_panel_is_drawn_at_its_window_size_with_the_legend(session, screen):
     ramp = np.round(images.residual_ramp(np.array([0.0, 0.5, 1.0])) * 255).astype(np.uint8)
     for rgb in ramp:  # the residual scale's ends and middle
         assert np.all(np.abs(text.astype(int) - rgb) <= 3, axis=-1).sum() >= 5
+    # the camera images are muted: every saturated pixel there is an outline in a mesh colour
+    cam = session.capture.cameras["front"]
+    title_h, img_h = lay.font_size + 5, round(cam.height * lay.image_width / cam.width)
+    rows = np.r_[title_h:title_h + img_h, 2 * title_h + img_h:2 * (title_h + img_h)]  # the images, not their titles
+    cams = image[rows, lay.text_width:].reshape(-1, 3).astype(np.float64) / 255
+    mx, mn = cams.max(-1), cams.min(-1)
+    saturated = cams[(mx - mn) > images.MUTED_SATURATION * mx + 3 / 255]  # beyond rounding to uint8
+    outline_rgb = np.round(np.array([c for _, c in panel.LEGEND]) * 255) / 255
+    assert len(saturated) > 20
+    assert np.abs(saturated[:, None] - outline_rgb[None]).max(-1).min(1).max() < 1e-6
     # the legend lies below the text rows and within the window on 1600 x 1000 and larger
     natural = panel.Panel(session, view, text_width=lay.text_width, image_width=lay.image_width,
                           font_size=lay.font_size).image()
