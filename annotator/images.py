@@ -163,9 +163,11 @@ def resize_image(image: np.ndarray, width: int, height: int) -> np.ndarray:
 def muted_colors(colors: np.ndarray, saturation: float = MUTED_SATURATION) -> np.ndarray:
     """RGB colours (M, 3) 0..1 with their HSV saturation scaled down to at most `saturation` (hue and value kept):
     the 3D view's capture colours, which then cannot be mistaken for the saturated status colours."""
-    rgb = np.clip(np.asarray(colors, np.float64), 0.0, 1.0)
-    mx = rgb.max(-1, keepdims=True)
-    return mx - (mx - rgb) * float(saturation)
+    rgb = np.asarray(colors, np.float64).reshape(-1, 3)
+    s = float(saturation)
+    out = rgb * s  # = max - (max - rgb) * s, in two passes over the (600k-point) cloud
+    out += ((1.0 - s) * rgb.max(1))[:, None]
+    return np.clip(out, 0.0, 1.0, out=out).reshape(np.shape(colors))
 
 
 def residual_ramp(x: np.ndarray) -> np.ndarray:
