@@ -96,6 +96,9 @@ def test_a_participant_downloads_predicts_submits_and_sees_the_score(created, se
     assert "public part: " in out and "iou_ordered" in out
     board = httpx.get(f"{server}/api/leaderboard").json()
     assert [row["team"] for row in board["tracks"]["3D"]] == ["team one"]
+    # beside it, the clone's leaderboard's reference rows of a split generated like procedural-novel-test
+    assert board["reference_split"] == "cpu-novel-test"
+    assert sorted(r["method"] for r in board["reference_rows"]["3D"]) == ["oracle", "push", "static"]
     (predictions / "seq_0000.h5").unlink()
     assert main(["submit", str(predictions), "--server", server, "--token", token, "--method", "broken"]) == 1
     captured = capsys.readouterr()
@@ -151,6 +154,7 @@ def test_a_browser_sees_a_submission_go_from_queued_to_scored(created, server, t
         row = [tr.text for tr in browser.find_elements("css selector", "tbody tr") if "<b>browser</b> team" in tr.text]
         assert row and "static (browser)" in row[0]
         assert not browser.find_elements("css selector", "td b")  # the team's markup shown as text, not rendered
+        assert any(tr.text.startswith("static ") for tr in browser.find_elements("css selector", "tbody tr"))
         browser.find_element("link text", "<b>browser</b> team").click()
         assert "Team <b>browser</b> team" in browser.find_element("tag name", "h1").text
         if shots:

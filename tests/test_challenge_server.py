@@ -151,11 +151,17 @@ def test_server_and_local_leaderboard_render_rows_alike_and_escape_method_names(
         assert static["metrics"]["iou_ordered"] == pytest.approx(0.2) and static["split_checksum"] == "c" * 12
 
         sid = _upload(live.url, tokens["alpha"], predictions, tmp_path, hostile).json()["id"]
+        other = _upload(live.url, tokens["<script>alert(1)</script>"], predictions, tmp_path, "static").json()["id"]
         _score_all(layout)
         page = httpx.get(live.url + "/").text
         head, rows = _board_rows(page, "3D track (public part)")
-        assert len(rows) == 4 and rows[0].startswith('<tr><td>1</td><td><a href="/teams/alpha">alpha</a></td>')
+        assert len(rows) == 5 and rows[0].startswith('<tr><td>1</td><td><a href="/teams/alpha">alpha</a></td>')
         assert f'<a href="/submissions/{sid}">{html.escape(hostile)}</a>' in rows[0]
+        # a submission named like a reference row is a submission: ranked, not noted "reference", no yardstick
+        named_static = next(r for r in rows if f'href="/submissions/{other}"' in r)
+        assert named_static.startswith("<tr><td>2</td>") and "reference" not in named_static
+        # submissions (hidden set) are marked apart from the reference rows (a public split): those stay as local
+        assert 'class="' not in named_static and rows[2:] == ["<tr>" + lead + r[len("<tr>"):] for r in local_rows]
         assert "<img src=x" not in page
         for path in (f"/submissions/{sid}", "/teams/alpha"):
             shown = httpx.get(live.url + path).text
@@ -167,6 +173,21 @@ def test_server_and_local_leaderboard_render_rows_alike_and_escape_method_names(
     assert "<img src=x" not in readme and "<img src=x" not in index
     assert f"| {markdown_cell(hostile)} |" in readme and "\\|" in markdown_cell(hostile)
     assert f"<td>{html.escape(hostile)}</td>" in index
+
+
+def test_reference_rows_come_from_the_split_or_one_generated_alike():
+    """A challenge on procedural-novel-test, which the clone's leaderboard has no rows of, shows the reference rows
+    of cpu-novel-test (its first 100 sequences: the same generator settings); a split with no such rows, none."""
+    from pathlib import Path
+
+    from dsr_bench.challenge.service import reference_rows
+
+    root = Path(__file__).resolve().parents[1] / "leaderboard"
+    shown, rows = reference_rows(root, "procedural-novel-test")
+    assert shown == "cpu-novel-test" and set(rows) == {"3D", "2D"}
+    assert sorted(r["method"] for r in rows["3D"]) == ["oracle", "push", "static"]
+    assert all(len(r["_per_unit"]) == 100 and r["checksum"] for r in rows["3D"])  # its 100 sequences
+    assert reference_rows(root, "synthetic") == (None, {}) == reference_rows(root / "missing", "cpu-novel-test")
 
 
 def test_tokens_wrong_malformed_revoked_and_slowed(challenge, tmp_path):

@@ -1,6 +1,7 @@
 """The leaderboard: strict entries, paper rows kept apart, tables and a sortable page (seen in headless Chromium)."""
 
 import base64
+import html
 import fcntl
 import hashlib
 import io
@@ -567,3 +568,34 @@ def test_paper_image_space_rows_show_no_voxel_grid_and_rows_say_their_split_vers
     assert three[0][-3:] == ["toolkit", "date", "split checksum"] and three[1][-3] != ""
     section = md.split("## procedural-novel-mini: 3D track (reproduced)")[1].split("## ")[0]
     assert "pinned version (checksum cccccccccccc" in section
+
+
+def test_render_table_escapes_every_text_cell_and_link_in_markdown_and_html():
+    """The one table renderer (local leaderboard and challenge server): a method, team or note holding markup, a
+    pipe or emphasis is shown as written in both forms, and a link's address cannot leave its attribute."""
+    from dsr_bench.leaderboard.entries import markdown_cell
+    from dsr_bench.leaderboard.table import LINKS, ROLE, render_table
+
+    hostile = '<img src=x onerror=alert(1)>|*x*"'
+    rows = [{"rank": "1", "team": hostile, "method": hostile, "grid": "-", "label": hostile, "toolkit": "0.3",
+             "date": "2026-11-26", "checksum": "", "iou_ordered": 0.5, "motion_full": None,
+             LINKS: {"team": '/teams/"><script>', "method": "/submissions/ab"}},
+            {"method": "static", "grid": "-", "iou_ordered": 0.25, "motion_full": 0.01}]
+    table = render_table(rows, "3D", ["iou_ordered", "motion_full"], lead=(("#", "rank"), ("team", "team")))
+    page, md = table.html(), "\n".join(table.markdown)
+    assert "<img" not in page and "<script>" not in page and "<img" not in md
+    assert page.count(html.escape(hostile)) == 3 and '<a href="/teams/&quot;&gt;&lt;script&gt;">' in page
+    assert md.count(markdown_cell(hostile)) == 3 and "\\|" in markdown_cell(hostile)
+    assert table.header[:3] == ["#", "team", "method"] and len(md.splitlines()) == 4
+    assert table.comparable and "**0.500**" in md  # the static row is there: the best is marked
+    assert "<td>-</td>" in page  # no value: "-", never "None" or "nan"
+    # a submission named like the no-motion row is neither that yardstick nor noted "reference", and rows of another
+    # role (submissions scored on a challenge's hidden set) are marked apart from the reference rows
+    rows = [{"method": "static", "iou_ordered": 0.5, ROLE: "submission"}, {"method": "MyNet", "iou_ordered": 0.4}]
+    table = render_table(rows, "3D", ["iou_ordered"])
+    assert not table.comparable and "reference" not in "\n".join(table.markdown) and "**" not in table.html()
+    rows.append({"method": "static", "iou_ordered": 0.45})
+    table = render_table(rows, "3D", ["iou_ordered"])
+    assert table.comparable and table.markdown[2].startswith("| static |  | 0.500 |  |")
+    assert table.markdown[3].startswith("| MyNet |  | 0.400 \u25bc |")
+    assert table.markdown[4].startswith("| static |  | **0.450** | reference |")

@@ -44,7 +44,7 @@ from dsr_bench.challenge.db import Submission, Team, open_database, utcnow
 from dsr_bench.challenge.layout import FILE_PATTERN, Layout, check_name, open_challenge
 from dsr_bench.challenge.storage import Received, UploadRefused, check_archive, clean_partials, receive
 from dsr_bench.errors import UserError
-from dsr_bench.leaderboard.table import COLUMN_TITLES, LINKS, SORT_SCRIPT, render_table
+from dsr_bench.leaderboard.table import COLUMN_TITLES, LINKS, ROLE, SORT_SCRIPT, render_table
 
 SUBMISSION_ID = re.compile(r"[0-9a-f]{32}")
 META_NAME = "meta.json"
@@ -203,12 +203,13 @@ def create_app(root: str | Path, db_url: str | None = None, settings: Settings |
     cache: dict[str, Any] = {"until": 0.0}
     cache_lock = threading.Lock()
     board_root = Path(settings.leaderboard) if settings.leaderboard is not None else default_leaderboard()
-    refs: dict[str, Any] = {"key": None, "rows": {}}
+    refs: dict[str, Any] = {"key": None, "rows": (None, {})}
 
-    def references(split: str) -> dict[str, list[dict]]:
-        """The local leaderboard's reference rows of `split` per track, read again only when its entries change."""
+    def references(split: str) -> tuple[str | None, dict[str, list[dict]]]:
+        """The local leaderboard's reference rows for `split` (`service.reference_rows`), read again only when its
+        entries change."""
         if board_root is None or not split:
-            return {}
+            return None, {}
         try:
             files = sorted((p.name, p.stat().st_mtime_ns) for p in (board_root / "entries").glob("*.json"))
         except OSError:
@@ -227,10 +228,10 @@ def create_app(root: str | Path, db_url: str | None = None, settings: Settings |
                 with session_factory() as session:
                     data = service.leaderboard(session, cfg)
                     data["open"] = service.open_phase(session, utcnow())
-                rows = references(str(cfg.get("split", "")))
-                page = render_leaderboard(data, cfg, rows)
+                shown, rows = references(str(cfg.get("split", "")))
+                page = render_leaderboard(data, cfg, rows, shown)
                 data.pop("open")
-                data["reference_split"] = cfg.get("split") if rows else None
+                data["reference_split"] = shown
                 data["reference_rows"] = {track: [service.reference_view(r, service.COLUMNS[track]) for r in table]
                                           for track, table in rows.items()}
                 cache.update(until=time.monotonic() + settings.board_cache, data=data, page=page)
@@ -391,7 +392,7 @@ async def _multipart_chunks(stream: AsyncIterator[bytes], content_type: str) -> 
 # --- pages ---------------------------------------------------------------------------------------------------
 _STYLE = ("body{font-family:sans-serif;margin:2em;max-width:70em}table{border-collapse:collapse;margin:1em 0}"
           "td,th{border:1px solid #bbb;padding:.3em .6em;text-align:right}td{white-space:nowrap}"
-          "td:first-child,th:first-child{text-align:left}th{cursor:pointer;background:#f4f4f4}.best{font-weight:bold}"
+          "td:not([data-v]),th:first-child{text-align:left}th{cursor:pointer;background:#f4f4f4}.best{font-weight:bold}"
           ".worse{color:#a00}.note{color:#555}.state{font-weight:bold}")
 
 
@@ -427,7 +428,7 @@ def _submission_row(row: dict, rank: int | None = None) -> dict:
                                  "final" if row.get("final") else "") if n)
     return {**row["metrics"], "rank": "" if rank is None else str(rank), "team": row.get("team", ""),
             "method": row["method"], "grid": "-", "label": note, "toolkit": row.get("toolkit_version") or "",
-            "date": row.get("date", ""), "checksum": "",
+            "date": row.get("date", ""), "checksum": "", ROLE: "submission",
             LINKS: {"team": f"/teams/{_quote(str(row.get('team', '')))}", "method": f"/submissions/{row['id']}"}}
 
 
@@ -437,25 +438,28 @@ def _quote(text: str) -> str:
     return quote(text, safe="")
 
 
-def _reference_note(split: str) -> str:
+def _reference_note(shown: str, split: str) -> str:
+    same = "" if shown == split else f" (generated with the same settings as {html.escape(split)})"
     return (f"<p class=note>Reference rows (unranked, below the submissions): the local leaderboard's static, push "
-            f"and oracle rows of {html.escape(split)}, scored by <code>dsr-bench evaluate</code> on that split's "
-            "pinned public sequences, not on this challenge's hidden ones (drawn with the split's objects and "
-            "policy from a secret seed): a yardstick, not a paired comparison. Bold and &#9660; compare the means "
-            "as on the local leaderboard.</p>")
+            f"and oracle rows of {html.escape(shown)}{same}, scored by <code>dsr-bench evaluate</code> on that "
+            "split's pinned public sequences, not on this challenge's hidden ones (drawn with the split's objects "
+            "and policy from a secret seed): a yardstick, not a paired comparison. Bold and &#9660; mark the "
+            "reference rows among themselves, as on the local leaderboard; submissions, ranked by #, are never "
+            "marked against them.</p>")
 
 
-def render_leaderboard(data: dict, config: dict, references: dict[str, list[dict]] | None = None) -> str:
-    """The leaderboard page: per track the public part's table with the reference rows of the challenge's split
-    (`service.reference_rows`) beside the submissions, the final ranking once revealed, the phases."""
+def render_leaderboard(data: dict, config: dict, references: dict[str, list[dict]] | None = None,
+                       reference_split: str | None = None) -> str:
+    """The leaderboard page: per track the public part's table with the `references` rows per track (of
+    `reference_split`: `service.reference_rows`) beside the submissions, the final ranking once revealed, the
+    phases."""
     references = references or {}
-    split = str(config.get("split", ""))
     parts = [f"<h1>{html.escape(str(config.get('title') or 'DSR benchmark challenge'))}</h1>"]
     phase, closed = data.get("open") or (None, None)
     parts.append(f"<p>{html.escape(closed or (f'phase {phase} is open' if phase else 'submissions are open'))}; "
                  f"{html.escape(str(config['daily_limit']))} submissions per team per day.</p>")
     if references:
-        parts.append(_reference_note(split))
+        parts.append(_reference_note(str(reference_split), str(config.get("split", ""))))
     if data.get("final"):
         for track, rows in sorted(data["final"].items()):
             parts.append(f"<h2>Final ranking, {html.escape(track)} track (private part)</h2>")
@@ -488,7 +492,7 @@ def render_submission(view: dict) -> str:
     for part, score in sorted(view["scores"].items()):
         parts.append(f"<h2>{html.escape(part)} part</h2>")
         row = {**score.get("metrics", {}), "method": view["method"], "grid": "-", "label": f"{part} part",
-               "date": str(score.get("scored_at", ""))[:10]}
+               "date": str(score.get("scored_at", ""))[:10], ROLE: "submission"}
         parts.append(_table([row], view.get("track") or "3D"))
     return _page(f"Submission {view['id']}", "".join(parts), refresh=waiting)
 
@@ -496,7 +500,7 @@ def render_submission(view: dict) -> str:
 def render_team(name: str, views: list[dict]) -> str:
     """A team's public page: its scored submissions and their public aggregate scores."""
     rows = [{**v["scores"].get("public", {}).get("metrics", {}), "method": v["method"], "grid": "-",
-             "label": "final" if v["final"] else "", "date": v["created"][:10],
+             "label": "final" if v["final"] else "", "date": v["created"][:10], ROLE: "submission",
              LINKS: {"method": f"/submissions/{v['id']}"}} for v in views]
     body = [f"<h1>Team {html.escape(name)}</h1>",
             _table(rows, views[0].get("track") or "3D") if rows else "<p>No scored submission yet.</p>",

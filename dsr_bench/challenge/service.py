@@ -194,25 +194,37 @@ def select_final(session_factory: sessionmaker, team: Team, sid: str, final: boo
         sub.final = final
 
 
-def reference_rows(leaderboard: str | Path, split: str) -> dict[str, list[dict[str, Any]]]:
-    """Per track ("3D", "2D"), the reference rows (static, push, oracle: `scoring.plots.is_reference_method`) of the
-    local leaderboard directory `leaderboard` scored on the pinned version of `split`, in `board.load_rows`'s
-    shape (per-sequence values included, for their intervals), in the local table's order; {} when it has none.
-    Invalid entry files are skipped silently (`dsr-bench leaderboard build` names them)."""
+def reference_rows(leaderboard: str | Path, split: str) -> tuple[str | None, dict[str, list[dict[str, Any]]]]:
+    """(the split shown, per track "3D" / "2D" its reference rows): the reference rows (static, push, oracle:
+    `scoring.plots.is_reference_method`) of the local leaderboard directory `leaderboard` scored on the pinned
+    version of `split` or, where it has none, of the first test split (by name) generated with the same settings
+    (objects, steps, objects per scene, policy; e.g. cpu-novel-test, the first 100 sequences of
+    procedural-novel-test). Rows in `board.load_rows`'s shape (per-sequence values included, for their intervals)
+    and the local table's order; (None, {}) when there are none. Invalid entry files are skipped silently
+    (`dsr-bench leaderboard build` names them)."""
+    from dsr_bench.dataset.splits import SPLITS
     from dsr_bench.leaderboard.board import _tables, load_rows
     from dsr_bench.scoring.plots import is_reference_method
 
     if not (Path(leaderboard) / "entries").is_dir():
-        return {}
+        return None, {}
     rows = [r for r in load_rows(leaderboard, warn=lambda line: None)
-            if r["split"] == split and r["kind"] == "reproduced"]
-    out: dict[str, list[dict[str, Any]]] = {}
-    if not rows:
-        return out
-    for _, _, track, table, _ in _tables(rows):
-        if track in COLUMNS and track != "planning":
-            out[track] = [r for r in table.to_dict("records") if is_reference_method(r["method"])]
-    return {track: table for track, table in out.items() if table}
+            if r["kind"] == "reproduced" and is_reference_method(r["method"]) and r["split"] in SPLITS]
+
+    def settings(name: str) -> tuple:
+        spec = SPLITS[name]
+        return spec.objects, spec.steps, spec.objects_per_scene, spec.policy
+
+    candidates = [split] if split in SPLITS else []
+    candidates += sorted(n for n, spec in SPLITS.items() if candidates and n != split and spec.role == "test"
+                         and settings(n) == settings(split))
+    for name in candidates:
+        mine = [r for r in rows if r["split"] == name]
+        if mine:
+            tables = {track: table.to_dict("records") for _, _, track, table, _ in _tables(mine)
+                      if track in COLUMNS and track != "planning"}
+            return name, {track: table for track, table in tables.items() if table}
+    return None, {}
 
 
 def reference_view(row: dict[str, Any], columns: tuple[str, ...] | list[str]) -> dict[str, Any]:

@@ -3,7 +3,8 @@ and the challenge server's pages (`dsr_bench.challenge.server`) render their row
 
 A row is a mapping in `board.load_rows`'s shape: "method", "grid", "label", "toolkit", "date", "checksum", the
 values of its metric columns (`COLUMN_TITLES`' keys; None or NaN: no value) and, optionally, its per-unit values
-under `SEQ` ({sequence or task: {column: value}}), from which each cell's 95% interval is computed. Every text cell
+under `SEQ` ({sequence or task: {column: value}}), from which each cell's 95% interval is computed, links under
+`LINKS` and its role under `ROLE` (a submission named like a reference row is not one). Every text cell
 is escaped: HTML with `html.escape`, markdown with `entries.markdown_cell`.
 """
 
@@ -60,10 +61,42 @@ def is_oracle(method: str) -> bool:
 NO_MOTION = "static"
 
 
+#: where a row may say what it is: "submission" (a challenge's submitted row: never a reference row, whatever its
+#: name) or "reference"; without it a row is a reference row by its name (`is_reference_method`, `is_oracle`)
+ROLE = "_role"
+
+
+def _submitted(row) -> bool:
+    return ROLE in row and row[ROLE] == "submission"
+
+
+def _oracle_row(row) -> bool:
+    """Whether a row is an oracle (never best): by its name, unless it is a submission."""
+    return not _submitted(row) and is_oracle(row["method"])
+
+
+def _reference_row(row) -> bool:
+    """Whether a row is a reference row (static, push, oracle, random, no push): by its name, unless a submission."""
+    return not _submitted(row) and is_reference_method(row["method"])
+
+
+def _is_named(row, name: str) -> bool:
+    """Whether a row is the reference row `name` (a submission never is)."""
+    return row["method"] == name and not _submitted(row)
+
+
+def _named(table, name: str):
+    """The table's rows that are the reference row `name` (submissions of that name aside)."""
+    mask = table["method"] == name
+    if ROLE in table:
+        mask &= table[ROLE] != "submission"
+    return table[mask]
+
+
 def _best(table, column):
     """The best non-oracle value of a column, or None (no bold) when the table has no no-motion reference row
     of reproduced results: a best that cannot be compared with predicting no motion is not marked."""
-    values = table[[not is_oracle(m) for m in table["method"]]][column].dropna()
+    values = table[[not _oracle_row(r) for _, r in table.iterrows()]][column].dropna()
     if values.empty:
         return None
     return values.min() if column in LOWER_IS_BETTER else values.max()
@@ -71,8 +104,8 @@ def _best(table, column):
 
 def _worse_than_no_motion(table, column, row) -> bool:
     """Whether a trained row's value is worse than the no-motion reference row's in the same table."""
-    ref = table[table["method"] == NO_MOTION][column].dropna()
-    if ref.empty or row["method"] == NO_MOTION or is_oracle(row["method"]) or row[column] != row[column]:
+    ref = _named(table, NO_MOTION)[column].dropna()
+    if ref.empty or _is_named(row, NO_MOTION) or _oracle_row(row) or row[column] != row[column]:
         return False
     return row[column] > ref.iloc[0] if column in LOWER_IS_BETTER else row[column] < ref.iloc[0]
 
@@ -131,7 +164,7 @@ def _yardsticks(table, track: str) -> list[str]:
     """The reference rows a table's rows are compared with, pairwise: static and push, or in a planning table
     no push and random."""
     names = (NO_PUSH, "random (planning)") if track == "planning" else (NO_MOTION, "push")
-    return [n for n in names if (table["method"] == n).any()]
+    return [n for n in names if not _named(table, n).empty]
 
 
 def _learned_best(table, yardsticks: list[str]) -> float | None:
@@ -139,8 +172,8 @@ def _learned_best(table, yardsticks: list[str]) -> float | None:
     each yardstick (no push, random) has a 95% interval above 0; None when none has, or a yardstick is missing."""
     if len(yardsticks) < 2:
         return None
-    bases = [unit_values(table[table["method"] == y].iloc[0][SEQ], "planning_iou") for y in yardsticks]
-    winners = [r["planning_iou"] for _, r in table.iterrows() if not is_reference_method(r["method"]) and all(
+    bases = [unit_values(_named(table, y).iloc[0][SEQ], "planning_iou") for y in yardsticks]
+    winners = [r["planning_iou"] for _, r in table.iterrows() if not _reference_row(r) and all(
         (d := paired_difference(unit_values(r[SEQ], "planning_iou"), b)).excludes_zero and d.mean > 0 for b in bases)]
     return max(winners) if winners else None
 
@@ -190,7 +223,8 @@ def render_table(rows: Any, track: str, columns: Sequence[str], published: bool 
     "planning") table with metric `columns`, in this order: the `lead` columns ((title, row key): text, e.g. the
     challenge's rank and team), method, model grid, the metrics (value +- the 95% interval's half-width over the
     row's per-unit values; bold: the best non-oracle value where the table holds its no-motion row, or in planning a
-    planner beating no push and random; a mark where worse than no motion), a planning table's paired differences
+    planner beating no push and random; a mark where worse than no motion; rows with a `ROLE` are marked among
+    the rows of the same role only), a planning table's paired differences
     from no push and random, note, toolkit, date, split checksum. `published`: numbers reported in the paper (as
     printed, never compared)."""
     table = rows if hasattr(rows, "iterrows") else _frame(rows, columns, [key for _, key in lead])
@@ -200,36 +234,32 @@ def render_table(rows: Any, track: str, columns: Sequence[str], published: bool 
     header = [*[title for title, _ in lead], "method", "model grid", *[COLUMN_TITLES[c] for c in cols],
               *[f"vs {y.replace(' (planning)', '')} (paired, \u00b1 SE)" for y in inline], "note", "toolkit",
               "date", "split checksum"]
-    best: dict[str, float | None]
-    if track == "planning":
-        comparable = not paper and len(yardsticks) == 2
-        best = {c: _learned_best(table, yardsticks) if not paper else _best(table, c) for c in cols}
-    else:
-        comparable = not paper and bool((table["method"] == NO_MOTION).any())
-        best = {c: _best(table, c) if comparable or paper else None for c in cols}
+    comparable, _ = _marks(table, track, cols, paper)
+    groups = {role: _marks(peers, track, cols, paper) + (peers,) for role, peers in _groups(table)}
     md = [md_row(header), "|" + "---|" * len(header)]
     html_rows = []
     for _, r in table.iterrows():
         links = r.get(LINKS) if LINKS in r else None
         links = links if isinstance(links, dict) else {}
+        _, best, peers = groups[r[ROLE] if ROLE in r else ""]
         cells, tds = [], []
         for c in cols:
             text = _cell(r, c) if not paper else _fmt(r[c], c, published=True)
-            top = best[c] is not None and r[c] == best[c] and not is_oracle(r["method"]) and not (
-                track == "planning" and is_reference_method(r["method"]))
-            worse = _worse_than_no_motion(table, c, r)
+            top = best[c] is not None and r[c] == best[c] and not _oracle_row(r) and not (
+                track == "planning" and _reference_row(r))
+            worse = _worse_than_no_motion(peers, c, r)
             cells.append((f"**{text}**" if top else text) + (f" {_WORSE_MARK}" if worse else ""))
             classes = " ".join(k for k, on in (("best", top), ("worse", worse)) if on)
             value = "" if r[c] != r[c] else repr(float(r[c]))  # NaN: no value to sort on
             tds.append((html.escape(text) + (f" {_WORSE_MARK}" if worse else ""), value, classes))
         for y in inline:
-            base = table[table["method"] == y].iloc[0]
+            base = _named(table, y).iloc[0]
             d = paired_difference(unit_values(r[SEQ], "planning_iou"), unit_values(base[SEQ], "planning_iou"))
-            text = "-" if r["method"] == y else _difference(d, "planning_iou")
+            text = "-" if _is_named(r, y) else _difference(d, "planning_iou")
             cells.append(text)
             tds.append((html.escape(text), "" if text == "-" else repr(d.mean), ""))
         label = r["label"]
-        if not paper and is_reference_method(r["method"]) and "reference" not in str(label):
+        if not paper and _reference_row(r) and "reference" not in str(label):
             label = "reference" + (f"; {label}" if label else "")
         leads = [str(r[key]) for _, key in lead]
         md.append(md_row([*[markdown_cell(t) for t in leads], markdown_cell(r["method"]), markdown_cell(r["grid"]),
@@ -242,6 +272,25 @@ def render_table(rows: Any, track: str, columns: Sequence[str], published: bool 
                           (html.escape(str(r["date"])), None, ""),
                           (f"<code>{html.escape(str(r['checksum']))}</code>", None, "")])
     return RenderedTable(header, md, html_rows, comparable)
+
+
+def _groups(table) -> list[tuple[str, Any]]:
+    """The table's rows in the groups marked apart: by role where rows say theirs (a challenge's submissions, scored on
+    its hidden set, are never compared with reference rows scored on a public split), else all together."""
+    if ROLE not in table:
+        return [("", table)]
+    return [(role, table[table[ROLE] == role]) for role in dict.fromkeys(table[ROLE])]
+
+
+def _marks(table, track: str, cols: list[str], paper: bool) -> tuple[bool, dict[str, float | None]]:
+    """(whether the rows can be compared with their reference rows, the value to bold per column or None): the
+    best non-oracle value where the rows hold the no-motion row; in planning, a planner beating no push and random."""
+    if track == "planning":
+        yardsticks = _yardsticks(table, track) if not paper else []
+        return (not paper and len(yardsticks) == 2,
+                {c: _learned_best(table, yardsticks) if not paper else _best(table, c) for c in cols})
+    comparable = not paper and not _named(table, NO_MOTION).empty
+    return comparable, {c: _best(table, c) if comparable or paper else None for c in cols}
 
 
 def _linked(text: str, href: str | None) -> str:
@@ -264,4 +313,5 @@ def _frame(rows: Sequence[Mapping[str, Any]], columns: Sequence[str], lead_keys:
     data.update({c: [_number(r.get(c)) for r in rows] for c in columns})
     data[SEQ] = [dict(r.get(SEQ) or {}) for r in rows]
     data[LINKS] = [dict(r.get(LINKS) or {}) for r in rows]
+    data[ROLE] = ["" if r.get(ROLE) is None else str(r.get(ROLE)) for r in rows]
     return pd.DataFrame(data)
