@@ -102,12 +102,18 @@ def _best(table, column):
     return values.min() if column in LOWER_IS_BETTER else values.max()
 
 
-def _worse_than_no_motion(table, column, row) -> bool:
-    """Whether a trained row's value is worse than the no-motion reference row's in the same table."""
-    ref = _named(table, NO_MOTION)[column].dropna()
-    if ref.empty or _is_named(row, NO_MOTION) or _oracle_row(row) or row[column] != row[column]:
+def _no_motion_values(table, columns: list[str]) -> dict[str, float | None]:
+    """Per column, the value of the table's (first) no-motion reference row that has one, or None."""
+    rows = _named(table, NO_MOTION)
+    return {c: (None if values.empty else values.iloc[0]) for c in columns for values in (rows[c].dropna(),)}
+
+
+def _worse_than_no_motion(ref: float | None, column, row) -> bool:
+    """Whether a trained row's value is worse than `ref`, the no-motion reference row's in the same table
+    (`_no_motion_values`)."""
+    if ref is None or _is_named(row, NO_MOTION) or _oracle_row(row) or row[column] != row[column]:
         return False
-    return row[column] > ref.iloc[0] if column in LOWER_IS_BETTER else row[column] < ref.iloc[0]
+    return row[column] > ref if column in LOWER_IS_BETTER else row[column] < ref
 
 
 def _decimals(value: float, column: str) -> int:
@@ -235,19 +241,20 @@ def render_table(rows: Any, track: str, columns: Sequence[str], published: bool 
               *[f"vs {y.replace(' (planning)', '')} (paired, \u00b1 SE)" for y in inline], "note", "toolkit",
               "date", "split checksum"]
     comparable, _ = _marks(table, track, cols, paper)
-    groups = {role: _marks(peers, track, cols, paper) + (peers,) for role, peers in _groups(table)}
+    groups = {role: (*_marks(peers, track, cols, paper), _no_motion_values(peers, cols))
+              for role, peers in _groups(table)}
     md = [md_row(header), "|" + "---|" * len(header)]
     html_rows = []
     for _, r in table.iterrows():
         links = r.get(LINKS) if LINKS in r else None
         links = links if isinstance(links, dict) else {}
-        _, best, peers = groups[r[ROLE] if ROLE in r else ""]
+        _, best, no_motion = groups[r[ROLE] if ROLE in r else ""]
         cells, tds = [], []
         for c in cols:
             text = _cell(r, c) if not paper else _fmt(r[c], c, published=True)
             top = best[c] is not None and r[c] == best[c] and not _oracle_row(r) and not (
                 track == "planning" and _reference_row(r))
-            worse = _worse_than_no_motion(peers, c, r)
+            worse = _worse_than_no_motion(no_motion[c], c, r)
             cells.append((f"**{text}**" if top else text) + (f" {_WORSE_MARK}" if worse else ""))
             classes = " ".join(k for k, on in (("best", top), ("worse", worse)) if on)
             value = "" if r[c] != r[c] else repr(float(r[c]))  # NaN: no value to sort on
