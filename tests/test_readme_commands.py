@@ -160,7 +160,7 @@ def test_the_readme_commands_run_as_written_after_the_quickstart(after_quickstar
 
     monkeypatch.setattr(dsr_bench.display, "no_display", lambda: False)
     monkeypatch.setattr(dsr_bench.viewer, "view", view)
-    monkeypatch.setattr(annotator.window, "run", lambda session: opened.append(str(session.capture.path)))
+    monkeypatch.setattr(annotator.window, "run", lambda session, **options: opened.append(str(session.capture.path)))
     said = {}
     for command in readme_commands((ROOT / "README.md").read_text()):
         kind, expected = COMMANDS[command]

@@ -95,7 +95,8 @@ def test_predictor_carries_the_state_as_in_training(data, tmp_path):
     opt = torch.optim.Adam(net.parameters())
     sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda e: 1.0)
     ckpt = save_checkpoint(tmp_path / "g.pt", net, opt, sched, cfg, STAGES["cube-multi"], 0, 0, 0)
-    predictor = load_predictor("gtwarp", ckpt, "cpu")
+    predictor = load_predictor("gtwarp", ckpt, "cpu", fast=False)  # the eager network, bit for bit (the fast path's
+    # agreement with it is tests/test_fast_inference.py's)
     assert predictor.name == "gtwarp" and predictor.num_slots == 4
     with SequenceReader(data / "seq_0000.h5") as seq:
         pred = predictor.predict_sequence(seq)
