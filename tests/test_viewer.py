@@ -19,7 +19,8 @@ from dsr_bench.geometry import voxel_to_world, world_to_voxel  # noqa: E402
 from dsr_bench.scoring.predictions import write_predictions  # noqa: E402
 from dsr_bench.dataset.sequence import SequenceReader  # noqa: E402
 from dsr_bench.testing import write_synthetic_sequence  # noqa: E402
-from dsr_bench.viewer import MAX_ARROWS, UNMATCHED, match_slots  # noqa: E402
+from dsr_bench.viewer import (COMPARE_COLORS, EYE_POSITION, EYE_TARGET, GT_FLOW_COLOR, MAX_ARROWS,  # noqa: E402
+                              PRED_FLOW_COLOR, UNMATCHED, colored_cloud, compare_voxels, match_slots)
 
 STEPS, OBJECTS = 3, 2
 
@@ -63,7 +64,15 @@ class Recording:
                     self.rows[chunk.entity_path, name] += [(steps[i], col[i]) for i in range(batch.num_rows)]
         for rows in self.rows.values():
             rows.sort(key=lambda r: -1 if r[0] is None else r[0])
-        self.blueprint_entities = {c.entity_path for b in reader.blueprints() for c in reader.stream(store=b)}
+        self.blueprint_entities: set[str] = set()
+        self.blueprint_rows: dict[str, list] = defaultdict(list)  # component -> values over all views
+        for store in reader.blueprints():
+            for chunk in reader.stream(store=store):
+                self.blueprint_entities.add(chunk.entity_path)
+                batch = chunk.to_record_batch()
+                for name in batch.schema.names:
+                    if ":" in name:
+                        self.blueprint_rows[name] += batch.column(name).to_pylist()
 
     def steps(self, entity: str, component: str) -> list:
         return [s for s, _ in self.rows[entity, component]]
@@ -106,7 +115,7 @@ def test_recording_verifies_with_rerun_tools(synthetic):
     assert result.returncode == 0, result.stderr
     printed = subprocess.run([_rerun(), "rrd", "print", str(synthetic["rrd"])], capture_output=True, text=True,
                              check=True).stdout
-    assert "/world/gt/mask" in printed and "/world/pred/disagree" in printed
+    assert "/world/gt/mask" in printed and "/world/pred/compare/only_predicted" in printed
     assert list(synthetic["rrd"].parent.iterdir()) == [synthetic["rrd"]]  # no temporary file left behind
 
 
@@ -116,6 +125,55 @@ def test_timelines_and_blueprint(synthetic):
     assert "/viewport" in rec.blueprint_entities  # the layout travels with the recording
     # one static colour table for all steps: object ids keep their colours
     assert rec.steps("/world", "AnnotationContext:context") == [None]
+
+
+def _rgb(color) -> int:
+    r, g, b = color
+    return (r << 24) | (g << 16) | (b << 8) | 255
+
+
+def test_3d_views_open_framed_on_the_workspace_without_labels_or_depth_clouds(synthetic):
+    rec = synthetic["rec"]
+    eyes = rec.blueprint_rows["EyeControls3D:position"]
+    assert len(eyes) == 2  # both 3D views: ground truth, predictions vs ground truth
+    for eye, target in zip(eyes, rec.blueprint_rows["EyeControls3D:look_target"]):
+        np.testing.assert_allclose(eye[0], EYE_POSITION, atol=1e-6)
+        np.testing.assert_allclose(target[0], EYE_TARGET, atol=1e-6)
+    # the eye sits within a metre of the workspace and above the table: the 0.512 m grid fills the view
+    assert 0.3 < float(np.linalg.norm(np.subtract(EYE_POSITION, EYE_TARGET))) < 1.0 and EYE_POSITION[2] > 0.2
+    queries = [q for rows in rec.blueprint_rows["ViewContents:query"] for q in rows]
+    # camera images stay in their 2D views (a depth image drawn in 3D is a cloud coloured by depth)
+    assert "- /world/cameras/front/image/depth" in queries and "- /world/cameras/front/image/color" in queries
+    for entity in ("/world/gt/mask", "/world/objects/1/label", "/world/push", "/world/pred/mask"):
+        shown = [c for (e, c) in rec.rows if e == entity and c.endswith(":show_labels")]
+        assert shown, entity
+        assert not any(v for c in shown for v in np.concatenate(rec.values(entity, c))), entity
+
+
+def test_ground_truth_cloud_is_coloured_by_the_camera_image(synthetic):
+    rec = synthetic["rec"]
+    assert rec.steps("/world/gt/cloud", "Points3D:positions") == [0, 2, 4, 6]
+    positions = rec.values("/world/gt/cloud", "Points3D:positions", 3)
+    colors = rec.values("/world/gt/cloud", "Points3D:colors")
+    with SequenceReader(synthetic["seq"]) as seq:
+        for t in (0, STEPS):
+            expected, rgb = colored_cloud(seq.read("cameras/front/points", t), seq.read("cameras/front/color", t),
+                                          margin=0.01)
+            assert len(expected) > 1000
+            np.testing.assert_allclose(positions[t], expected, atol=1e-6)
+            packed = (rgb[:, 0].astype(np.uint32) << 24) | (rgb[:, 1].astype(np.uint32) << 16) \
+                | (rgb[:, 2].astype(np.uint32) << 8) | 255
+            np.testing.assert_array_equal(colors[t].astype(np.uint32), packed)
+    assert len({int(c) for c in colors[0]}) > 1  # the image's colours, not one flat colour
+
+
+def test_colored_cloud_keeps_the_workspace_and_drops_missing_returns():
+    points = np.array([[[0.5, 0.0, 0.05], [np.nan, np.nan, np.nan]], [[0.5, 0.0, -0.005], [2.0, 0.0, 0.0]]])
+    color = np.arange(12, dtype=np.uint8).reshape(2, 2, 3)
+    pos, rgb = colored_cloud(points, color, margin=0.01)
+    np.testing.assert_allclose(pos, [[0.5, 0.0, 0.05], [0.5, 0.0, -0.005]], atol=1e-7)
+    assert rgb.tolist() == [[0, 1, 2], [6, 7, 8]]
+    assert len(colored_cloud(points, color)[0]) == 1  # without the margin the point under the table goes
 
 
 def test_sequence_without_policy_data(synthetic, tmp_path):
@@ -194,18 +252,32 @@ def test_predictions_matched_disagreement_and_metrics(synthetic):
     from dsr_bench.scoring.evaluate import score_sequence
 
     rec, gt, mask = synthetic["rec"], synthetic["pred"]["gt"], synthetic["pred"]["mask"]
-    assert rec.steps("/world/pred/mask", "Points3D:class_ids") == [1, 3, 5]
+    assert rec.steps("/world/pred/mask", "Points3D:class_ids") == [0, 2, 4]  # the mask of observation t: tick 2t
     for t, ids in enumerate(rec.values("/world/pred/mask", "Points3D:class_ids")):
         # slots relabelled to the objects they match: object voxels carry the GT ids, the corner is unmatched
         assert sorted(set(ids.tolist())) == sorted(set(np.unique(gt[t]).tolist()) - {0}) + [UNMATCHED]
         assert len(ids) == int((mask[t] > 0).sum())
     inverse = np.array([0, 2, UNMATCHED, 1], np.uint8)  # slot -> object of the permutation in _predictions
-    for t, points in enumerate(rec.values("/world/pred/disagree", "Points3D:positions", 3)):
-        expected = voxel_to_world(np.argwhere(inverse[mask[t]] != gt[t]))
-        assert len(expected) == 4 * 4 * 4 + 5  # the unmatched corner block and the mislabelled voxels
-        np.testing.assert_allclose(points, expected, atol=1e-6)
+    counts = {"wrong_object": 5, "only_predicted": 4 * 4 * 4, "only_true": 0}  # mislabelled voxels, the corner block
+    for kind, color in COMPARE_COLORS.items():
+        entity = f"/world/pred/compare/{kind}"
+        assert rec.steps(entity, "Points3D:positions") == [0, 2, 4]
+        assert rec.steps("/world/pred", "Clear:is_recursive") == [2, 4, 6]  # gone at the last observation
+        assert [int(c) for c in np.concatenate(rec.values(entity, "Points3D:colors"))] == [_rgb(color)] * STEPS
+        for t, points in enumerate(rec.values(entity, "Points3D:positions", 3)):
+            matched = inverse[mask[t]]
+            expected = {"correct": (matched == gt[t]) & (gt[t] > 0), "wrong_object": (matched != gt[t]) & (
+                matched > 0) & (gt[t] > 0), "only_predicted": (matched > 0) & (gt[t] == 0),
+                "only_true": (matched == 0) & (gt[t] > 0)}[kind]
+            assert len(points) == counts.get(kind, int(expected.sum()))
+            np.testing.assert_allclose(points, voxel_to_world(np.argwhere(expected)), atol=1e-6)
     pred_vectors = rec.values("/world/pred/flow", "Arrows3D:vectors", 3)
+    assert rec.steps("/world/pred/flow", "Arrows3D:vectors") == [1, 3, 5]
     assert np.all(pred_vectors[0][:, 1] > 0)  # +1 voxel in dy is +4 mm along world y
+    # prediction and truth in two colours, whatever the magnitudes
+    assert {int(c) for c in np.concatenate(rec.values("/world/pred/flow", "Arrows3D:colors"))} == {
+        _rgb(PRED_FLOW_COLOR)}
+    assert {int(c) for c in np.concatenate(rec.values("/world/gt/flow", "Arrows3D:colors"))} == {_rgb(GT_FLOW_COLOR)}
     pred_file = synthetic["pred_dir"] / "seq_0007.h5"
     _, problems, expected = score_sequence(("seq_0007", str(pred_file), str(synthetic["seq"])))
     assert not problems
@@ -214,6 +286,20 @@ def test_predictions_matched_disagreement_and_metrics(synthetic):
         logged = np.concatenate(rec.values(f"/metrics/{key}", "Scalars:scalars"))
         np.testing.assert_allclose(logged, expected[key], rtol=1e-9)
     assert all(v < 1 for v in expected["iou_unordered"])  # the corner block costs IoU
+
+
+def test_compare_voxels_partitions_both_masks():
+    truth = np.zeros((4, 4, 2), np.uint8)
+    truth[0], truth[1] = 1, 2
+    matched = truth.copy()
+    matched[1, 0] = 1  # object 2 predicted as object 1: 2 voxels
+    matched[0, 1] = 0  # missed: 2 voxels
+    matched[3, 3] = 2  # extra: 2 voxels
+    kinds = compare_voxels(matched, truth)
+    assert {k: len(v) for k, v in kinds.items()} == {"correct": 12, "wrong_object": 2, "only_predicted": 2,
+                                                       "only_true": 2}
+    union = np.concatenate(list(kinds.values()))
+    assert len({tuple(v) for v in union}) == len(union) == int(((matched > 0) | (truth > 0)).sum())
 
 
 def test_match_slots_inverts_a_permutation():

@@ -7,6 +7,7 @@ predictions made at t), and `observation` (t on both). World frame: metres, z up
   description                    markdown summary of the sequence
   world/cameras/<cam>            camera pose (Transform3D, camera-to-world); image: Pinhole (OpenCV
                                  axes) with image/{color,depth,mask}
+  world/gt/cloud                 the front camera's points in the workspace, coloured by its RGB image
   world/tsdf                     TSDF surface band (-1 < tsdf < 0) as points
   world/gt/mask                  amodal voxels, class id = object id (AnnotationContext: stable colours)
   world/gt/flow                  scene-flow arrows t -> t+1 (subsampled), coloured by magnitude
@@ -14,7 +15,8 @@ predictions made at t), and `observation` (t on both). World frame: metres, z up
   world/push                     the push: start point, direction and length; world/push/chosen box
   world/pred/mask                predicted voxels, slots relabelled to their matched object's id
   world/pred/flow                predicted flow arrows
-  world/pred/disagree            voxels where the matched prediction and the ground truth differ
+  world/pred/compare/<kind>      the matched prediction against the ground truth voxel by voxel: correct,
+                                 wrong_object, only_predicted, only_true (one colour each, COMPARE_COLORS)
   world/pred/flow_2d             predicted front-camera flow (motion_2d) as arrows from the pixels' world
                                  points (subsampled); a 2D-only prediction shows this alone
   policy/{object,direction}_probs  the policy's distributions (bar charts); policy/heightmap its input
@@ -28,7 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from dsr_bench.atomic import atomic_path
-from dsr_bench.constants import VOXEL_SIZE
+from dsr_bench.constants import GRID_BOUNDS, VOXEL_SIZE, WORKSPACE_CENTER
 from dsr_bench.errors import UserError
 from dsr_bench.geometry import voxel_to_world
 from dsr_bench.dataset.sequence import SequenceReader
@@ -39,7 +41,18 @@ UNMATCHED = 255  # class id of predicted voxels whose slot matches no object
 PALETTE = np.array([[230, 25, 75], [60, 180, 75], [0, 130, 200], [245, 130, 48], [145, 30, 180],
                     [70, 240, 240], [240, 50, 230], [210, 245, 60], [250, 190, 212], [0, 128, 128]], np.uint8)
 PUSH_COLOR = (255, 215, 0)
-DISAGREE_COLOR = (255, 0, 0)
+GT_FLOW_COLOR = (40, 220, 40)  # ground-truth flow arrows: green
+PRED_FLOW_COLOR = (255, 40, 255)  # predicted flow arrows: magenta
+#: Colours of the voxel-by-voxel comparison of a matched prediction with the ground-truth amodal mask.
+COMPARE_COLORS = {"correct": (170, 170, 170),  # the same object on both sides: grey
+                  "wrong_object": (255, 150, 0),  # occupied on both sides, by different objects: orange
+                  "only_predicted": (255, 30, 30),  # predicted where the truth is empty: red
+                  "only_true": (30, 120, 255)}  # the truth where nothing is predicted (missed): blue
+#: Where the 3D views open: an eye above and in front of the workspace (world x, y, z in metres, z up), looking
+#: at its centre on the table, so the 0.512 m grid fills the view instead of lying edge-on far away.
+EYE_POSITION = (WORKSPACE_CENTER[0], WORKSPACE_CENTER[1] - 0.42, 0.42)
+EYE_TARGET = (WORKSPACE_CENTER[0], WORKSPACE_CENTER[1], 0.03)
+CLOUD_CAMERA = "front"
 METRIC_NAMES = ("iou_unordered", "iou_ordered", "motion_visible", "motion_full", "motion_moved", "motion_static",
                 "motion_2d")
 _READ_ERRORS = (OSError, KeyError, ValueError, IndexError)
@@ -109,6 +122,26 @@ def flow_2d_arrows(flow_2d: np.ndarray, points: np.ndarray, rng: np.random.Gener
     return origins, vectors, magnitude_colors(np.linalg.norm(vectors, axis=1))
 
 
+def compare_voxels(matched: np.ndarray, truth: np.ndarray) -> dict[str, np.ndarray]:
+    """Voxel indices (N, 3), (y, x, z), of each kind in COMPARE_COLORS, from a prediction relabelled to object ids
+    (`match_slots`) and the ground-truth amodal mask, both (Y, X, Z): correct (same object), wrong_object (both
+    occupied, by different objects), only_predicted (truth empty), only_true (prediction empty)."""
+    pred, true = matched > 0, truth > 0
+    return {"correct": np.argwhere(pred & true & (matched == truth)),
+            "wrong_object": np.argwhere(pred & true & (matched != truth)),
+            "only_predicted": np.argwhere(pred & ~true),
+            "only_true": np.argwhere(~pred & true)}
+
+
+def colored_cloud(points: np.ndarray, color: np.ndarray, margin: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """(positions (N, 3) world (x, y, z) m, colours (N, 3) uint8) of a camera's world points (H, W, 3) (NaN: no
+    return) and its colour image (H, W, 3), kept inside the voxel grid's bounds (GRID_BOUNDS) grown by `margin` m."""
+    lo, hi = GRID_BOUNDS[:, 0] - margin, GRID_BOUNDS[:, 1] + margin
+    with np.errstate(invalid="ignore"):
+        keep = np.all((points >= lo) & (points <= hi), -1)  # NaN compares False: dropped
+    return np.asarray(points[keep], dtype=np.float32), np.asarray(color[keep], dtype=np.uint8)
+
+
 def check_sequence(seq: SequenceReader) -> None:
     """Raise UserError naming every structural problem (missing datasets, shapes, dtypes) of a sequence."""
     from dsr_bench.dataset.validate import schema_problems
@@ -150,15 +183,23 @@ def load_predictions(pred_dir: Path, seq: SequenceReader) -> dict:
 
 
 def blueprint(cameras: list[str], has_predictions: bool, has_policy: bool = True):
-    """A layout that opens ready to read: the 3D scene beside the camera views and the charts."""
+    """A layout that opens ready to read: the 3D views framed on the workspace (EYE_POSITION looking at
+    EYE_TARGET), the ground truth on top and the prediction against it below, beside the camera views and charts."""
     import rerun.blueprint as rrb
 
-    scene = [rrb.Spatial3DView(origin="world", name="scene (ground truth)",
-                               contents=["+ /world/**", "- /world/pred/**"])]
+    def eye():
+        return rrb.EyeControls3D(position=EYE_POSITION, look_target=EYE_TARGET, eye_up=(0.0, 0.0, 1.0))
+
+    # camera images stay in their 2D views: drawn in 3D, a depth image is a cloud coloured by depth
+    hide_images = [f"- /world/cameras/{c}/image/{kind}" for c in cameras for kind in ("color", "depth", "mask")]
+    scene = [rrb.Spatial3DView(origin="world", name="scene (ground truth)", eye_controls=eye(),
+                               contents=["+ /world/**", "- /world/pred/**", "- /world/tsdf", *hide_images])]
     if has_predictions:
-        scene.append(rrb.Spatial3DView(origin="world", name="predictions vs ground truth",
-                                       contents=["+ /world/pred/**", "+ /world/push/**", "+ /world/tsdf",
-                                                 "+ /world/objects/**"]))
+        scene.append(rrb.Spatial3DView(
+            origin="world", name="predictions vs ground truth: grey correct, orange wrong object, red only "
+            "predicted, blue missed; flow green true, magenta predicted", eye_controls=eye(),
+            contents=["+ /world/pred/compare/**", "+ /world/pred/flow", "+ /world/pred/flow_2d", "+ /world/gt/flow",
+                      "+ /world/push/**"]))
     cams = [rrb.Spatial2DView(origin=f"world/cameras/{c}/image", name=f"{c} camera") for c in cameras]
     charts: list = []  # rerun views of several kinds
     if has_predictions:
@@ -175,7 +216,7 @@ def blueprint(cameras: list[str], has_predictions: bool, has_policy: bool = True
                          rrb.Grid(*charts), row_shares=[1, 1]),
             column_shares=[3, 2],
         ),
-        rrb.TimePanel(state="expanded"),
+        rrb.TimePanel(state="collapsed", play_state="paused"),
         collapse_panels=True,
     )
 
@@ -215,12 +256,13 @@ def _log_static(rec, rr, seq: SequenceReader) -> None:
                               albedo_factor=[*(np.array(object_color(i + 1)) / 255.0), 0.5]), static=True)
         rec.log(f"world/objects/{i + 1}/label",
                 rr.Points3D([[0, 0, 0]], labels=[f"{i + 1}: {obj.get('category', '?')}"], radii=0.002,
-                            colors=[object_color(i + 1)], show_labels=True), static=True)
+                            colors=[object_color(i + 1)], show_labels=False), static=True)  # on hover
 
 
 def _log_voxels(rec, rr, entity: str, labels: np.ndarray) -> None:
     occupied = np.argwhere(labels > 0)
-    rec.log(entity, rr.Points3D(voxel_to_world(occupied), class_ids=labels[tuple(occupied.T)], radii=VOXEL_SIZE / 2))
+    rec.log(entity, rr.Points3D(voxel_to_world(occupied), class_ids=labels[tuple(occupied.T)], radii=VOXEL_SIZE / 2,
+                                show_labels=False))
 
 
 def log_sequence(rec, seq: SequenceReader, predictions: dict | None = None, seed: int = 0) -> None:
@@ -235,7 +277,7 @@ def log_sequence(rec, seq: SequenceReader, predictions: dict | None = None, seed
     for t in range(seq.num_steps + 1):
         rec.set_time("step", sequence=obs_tick(t))
         rec.set_time("observation", sequence=t)
-        if t > 0:  # push t-1, its flow and the predictions made at t-1 belong to the previous tick only
+        if t > 0:  # push t-1, its flow and the predictions made at t-1 belong to the previous ticks only
             for entity in ("world/push", "world/gt/flow", "world/pred"):
                 rec.log(entity, rr.Clear(recursive=True))
         for name in seq.cameras:
@@ -247,18 +289,30 @@ def log_sequence(rec, seq: SequenceReader, predictions: dict | None = None, seed
                                                   colormap=rr.components.Colormap.Viridis))
         tsdf = seq.read("tsdf", t)
         band = np.argwhere((tsdf < 0) & (tsdf > -1))
+        if CLOUD_CAMERA in seq.cameras:
+            cloud, rgb = colored_cloud(seq.read(f"cameras/{CLOUD_CAMERA}/points", t),
+                                       seq.read(f"cameras/{CLOUD_CAMERA}/color", t), margin=0.01)
+            rec.log("world/gt/cloud", rr.Points3D(cloud, colors=rgb, radii=rr.Radius.ui_points(2.5)))  # no gaps
         rec.log("world/tsdf", rr.Points3D(voxel_to_world(band), colors=[180, 180, 180], radii=VOXEL_SIZE / 2))
         mask = seq.read("mask_3d", t)
         _log_voxels(rec, rr, "world/gt/mask", mask)
         for i in range(seq.num_objects):
             rec.log(f"world/objects/{i + 1}", rr.Transform3D(translation=poses[t, i, :3],
                                                             quaternion=rr.Quaternion(xyzw=poses[t, i, 3:])))
-        if t == seq.num_steps:  # the last observation has no push after it
+        if t == seq.num_steps:  # the last observation has no push (nor prediction) after it
             break
+        if predictions is not None and "mask" in predictions:  # the predicted mask of observation t, from tick 2t
+            pm = predictions["mask"][t]
+            matched = match_slots(pm, mask, predictions["num_slots"], seq.num_objects)[pm]
+            _log_voxels(rec, rr, "world/pred/mask", matched)
+            for kind, idx in compare_voxels(matched, mask).items():
+                rec.log(f"world/pred/compare/{kind}", rr.Points3D(voxel_to_world(idx), colors=[COMPARE_COLORS[kind]],
+                                                                  radii=VOXEL_SIZE / 2))
         rec.set_time("step", sequence=push_tick(t))
         d, row, col = (int(v) for v in action[t])
         rec.log("world/push", rr.Arrows3D(origins=[start[t]], vectors=[end[t] - start[t]], colors=[PUSH_COLOR],
-                                          radii=0.004, labels=[f"push {t}: direction {d}, cell ({row}, {col})"]))
+                                          radii=0.004, labels=[f"push {t}: direction {d}, cell ({row}, {col})"],
+                                          show_labels=False))
         if has_policy:
             k = int(seq.read("policy/chosen_object", t))
             chosen = np.argwhere(mask == k + 1)
@@ -266,29 +320,24 @@ def log_sequence(rec, seq: SequenceReader, predictions: dict | None = None, seed
                 lo, hi = voxel_to_world(chosen.min(0)), voxel_to_world(chosen.max(0))
                 rec.log("world/push/chosen", rr.Boxes3D(centers=[(lo + hi) / 2],
                                                         half_sizes=[np.abs(hi - lo) / 2 + VOXEL_SIZE],
-                                                        colors=[PUSH_COLOR], labels=[f"chosen: {k + 1}"]))
+                                                        colors=[PUSH_COLOR], labels=[f"chosen: {k + 1}"],
+                                                        show_labels=False))
             else:
                 rec.log("world/push/chosen", rr.Clear(recursive=False))
             rec.log("policy/object_probs", rr.BarChart(seq.read("policy/object_probs", t)))
             rec.log("policy/direction_probs", rr.BarChart(seq.read("policy/direction_probs", t)))
-        origins, vectors, colors = flow_arrows(seq.read("scene_flow_3d", t), mask, rng)
-        rec.log("world/gt/flow", rr.Arrows3D(origins=origins, vectors=vectors, colors=colors))
+        origins, vectors, _ = flow_arrows(seq.read("scene_flow_3d", t), mask, rng)
+        rec.log("world/gt/flow", rr.Arrows3D(origins=origins, vectors=vectors, colors=[GT_FLOW_COLOR]))
         if predictions is not None:
             for key, values in predictions["metrics"].items():
                 if np.isfinite(values[t]):
                     rec.log(f"metrics/{key}", rr.Scalars(float(values[t])))
         if predictions is not None and "mask" in predictions:
-            pm = predictions["mask"][t]
-            matched = match_slots(pm, mask, predictions["num_slots"], seq.num_objects)[pm]
-            _log_voxels(rec, rr, "world/pred/mask", matched)
-            o, v, c = flow_arrows(predictions["motion"][t], pm, rng)
-            rec.log("world/pred/flow", rr.Arrows3D(origins=o, vectors=v, colors=c))
-            disagree = np.argwhere(matched != mask)
-            rec.log("world/pred/disagree", rr.Points3D(voxel_to_world(disagree), colors=[DISAGREE_COLOR],
-                                                       radii=VOXEL_SIZE * 0.6))
+            o, v, _ = flow_arrows(predictions["motion"][t], predictions["mask"][t], rng)
+            rec.log("world/pred/flow", rr.Arrows3D(origins=o, vectors=v, colors=[PRED_FLOW_COLOR]))
         if predictions is not None and "motion_2d" in predictions and "cameras/front/points" in seq:
-            o, v, c = flow_2d_arrows(predictions["motion_2d"][t], seq.read("cameras/front/points", t), rng)
-            rec.log("world/pred/flow_2d", rr.Arrows3D(origins=o, vectors=v, colors=c))
+            o, v, _ = flow_2d_arrows(predictions["motion_2d"][t], seq.read("cameras/front/points", t), rng)
+            rec.log("world/pred/flow_2d", rr.Arrows3D(origins=o, vectors=v, colors=[PRED_FLOW_COLOR]))
 
 
 def _log_or_fail(rec, seq, pred, path: Path) -> None:
