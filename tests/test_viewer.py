@@ -150,6 +150,18 @@ def test_3d_views_open_framed_on_the_workspace_without_labels_or_depth_clouds(sy
         assert not any(v for c in shown for v in np.concatenate(rec.values(entity, c))), entity
 
 
+def test_plan_view_opens_framed_on_the_workspace(tmp_path):
+    import rerun as rr
+
+    from dsr_bench.viewer.plan import plan_blueprint
+
+    rec = rr.RecordingStream("dsr-bench", recording_id="plan-test")
+    rec.save(tmp_path / "plan.rrd", default_blueprint=plan_blueprint())
+    rec.disconnect()
+    (eye,) = Recording(tmp_path / "plan.rrd").blueprint_rows["EyeControls3D:position"]
+    np.testing.assert_allclose(eye[0], EYE_POSITION, atol=1e-6)
+
+
 def test_ground_truth_cloud_is_coloured_by_the_camera_image(synthetic):
     rec = synthetic["rec"]
     assert rec.steps("/world/gt/cloud", "Points3D:positions") == [0, 2, 4, 6]

@@ -65,7 +65,28 @@ def push_arrows(actions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 def _voxels(rec, rr, entity: str, labels: np.ndarray, **kwargs) -> None:
     occupied = np.argwhere(labels > 0)
     rec.log(entity, rr.Points3D(voxel_to_world(occupied), class_ids=labels[tuple(occupied.T)], radii=VOXEL_SIZE / 2,
-                                **kwargs))
+                                show_labels=False, **kwargs))
+
+
+def plan_blueprint():
+    """The plan's layout: its 3D view framed on the workspace as `dsr-bench view`'s (`EYE_POSITION` looking at
+    `EYE_TARGET`), beside the camera image, the cost plot and the description."""
+    import rerun.blueprint as rrb
+
+    from dsr_bench.viewer import EYE_POSITION, EYE_TARGET
+
+    eye = rrb.EyeControls3D(position=EYE_POSITION, look_target=EYE_TARGET, eye_up=(0.0, 0.0, 1.0))
+    return rrb.Blueprint(
+        rrb.Horizontal(
+            rrb.Spatial3DView(origin="world", name="plan", eye_controls=eye, contents=["+ /world/**", "- /world/tsdf"]),
+            rrb.Vertical(rrb.Spatial2DView(origin="camera", name="front camera"),
+                         rrb.TimeSeriesView(origin="cost", name="cost"),
+                         rrb.TextDocumentView(origin="description", name="plan")),
+            column_shares=[3, 2],
+        ),
+        rrb.TimePanel(state="collapsed", play_state="paused"),
+        collapse_panels=True,
+    )
 
 
 def log_plan(rec, arrays: dict, attrs: dict) -> None:
@@ -114,7 +135,8 @@ def log_plan(rec, arrays: dict, attrs: dict) -> None:
         chosen = int(arrays["chosen"][t])
         d, row, col = (int(x) for x in arrays["actions"][t])
         label = f"push {t}: direction {d}, cell ({row}, {col}), cost {labels[chosen]}"
-        rec.log("world/push", rr.Arrows3D(origins=o, vectors=v, colors=[(255, 215, 0)], radii=0.004, labels=[label]))
+        rec.log("world/push", rr.Arrows3D(origins=o, vectors=v, colors=[(255, 215, 0)], radii=0.004, labels=[label],
+                                          show_labels=False))
         _voxels(rec, rr, "world/predicted/mask", arrays["predicted"][t])
         if np.isfinite(costs[chosen]):
             rec.log("cost/chosen", rr.Scalars(float(costs[chosen])))
@@ -143,7 +165,7 @@ def view_plan(path: str | Path, save: str | Path | None = None, web: bool = Fals
         save.parent.mkdir(parents=True, exist_ok=True)
         with atomic_path(save) as tmp:
             try:
-                rec.save(tmp)
+                rec.save(tmp, default_blueprint=plan_blueprint())
                 log_plan(rec, arrays, attrs)
                 rec.flush()
             finally:
@@ -152,13 +174,13 @@ def view_plan(path: str | Path, save: str | Path | None = None, web: bool = Fals
     if web:
         from urllib.parse import quote
 
-        uri = rec.serve_grpc(grpc_port=grpc_port)
+        uri = rec.serve_grpc(grpc_port=grpc_port, default_blueprint=plan_blueprint())
         _SERVING.append(rec)
         rr.serve_web_viewer(web_port=web_port, open_browser=False, connect_to=uri)
         log_plan(rec, arrays, attrs)
         rec.flush()
         return f"http://localhost:{web_port or 9090}/?url={quote(uri, safe='')}"
-    rec.spawn()
+    rec.spawn(default_blueprint=plan_blueprint())
     log_plan(rec, arrays, attrs)
     rec.flush()
     return None
