@@ -144,6 +144,7 @@ def test_3d_views_open_framed_on_the_workspace_without_labels_or_depth_clouds(sy
     queries = [q for rows in rec.blueprint_rows["ViewContents:query"] for q in rows]
     # camera images stay in their 2D views (a depth image drawn in 3D is a cloud coloured by depth)
     assert "- /world/cameras/front/image/depth" in queries and "- /world/cameras/front/image/color" in queries
+    assert "- $origin/depth" in queries and "$origin/depth" in queries  # the camera's colour, its depth apart
     for entity in ("/world/gt/mask", "/world/objects/1/label", "/world/push", "/world/pred/mask"):
         shown = [c for (e, c) in rec.rows if e == entity and c.endswith(":show_labels")]
         assert shown, entity

@@ -200,8 +200,11 @@ def blueprint(cameras: list[str], has_predictions: bool, has_policy: bool = True
             "predicted, blue missed; flow green true, magenta predicted", eye_controls=eye(),
             contents=["+ /world/pred/compare/**", "+ /world/pred/flow", "+ /world/pred/flow_2d", "+ /world/gt/flow",
                       "+ /world/push/**"]))
-    cams = [rrb.Spatial2DView(origin=f"world/cameras/{c}/image", name=f"{c} camera") for c in cameras]
-    charts: list = []  # rerun views of several kinds
+    # colour with the visible mask over it; the depth in a view of its own (over the colour it hid it in a rainbow)
+    cams = [rrb.Spatial2DView(origin=f"world/cameras/{c}/image", name=f"{c} camera",
+                              contents=["$origin/**", "- $origin/depth"]) for c in cameras]
+    charts: list = [rrb.Spatial2DView(origin=f"world/cameras/{c}/image", name=f"{c} depth (m)",
+                                      contents=["$origin/depth"]) for c in cameras[:1]]  # rerun views of several kinds
     if has_predictions:
         charts.append(rrb.TimeSeriesView(origin="metrics", name="per-step metrics"))
     if has_policy:
