@@ -8,16 +8,21 @@ bash scripts/setup.sh
 # cluster (initdb + pg_ctl) and watch its pages in chromium through chromium-driver; each skips, saying why, where
 # they are missing.
 source scripts/apt_install.sh
-challenge_pkgs=""
-ls /usr/lib/postgresql/*/bin/initdb >/dev/null 2>&1 || command -v initdb >/dev/null 2>&1 || challenge_pkgs="postgresql"
-command -v chromedriver >/dev/null 2>&1 || challenge_pkgs="$challenge_pkgs chromium-driver"
-if [ -n "$challenge_pkgs" ]; then
+system_pkgs=""
+ls /usr/lib/postgresql/*/bin/initdb >/dev/null 2>&1 || command -v initdb >/dev/null 2>&1 || system_pkgs="postgresql"
+command -v chromedriver >/dev/null 2>&1 || system_pkgs="$system_pkgs chromium-driver"
+# The viewer's screenshot test (tests/test_viewer_screenshot.py) renders the real rerun viewer under Xvfb with Mesa's
+# software Vulkan (lavapipe); it skips, saying why, where they are missing.
+command -v xvfb-run >/dev/null 2>&1 || system_pkgs="$system_pkgs xvfb xauth"
+ls /usr/share/vulkan/icd.d/lvp_icd.*.json >/dev/null 2>&1 || system_pkgs="$system_pkgs mesa-vulkan-drivers"
+if [ -n "$system_pkgs" ]; then
   if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then
     # shellcheck disable=SC2086  # one word per package
-    apt_install "could not install$challenge_pkgs; the challenge's PostgreSQL or browser tests skip" \
-      $challenge_pkgs || true
+    apt_install "could not install$system_pkgs; the tests that need them skip" \
+      $system_pkgs || true
   else
-    echo "note: for the challenge's PostgreSQL and browser tests run: sudo apt-get install -y $challenge_pkgs" >&2
+    echo "note: for the challenge's PostgreSQL and browser tests and the viewer's screenshot test run:" \
+      "sudo apt-get install -y $system_pkgs" >&2
   fi
 fi
 bash scripts/lint.sh
