@@ -47,28 +47,18 @@ import argparse
 import copy
 import json
 import os
-import platform
 import statistics
 import sys
 import tempfile
 import time
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))  # bench_official_protocol: the random weights
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # bench_official_protocol: the random weights; machine
+
+from machine import cpu_name  # noqa: E402
 
 VARIANTS = ("eager", "eager-1-thread", "channels-last", "fast", "fast-jit", "fast-compile", "fast-bf16",
             "fast-1-thread", "onnxruntime")
-
-
-def cpu_name() -> str:
-    """The CPU's model name (Linux /proc/cpuinfo), or the platform's processor string."""
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown CPU"
 
 
 class Runner:
