@@ -121,7 +121,7 @@ def _create_lock(path: Path) -> tuple[Path, Path, int | None]:
         os.close(fd)
 
 
-def _fsync_path(path: Path) -> None:
+def fsync_path(path: Path) -> None:
     """Flush `path` (a file or a directory) to its device."""
     fd = os.open(path, os.O_RDONLY)
     try:
@@ -168,10 +168,10 @@ def atomic_path(path: str | Path, fsync: bool = False) -> Iterator[Path]:
     try:
         yield tmp
         if fsync:
-            _fsync_path(tmp)
+            fsync_path(tmp)
         _rename_into_place(tmp, path)
         if fsync:
-            _fsync_path(path.parent)
+            fsync_path(path.parent)
     finally:
         try:
             tmp.unlink(missing_ok=True)
@@ -205,7 +205,7 @@ def atomic_directory(path: str | Path, fsync: bool = False) -> Iterator[Path]:
             finally:
                 _release(old_lock, old_fd)
         if fsync:
-            _fsync_path(path.parent)
+            fsync_path(path.parent)
     finally:
         try:
             if tmp.exists() or tmp.is_symlink():

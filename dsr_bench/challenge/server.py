@@ -38,6 +38,7 @@ from sqlalchemy import select
 from starlette.concurrency import run_in_threadpool
 from starlette.requests import ClientDisconnect
 
+from dsr_bench.atomic import fsync_path
 from dsr_bench.challenge import service
 from dsr_bench.challenge.auth import FailureThrottle
 from dsr_bench.challenge.db import Submission, Team, open_database, utcnow
@@ -301,7 +302,7 @@ def _store(layout: Layout, session_factory, team: Team, method: str, phase: str 
     layout.submissions.mkdir(parents=True, exist_ok=True)
     target = layout.archive(sid)
     os.rename(received.path, target)
-    _fsync_dir(layout.submissions)
+    fsync_path(layout.submissions)
     try:
         with session_factory.begin() as session:
             locked = session.scalar(select(Team).where(Team.id == team.id).with_for_update())  # serialises a team
@@ -317,14 +318,6 @@ def _store(layout: Layout, session_factory, team: Team, method: str, phase: str 
         target.unlink(missing_ok=True)
         raise
     return sid
-
-
-def _fsync_dir(path: Path) -> None:
-    fd = os.open(path, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
 
 
 def _recover(layout: Layout, session_factory) -> None:
