@@ -39,11 +39,18 @@ def centroids(mask: np.ndarray, num_labels: int) -> tuple[np.ndarray, np.ndarray
     """Centroids (L, 3) in voxels (iy, ix, iz) and voxel counts (L,) of labels 1..L of a volume (Y, X, Z); NaN
     centroids for empty labels."""
     flat = np.flatnonzero(mask)
-    labels = mask.reshape(-1)[flat].astype(np.int64)
+    return _labelled_centroids(flat, mask.reshape(-1)[flat], mask.shape, num_labels)
+
+
+def _labelled_centroids(flat: np.ndarray, labels: np.ndarray, shape: tuple[int, ...],
+                        num_labels: int) -> tuple[np.ndarray, np.ndarray]:
+    """`centroids` of the labelled voxels of a volume of `shape`: flat C-order indices (M,), ascending, and their
+    labels (M,). Sums in index order, so a dense volume and its `SparseLabels` give the same bits."""
+    labels = np.asarray(labels).astype(np.int64)
     keep = labels <= num_labels
     flat, labels = flat[keep], labels[keep]
     counts = np.bincount(labels, minlength=num_labels + 1)[1:].astype(np.float64)
-    coords = np.unravel_index(flat, mask.shape)
+    coords = np.unravel_index(flat, shape)
     sums = np.stack([np.bincount(labels, weights=c, minlength=num_labels + 1)[1:] for c in coords], 1)
     with np.errstate(invalid="ignore", divide="ignore"):
         return sums / counts[:, None], counts
@@ -70,18 +77,6 @@ class SparseLabels:
         out = np.zeros(int(np.prod(self.shape)), np.uint8)
         out[self.flat] = self.labels
         return out.reshape(self.shape)
-
-
-def _sparse_centroids(sparse: SparseLabels, num_labels: int) -> np.ndarray:
-    """Centroids (L, 3) in voxels of labels 1..L (NaN when empty): the same sums in the same order as `centroids`
-    of the dense volume, so the same bits."""
-    keep = sparse.labels <= num_labels
-    flat, labels = sparse.flat[keep], sparse.labels[keep].astype(np.int64)
-    counts = np.bincount(labels, minlength=num_labels + 1)[1:].astype(np.float64)
-    coords = np.unravel_index(flat, sparse.shape)
-    sums = np.stack([np.bincount(labels, weights=c, minlength=num_labels + 1)[1:] for c in coords], 1)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        return sums / counts[:, None]
 
 
 @dataclass(frozen=True)
@@ -112,7 +107,7 @@ def plan_cost(pred: np.ndarray | SparseLabels, target: np.ndarray, num_slots: in
     joint = np.bincount(labels[keep] * g1 + target.reshape(-1)[sparse.flat[keep]].astype(np.int64),
                         minlength=(num_slots + 1) * g1).reshape(num_slots + 1, g1)
     ov = Overlap(joint[1:, 1:].astype(np.float64), joint[1:].sum(1).astype(np.float64), stats.sizes)
-    pc = _sparse_centroids(sparse, num_slots)
+    pc = _labelled_centroids(sparse.flat, sparse.labels, sparse.shape, num_slots)[0]
     tc = stats.centroids
     diff = (pc[:, None, :] - tc[None, :, :]) * _CM_PER_VOXEL  # (S, N, 3) cm
     mse = (diff * diff).mean(-1)
