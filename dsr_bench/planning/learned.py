@@ -27,11 +27,7 @@ import torch
 from dsr_bench.constants import GRID_SHAPE
 from dsr_bench.planning.cost import SparseLabels
 from dsr_bench.planning.observed import observed_objects, slots_for
-
-#: Where a learned planner's masks of the current state come from: the network's mask head ("model"), or the
-#: objects the TSDF shows (`dsr_bench.planning.observed`), given to the network's motion head as its mask
-#: ("observed").
-PLANNER_MASKS = ("model", "observed")
+from dsr_bench.planning.protocol import PLANNER_MASKS
 
 
 def moved_labels(mask: np.ndarray, motion_at: np.ndarray, voxels: np.ndarray) -> list[SparseLabels]:

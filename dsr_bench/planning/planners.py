@@ -16,6 +16,7 @@ import numpy as np
 
 from dsr_bench.constants import MAX_OBJECTS_PER_SCENE, PLAN_MARGIN
 from dsr_bench.errors import UserError
+from dsr_bench.planning.protocol import PLANNER_MASKS
 
 PLANNER_NAMES = ("random", "oracle", "dsr", "single", "nowarp", "3dflow")
 
@@ -105,9 +106,7 @@ def make_planner(name: str, oracle_callbacks: tuple[Callable, Callable] | None =
                  checkpoint: Path | None = None, device: str = "cpu", masks: str = "model"):
     """A planner by name. `oracle` needs `oracle_callbacks` = (current, simulate) from a simulator; a learned
     model loads `checkpoint` or, without one, the shipped CPU-track weights, and takes its masks of the current
-    state from `masks` (`dsr_bench.planning.learned.PLANNER_MASKS`)."""
-    from dsr_bench.planning.learned import PLANNER_MASKS
-
+    state from `masks` (`dsr_bench.planning.protocol.PLANNER_MASKS`)."""
     if masks not in PLANNER_MASKS:
         raise UserError(f"--masks {masks!r}: choose one of {', '.join(PLANNER_MASKS)}")
     if masks != "model" and name in ("random", "oracle"):

@@ -15,6 +15,11 @@ from dsr_bench.constants import (CLEAR_CANDIDATES, CLEAR_SWEEP_CELLS, COST_LAMBD
                                  DEFAULT_CANDIDATES, FOOTPRINT_MIN_Z, MATCH_TIE_BREAK, MAX_BACKOFF_CELLS, PLAN_MARGIN,
                                  PLAN_STEPS, UNMATCHED_POSITION_MSE)
 
+#: Where a learned planner's masks of the current state come from (`dsr-bench plan --masks`): the network's mask
+#: head ("model"), or the objects the TSDF shows (`dsr_bench.planning.observed`), each voxel moved by the network's
+#: motion at it ("observed").
+PLANNER_MASKS: tuple[str, ...] = ("model", "observed")
+
 
 class Planner(Protocol):
     """A planner of the track: it observes the front camera's TSDF and predicts the next amodal masks of
