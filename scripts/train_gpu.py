@@ -4,6 +4,7 @@ committed to the repository, and write the new weights, the training curve and a
     python scripts/train_gpu.py --data TRAIN_DIR --eval-data HELDOUT_DIR --out OUT [--models dsr single]
         [--minutes 5] [--eval-minutes 1.5] [--eval-sequences N] [--device cuda] [--workers N] [--bf16 | --no-bf16]
     python scripts/train_gpu.py --install OUT    # OUT's weights and curve replace the committed ones
+    python scripts/train_gpu.py --runs           # how many runs the committed weights have had
 
 A run, for each model of --models in turn (the training time, --minutes less --eval-minutes, shared equally):
 1. reads the committed weights, dsr_bench/models/weights/gpu-track/<model>.pt (--committed DIR): a weights
@@ -15,7 +16,11 @@ A run, for each model of --models in turn (the training time, --minutes less --e
    stage goes on where it stopped: same epoch, batch, step counter and learning rate); a stage whose epochs
    are done hands its weights to the next stage of the curriculum (`schedules.CURRICULUM`: cube-single,
    cube-multi, shapenet-multi, each on --data) with `--init`; the time budget ends a stage with a
-   resumable checkpoint and precise BatchNorm (--bn-recalibration). bf16 autocast on a GPU.
+   resumable checkpoint and precise BatchNorm (--bn-recalibration). bf16 autocast and channels-last on a GPU.
+   An epoch is the paper's, 40,000 sample-steps (--epoch-samples: the official scripts' 4000 sequences of 10
+   pushes), drawn from the few sequences that travel in repeated shuffled passes: the stages and learning
+   rates keep the paper's length in sample-steps (about 2.8M in all), whatever data a run carries. Each run
+   should carry other sequences of procedural-train (below: the shard of the run's number).
 3. writes OUT/<model>.pt: the last checkpoint, fp16, without Adam's moments, `progress` extended by this
    run; `dsr-bench predict --checkpoint OUT/<model>.pt` reads it like any weights file.
 Then OUT/curve.json and OUT/curve.png (per batch: loss, its motion and mask terms, learning rate, the run,
@@ -40,11 +45,15 @@ about 32 MB of tree and 11.7 MB per DSR-Net-sized model; a slim full-grid sequen
 prepare a few slim sequences first, here (.gpu is ignored by git, not by the device tool's carry), and check
 that the total stays under the limit:
 
-    dsr-bench generate --split procedural-train -n 2 --out data/gpu-train --workers 2
-    dsr-bench generate --split procedural-novel-test -n 1 --out data/gpu-test --workers 2
+    R=$(python scripts/train_gpu.py --runs)      # the committed runs: this run's number
+    dsr-bench generate --split procedural-train --shard $R/1000 --out data/gpu-train-$R --workers 2
+    dsr-bench generate --split procedural-novel-test --shard 0/400 --out data/gpu-test --workers 2
     echo /.gpu/ >> .git/info/exclude
-    python scripts/slim_dataset.py data/gpu-train .gpu/train && python scripts/slim_dataset.py data/gpu-test .gpu/test
+    python scripts/slim_dataset.py data/gpu-train-$R .gpu/train && python scripts/slim_dataset.py data/gpu-test .gpu/test
     du -cb $(git ls-files --cached --others --exclude-standard) .gpu | tail -1
+
+(shard R/1000: 8 sequences of procedural-train, 1.9 MB each slimmed, none of an earlier run's; with nothing
+committed yet there is room for 16, --shard 0/500; the test shard is procedural-novel-test's seq_0000)
 
 then one device call, carry [".gpu"], timeout_s 420 (the 5-minute budget of the defaults, its overheads, and
 room left in a 15-minute lease to run it again; it trains dsr and single, the defaults):
@@ -72,6 +81,9 @@ from pathlib import Path
 from typing import Any
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))  # run from anywhere, the toolkit installed or not
+
+from dsr_bench.models.training.schedules import PAPER_EPOCH_SAMPLES  # noqa: E402
 COMMITTED = ROOT / "dsr_bench" / "models" / "weights" / "gpu-track"
 EVIDENCE = ROOT / "docs" / "evidence" / "gpu-track"
 CURVE_FORMAT = "dsr-bench-training-curve"
@@ -183,6 +195,7 @@ def train_model(model: str, args: argparse.Namespace, deadline: float, work: Pat
         config = TrainConfig(model_name=model, stage_name=stage, data=args.data, out=run_dir, split=args.split,
                              resume=source if resume else None, init=None if resume else source,
                              epochs=args.epochs, batch_size=None if resume else args.batch_size,
+                             epoch_samples=None if resume else args.epoch_samples or None,
                              window=args.window if not resume and model not in SINGLE_STEP_MODELS
                              and STAGES[stage].window > 1 else None,
                              max_steps=None if steps_left is None else before + steps_left,
@@ -421,6 +434,11 @@ def _committed_runs(path: Path, model: str) -> list:
     return [] if weights is None else list((weights.get("progress") or {}).get("runs", []))
 
 
+def committed_runs(committed_dir: Path, models: list[str]) -> int:
+    """Runs made so far by the committed weights of `models` (the most of any): the next run's number."""
+    return max((len(_committed_runs(committed_dir / f"{model}.pt", model)) for model in models), default=0)
+
+
 # --- installing a run's results -----------------------------------------------------------------------------------
 def install(src: Path, committed_dir: Path, evidence: Path, report=print) -> list[Path]:
     """Replace the committed weights of each model in `src` with its file there (checked: a gpu-track checkpoint of
@@ -481,14 +499,19 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
                         "this much of a model's time left (default 20).")
     parser.add_argument("--epochs", type=int, help="Epochs of each stage, a resumed one too (default: the "
                         "curriculum's: 30, 20, 20).")
+    parser.add_argument("--epoch-samples", type=int, default=PAPER_EPOCH_SAMPLES, help="Sample-steps per epoch of a "
+                        "stage started here, drawn from --data in repeated shuffled passes, so that the stages and "
+                        f"learning rates keep the paper's length whatever data travelled (default {PAPER_EPOCH_SAMPLES}"
+                        ": 4000 sequences of 10 pushes; 0: one pass over --data).")
     parser.add_argument("--batch-size", type=int, help="Windows per batch of a stage started here (default 12).")
     parser.add_argument("--window", type=int, help="Pushes per window of a multi-step stage started here (default: "
                         "the stage's, 10; toy runs on short sequences).")
     parser.add_argument("--device", default="cuda" if _cuda() else "cpu", help="cuda (default where one is) or cpu.")
     parser.add_argument("--bf16", action=argparse.BooleanOptionalAction, default=None,
                         help="bf16 autocast (default: on with CUDA).")
-    parser.add_argument("--channels-last", action="store_true", help="channels_last_3d memory format.")
-    parser.add_argument("--workers", type=int, help="DataLoader workers (default: 0 on the CPU, up to 8 with CUDA).")
+    parser.add_argument("--channels-last", action=argparse.BooleanOptionalAction, default=None,
+                        help="channels_last_3d memory format (default: on with CUDA).")
+    parser.add_argument("--workers", type=int, help="DataLoader workers (default: 0 on the CPU, up to 12 with CUDA).")
     parser.add_argument("--eval-workers", type=int, default=0, help="Scoring processes (0: all cores).")
     parser.add_argument("--bn-recalibration", type=int, default=16, help="Batches of whole sequences for precise "
                         "BatchNorm when a stage ends (default 16).")
@@ -499,6 +522,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--work", type=Path, help="Work folder (trainer runs, predictions; default: a temporary one).")
     parser.add_argument("--install", type=Path, metavar="OUT", help="Replace the committed weights and curve with "
                         "OUT's (a folder this script wrote) and stop.")
+    parser.add_argument("--runs", action="store_true", help="Print how many runs the committed weights of --models "
+                        "have had (the next run's number: its shard of procedural-train) and stop.")
     return parser.parse_args(argv)
 
 
@@ -536,8 +561,12 @@ def check_args(args: argparse.Namespace) -> None:
     check_writable(args.out)
     if args.bf16 is None:
         args.bf16 = args.device.startswith("cuda")
+    if args.channels_last is None:
+        args.channels_last = args.device.startswith("cuda")
     if args.workers is None:
-        args.workers = min(8, max(0, (os.cpu_count() or 1) - 2)) if args.device.startswith("cuda") else 0
+        args.workers = min(12, max(0, (os.cpu_count() or 1) - 2)) if args.device.startswith("cuda") else 0
+    if args.epoch_samples < 0:
+        raise UserError(f"--epoch-samples {args.epoch_samples}: must be >= 0 (0: one pass over --data)")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -548,6 +577,9 @@ def main(argv: list[str] | None = None) -> int:
     try:
         if args.install is not None:
             install(args.install, args.committed, args.evidence)
+            return 0
+        if args.runs:
+            print(committed_runs(args.committed, args.models))
             return 0
         check_args(args)
         run(args, command)

@@ -12,7 +12,10 @@ import pytest
 torch = pytest.importorskip("torch")
 
 from dsr_bench.dataset.manifest import build_manifest, file_sha256, write_manifest  # noqa: E402
+from dsr_bench.errors import UserError  # noqa: E402
 from dsr_bench.models.training.checkpoints import read_weights  # noqa: E402
+from dsr_bench.models.training.config import TrainConfig  # noqa: E402
+from dsr_bench.models.training.setup import resolve_stage  # noqa: E402
 from dsr_bench.testing import write_synthetic_dataset, write_synthetic_sequence  # noqa: E402
 
 SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "train_gpu.py"
@@ -68,6 +71,10 @@ def test_two_runs_resume_from_the_committed_weights(script, data, tmp_path):
     w1 = read_weights(first / "dsr.pt", role="checkpoint")
     assert w1.version == 2 and w1.model_type == "dsr" and w1["stage"]["name"] == "cube-single"
     assert tuple(w1.config.grid) == (128, 128, 48) and _fp16(w1) and w1["optimizer"]["state"] == {}
+    assert w1["stage"]["epoch_samples"] == 40_000  # the paper's epoch, whatever data travelled
+    with pytest.raises(UserError, match="--epoch-samples 100: .* drop --epoch-samples to resume it"):
+        resolve_stage(TrainConfig(model_name="dsr", stage_name="cube-single", data=data[0], out=tmp_path / "x",
+                                  resume=first / "dsr.pt", epoch_samples=100))
     params = sum(v.numel() for v in w1["model"].values() if v.is_floating_point())
     assert (first / "dsr.pt").stat().st_size < 2.5 * params  # stored halved: 2 bytes a number and the header
     assert w1["step"] == 2 and w1["progress"]["steps"] == 2 and w1["progress"]["sample_steps"] == 2
@@ -121,22 +128,25 @@ def test_two_runs_resume_from_the_committed_weights(script, data, tmp_path):
 
 @pytest.mark.slow
 def test_a_stage_whose_epochs_are_done_hands_its_weights_to_the_next(script, tmp_path):
-    """Toy curriculum: cube-single of 1 epoch (2 single-step windows), then cube-multi on windows of 2 from its
-    weights, in one run of 3 batches; the file records the stage reached and the run's stages."""
+    """Toy curriculum: cube-single of 1 epoch of 4 sample-steps (the 2 single-step windows, twice), then cube-multi
+    on windows of 2 from its weights, in one run of 5 batches; the file records the stage reached and the run's
+    stages."""
     train = write_synthetic_dataset(tmp_path / "one", num_sequences=1, num_steps=2, split="train")
     out, committed, evidence = tmp_path / "out", tmp_path / "committed", tmp_path / "evidence"
     assert script.main(["--data", str(train), "--eval-data", str(train), "--out", str(out), "--models", "dsr",
-                        "--device", "cpu", "--max-steps", "3", "--epochs", "1", "--window", "2", "--batch-size", "1",
+                        "--device", "cpu", "--max-steps", "5", "--epochs", "1", "--epoch-samples", "4",
+                        "--window", "2", "--batch-size", "1",
                         "--workers", "0", "--bn-recalibration", "1", "--eval-workers", "1",
                         "--committed", str(committed), "--curve", str(evidence / "curve.json")]) == 0
     weights = read_weights(out / "dsr.pt", role="checkpoint")
     assert weights["stage"]["name"] == "cube-multi" and weights["stage"]["window"] == 2 and weights["step"] == 1
-    assert weights["progress"]["steps"] == 3 and weights["progress"]["sample_steps"] == 1 + 1 + 2
+    assert weights["progress"]["steps"] == 5 and weights["progress"]["sample_steps"] == 4 + 2
+    assert weights["stage"]["epoch_samples"] == 4
     stages = json.loads((out / "summary.json").read_text())["models"]["dsr"]["stages"]
     assert [(s["stage"], s["resumed"], s["steps"], s["epoch"], s["epochs"]) for s in stages] == [
-        ("cube-single", False, [0, 2], 1, 1), ("cube-multi", False, [0, 1], 0, 1)]
+        ("cube-single", False, [0, 4], 1, 1), ("cube-multi", False, [0, 1], 0, 1)]
     curve = json.loads((out / "curve.json").read_text())["models"]["dsr"]
-    assert curve["stage"] == ["cube-single", "cube-single", "cube-multi"] and curve["sample_steps"] == [1, 2, 4]
+    assert curve["stage"] == ["cube-single"] * 4 + ["cube-multi"] and curve["sample_steps"] == [1, 2, 3, 4, 6]
 
 
 def test_a_finished_stage_hands_on_to_the_next(script):

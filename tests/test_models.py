@@ -334,6 +334,30 @@ def test_window_sampler_resumes_and_splits_ranks():
     assert len(a) == len(b) == 8 and not set(a) & set(b)
 
 
+def test_an_epoch_longer_than_the_data_repeats_shuffled_passes():
+    from dsr_bench.models.training.loaders import WindowSampler
+    from dsr_bench.models.training.schedules import stage_for
+
+    one_pass = WindowSampler(5, batch_size=2, seed=3)
+    one_pass.set_epoch(4)
+    longer = WindowSampler(5, batch_size=2, seed=3, length=13)  # 2 passes and 3 windows of a third, 6 batches
+    longer.set_epoch(4)
+    order = list(longer)
+    assert len(order) == len(longer) == 12 and longer.batches == 6
+    assert order[:4] == list(one_pass)  # the first pass is the one-pass epoch's order
+    assert sorted(order[:5]) == sorted(order[5:10]) == [0, 1, 2, 3, 4]  # every window once per pass
+    assert order[5:10] != order[:5]  # each pass shuffled anew
+    again = WindowSampler(5, batch_size=2, seed=3, length=13)
+    again.set_epoch(4, start_batch=3)
+    assert list(again) == order[6:]  # a resumed run goes on at the same window
+    # the stage's epoch in sample-steps: windows of 10 pushes make a tenth as many windows
+    assert stage_for("dsr", "cube-multi", epoch_samples=40_000).epoch_windows(37) == 4000
+    assert stage_for("single", "cube-multi", epoch_samples=40_000).epoch_windows(370) == 40_000
+    assert stage_for("dsr", "cube-single").epoch_windows(37) == 37  # none set: one pass
+    with pytest.raises(UserError, match="--epoch-samples 0"):
+        stage_for("dsr", "cube-single", epoch_samples=0)
+
+
 def test_stage_configs_follow_the_official_schedule():
     from dsr_bench.models.training.schedules import stage_for
 

@@ -28,6 +28,9 @@ def train(
     resume: Optional[Path] = typer.Option(None, "--resume", help="Resume a run exactly (optimizer, schedule, RNG, "
                                           "data)."),
     epochs: Optional[int] = typer.Option(None, "--epochs", help="Override the stage's epochs."),
+    epoch_samples: Optional[int] = typer.Option(None, "--epoch-samples", help="Sample-steps per epoch, drawn from "
+                                                "the data in repeated shuffled passes (default: one pass; the "
+                                                "paper's: 40000)."),
     batch_size: Optional[int] = typer.Option(None, "--batch-size", help="Per process (default 12)."),
     lr: Optional[float] = typer.Option(None, "--lr", help="Constant learning rate instead of the official schedule."),
     schedule: str = typer.Option("official", "--schedule", help="official (the release's per-epoch tables) or paper "
@@ -65,7 +68,8 @@ def train(
     kind = registry.model_entry(model, registry.VOXEL, registry.IMAGE).kind  # the trainable kinds
     if kind == registry.IMAGE:
         given = [flag for flag, value in (("--stage", stage), ("--init", init), ("--resume", resume),
-                                          ("--window", window), ("--val-split", val_split), ("--epochs", epochs))
+                                          ("--window", window), ("--val-split", val_split), ("--epochs", epochs),
+                                          ("--epoch-samples", epoch_samples))
                  if value is not None]
         if given:
             raise UserError(f"{given[0]} is not an option of the 2D track's models (single-step, one stage); drop it")
@@ -75,6 +79,8 @@ def train(
     from dsr_bench.models.training.trainer import train as run
 
     if track == "cpu":
+        if epoch_samples is not None:
+            raise UserError("--epoch-samples is an option of the full track (its recipe counts batches); drop it")
         _train_cpu(model, stage, data, out, split, batch_size, lr, window, seed, workers, bn_recalibration,
                    3000 if single_batches is None else single_batches, multi_batches, init, same_windows, quiet)
         return
@@ -82,7 +88,8 @@ def train(
         raise UserError(f"--track {track!r}: choose full or cpu")
     # TrainConfig checks its own values (--stage, --max-steps, --max-minutes, --workers, --resume with --init)
     config = TrainConfig(model_name=model, stage_name=stage or "", data=data, out=out, split=split, val_split=val_split,
-                         epochs=epochs, batch_size=batch_size, lr=lr, window=window, max_steps=max_steps,
+                         epochs=epochs, epoch_samples=epoch_samples, batch_size=batch_size, lr=lr, window=window,
+                         max_steps=max_steps,
                          max_seconds=None if max_minutes is None else max_minutes * 60, init=init, resume=resume,
                          device=device, bf16=bf16, compile_model=compile_model, channels_last=channels_last,
                          workers=workers, seed=seed, official_bn=official_bn, deterministic=deterministic,

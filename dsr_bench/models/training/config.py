@@ -32,6 +32,9 @@ class TrainConfig:
     val_split: str | None = None
     #: epochs of the stage (None: the stage's; with `resume`, replaces the checkpoint's)
     epochs: int | None = None
+    #: sample-steps per epoch, drawn from the data in repeated shuffled passes (None: one pass; with `resume`,
+    #: the checkpoint's stage keeps its own)
+    epoch_samples: int | None = None
     #: windows per batch per process (None: the stage's, 12)
     batch_size: int | None = None
     #: constant learning rate instead of the stage's per-epoch table (None: the table)

@@ -18,12 +18,16 @@ __all__ = ["WindowSampler", "check_objects", "make_loaders", "open_windows"]
 class WindowSampler(torch.utils.data.Sampler):
     """Shuffled window indices, identical for a (seed, epoch) on every run, split across ranks, that
     can start mid-epoch: the data position of a resumed run (`start` = samples already consumed by
-    this rank). Drops the tail so every rank gets the same number of whole batches."""
+    this rank). Drops the tail so every rank gets the same number of whole batches. `length`: windows
+    per epoch (all ranks) when it is not one pass over the `size` windows: shuffled passes drawn one
+    after the other from the epoch's generator (the first the same as without `length`), cut at `length`."""
 
-    def __init__(self, size: int, batch_size: int, seed: int = 0, rank: int = 0, world: int = 1, shuffle: bool = True):
+    def __init__(self, size: int, batch_size: int, seed: int = 0, rank: int = 0, world: int = 1, shuffle: bool = True,
+                 length: int | None = None):
         self.size, self.batch_size, self.seed, self.shuffle = size, batch_size, seed, shuffle
         self.rank, self.world = rank, world
-        per_rank = size // world
+        self.length = size if length is None else length
+        per_rank = self.length // world
         self.batches = per_rank // batch_size if per_rank >= batch_size else (1 if per_rank else 0)
         self.per_rank = min(per_rank, self.batches * batch_size)
         self.epoch, self.start = 0, 0
@@ -32,10 +36,13 @@ class WindowSampler(torch.utils.data.Sampler):
         self.epoch, self.start = epoch, start_batch * self.batch_size
 
     def __iter__(self):
+        passes = -(-self.length // self.size)
         if self.shuffle:
-            order = torch.randperm(self.size, generator=torch.Generator().manual_seed(self.seed * 100_003 + self.epoch))
+            generator = torch.Generator().manual_seed(self.seed * 100_003 + self.epoch)
+            order = torch.cat([torch.randperm(self.size, generator=generator) for _ in range(passes)])
         else:
-            order = torch.arange(self.size)
+            order = torch.arange(self.size).repeat(passes)
+        order = order[: self.length]
         mine = order[self.rank::self.world][: self.per_rank]
         return iter(mine[self.start:].tolist())
 
@@ -85,7 +92,8 @@ def make_loaders(config: TrainConfig, stage: StageConfig, dataset: SequenceWindo
 
     from dsr_bench.models.data import collate_compact
 
-    sampler = WindowSampler(len(dataset), stage.batch_size, config.seed, rank, world)
+    sampler = WindowSampler(len(dataset), stage.batch_size, config.seed, rank, world,
+                            length=stage.epoch_windows(len(dataset)))
     if sampler.batches == 0:
         raise UserError(f"{len(dataset)} windows cannot be split across {world} processes")
     workers, pin = config.workers, device.type == "cuda"

@@ -26,6 +26,8 @@ SCHEDULES: dict[str, tuple[tuple[int, float], ...]] = {
 #: `--schedule`: which table a stage's schedule name refers to
 SCHEDULE_FAMILIES = ("official", "paper")
 SINGLE_STEP_MODELS = ("single", "3dflow")
+#: sample-steps of one epoch of the paper's stages: the official scripts' 4000 training sequences of 10 pushes
+PAPER_EPOCH_SAMPLES = 40_000
 
 
 @dataclass(frozen=True)
@@ -40,6 +42,10 @@ class StageConfig:
     batch_size: int = 12
     betas: tuple[float, float] = (0.9, 0.95)
     mask_reduction: str = "sum"  # official: per-sample mean cross-entropy summed over the batch
+    #: sample-steps (windows x pushes) that make one epoch, drawn from the data in shuffled passes repeated as
+    #: needed (the last one cut short); None: one pass over the data's windows. The paper's epoch (4000
+    #: sequences of 10 pushes, `PAPER_EPOCH_SAMPLES`) keeps its schedule on a smaller copy of the data.
+    epoch_samples: int | None = None
 
     def lr_at(self, epoch: int) -> float:
         """Learning rate of an epoch (0-based)."""
@@ -50,6 +56,11 @@ class StageConfig:
             if epoch >= start:
                 rate = value
         return rate
+
+    def epoch_windows(self, available: int) -> int:
+        """Windows in one epoch of this stage when the data holds `available` windows: `epoch_samples` // window
+        where set (at least 1), else all of them."""
+        return available if self.epoch_samples is None else max(self.epoch_samples // self.window, 1)
 
     def as_dict(self) -> dict:
         out = asdict(self)
@@ -76,7 +87,8 @@ CURRICULUM = {model: ("cube-single", "cube-multi", "shapenet-multi") for model i
 
 
 def stage_for(model: str, stage: str, *, epochs: int | None = None, batch_size: int | None = None,
-              lr: float | None = None, window: int | None = None, schedule: str = "official") -> StageConfig:
+              lr: float | None = None, window: int | None = None, schedule: str = "official",
+              epoch_samples: int | None = None) -> StageConfig:
     """The stage's configuration for a model, with overrides (None keeps the stage's value); `schedule`:
     the official per-epoch tables or the paper's halving schedule."""
     if stage not in STAGES:
@@ -88,7 +100,8 @@ def stage_for(model: str, stage: str, *, epochs: int | None = None, batch_size: 
         base["schedule"] = f"paper-{base['schedule']}"
     if model in SINGLE_STEP_MODELS:
         base["window"] = 1
-    for key, value, low in (("epochs", epochs, 1), ("batch_size", batch_size, 1), ("window", window, 1)):
+    for key, value, low in (("epochs", epochs, 1), ("batch_size", batch_size, 1), ("window", window, 1),
+                            ("epoch_samples", epoch_samples, 1)):
         if value is not None:
             if value < low:
                 raise UserError(f"--{key.replace('_', '-')} {value}: must be at least {low}")

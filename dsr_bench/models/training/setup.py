@@ -81,16 +81,20 @@ def start_processes(config: TrainConfig) -> tuple[int, int, torch.device]:
 
 def resolve_stage(config: TrainConfig) -> tuple[StageConfig, Weights | None]:
     """The stage to train and the checkpoint to resume (None for a new run). A resumed run keeps its
-    stage (and model), but for `config.epochs`."""
+    stage (and model, and epoch length), but for `config.epochs`."""
     if config.resume is None:
         return stage_for(config.model_name, config.stage_name, epochs=config.epochs, batch_size=config.batch_size,
-                         lr=config.lr, window=config.window, schedule=config.schedule), None
+                         lr=config.lr, window=config.window, schedule=config.schedule,
+                         epoch_samples=config.epoch_samples), None
     checkpoint = read_weights(config.resume, kind=registry.VOXEL, role="checkpoint")
     saved, stage_name = checkpoint.config, checkpoint["stage"].get("name")
     if saved.name != config.model_name or stage_name != config.stage_name:
         raise UserError(f"{config.resume} is a {saved.name!r} run of stage {stage_name!r}; "
                         f"resume it with --model {saved.name} --stage {stage_name}")
     stage = StageConfig.from_dict(checkpoint["stage"])
+    if config.epoch_samples is not None and config.epoch_samples != stage.epoch_samples:
+        raise UserError(f"--epoch-samples {config.epoch_samples}: {config.resume} goes on with its own epochs of "
+                        f"{stage.epoch_samples or 'one pass over the data'}; drop --epoch-samples to resume it")
     if config.epochs is not None:
         stage = StageConfig.from_dict({**stage.as_dict(), "epochs": config.epochs})
     return stage, checkpoint
