@@ -118,6 +118,62 @@ def reveal(root: Path = typer.Argument(..., help="Challenge directory."),
     typer.echo("private scores " + ("hidden" if hide else "shown: the final ranking is on the leaderboard"))
 
 
+@challenge_app.command("backup")
+def backup(root: Path = typer.Argument(..., help="Challenge directory."),
+           out: Path = typer.Argument(..., help="New file for the copy (SQLite: a database file; PostgreSQL: a "
+                                      "pg_dump archive)."),
+           db: Optional[str] = DbOption) -> None:
+    """Copy the challenge's database consistently while the server runs: SQLite through its online backup API (one
+    commit's state, checked with PRAGMA integrity_check), PostgreSQL with pg_dump; OUT appears complete or not at
+    all. Copy DIR/submissions after it: every row of the copy then has its archive."""
+    from dsr_bench.challenge.backup import backup_database
+    from dsr_bench.challenge.layout import open_challenge
+
+    layout, _ = open_challenge(root)
+    typer.echo(backup_database(db or layout.default_db_url(), out))
+
+
+@challenge_app.command("add-references")
+def add_references(
+    root: Path = typer.Argument(..., help="Challenge directory."),
+    models: str = typer.Option("static", "--models", help="Comma-separated reference models: static (predicting "
+                               "no motion), push, and learned models with shipped CPU-track weights (e.g. dsr)."),
+    db: Optional[str] = DbOption,
+) -> None:
+    """Predict with reference models on the challenge's inputs (every hidden set's) and queue them for the server's
+    workers, which score them as they score the teams' submissions; the leaderboard shows them as reference rows
+    (public part; private part once revealed)."""
+    from dsr_bench.challenge.references import add_references as run
+
+    layout, config, sessions = _sessions(root, db)
+    queued = run(layout, config, sessions, models.split(","), typer.echo)
+    for model, sid in queued.items():
+        typer.echo(f"{model}: queued as submission {sid}")
+    typer.echo("the running server's workers score them (`dsr-bench serve`); they appear as reference rows")
+
+
+@challenge_app.command("add-hidden-set")
+def add_hidden_set(
+    root: Path = typer.Argument(..., help="Challenge directory."),
+    source: Path = typer.Argument(..., help="Folder of annotated sequences (`dsr-bench annotate --export` files)."),
+    name: str = typer.Option("real", "--name", help="The set's name (1-8 lower-case letters or digits): its "
+                             "sequences become seq_NAME_0000, ... and its tables are titled by it."),
+    public_fraction: float = typer.Option(0.5, "--public-fraction", help="Share of its sequences in the public "
+                                          "part."),
+) -> None:
+    """Add real annotated captures as a further hidden set: copied into DIR, pinned, split into a public and a
+    private part, their inputs exported beside the simulated ones (DIR/inputs is written again); submissions that
+    hold its predictions are scored on it separately, in its own leaderboard tables."""
+    from dsr_bench.challenge.host import add_hidden_set as run
+    from dsr_bench.challenge.layout import open_challenge
+
+    layout, _ = open_challenge(root)
+    entry = run(layout, source, name, public_fraction)
+    typer.echo(f"hidden set {name!r} added: {len(entry['sequences'])} annotated sequences ({len(entry['public'])} "
+               f"public, {len(entry['private'])} private) as {entry['sequences'][0]} ...; inputs written again to "
+               f"{layout.inputs}")
+
+
 @challenge_app.command("download")
 def download(out: Path = typer.Argument(..., help="New directory for the inputs."),
              server: str = typer.Option(..., "--server", help="The challenge server's URL.")) -> None:

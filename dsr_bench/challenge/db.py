@@ -13,7 +13,7 @@ import datetime as dt
 from pathlib import Path
 
 from sqlalchemy import (BigInteger, Boolean, DateTime, Float, ForeignKey, Integer, String, Text, UniqueConstraint,
-                        create_engine, event)
+                        create_engine, event, false)
 from sqlalchemy.engine import Engine
 from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column, sessionmaker
 
@@ -39,6 +39,8 @@ class Team(Base):
     token_hash: Mapped[str] = mapped_column(String(200))  # argon2id PHC string
     created_at: Mapped[dt.datetime] = mapped_column(DateTime, default=utcnow)
     revoked_at: Mapped[dt.datetime | None] = mapped_column(DateTime, nullable=True)
+    #: the host's reference rows (`challenge add-references`): no usable token, never ranked, shown as reference rows
+    reference: Mapped[bool] = mapped_column(Boolean, default=False, server_default=false())
 
 
 class Phase(Base):

@@ -21,7 +21,8 @@ from typing import Any
 import h5py
 import numpy as np
 
-from dsr_bench.challenge.layout import (CONFIG_FORMAT, DEFAULTS, HIDDEN_SPLIT, INPUTS_SPLIT, PARTS, Layout,
+from dsr_bench.challenge.layout import (CONFIG_FORMAT, DEFAULTS, HIDDEN_SPLIT, INPUTS_SPLIT, PARTS,
+                                        SET_NAME_PATTERN, SIMULATED, Layout, hidden_sets, open_challenge,
                                         write_config)
 from dsr_bench.errors import UserError
 
@@ -51,9 +52,7 @@ def finish_hidden_set(layout: Layout, parameters: Mapping[str, Any], public_frac
     if len(names) < 2:
         raise UserError(f"{len(names)} hidden sequence(s): a challenge needs at least 2 (a public and a private "
                         "part); give --num-sequences 2 or more")
-    count = min(len(names) - 1, max(1, round(len(names) * public_fraction)))
-    public = sorted(secrets.SystemRandom().sample(names, count))
-    parts = {"public": public, "private": sorted(set(names) - set(public))}
+    parts = _draw_parts(names, public_fraction)
     for part in PARTS:
         write_text(layout.hidden / "splits" / f"{part}.txt", "".join(f"{n}\n" for n in parts[part]))
     write_manifest(layout.hidden, build_manifest(layout.hidden))
@@ -65,6 +64,103 @@ def finish_hidden_set(layout: Layout, parameters: Mapping[str, Any], public_frac
               "created": dt.datetime.now(dt.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ")}
     write_config(layout, config)
     return config
+
+
+def _draw_parts(names: list[str], public_fraction: float) -> dict[str, list[str]]:
+    """{"public": ..., "private": ...}: `public_fraction` of `names` (at least one, at most all but one) drawn with
+    `secrets` for the public part, the rest private."""
+    count = min(len(names) - 1, max(1, round(len(names) * public_fraction)))
+    public = sorted(secrets.SystemRandom().sample(names, count))
+    return {"public": public, "private": sorted(set(names) - set(public))}
+
+
+def _annotated_files(source: Path) -> list[Path]:
+    """The annotated sequence files of `source` (each a file of `dsr-bench annotate --export` that passes
+    `validate`), or a UserError naming the first that is not."""
+    from dsr_bench.dataset.sequence import SequenceReader
+    from dsr_bench.dataset.validate import validate_sequence
+
+    if not source.is_dir():
+        raise UserError(f"{source} is not a directory; give the folder of the annotator's exports "
+                        "(`dsr-bench annotate CAPTURE --export FOLDER/seq_0000.h5`)")
+    files = sorted(p for p in source.glob("*.h5") if p.is_file() and not p.is_symlink())
+    if len(files) < 2:
+        raise UserError(f"{source} holds {len(files)} sequence file(s) (.h5); a hidden set needs at least 2 (a "
+                        "public and a private part): export more annotated captures into it")
+    for path in files:
+        try:
+            with SequenceReader(path) as seq:
+                origin = seq.attrs.get("source")
+        except Exception as exc:  # not HDF5, or not a sequence file
+            raise UserError(f"{path}: not a sequence file ({type(exc).__name__}); give a folder of annotated "
+                            "exports only") from None
+        if origin != "annotated":
+            raise UserError(f"{path}: not an annotated export (its source is {origin!r}, not 'annotated'); give a "
+                            "folder of `dsr-bench annotate --export` files only")
+        problems = validate_sequence(path)
+        if problems:
+            raise UserError(f"{path}: fails `dsr-bench validate` ({problems[0]}); export it again")
+    return files
+
+
+def add_hidden_set(layout: Layout, source: str | Path, name: str = "real", public_fraction: float = 0.5) -> dict:
+    """Add the annotated sequences of folder `source` (the annotator's exports: root attribute source ==
+    "annotated", each passing `validate`) as the challenge's hidden set `name`: copied, as `seq_<name>_0000.h5`, ...
+    (sorted by file name), into `layout.hidden_set(name)` (built beside it and renamed) with its splits and
+    manifest, split at random into a public and a private part, pinned (scored digests and file SHA-256 in
+    pins.json) and recorded in challenge.json; the participants' inputs (DIR/inputs) are written again to hold
+    its inputs beside the simulated ones. Returns the set's entry in challenge.json."""
+    from dsr_bench.atomic import write_text
+    from dsr_bench.dataset.manifest import build_manifest, file_sha256, write_manifest
+    from dsr_bench.dataset.scored import file_scored_digests
+
+    layout, config = open_challenge(layout.root)
+    source = Path(source)
+    if not SET_NAME_PATTERN.fullmatch(name) or name == SIMULATED:
+        raise UserError(f"--name {name!r}: give 1-8 lower-case letters or digits, starting with a letter, other "
+                        f"than {SIMULATED!r} (e.g. real)")
+    if name in (config.get("hidden_sets") or {}):
+        raise UserError(f"hidden set {name!r} is already in {layout.root}; give another --name")
+    if not 0.0 < public_fraction < 1.0:
+        raise UserError(f"--public-fraction {public_fraction}: give a fraction between 0 and 1 (e.g. 0.5)")
+    files = _annotated_files(source)
+    pins_all = json.loads(layout.pins.read_text())
+    known = {pin["sha256"]: seq for seq, pin in pins_all["sequences"].items()}
+    digests = {path: file_sha256(path) for path in files}
+    for path, digest in digests.items():
+        if digest in known:
+            raise UserError(f"{path} is already hidden in this challenge (as {known[digest]}); give sequences that "
+                            "are not in it yet")
+    names = [f"seq_{name}_{i:04d}" for i in range(len(files))]  # datasets hold seq_*.h5
+    target = layout.hidden_set(name)
+    if target.exists():  # a stopped earlier run's, never recorded in challenge.json
+        shutil.rmtree(target)
+    tmp = layout.root / f".{target.name}.tmp-{secrets.token_hex(6)}"
+    (tmp / "splits").mkdir(parents=True)
+    try:
+        for path, seq in zip(files, names):
+            shutil.copyfile(path, tmp / f"{seq}.h5")
+        parts = _draw_parts(names, public_fraction)
+        for split, members in ((HIDDEN_SPLIT, names), *parts.items()):
+            (tmp / "splits" / f"{split}.txt").write_text("".join(f"{n}\n" for n in members))
+        write_manifest(tmp, build_manifest(tmp))
+        _fsync_tree(tmp)
+        os.rename(tmp, target)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    for path, seq in zip(files, names):
+        pins_all["sequences"][seq] = {"scored": file_scored_digests(target / f"{seq}.h5"), "sha256": digests[path]}
+    write_text(layout.pins, json.dumps(pins_all, indent=1, sort_keys=True) + "\n")
+    entry = {"source": "annotated", "sequences": names, **parts, "num_sequences": len(names),
+             "files": {seq: path.name for path, seq in zip(files, names)},
+             "added": dt.datetime.now(dt.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ")}
+    config = open_challenge(layout.root)[1]
+    config["hidden_sets"] = {**(config.get("hidden_sets") or {}), name: entry}
+    write_config(layout, config)  # the set exists from here on
+    if layout.inputs.exists():
+        refresh_inputs(layout)
+    return entry
 
 
 def load_pins(layout: Layout) -> dict[str, dict]:
@@ -101,7 +197,8 @@ def write_inputs_file(src: Path, dst: Path) -> None:
     from dsr_bench.dataset.storage import write_array
 
     with SequenceReader(src) as seq, h5py.File(dst, "w", track_order=True) as out:
-        for key, value in _input_attrs(seq).items():
+        attrs = {**_input_attrs(seq), "sequence": Path(dst).stem}  # a renamed set's file: its name in the inputs
+        for key, value in attrs.items():
             out.attrs[key] = _encode_attr(value)
         out.attrs[DERIVED_ATTR] = json.dumps([points_name(c) for c in seq.cameras])
         names = list(INPUT_ARRAYS) + [f"cameras/{c}/{a}" for c in seq.cameras for a in INPUT_CAMERA_ARRAYS]
@@ -111,22 +208,25 @@ def write_inputs_file(src: Path, dst: Path) -> None:
 
 
 def export_inputs(layout: Layout, out: str | Path, progress: Callable[[], None] | None = None) -> Path:
-    """Write the participants' inputs of every hidden sequence to the new directory `out`: one inputs file per
-    sequence (`write_inputs_file`), splits/challenge.txt listing them, and digests.json ({file: sha256}). Built in a
+    """Write the participants' inputs of every hidden sequence (of every hidden set: the simulated one's and, e.g.,
+    the real captures' `seq_real_0000`, ...) to the new directory `out`: one inputs file per sequence
+    (`write_inputs_file`), splits/challenge.txt listing them, and digests.json ({file: sha256}). Built in a
     temporary directory beside `out` and renamed when complete: `out` appears whole or not at all."""
-    from dsr_bench.dataset.manifest import file_sha256, read_split
+    from dsr_bench.dataset.manifest import file_sha256
 
     out = Path(out)
     if out.exists():
         raise UserError(f"{out} exists; give a new directory to export the inputs into (or delete it)")
-    _, names = read_split(layout.hidden, HIDDEN_SPLIT)
+    sources = {n: hset.directory / f"{n}.h5" for hset in hidden_sets(layout, open_challenge(layout.root)[1])
+               for n in hset.sequences}
+    names = list(sources)
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = out.parent / f".{out.name}.tmp-{secrets.token_hex(6)}"
     tmp.mkdir()
     try:
         digests = {}
         for name in names:
-            write_inputs_file(layout.hidden / f"{name}.h5", tmp / f"{name}.h5")
+            write_inputs_file(sources[name], tmp / f"{name}.h5")
             digests[f"{name}.h5"] = file_sha256(tmp / f"{name}.h5")
             if progress:
                 progress()
@@ -139,6 +239,18 @@ def export_inputs(layout: Layout, out: str | Path, progress: Callable[[], None] 
         shutil.rmtree(tmp, ignore_errors=True)
         raise
     return out
+
+
+def refresh_inputs(layout: Layout) -> Path:
+    """Write DIR/inputs again (after a hidden set was added): the new inputs are exported beside it and swapped in
+    by two renames (the server finds no inputs for that instant, never a mix)."""
+    fresh = export_inputs(layout, layout.root / f".inputs.new-{secrets.token_hex(6)}")
+    old = layout.root / f".inputs.old-{secrets.token_hex(6)}"
+    if layout.inputs.exists():
+        os.rename(layout.inputs, old)
+    os.rename(fresh, layout.inputs)
+    shutil.rmtree(old, ignore_errors=True)
+    return layout.inputs
 
 
 def _fsync_tree(root: Path) -> None:

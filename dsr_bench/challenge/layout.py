@@ -5,6 +5,8 @@ DIR/ (mode 0700, made by `dsr-bench challenge create`):
 - `challenge.json`: the configuration (split parameters, public and private sequence names, daily quota, upload
   limits, ranking metrics); `pins.json`: each hidden sequence's scored ground-truth digests.
 - `hidden/`: the hidden sequences (a dataset directory, ground truth included; never served).
+- `hidden-<name>/`: a further hidden set, e.g. real annotated captures (`challenge add-hidden-set`), its sequences
+  renamed `seq_<name>_0000`, ...; challenge.json's "hidden_sets" names its sequences and parts.
 - `inputs/`: what participants may download (`host.export_inputs`).
 - `challenge.db`: the default SQLite database; `submissions/<id>.tar`: accepted uploads; `uploads/`: uploads being
   received (temporaries); `work/`: submissions being scored (temporaries).
@@ -26,6 +28,10 @@ CONFIG_FORMAT = "dsr-bench-challenge"
 CONFIG_NAME, PINS_NAME, SEED_NAME = "challenge.json", "pins.json", "secret_seed"
 #: the split of the hidden dataset holding every hidden sequence, and its two parts
 HIDDEN_SPLIT, PARTS = "hidden", ("public", "private")
+#: the generated hidden set's name; further sets (`host.add_hidden_set`) are named by the host
+SIMULATED = "simulated"
+#: a further hidden set's name: short (its parts' score rows are "<name>-public", "<name>-private")
+SET_NAME_PATTERN = re.compile(r"[a-z][a-z0-9]{0,7}")
 #: the split name of the exported inputs (participants see neither part's membership)
 INPUTS_SPLIT = "challenge"
 #: team and method names: shown on pages (escaped anyway) and used in no path
@@ -81,6 +87,10 @@ class Layout:
     def work(self) -> Path:
         return self.root / "work"
 
+    def hidden_set(self, name: str) -> Path:
+        """The dataset directory of hidden set `name` (the simulated one: `hidden`)."""
+        return self.hidden if name == SIMULATED else self.root / f"hidden-{name}"
+
     def archive(self, submission_id: str) -> Path:
         """The stored upload of a submission (its id is 32 hex digits, checked by the caller)."""
         return self.submissions / f"{submission_id}.tar"
@@ -88,6 +98,49 @@ class Layout:
     def default_db_url(self) -> str:
         """The embedded default database: DIR/challenge.db (SQLite)."""
         return f"sqlite:///{(self.root / 'challenge.db').absolute()}"
+
+
+@dataclass(frozen=True)
+class HiddenSet:
+    """One hidden set of a challenge: its name, dataset directory, sequence names and their public and private
+    parts, and where its sequences come from ("simulated", "annotated")."""
+
+    name: str
+    directory: Path
+    sequences: tuple[str, ...]
+    public: tuple[str, ...]
+    private: tuple[str, ...]
+    source: str
+
+    def part(self, part: str) -> tuple[str, ...]:
+        """The sequence names of `part` ("public" or "private")."""
+        return self.public if part == "public" else self.private
+
+    def part_key(self, part: str) -> str:
+        """The score rows' name of `part`: "public" / "private" for the simulated set, "<name>-public" for others."""
+        return part if self.name == SIMULATED else f"{self.name}-{part}"
+
+
+def hidden_sets(layout: Layout, config: dict) -> list[HiddenSet]:
+    """The challenge's hidden sets: the simulated one first, then the others by name."""
+    sets = [HiddenSet(SIMULATED, layout.hidden, tuple(config["sequences"]), tuple(config["public"]),
+                      tuple(config["private"]), "simulated")]
+    for name, entry in sorted((config.get("hidden_sets") or {}).items()):
+        sets.append(HiddenSet(name, layout.hidden_set(name), tuple(entry["sequences"]), tuple(entry["public"]),
+                              tuple(entry["private"]), str(entry.get("source", ""))))
+    return sets
+
+
+def all_sequences(config: dict) -> list[str]:
+    """Every hidden sequence's name, of every hidden set (what a submission may hold predictions of)."""
+    return list(config["sequences"]) + [n for entry in (config.get("hidden_sets") or {}).values()
+                                        for n in entry["sequences"]]
+
+
+def part_title(key: str) -> str:
+    """How a score rows' part is named on pages: "public part", "hidden set real, public part"."""
+    name, _, part = key.rpartition("-")
+    return f"{part} part" if not name else f"hidden set {name}, {part} part"
 
 
 def open_challenge(root: str | Path) -> tuple[Layout, dict]:

@@ -42,7 +42,7 @@ from dsr_bench.atomic import fsync_path
 from dsr_bench.challenge import service
 from dsr_bench.challenge.auth import FailureThrottle
 from dsr_bench.challenge.db import Submission, Team, open_database, utcnow
-from dsr_bench.challenge.layout import FILE_PATTERN, Layout, check_name, open_challenge
+from dsr_bench.challenge.layout import FILE_PATTERN, Layout, all_sequences, check_name, open_challenge, part_title
 from dsr_bench.challenge.storage import Received, UploadRefused, check_archive, clean_partials, receive
 from dsr_bench.errors import UserError
 from dsr_bench.leaderboard.table import COLUMN_TITLES, LINKS, ROLE, SORT_SCRIPT, render_table
@@ -253,7 +253,7 @@ def create_app(root: str | Path, db_url: str | None = None, settings: Settings |
     @app.get("/teams/{name:path}", response_class=HTMLResponse)
     def team_page(name: str) -> str:
         with session_factory() as session:
-            team = session.scalar(select(Team).where(Team.name == name))
+            team = session.scalar(select(Team).where(Team.name == name, Team.reference.is_(False)))
             if team is None:
                 raise HTTPException(404, "no such team")
             subs = session.scalars(select(Submission).where(Submission.team_id == team.id,
@@ -294,7 +294,7 @@ def _store(layout: Layout, session_factory, team: Team, method: str, phase: str 
            cfg: dict) -> str:
     """Check the received archive's members, move it into submissions/ and write its row (the quota checked again
     in the same transaction); an HTTPException when refused, and then nothing is kept."""
-    allowed = {f"{name}.h5" for name in cfg["sequences"]} | {META_NAME}
+    allowed = {f"{name}.h5" for name in all_sequences(cfg)} | {META_NAME}
     problems = check_archive(received.path, allowed, int(cfg["max_extracted_bytes"]), float(cfg["max_ratio"]))
     if problems:
         raise HTTPException(400, problems[0])
@@ -431,6 +431,21 @@ def _quote(text: str) -> str:
     return quote(text, safe="")
 
 
+def _server_reference_row(row: dict) -> dict:
+    """A reference row the server scored on the hidden set (`service.server_references`) as a table row: marked
+    among the server's reference rows only (its own role), linked to its submission's page."""
+    return {**row["metrics"], "rank": "", "team": "", "method": row["method"], "grid": "-",
+            "label": "reference, scored by this server on the hidden set", "toolkit": row.get("toolkit_version") or "",
+            "date": row.get("date", ""), "checksum": "", ROLE: "hidden-reference",
+            LINKS: {"method": f"/submissions/{row['id']}"}}
+
+
+def _hidden_references(data: dict, name: str, part: str) -> dict[str, list[dict]]:
+    """Per track, the table rows of the reference rows the server scored on hidden set `name`'s `part`."""
+    found = (data.get("hidden_references") or {}).get(name, {}).get(part, {})
+    return {track: [_server_reference_row(r) for r in rows] for track, rows in found.items()}
+
+
 def _reference_note(shown: str, split: str) -> str:
     same = "" if shown == split else f" (generated with the same settings as {html.escape(split)})"
     return (f"<p class=note>Reference rows (unranked, below the submissions): the local leaderboard's static, push "
@@ -453,17 +468,28 @@ def render_leaderboard(data: dict, config: dict, references: dict[str, list[dict
                  f"{html.escape(str(config['daily_limit']))} submissions per team per day.</p>")
     if references:
         parts.append(_reference_note(str(reference_split), str(config.get("split", ""))))
-    if data.get("final"):
-        for track, rows in sorted(data["final"].items()):
-            parts.append(f"<h2>Final ranking, {html.escape(track)} track (private part)</h2>")
-            parts.append(_table([_submission_row(r, i) for i, r in enumerate(rows, 1)] + references.get(track, []),
-                                track, LEAD))
-    for track in sorted(set(data["tracks"]) | set(references)):
-        rows = data["tracks"].get(track, [])
-        parts.append(f"<h2>{html.escape(track)} track (public part), ranked by "
-                     f"{html.escape(COLUMN_TITLES.get(config['rank_by'].get(track, ''), ''))}</h2>")
-        parts.append(_table([_submission_row(r, i) for i, r in enumerate(rows, 1)] + references.get(track, []),
-                            track, LEAD))
+    if any(rows for by_part in (data.get("hidden_references") or {}).values() for rows in by_part.values()):
+        parts.append("<p class=note>Rows noted <i>scored by this server on the hidden set</i> are the host's "
+                     "reference models (<code>dsr-bench challenge add-references</code>), predicted on the same "
+                     "inputs as the submissions and scored by the same workers; bold and &#9660; mark them among "
+                     "themselves.</p>")
+    sets = [("simulated", "", data)] + [(name, f", hidden set {name} ({entry.get('source') or 'further'} sequences)",
+                                         entry) for name, entry in sorted((data.get("hidden_sets") or {}).items())]
+    for name, title, entry in sets:
+        local = references if name == "simulated" else {}
+        if entry.get("final"):
+            private = _hidden_references(data, name, "private")
+            for track, rows in sorted(entry["final"].items()):
+                parts.append(f"<h2>Final ranking, {html.escape(track)} track{html.escape(title)} (private part)</h2>")
+                parts.append(_table([_submission_row(r, i) for i, r in enumerate(rows, 1)] + private.get(track, [])
+                                    + local.get(track, []), track, LEAD))
+        public = _hidden_references(data, name, "public")
+        for track in sorted(set(entry["tracks"]) | set(local) | set(public)):
+            rows = entry["tracks"].get(track, [])
+            parts.append(f"<h2>{html.escape(track)} track{html.escape(title)} (public part), ranked by "
+                         f"{html.escape(COLUMN_TITLES.get(config['rank_by'].get(track, ''), ''))}</h2>")
+            parts.append(_table([_submission_row(r, i) for i, r in enumerate(rows, 1)] + public.get(track, [])
+                                + local.get(track, []), track, LEAD))
     if not data["tracks"]:
         parts.append("<p>No scored submission yet.</p>")
     if data.get("phases"):
@@ -482,9 +508,9 @@ def render_submission(view: dict) -> str:
              f'<p>state: <span class="state" id="state">{html.escape(view["state"])}</span></p>']
     if view["messages"]:
         parts.append("<ul>" + "".join(f"<li>{html.escape(m)}</li>" for m in view["messages"]) + "</ul>")
-    for part, score in sorted(view["scores"].items()):
-        parts.append(f"<h2>{html.escape(part)} part</h2>")
-        row = {**score.get("metrics", {}), "method": view["method"], "grid": "-", "label": f"{part} part",
+    for part, score in sorted(view["scores"].items(), key=lambda item: ("-" in item[0], item[0])):
+        parts.append(f"<h2>{html.escape(part_title(part))}</h2>")
+        row = {**score.get("metrics", {}), "method": view["method"], "grid": "-", "label": part_title(part),
                "date": str(score.get("scored_at", ""))[:10], ROLE: "submission"}
         parts.append(_table([row], view.get("track") or "3D"))
     return _page(f"Submission {view['id']}", "".join(parts), refresh=waiting)

@@ -117,45 +117,91 @@ def submission_view(session: Session, sub: Submission, reveal: bool) -> dict[str
     team = session.get(Team, sub.team_id)
     scores = {}
     for score in session.scalars(select(Score).where(Score.submission_id == sub.id, Score.current.is_(True))):
-        if score.part == "public" or reveal:
+        if score.part.endswith("public") or reveal:
             scores[score.part] = {**json.loads(score.metrics), "scored_at": f"{score.scored_at:%Y-%m-%dT%H:%M:%SZ}"}
     return {"id": sub.id, "team": team.name if team else None, "method": sub.method, "phase": sub.phase,
             "state": sub.state, "track": sub.track, "created": f"{sub.created_at:%Y-%m-%dT%H:%M:%SZ}",
             "messages": json.loads(sub.messages), "final": sub.final, "scores": scores}
 
 
-def leaderboard(session: Session, config: dict) -> dict[str, Any]:
-    """The leaderboard: per track, the scored submissions' public aggregates (best first by the track's ranking
-    metric), and once revealed the final ranking on the private part."""
-    reveal = bool(config.get("reveal_private"))
+def _ranked(table: list[dict], key: str | None) -> list[dict]:
+    """`table` sorted best first by metric `key` (rows without it last), then by date."""
+    sign = 1 if key in LOWER_IS_BETTER else -1
+    return sorted(table, key=lambda r: (r["metrics"].get(key) is None, sign * (r["metrics"].get(key) or 0.0),
+                                        r.get("date", "")))
+
+
+def public_rows(session: Session, config: dict, part: str = "public") -> dict[str, list[dict]]:
+    """Per track, the teams' scored submissions with their current scores of `part` ("public", or a further hidden
+    set's "real-public"), best first by the track's ranking metric. The host's reference rows are not among them."""
     rows: dict[str, list[dict]] = {}
     query = (select(Submission, Team.name, Score).join(Team, Team.id == Submission.team_id)
              .join(Score, Score.submission_id == Submission.id)
-             .where(Score.current.is_(True), Score.part == "public", Submission.track.is_not(None)))
+             .where(Score.current.is_(True), Score.part == part, Submission.track.is_not(None),
+                    Team.reference.is_(False)))
     for sub, team, score in session.execute(query):
         metrics = json.loads(score.metrics)
         rows.setdefault(sub.track or "", []).append({
             "id": sub.id, "team": team, "method": sub.method, "phase": sub.phase, "final": sub.final,
             "date": f"{score.scored_at:%Y-%m-%d}", "toolkit_version": score.toolkit_version,
             "metrics": metrics["metrics"]})
-    for track, table in rows.items():
-        key = config["rank_by"].get(track)
-        sign = 1 if key in LOWER_IS_BETTER else -1
-        table.sort(key=lambda r: (r["metrics"].get(key) is None, sign * (r["metrics"].get(key) or 0.0), r["date"]))
-    out: dict[str, Any] = {"rank_by": config["rank_by"], "tracks": rows, "private_revealed": reveal,
+    return {track: _ranked(table, config["rank_by"].get(track)) for track, table in rows.items()}
+
+
+def server_references(session: Session, config: dict, part: str = "public") -> dict[str, list[dict]]:
+    """Per track, the host's reference rows scored by the server on the hidden set (`challenge add-references`):
+    each reference model's newest scored submission with its current scores of `part`, best first."""
+    newest: dict[tuple[str, str], tuple[Submission, Score]] = {}
+    query = (select(Submission, Score).join(Team, Team.id == Submission.team_id)
+             .join(Score, Score.submission_id == Submission.id)
+             .where(Score.current.is_(True), Score.part == part, Submission.state == "scored",
+                    Team.reference.is_(True)).order_by(Submission.created_at))
+    for sub, score in session.execute(query):
+        newest[(sub.track or "", sub.method)] = (sub, score)
+    rows: dict[str, list[dict]] = {}
+    for (track, method), (sub, score) in newest.items():
+        rows.setdefault(track, []).append({
+            "id": sub.id, "method": method, "date": f"{score.scored_at:%Y-%m-%d}",
+            "toolkit_version": score.toolkit_version, "metrics": json.loads(score.metrics)["metrics"]})
+    return {track: _ranked(table, config["rank_by"].get(track)) for track, table in rows.items()}
+
+
+def leaderboard(session: Session, config: dict) -> dict[str, Any]:
+    """The leaderboard: per track, the scored submissions' public aggregates (best first by the track's ranking
+    metric), and once revealed the final ranking on the private part; the same per further hidden set (real
+    captures) under "hidden_sets"; and the reference rows the server scored on each set under
+    "hidden_references" ({set: {"public": {track: rows}, and once revealed "private"}})."""
+    from dsr_bench.challenge.layout import HiddenSet, Layout, hidden_sets
+
+    reveal = bool(config.get("reveal_private"))
+    sets: list[HiddenSet] = hidden_sets(Layout(Path()), config)  # (their names and parts; no directory is read)
+    out: dict[str, Any] = {"rank_by": config["rank_by"], "tracks": public_rows(session, config),
+                           "private_revealed": reveal,
                            "phases": [{"name": p.name, "start": f"{p.starts_at:%Y-%m-%dT%H:%M:%SZ}",
                                        "end": f"{p.ends_at:%Y-%m-%dT%H:%M:%SZ}"} for p in phases(session)]}
     if reveal:
         out["final"] = final_ranking(session, config)
+    out["hidden_sets"] = {}
+    for hset in sets[1:]:
+        entry: dict[str, Any] = {"source": hset.source, "sequences": len(hset.sequences),
+                                 "tracks": public_rows(session, config, hset.part_key("public"))}
+        if reveal:
+            entry["final"] = final_ranking(session, config, hset.part_key("private"))
+        out["hidden_sets"][hset.name] = entry
+    out["hidden_references"] = {
+        hset.name: {part: server_references(session, config, hset.part_key(part))
+                    for part in ("public", "private") if part == "public" or reveal} for hset in sets}
     return out
 
 
-def final_ranking(session: Session, config: dict) -> dict[str, list[dict]]:
-    """Per track, each team's best private-part score among the submissions it selected as final (its newest
-    scored submission when it selected none), best first."""
+def final_ranking(session: Session, config: dict, part: str = "private") -> dict[str, list[dict]]:
+    """Per track, each team's best score of `part` (the private part; "real-private" for a further hidden set)
+    among the submissions it selected as final (its newest scored submission when it selected none), best
+    first."""
     query = (select(Submission, Team.name, Score).join(Team, Team.id == Submission.team_id)
              .join(Score, Score.submission_id == Submission.id)
-             .where(Score.current.is_(True), Score.part == "private", Submission.state == "scored"))
+             .where(Score.current.is_(True), Score.part == part, Submission.state == "scored",
+                    Team.reference.is_(False)))
     by_team: dict[tuple[str, str], list[tuple[Submission, Score]]] = {}
     for sub, team, score in session.execute(query):
         by_team.setdefault((sub.track or "", team), []).append((sub, score))

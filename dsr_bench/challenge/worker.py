@@ -31,7 +31,7 @@ from sqlalchemy.orm import sessionmaker
 
 from dsr_bench.challenge.db import Score, Submission, open_database, utcnow
 from dsr_bench.challenge.host import expected_truth_checksum, load_pins
-from dsr_bench.challenge.layout import PARTS, Layout, open_challenge
+from dsr_bench.challenge.layout import PARTS, SIMULATED, Layout, all_sequences, hidden_sets, open_challenge
 
 MAX_ATTEMPTS = 3
 META_NAME = "meta.json"
@@ -120,47 +120,59 @@ def _sanitize(text: str, hide: dict[str, str]) -> str:
 
 def evaluate_submission(layout: Layout, config: dict, pins: dict, sid: str) -> Outcome:
     """Score submission `sid`'s stored archive: extract it (checked) into a fresh work directory, evaluate each
-    part on hard links to its files, verify the ground truth against the pins; returns the outcome."""
+    part of each hidden set on hard links to its files (the simulated set always; a further set, e.g. real
+    captures, when the archive holds any of its files, and then all of them), verify the ground truth against the
+    pins; returns the outcome (score rows per part key: "public", "private", "real-public", ...)."""
     from dsr_bench.challenge.storage import check_archive
     from dsr_bench.scoring.evaluate import evaluate
 
-    names = list(config["sequences"])
     work = layout.work / f"{sid}-{secrets.token_hex(4)}"
     layout.work.mkdir(parents=True, exist_ok=True)
     hide = {str(work.resolve()) + "/all/": "", str(work.resolve()): "<submission>", str(work) + "/all/": "",
-            str(work): "<submission>", str(layout.hidden.resolve()): "<hidden>", str(layout.hidden): "<hidden>",
-            str(layout.root.resolve()): "<challenge>", str(layout.root): "<challenge>"}
+            str(work): "<submission>", str(layout.root.resolve()): "<challenge>", str(layout.root): "<challenge>"}
+    sets = hidden_sets(layout, config)
+    for hset in sets:
+        hide = {str(hset.directory.resolve()): "<hidden>", str(hset.directory): "<hidden>", **hide}
     try:
         work.mkdir(mode=0o700)
-        allowed = {f"{n}.h5" for n in names} | {META_NAME}
+        allowed = {f"{n}.h5" for n in all_sequences(config)} | {META_NAME}
         problems = check_archive(layout.archive(sid), allowed, int(config["max_extracted_bytes"]),
                                  float(config["max_ratio"]), extract_to=work / "all")
         if problems:
             return Outcome("refused", problems)
         outcome = Outcome("scored")
         messages: list[str] = []
-        for part in PARTS:
-            part_dir = work / part
-            part_dir.mkdir()
-            for name in config[part]:
-                if (work / "all" / f"{name}.h5").exists():
-                    os.link(work / "all" / f"{name}.h5", part_dir / f"{name}.h5")
-            if (work / "all" / META_NAME).exists():
-                os.link(work / "all" / META_NAME, part_dir / META_NAME)
-            evaluation = evaluate(part_dir, layout.hidden, part, workers=1)
-            messages += [_sanitize(f"{where}: {problem}" if where else problem, hide)
-                         for where, problem in evaluation.problems if f"{where}: {problem}" not in messages]
-            if evaluation.results is not None:
-                results = evaluation.results
-                expected = expected_truth_checksum(pins, list(config[part]), results["metrics"])
-                if results["ground_truth_sha256"] != expected:
-                    return Outcome("failed", ["the server's hidden ground truth failed its check against the "
-                                              "challenge's pins; the host is told (nothing of yours is wrong)"])
-                outcome.parts[part] = {"metrics": results["metrics"], "breakdowns": results["breakdowns"],
-                                       "coverage": results["coverage"], "toolkit_version": results["toolkit_version"],
-                                       "predictions_checksum": results["predictions_checksum"]}
-                outcome.track = "3D" if "motion_full" in results["metrics"] else "2D"
-        if messages or len(outcome.parts) != len(PARTS):
+        expected: list[str] = []
+        for hset in sets:
+            # the simulated set is always scored; a further set (real captures) when the archive holds any of it
+            if hset.name != SIMULATED and not any((work / "all" / f"{n}.h5").exists() for n in hset.sequences):
+                continue
+            for part in PARTS:
+                key = hset.part_key(part)
+                expected.append(key)
+                part_dir = work / f"part-{key}"
+                part_dir.mkdir()
+                for name in hset.part(part):
+                    if (work / "all" / f"{name}.h5").exists():
+                        os.link(work / "all" / f"{name}.h5", part_dir / f"{name}.h5")
+                if (work / "all" / META_NAME).exists():
+                    os.link(work / "all" / META_NAME, part_dir / META_NAME)
+                evaluation = evaluate(part_dir, hset.directory, part, workers=1)
+                messages += [line for where, problem in evaluation.problems
+                             if (line := _sanitize(f"{where}: {problem}" if where else problem, hide)) not in messages]
+                if evaluation.results is not None:
+                    results = evaluation.results
+                    truth = expected_truth_checksum(pins, list(hset.part(part)), results["metrics"])
+                    if results["ground_truth_sha256"] != truth:
+                        return Outcome("failed", ["the server's hidden ground truth failed its check against the "
+                                                  "challenge's pins; the host is told (nothing of yours is wrong)"])
+                    outcome.parts[key] = {"metrics": results["metrics"], "breakdowns": results["breakdowns"],
+                                          "coverage": results["coverage"],
+                                          "toolkit_version": results["toolkit_version"],
+                                          "predictions_checksum": results["predictions_checksum"]}
+                    if hset.name == SIMULATED:
+                        outcome.track = "3D" if "motion_full" in results["metrics"] else "2D"
+        if messages or set(outcome.parts) != set(expected):
             return Outcome("refused", messages or ["no score: fix the problems above"])
         return outcome
     finally:
