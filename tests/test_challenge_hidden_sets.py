@@ -4,6 +4,7 @@ separately, shown in their own tables; bad input refused in one line."""
 
 import json
 import shutil
+import threading
 
 import h5py
 import pytest
@@ -77,12 +78,26 @@ def _score_all(layout) -> int:
 
 
 def test_a_real_hidden_set_is_pinned_exported_scored_apart_and_shown(challenge, tmp_path, capsys):
+    from dsr_bench.challenge.worker import run_worker, wait_for
+
+    layout, sessions, tokens, simulated_only = challenge
+    stop = threading.Event()  # a worker running since before the set was added (it reads the new pins)
+    worker = threading.Thread(target=run_worker, args=(str(layout.root), layout.default_db_url()),
+                              kwargs={"stop": stop, "poll": 0.1}, daemon=True)
+    worker.start()
+    try:
+        _with_a_running_worker(layout, sessions, tokens, simulated_only, tmp_path, capsys, wait_for)
+    finally:
+        stop.set()
+        worker.join(60)
+
+
+def _with_a_running_worker(layout, sessions, tokens, simulated_only, tmp_path, capsys, wait_for):
     from dsr_bench.challenge.layout import open_challenge, write_config
     from dsr_bench.dataset.manifest import file_sha256
     from dsr_bench.models.predictors import load_predictor, predict_split
     from dsr_bench.scoring.evaluate import evaluate
 
-    layout, sessions, tokens, simulated_only = challenge
     real = write_annotated(tmp_path / "real", 2)
     assert main(["challenge", "add-hidden-set", str(layout.root), str(real)]) == 0
     assert "hidden set 'real' added: 2 annotated sequences (1 public, 1 private)" in capsys.readouterr().out
@@ -119,7 +134,7 @@ def test_a_real_hidden_set_is_pinned_exported_scored_apart_and_shown(challenge, 
         sid = _upload(live.url, tokens["alpha"], both, tmp_path, "both sets")
         sim = _upload(live.url, tokens["beta"], simulated_only, tmp_path, "simulated only")
         half = _upload(live.url, tokens["beta"], partial, tmp_path, "half the real set")
-        assert _score_all(layout) == 3
+        assert [wait_for(sessions, s) for s in (sid, sim, half)] == ["scored", "scored", "refused"]
         status = httpx.get(f"{live.url}/api/submissions/{sid}").json()
         assert status["state"] == "scored" and set(status["scores"]) == {"public", "real-public"}
         assert httpx.get(f"{live.url}/api/submissions/{sim}").json()["state"] == "scored"
@@ -149,7 +164,8 @@ def test_a_real_hidden_set_is_pinned_exported_scored_apart_and_shown(challenge, 
 
         # the server's reference rows are scored on the real set too
         assert main(["challenge", "add-references", str(layout.root)]) == 0
-        assert _score_all(layout) == 1
+        reference = capsys.readouterr().out.split("queued as submission ")[1].split()[0]
+        assert wait_for(sessions, reference) == "scored"
         references = httpx.get(f"{live.url}/api/leaderboard").json()["hidden_references"]
         assert [r["method"] for r in references["real"]["public"]["3D"]] == ["static"]
         assert references["real"]["private"]["3D"][0]["metrics"] == pytest.approx(expected)  # the same predictor

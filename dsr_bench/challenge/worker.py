@@ -216,6 +216,7 @@ def run_worker(root: str, db_url: str, owner: str | None = None, lease: float = 
                                              "host is told"])
             else:
                 _, config = open_challenge(root)  # the host may have changed limits or ranking
+                pins = load_pins(layout)  # or added a hidden set (add-hidden-set) while the server runs
                 try:
                     outcome = evaluate_submission(layout, config, pins, sid)
                 except Exception as exc:  # a server fault: the job is failed, the worker goes on
