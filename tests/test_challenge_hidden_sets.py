@@ -208,24 +208,28 @@ def test_reference_rows_are_scored_by_the_server_on_the_hidden_set(challenge, tm
 
     layout, sessions, tokens, predictions = challenge
     root = str(layout.root)
-    assert main(["challenge", "add-references", root, "--models", "static,push"]) == 0
+    # static and push, a learned 3D model and a 2D-track model with their shipped CPU-track weights (~3 s here)
+    assert main(["challenge", "add-references", root, "--models", "static,push,dsr,2dflow"]) == 0
     out = capsys.readouterr().out
-    assert "static: queued as submission" in out and "push: queued as submission" in out
+    assert all(f"{m}: queued as submission" in out for m in ("static", "push", "dsr", "2dflow"))
     with _serve(layout) as live:
         mine = _upload(live.url, tokens["alpha"], predictions, tmp_path, "static")  # the same predictor, submitted
-        assert _score_all(layout) == 3
+        assert _score_all(layout) == 5
         board = httpx.get(f"{live.url}/api/leaderboard").json()
         assert [r["id"] for r in board["tracks"]["3D"]] == [mine]  # reference rows are not ranked submissions
         references = board["hidden_references"]["simulated"]
         assert set(references) == {"public"}  # the private part's only once revealed
         rows = {r["method"]: r for r in references["public"]["3D"]}
-        assert set(rows) == {"static", "push"}
+        assert set(rows) == {"static", "push", "dsr"}
+        assert [r["method"] for r in references["public"]["2D"]] == ["2dflow"]  # its own track's table
+        assert rows["dsr"]["metrics"] != pytest.approx(rows["static"]["metrics"])  # the model's own predictions
         submitted = httpx.get(f"{live.url}/api/submissions/{mine}").json()["scores"]["public"]["metrics"]
         assert rows["static"]["metrics"] == pytest.approx(submitted)  # scored by the same workers, the same way
         assert rows["push"]["metrics"]["motion_full"] != pytest.approx(rows["static"]["metrics"]["motion_full"])
         page = httpx.get(live.url + "/").text
         assert f'<a href="/submissions/{rows["static"]["id"]}">static</a>' in page
         assert "reference, scored by this server on the hidden set" in page
+        assert "2D track (public part)" in page and ">2dflow</a>" in page
         assert httpx.get(f"{live.url}/teams/%28reference%20rows%29").status_code == 404
 
         write_config(layout, {**open_challenge(layout.root)[1], "reveal_private": True})
