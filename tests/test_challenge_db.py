@@ -132,3 +132,33 @@ def test_an_expired_lease_is_taken_again(db_url):
     with sessions() as session:
         assert session.get(Submission, sid).attempts == 2
     engine.dispose()
+
+
+def test_a_database_of_the_first_schema_is_upgraded_with_its_rows(db_url):
+    """A challenge database made before the reference team existed (migration 0001), holding a team and its
+    submission, is brought to the newest schema by opening it: rows kept, the team not a reference team."""
+    from alembic import command
+    from alembic.config import Config
+    from sqlalchemy import select, text
+
+    from dsr_bench.challenge.db import MIGRATIONS, Team, make_engine, open_database
+
+    engine = make_engine(db_url)
+    config = Config()
+    config.set_main_option("script_location", str(MIGRATIONS))
+    with engine.begin() as connection:
+        config.attributes["connection"] = connection
+        command.upgrade(config, "0001")
+    with engine.begin() as connection:
+        connection.execute(text("INSERT INTO teams (id, name, key, token_hash, created_at) "
+                                "VALUES (1, 'old team', 'k', 'h', '2026-01-01')"))
+        connection.execute(text("INSERT INTO submissions (id, team_id, method, state, created_at, attempts, "
+                                "archive_sha256, archive_bytes, messages, final, rescore) VALUES "
+                                "('x', 1, 'm', 'scored', '2026-01-01', 1, '0', 1, '[]', false, false)"))
+    engine.dispose()
+    engine, sessions = open_database(db_url)
+    with sessions() as session:
+        team = session.scalar(select(Team))
+        assert (team.name, team.reference) == ("old team", False)
+        assert session.execute(text("SELECT count(*) FROM submissions")).scalar() == 1
+    engine.dispose()

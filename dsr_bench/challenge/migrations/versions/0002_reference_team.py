@@ -15,8 +15,9 @@ depends_on = None
 
 
 def upgrade() -> None:
-    with op.batch_alter_table("teams") as batch:
-        batch.add_column(sa.Column("reference", sa.Boolean, nullable=False, server_default=sa.false()))
+    # a plain ALTER TABLE ... ADD COLUMN (SQLite has it): a batch copy would drop `teams`, which the submissions'
+    # foreign keys refuse once there are any
+    op.add_column("teams", sa.Column("reference", sa.Boolean, nullable=False, server_default=sa.false()))
 
 
 def downgrade() -> None:
