@@ -178,7 +178,7 @@ def _pick(ctl: "Controller") -> None:
 def _toggle_residual(ctl: "Controller") -> None:
     ctl.view.residual = not ctl.view.residual
     if ctl.view.residual:
-        ctl.session.residual_colors()  # fail here (message) rather than while drawing
+        ctl.session.residual_colors(index=ctl.session.shown())  # fail here (message) rather than while drawing
     ctl.view.message = f"cloud coloured by {'depth residual' if ctl.view.residual else 'capture colours'}"
 
 
@@ -418,12 +418,15 @@ class Controller:
         return (s.step, self.view.residual, s.poses().tobytes(), tuple(s.status()), s.selected, self.view.frame)
 
     def cloud(self) -> tuple[np.ndarray, np.ndarray]:
-        """Points (M,3) world m and colours (M,3) 0..1 of the current step's fused cloud (the Session caches it);
-        the colours are the depth residual's in residual mode."""
+        """Points (K,3) world m and colours (K,3) 0..1 of what the window draws of the current step's fused cloud:
+        its subset `Session.shown` (chosen once per step; fitting uses the whole cloud); the colours are the depth
+        residual's in residual mode, computed for these points only."""
         points, colors, _ = self.session.cloud()
+        index = self.session.shown()
+        points, colors = points[index], colors[index]
         if self.view.residual:
             try:
-                colors = self.session.residual_colors()
+                colors = self.session.residual_colors(index=index)
             except UserError as exc:
                 self.view.message = f"residual colours: {exc}"
         return points, colors

@@ -42,6 +42,12 @@ class Layout:
     font_size: int
 
 
+def _width_for_height(height: int, image_aspect: float) -> int:
+    """The widest image (px) two of which, `image_aspect` x as high (rounded) and each under a title row, fit
+    `height` px."""
+    return int(((height - 2 * TITLE_HEIGHT) / 2 - 0.5) / image_aspect)
+
+
 def window_layout(screen_width: int, screen_height: int, *, image_aspect: float = 0.75,
                   max_image_width: int = 960, origin: tuple[int, int] = (0, 0)) -> Layout:
     """Both windows side by side within a screen of `screen_width` x `screen_height` px whose top-left corner is
@@ -59,7 +65,7 @@ def window_layout(screen_width: int, screen_height: int, *, image_aspect: float 
     usable_h = screen_height - TOP_MARGIN - BOTTOM_MARGIN
     text_width = 340 if screen_width >= 1400 else 300
     font_size = 14 if usable_h >= 800 else 12
-    by_height = int((usable_h - 2 * TITLE_HEIGHT) / 2 / image_aspect)
+    by_height = _width_for_height(usable_h, image_aspect)
     by_width = int(PANEL_MAX_SHARE * usable_w) - text_width
     image_width = max(64, min(by_height, by_width, int(max_image_width)))
     image_height = int(round(image_width * image_aspect))
@@ -68,6 +74,19 @@ def window_layout(screen_width: int, screen_height: int, *, image_aspect: float 
     x0, y0 = origin[0] + SIDE_MARGIN, origin[1] + TOP_MARGIN
     return Layout(view=(x0, y0, view_w, usable_h), panel=(x0 + view_w + GAP, y0, panel_w, usable_h),
                   text_width=text_width, image_width=image_width, image_height=image_height, font_size=font_size)
+
+
+def panel_layout(width: int, height: int, text_width: int, *, image_aspect: float = 0.75,
+                 max_image_width: int = 960) -> tuple[int, int]:
+    """(text column width, camera image width) px for a panel window of `width` x `height` px (after the user or
+    the window manager resized it): the text column keeps `text_width` (narrowed to leave the images 64 px when the
+    window is narrower), and the two stacked images (height = `image_aspect` x width, each under a title row) get
+    the largest width that fits the window's height and the width beside the text, at most `max_image_width`.
+    The panel `window_layout` lays out gives back its own sizes."""
+    text_width = max(1, min(int(text_width), int(width) - 64))
+    by_height = _width_for_height(int(height), image_aspect)
+    image_width = max(64, min(by_height, int(width) - text_width, int(max_image_width)))
+    return text_width, image_width
 
 
 def parse_window_size(text: str) -> tuple[int, int]:

@@ -16,7 +16,13 @@ Frames: the key callbacks only queue keys (`annotator.keys.KeyCoalescer`); each 
 window events, acts on the queued keys through `annotator.keys.Controller` (keys -> Session calls; a held nudge
 key's repeats merged into one nudge, at most `MAX_REPEAT` steps a frame, so releasing it stops the motion at the
 next frame), then redraws what changed once from the session's latest state (`redraw`: cloud, meshes, panel), not
-once per key. Messages are shown in the panel (errors also go to the terminal, as does the progress table, key F).
+once per key, and drawn at once (key to frame within the frame). The 3D view draws the step's cloud subset
+`Session.shown` (one point per 2 mm cube above the table, per 6 mm cube on it: every surface covered, a fraction of
+the points), the residual colours computed for those points only; a nudge re-uploads only the moved mesh and the
+gizmo (and, with residual colours, the cloud's colours), and the panel redraws only the moved object's outline
+(`annotator.panel`). When the panel window's size changes (the user or the window manager resized it) its text
+and images are laid out again for the new size (`annotator.layout.panel_layout`) and drawn 1:1. Messages are shown
+in the panel (errors also go to the terminal, as does the progress table, key F).
 Pick mode (key M) opens a `annotator.picking.ClickPicker` twice over the 3D view's place (the cloud, then the
 mesh shaded and opaque with its samples; a shift + click picks the nearest visible point within a tolerance), its
 messages in the panel; it runs after the key callbacks return, and the main window ignores keys meanwhile. The
@@ -36,7 +42,7 @@ import numpy as np
 
 from annotator.images import muted_colors, object_colors, posed
 from annotator.keys import KEYMAP, Controller, KeyCoalescer, glfw_code
-from annotator.layout import Layout, screen_size, window_layout
+from annotator.layout import Layout, panel_layout, screen_size, window_layout
 from annotator.panel import Panel
 from dsr_bench.display import no_display
 from dsr_bench.errors import UserError
@@ -121,7 +127,8 @@ class AnnotatorWindow:
         self.ctl = Controller(session, picker=picker or self.pick, echo=echo)
         self.panel = Panel(session, self.ctl.view, text_width=self.layout.text_width,
                            image_width=self.layout.image_width, font_size=self.layout.font_size,
-                           height=self.layout.panel[3])
+                           height=self.layout.panel[3], width=self.layout.panel[2])
+        self._panel_size: tuple[int, int] | None = None  # the panel window's size (px) the panel was laid out for
         self.vis = o3d.visualization.VisualizerWithKeyCallback()
         if not self.vis.create_window("dsr-bench annotator: 3D (Esc quits)", width=width, height=height, left=vx,
                                       top=vy):
@@ -153,6 +160,7 @@ class AnnotatorWindow:
         points, colors = self._cloud()
         self.cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
         self.cloud.colors = o3d.utility.Vector3dVector(colors)
+        self._cloud_step = ctl.session.step  # the step whose points the cloud holds
         self.mesh_data = ctl.meshes()
         self.centres = [0.5 * (v.min(0) + v.max(0)) if len(v) else np.zeros(3) for v, _ in self.mesh_data]
         self.gizmo_sizes = [max(GIZMO_MIN_SIZE, GIZMO_SCALE * float(np.linalg.norm(v.max(0) - v.min(0))))
@@ -223,14 +231,18 @@ class AnnotatorWindow:
         return changed
 
     def _cloud(self) -> tuple[np.ndarray, np.ndarray]:
-        """The cloud's points and the colours the 3D view draws: the residual's, or the capture's muted
-        (`muted_colors`: no object's own colour reads as a status colour)."""
+        """The points the 3D view draws (the step's `Session.shown` subset) and their colours: the residual's, or
+        the capture's muted (`muted_colors`: no object's own colour reads as a status colour)."""
         points, colors = self.ctl.cloud()
         return points, (colors if self.ctl.view.residual else muted_colors(colors))
 
     def _update_cloud(self) -> None:
+        """New points at a new step; else (the residual colours follow a pose) new colours only."""
         points, colors = self._cloud()
-        self.cloud.points = self._o3d.utility.Vector3dVector(points)
+        step = self.ctl.session.step
+        if step != self._cloud_step or len(points) != len(self.cloud.points):
+            self.cloud.points = self._o3d.utility.Vector3dVector(points)
+            self._cloud_step = step
         self.cloud.colors = self._o3d.utility.Vector3dVector(colors)
 
     # pick mode -------------------------------------------------------------------------------------------------
@@ -290,7 +302,13 @@ class AnnotatorWindow:
     def redraw(self) -> set[str]:
         """Update what changed since the last redraw, once, from the session's latest state; returns what was
         updated (a subset of {"cloud", "meshes", "panel", "view"})."""
-        dirty, self._dirty = self._dirty, set()
+        return self._redraw_view() | self._redraw_panel()
+
+    def _redraw_view(self) -> set[str]:
+        """The 3D view's part of `redraw`: the cloud and the meshes that changed; returns what it updated (and
+        "view" when the view was reset)."""
+        dirty = self._dirty & {"cloud", "meshes", "view"}
+        self._dirty -= dirty
         if "cloud" in dirty:
             self._update_cloud()
             self.vis.update_geometry(self.cloud)
@@ -298,9 +316,43 @@ class AnnotatorWindow:
             for mesh in self._update_meshes():
                 self.vis.update_geometry(mesh)
             self.vis.update_geometry(self.gizmo)
-        if "panel" in dirty:
-            self._update_panel()
         return dirty
+
+    def _redraw_panel(self) -> set[str]:
+        """The panel's part of `redraw`: {"panel"} when it was redrawn, else empty."""
+        if "panel" not in self._dirty:
+            return set()
+        self._dirty.discard("panel")
+        self._update_panel()
+        return {"panel"}
+
+    def panel_window_size(self) -> tuple[int, int] | None:
+        """The panel window's current (width, height) px (None when it is not open)."""
+        if self.panel_vis is None:
+            return None
+        intrinsic = self.panel_vis.get_view_control().convert_to_pinhole_camera_parameters().intrinsic
+        return int(intrinsic.width), int(intrinsic.height)
+
+    def _fit_panel(self) -> bool:
+        """Lay the panel out again when its window's size changed since it was laid out (`panel_layout`: the text
+        column, the camera images as large as the new height and width allow, the image exactly the window's size,
+        so that it is drawn 1:1, not stretched); True when it did (the panel is then redrawn this frame)."""
+        size = self.panel_window_size()
+        if size is None or size == self._panel_size:
+            return False
+        self._panel_size = size
+        width, height = size
+        if width < 64 or height < 64:  # minimised, or being resized through nothing: wait for a real size
+            return False
+        cam = next(iter(self.ctl.session.capture.cameras.values())).camera
+        text_width, image_width = panel_layout(width, height, self.layout.text_width,
+                                               image_aspect=cam.height / cam.width, max_image_width=cam.width)
+        if (text_width, image_width, width, height) == (self.panel.text_width, self.panel.image_width,
+                                                        self.panel.width, self.panel.height):
+            return False
+        self.panel.resize(text_width, image_width, width, height)
+        self._dirty.add("panel")
+        return True
 
     def _update_panel(self) -> None:
         if self.panel_vis is None:
@@ -317,11 +369,12 @@ class AnnotatorWindow:
 
     def render(self) -> bool:
         """One frame: process window events (the key callbacks queue keys), act on the queued keys (a held key's
-        repeats merged, `KeyCoalescer`) and update what changed, once; open3d draws a window flagged for redrawing
-        as the next frame polls its events, and an idle frame draws nothing. False once either window was closed."""
+        repeats merged, `KeyCoalescer`), lay the panel out again if its window was resized, update what changed,
+        once, and draw it in this frame; an idle frame draws nothing. False once either window was closed."""
         alive = self.vis.poll_events()
         if self.panel_vis is not None:
             alive = self.panel_vis.poll_events() and alive
+            self._fit_panel()
         self._busy = True  # a pick window's event loop delivers this window's keys too: ignored meanwhile
         try:
             for action in self.keys.drain(time.monotonic()):
@@ -330,11 +383,16 @@ class AnnotatorWindow:
                     break
         finally:
             self._busy = False
-        redrawn = self.redraw()
-        if redrawn - {"panel"}:  # else nothing to draw (open3d flags on its own what the mouse changes)
+        # draw what changed now (open3d draws a window flagged for redrawing when its events are polled), not at
+        # the next frame, the 3D view first (what a nudge moves), then the panel; else nothing to draw (open3d
+        # flags on its own what the mouse changes)
+        redrawn = self._redraw_view()
+        if redrawn:
             self.vis.update_renderer()
-        if redrawn & {"panel", "view"} and self.panel_vis is not None:
+            alive = self.vis.poll_events() and alive
+        if (self._redraw_panel() or "view" in redrawn) and self.panel_vis is not None:
             self.panel_vis.update_renderer()
+            alive = self.panel_vis.poll_events() and alive
         return bool(alive) and not self.ctl.view.quit
 
     def screenshot(self) -> np.ndarray:

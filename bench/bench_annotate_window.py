@@ -6,8 +6,10 @@ Runs itself under `xvfb-run` (or on $DISPLAY) and prints:
 
 - ms per nudge: `Session.nudge` (fit score + save) with a short undo history and with `--history` entries, and
   the fit score alone (the rest is the save);
-- ms per redraw after a nudge key (key to frame, less the nudge itself), with the cloud in capture colours and in
-  depth-residual colours;
+- ms per redraw after a nudge key (key to frame, less the nudge itself: the key pressed, the frame rendered, and
+  a second frame rendered so that a window whose drawing is left to the next frame's event poll counts as drawn),
+  to the 3D view's frame and to the panel's, with the cloud in capture colours and in depth-residual colours, and
+  the points the 3D view draws of the step's cloud;
 - seconds for the next step (key N to frame, a step not visited before: carry forward and snap);
 - a held key: xdotool types D at `--rate` keys per second for `--hold` s into the 3D window while the window runs
   its own loop; nudges applied, events the window received, nudges still applied after the last key was sent
@@ -91,6 +93,27 @@ def nudge_figures(session, history: int) -> dict:
             "history": session.undo_depth, "score_ms": ms(scores)}
 
 
+class DrawClock:
+    """Wraps an open3d visualizer: records when a frame flagged for redrawing (`update_renderer`) has been drawn
+    (open3d draws it in `poll_events`)."""
+
+    def __init__(self, vis):
+        self.vis, self.flagged, self.drawn = vis, False, None
+
+    def update_renderer(self):
+        self.flagged = True
+        return self.vis.update_renderer()
+
+    def poll_events(self):
+        out = self.vis.poll_events()
+        if self.flagged:
+            self.flagged, self.drawn = False, time.perf_counter()
+        return out
+
+    def __getattr__(self, name):
+        return getattr(self.vis, name)
+
+
 class NudgeTimer:
     """Wraps a session's `nudge` to add up the seconds spent in it."""
 
@@ -107,16 +130,26 @@ class NudgeTimer:
             self.seconds += time.perf_counter() - start
 
 
-def redraw_ms(window, timer: NudgeTimer, count: int = 12) -> float:
-    """Median ms from a nudge key to its frame, less the time in Session.nudge."""
-    out = []
-    for k in range(count):
-        timer.seconds = 0.0
-        start = time.perf_counter()
-        window.press("D" if k % 2 == 0 else "A")
-        window.render()
-        out.append(time.perf_counter() - start - timer.seconds)
-    return ms(out)
+def redraw_ms(window, timer: NudgeTimer, count: int = 12) -> tuple[float, float]:
+    """Median ms from a nudge key to the 3D view's frame and to the panel's, less the time in Session.nudge (keys D
+    and A in turn, 1 mm each, 50 ms apart)."""
+    view, panel = DrawClock(window.vis), DrawClock(window.panel_vis)
+    window.vis, window.panel_vis = view, panel
+    out_view, out_panel = [], []
+    try:
+        for k in range(count):
+            time.sleep(0.05)  # the X server done with the last frame
+            timer.seconds, view.drawn, panel.drawn = 0.0, None, None
+            start = time.perf_counter()
+            window.press("D" if k % 2 == 0 else "A")
+            window.render()
+            window.render()  # draws what the first left flagged for the next frame
+            end = time.perf_counter()
+            out_view.append((view.drawn or end) - start - timer.seconds)
+            out_panel.append((panel.drawn or end) - start - timer.seconds)
+    finally:
+        window.vis, window.panel_vis = view.vis, panel.vis
+    return ms(out_view), ms(out_panel)
 
 
 def next_step_seconds(window) -> float:
@@ -200,10 +233,11 @@ def child(args) -> dict:
         try:
             window.render()
             timer = NudgeTimer(session)
-            out["redraw_ms"] = redraw_ms(window, timer)
+            out["cloud_points"], out["points_drawn"] = len(session.cloud()[0]), len(window.cloud.points)
+            out["redraw_ms"], out["redraw_ms_panel"] = redraw_ms(window, timer)
             window.press("R")
             window.render()
-            out["redraw_ms_residual"] = redraw_ms(window, timer)
+            out["redraw_ms_residual"], out["redraw_ms_residual_panel"] = redraw_ms(window, timer)
             window.press("R")
             window.render()
             out["next_step_s"] = next_step_seconds(window)
@@ -221,12 +255,15 @@ def child(args) -> dict:
 
 def report(fig: dict) -> None:
     """Print the figures."""
-    print(f"annotator package: {fig['annotator']}")
+    print(f"annotator package: {fig['annotator']}; load average (1 min) {fig['load'][0]:.2f} at the start, "
+          f"{fig['load'][1]:.2f} at the end, {os.cpu_count()} CPUs")
     print(f"nudge (score + save): {fig['nudge_ms_short_history']:.1f} ms with a short history, "
           f"{fig['nudge_ms_long_history']:.1f} ms at {fig['history']} undo entries; fit score alone "
           f"{fig['score_ms']:.1f} ms")
-    print(f"redraw after a nudge key: {fig['redraw_ms']:.1f} ms (capture colours), "
-          f"{fig['redraw_ms_residual']:.1f} ms (residual colours)")
+    print(f"redraw after a nudge key, key to the 3D view's frame | to the panel's: {fig['redraw_ms']:.1f} | "
+          f"{fig['redraw_ms_panel']:.1f} ms (capture colours), {fig['redraw_ms_residual']:.1f} | "
+          f"{fig['redraw_ms_residual_panel']:.1f} ms (residual colours); the 3D view draws {fig['points_drawn']} of "
+          f"the cloud's {fig['cloud_points']} points (key to frame = the nudge above + this)")
     print(f"next step (N, not visited before): {fig['next_step_s']:.2f} s")
     h = fig["held"]
     if h.get("error"):
@@ -257,8 +294,10 @@ def main() -> None:
             raise SystemExit("no display: install xvfb (scripts/setup.sh) or run where $DISPLAY is set")
         cmd = [*prefix, sys.executable, __file__, "--child", str(out), "--history", str(args.history), "--hold",
                str(args.hold), "--rate", str(args.rate)] + (["--capture", str(args.capture)] if args.capture else [])
+        load = os.getloadavg()[0]
         subprocess.run(cmd, check=True)
         fig = json.loads(out.read_text())
+        fig["load"] = [load, os.getloadavg()[0]]
     report(fig)
     if args.json:
         args.json.write_text(json.dumps(fig, indent=1))

@@ -37,6 +37,24 @@ def test_larger_screens_get_larger_camera_images():
     assert layout.window_layout(1920, 1080, max_image_width=320).image_width == 320  # never above native width
 
 
+@pytest.mark.parametrize("screen", [(1920, 1080), (1600, 1000), (1024, 700)])
+def test_panel_layout_of_a_resized_panel_window(screen):
+    lay = layout.window_layout(*screen, image_aspect=0.75, max_image_width=640)
+    _, _, pw, ph = lay.panel
+    # the window as laid out gives back its own sizes
+    assert layout.panel_layout(pw, ph, lay.text_width, max_image_width=640) == (lay.text_width, lay.image_width)
+    # taller and wider: larger images (up to the native width), the text column kept; both images fit the height
+    text_w, img_w = layout.panel_layout(pw + 300, ph + 300, lay.text_width, max_image_width=640)
+    assert text_w == lay.text_width and (img_w > lay.image_width or lay.image_width == 640) and img_w <= 640
+    assert 2 * (round(img_w * 0.75) + layout.TITLE_HEIGHT) <= ph + 300 and text_w + img_w <= pw + 300
+    # lower: smaller images that fit the new height
+    text_w, img_w = layout.panel_layout(pw, ph // 2, lay.text_width, max_image_width=640)
+    assert img_w < lay.image_width and 2 * (round(img_w * 0.75) + layout.TITLE_HEIGHT) <= ph // 2
+    # narrower than the text column: the column gives way so that images of 64 px still show
+    text_w, img_w = layout.panel_layout(300, ph, lay.text_width, max_image_width=640)
+    assert img_w == 64 and text_w + img_w <= 300
+
+
 def test_layout_follows_the_monitor_origin_and_refuses_tiny_screens():
     a, b = layout.window_layout(1600, 1000), layout.window_layout(1600, 1000, origin=(1920, 0))
     assert b.view[0] - a.view[0] == 1920 and b.panel[0] - a.panel[0] == 1920 and b.view[1:] == a.view[1:]

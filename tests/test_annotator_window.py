@@ -448,6 +448,81 @@ def test_panel_is_drawn_at_its_window_size_with_the_legend(session, screen):
         assert natural.shape[0] <= lay.panel[3]
 
 
+def test_the_shown_cloud_covers_every_object_and_follows_the_state(session):
+    from scipy.spatial import cKDTree
+
+    from annotator import align
+    from annotator.session import DISPLAY_TABLE_VOXEL, DISPLAY_VOXEL, voxel_subset
+
+    points, colors, _ = session.cloud()
+    index = session.shown()
+    assert len(index) < len(points) and np.all(np.diff(index) > 0)  # a subset, each point once, in cloud order
+    assert np.array_equal(voxel_subset(points, DISPLAY_VOXEL, DISPLAY_TABLE_VOXEL, align.TABLE_MARGIN), index)
+    # every point the cameras measured has a drawn point within its cube's diagonal: no surface left out
+    high = points[:, 2] > align.TABLE_MARGIN
+    for part, voxel in ((high, DISPLAY_VOXEL), (~high, DISPLAY_TABLE_VOXEL)):
+        d, _ = cKDTree(points[index][part[index]]).query(points[part])
+        assert d.max() <= voxel * np.sqrt(3) + 1e-9
+    # each object's measured surface (cloud points within 3 mm of its posed samples) is drawn densely
+    drawn = cKDTree(points[index])
+    for obj in range(session.num_objects):
+        surface = align.posed_samples(session.samples(obj), pose_to_matrix(session.poses()[obj]))[0]
+        d, _ = cKDTree(surface).query(points)
+        on_it = (d < 0.003) & high
+        assert on_it.sum() > 30
+        assert drawn.query(points[on_it])[0].max() <= DISPLAY_VOXEL * np.sqrt(3) + 1e-9
+        assert (d[index] < 0.003).sum() >= 0.25 * on_it.sum()
+    # what the window draws: the shown points, the capture's colours or the residual's of the current poses
+    ctl = keys.Controller(session, echo=lambda text: None)
+    shown, shown_colors = ctl.cloud()
+    assert np.array_equal(shown, points[index]) and np.array_equal(shown_colors, colors[index])
+    ctl.press("R")
+    _, residual = ctl.cloud()
+    assert np.array_equal(residual, session.residual_colors()[index])  # only the shown points, the same colours
+    ctl.press("D")  # +1 mm: the residual colours near the moved object follow it
+    moved = ctl.cloud()[1]
+    assert np.array_equal(moved, session.residual_colors()[index]) and not np.array_equal(moved, residual)
+    session.go_to(1)  # another step: its own subset of its own cloud
+    assert np.array_equal(ctl.cloud()[0], session.cloud(1)[0][session.shown(1)])
+
+
+def test_the_panel_redraws_only_what_changed_and_draws_what_a_fresh_one_draws(session, capture):
+    lay = win.layout_for(session, (1600, 1000))
+    view = keys.ViewState()
+    kept = panel.Panel(session, view, text_width=lay.text_width, image_width=lay.image_width,
+                       font_size=lay.font_size, height=lay.panel[3], width=lay.panel[2])
+    kept.image()
+    calls = []
+    real = panel.silhouette_masks
+
+    def counting(*args):
+        calls.append(args)
+        return real(*args)
+
+    panel.silhouette_masks = counting
+    try:
+        session.nudge(1, translation=(0.002, 0.0, 0.0))  # one object moved: only its outlines are rasterised
+        first = kept.image()
+        assert len(calls) == len(capture.cameras)
+        session.select(1)  # a selection: the thicker outline of the newly selected, the thinner of the other
+        view.message = "a message"
+        second = kept.image()
+    finally:
+        panel.silhouette_masks = real
+    fresh = panel.Panel(session, view, text_width=lay.text_width, image_width=lay.image_width,
+                        font_size=lay.font_size, height=lay.panel[3], width=lay.panel[2]).image()
+    assert np.array_equal(second, fresh) and not np.array_equal(first, second)
+    # the outlines are images.outline_overlay's
+    s = session
+    cam = next(iter(capture.cameras))
+    small = images.scaled_camera(capture.cameras[cam].camera, lay.image_width)
+    base = np.full((small.height, small.width, 3), 90, np.uint8)
+    meshes = [capture.mesh(i) for i in range(s.num_objects)]
+    colors = images.object_colors(s.status(), s.selected)
+    assert np.array_equal(kept.overlay(cam, small, base, s.poses(), colors, s.selected),
+                          images.outline_overlay(base, small, meshes, s.poses(), colors=colors, selected=s.selected))
+
+
 def test_residual_scale_is_the_sessions(session):
     colors = session.residual_colors()
     coloured = colors[np.ptp(colors, axis=1) > 1e-6]  # the points near a mesh (the others are grey)
@@ -782,6 +857,65 @@ def test_pick_window_mouse_rotates_and_shift_click_picks_under_xvfb(tmp_path):
     r = np.load(out)
     assert bool(r["rotated"]) and int(r["picked_by_drag"]) == 0  # a plain drag turns the view and picks nothing
     assert int(r["picked"]) == 1  # shift + click on the can's middle picks a sample
+
+
+def resize_child(capture_dir: str, work_dir: str, out: str) -> None:
+    """Run under Xvfb with xdotool: open the window laid out for 1600 x 1000, resize the panel window (as a user
+    or window manager would) larger, then smaller, and record what the panel draws after each."""
+    from annotator.layout import panel_layout
+
+    session = Session.open(Path(capture_dir), Path(work_dir))
+    _place_at_truth(session)
+    window = win.AnnotatorWindow(session, echo=lambda s: None, screen=(1600, 1000))
+    cam = next(iter(session.capture.cameras.values())).camera
+    wid = subprocess.run(["xdotool", "search", "--name", "annotator: cameras"], capture_output=True, text=True,
+                         timeout=10).stdout.split()[0]
+    record: dict = {"laid_out": np.array([window.layout.panel[2], window.layout.panel[3], window.panel.image_width])}
+    for name, (w, h) in (("larger", (1000, 1150)), ("smaller", (560, 250))):
+        subprocess.run(["xdotool", "windowsize", wid, str(w), str(h)], check=True, timeout=10)
+        for _ in range(40):  # until GLFW has seen the new size
+            window.render()
+            if window.panel_window_size() == (w, h):
+                break
+            time.sleep(0.05)
+        window.render()
+        shot = window.panel_screenshot()
+        record[name] = shot
+        record[name + "_image"] = np.asarray(window.panel_image).copy()
+        record[name + "_widths"] = np.array([window.panel.text_width, window.panel.image_width])
+        record[name + "_expected"] = np.array(panel_layout(w, h, window.layout.text_width,
+                                                           image_aspect=cam.height / cam.width,
+                                                           max_image_width=cam.width))
+        record[name + "_size"] = np.array([w, h])
+    window.close()
+    np.savez(out, **record)
+
+
+def test_the_panel_is_laid_out_again_when_its_window_is_resized_under_xvfb(capture_dir, tmp_path):
+    prefix = _display_command()
+    if shutil.which("xdotool") is None:
+        pytest.skip("xdotool is not installed: no window to resize from outside")
+    out = tmp_path / "resize.npz"
+    code = (f"import sys; sys.path.insert(0, {str(Path(__file__).parent)!r}); import test_annotator_window as t; "
+            f"t.resize_child({str(capture_dir)!r}, {str(tmp_path / 'work')!r}, {str(out)!r})")
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).parents[1])}
+    proc = subprocess.run([*prefix, sys.executable, "-c", code], capture_output=True, text=True, timeout=90, env=env,
+                          cwd=str(Path(__file__).parents[1]))
+    assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-3000:]
+    r = np.load(out)
+    selected_rgb = np.round(np.array(images.SELECTED_COLOR) * 255).astype(np.uint8)
+    for name in ("larger", "smaller"):
+        w, h = (int(x) for x in r[name + "_size"])
+        # the panel is drawn at the window's new size, 1:1 (the screenshot is the panel image itself, not stretched)
+        assert r[name + "_image"].shape == (h, w, 3) and r[name].shape == (h, w, 3)
+        assert np.abs(r[name].astype(int) - r[name + "_image"].astype(int)).max() <= 2
+        # with the text column and camera images laid out for that size
+        assert list(r[name + "_widths"]) == list(r[name + "_expected"])
+        text_w = int(r[name + "_widths"][0])
+        assert (r[name][:, :text_w].max(-1) > 200).sum() > 300  # text
+        assert np.all(r[name][:, text_w:] == selected_rgb, axis=-1).sum() > 10  # the selected outline on an image
+    # the test capture's images are 160 px wide: shown at most that wide, smaller where the window is lower
+    assert int(r["larger_widths"][1]) >= int(r["laid_out"][2]) > int(r["smaller_widths"][1])
 
 
 def test_keys_drive_a_real_session(capture_dir, tmp_path):
