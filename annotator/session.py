@@ -80,6 +80,13 @@ LANDING_MIN_POINTS = 3
 DISTANCE_PENALTY = 0.5
 #: Start poses screened at once (bounds the memory of the vectorised screen).
 SCREEN_CHUNK = 1000
+#: The screen runs in two passes when there are more than SCREEN_KEEP start poses: every start with one in
+#: SCREEN_COARSE of the SEARCH_SAMPLES samples, then the best SCREEN_KEEP (at least; SCREEN_KEEP_FRACTION of them
+#: when more) with all; the SEARCH_ICP_STARTS best of the second pass get an ICP. On the simulated captures the
+#: starts chosen are those of one full pass (checked on 4 captures, every search), at a third of its time.
+SCREEN_COARSE = 3
+SCREEN_KEEP = 60
+SCREEN_KEEP_FRACTION = 0.12
 #: Clouds kept in memory (steps).
 CLOUD_CACHE = 4
 #: The window draws a subset of a step's cloud (`Session.shown`): one point per cube of DISPLAY_VOXEL (m) above the
@@ -145,6 +152,31 @@ class SnapScore(FitScore):
 def _rank(score: FitScore) -> float:
     """Rank of a fit among a search's results: its quality, less REJECTED_PENALTY when it is not accepted."""
     return score.quality() - (0.0 if score.accepted else REJECTED_PENALTY)
+
+
+def _screen(samples: align.SurfaceSamples, starts: np.ndarray, tree, views: list[align.View],
+            min_visible: int = 20) -> np.ndarray:
+    """`align.screen_quality` (C,) of start poses (C, 4, 4), SCREEN_CHUNK at a time."""
+    return np.concatenate([align.screen_quality(samples, starts[k:k + SCREEN_CHUNK], tree, views, SEARCH_INLIER,
+                                                min_visible) for k in range(0, len(starts), SCREEN_CHUNK)])
+
+
+def _best_starts(samples: align.SurfaceSamples, starts: np.ndarray, penalties: np.ndarray, tree,
+                 views: list[align.View]) -> np.ndarray:
+    """Indices of the SEARCH_ICP_STARTS start poses (C, 4, 4) of best screened quality (`align.screen_quality` of
+    SEARCH_SAMPLES of the object's surface samples, against a cKDTree of the cloud) less `penalties` (C,), best
+    first, ties in index order; over SCREEN_KEEP starts in two passes (see SCREEN_COARSE)."""
+    every = max(1, len(samples.points) // SEARCH_SAMPLES)
+    screen = align.SurfaceSamples(samples.points[::every], samples.normals[::every], samples.centre, samples.radius)
+    keep = np.arange(len(starts))
+    if len(starts) > SCREEN_KEEP:
+        coarse = align.SurfaceSamples(screen.points[::SCREEN_COARSE], screen.normals[::SCREEN_COARSE],
+                                      samples.centre, samples.radius)
+        first = _screen(coarse, starts, tree, views, max(1, 20 // SCREEN_COARSE)) - penalties
+        count = max(SCREEN_KEEP, int(SCREEN_KEEP_FRACTION * len(starts)))
+        keep = np.sort(np.argsort(-first, kind="stable")[:count])
+    quality = _screen(screen, starts[keep], tree, views) - penalties[keep]
+    return keep[np.argsort(-quality, kind="stable")[:SEARCH_ICP_STARTS]]
 
 
 def _same_poses(a: list[tuple[int, np.ndarray]], b: list[tuple[int, np.ndarray]]) -> bool:
@@ -871,9 +903,6 @@ class Session:
         tree = cKDTree(wide)
         views, checks = self._context(obj, step, others)
         centre = start[:3, :3] @ samples.centre + start[:3, 3]
-        every = max(1, len(samples.points) // SEARCH_SAMPLES)
-        screen = align.SurfaceSamples(samples.points[::every], samples.normals[::every], samples.centre,
-                                      samples.radius)
         starts, turns = [], []
         for along in np.arange(0.0, reach + 1e-9, SEARCH_STEP):
             for lateral in SEARCH_LATERAL:
@@ -888,11 +917,10 @@ class Session:
                     turns.append(abs(yaw))
         # among equally good fits prefer the least turn: a symmetric object's turned twin fits as well but would
         # give the wrong motion (flow)
-        quality = align.screen_quality(screen, np.stack(starts), tree, views, SEARCH_INLIER)
-        quality = quality - TURN_PENALTY * np.asarray(turns) / np.pi
-        candidates = [(quality[k], starts[k]) for k in np.argsort(-quality, kind="stable")]
+        best_starts = _best_starts(samples, np.stack(starts), TURN_PENALTY * np.asarray(turns) / np.pi, tree, views)
         best, best_rank = None, -np.inf
-        for _, cand in candidates[:SEARCH_ICP_STARTS]:
+        for k in best_starts:
+            cand = starts[k]
             result = align.icp(samples, self._crop(step, cand, samples), cand, views, **checks)
             rank = _rank(result.score) - TURN_PENALTY * align.pose_delta(start, result.transform)[1] / np.pi
             if result.applied and rank > best_rank:
@@ -951,15 +979,8 @@ class Session:
                                                                                                y - centre[1]))
         tree = cKDTree(above)
         views, checks = self._context(obj, step, others)
-        every = max(1, len(samples.points) // SEARCH_SAMPLES)
-        screen = align.SurfaceSamples(samples.points[::every], samples.normals[::every], samples.centre,
-                                      samples.radius)
-        starts_arr = np.stack(starts)
-        quality = np.concatenate([align.screen_quality(screen, starts_arr[k:k + SCREEN_CHUNK], tree, views,
-                                                       SEARCH_INLIER) for k in range(0, len(starts), SCREEN_CHUNK)])
-        quality = quality - np.asarray(penalties)
         best, best_rank = None, -np.inf
-        for k in np.argsort(-quality, kind="stable")[:SEARCH_ICP_STARTS]:
+        for k in _best_starts(samples, np.stack(starts), np.asarray(penalties), tree, views):
             result = align.icp(samples, self._crop(step, starts[k], samples), starts[k], views, **checks)
             moved_t, turned = align.pose_delta(start, result.transform)
             rank = _rank(result.score) - TURN_PENALTY * turned / np.pi - DISTANCE_PENALTY * moved_t

@@ -10,7 +10,8 @@ Runs itself under `xvfb-run` (or on $DISPLAY) and prints:
   a second frame rendered so that a window whose drawing is left to the next frame's event poll counts as drawn),
   to the 3D view's frame and to the panel's, with the cloud in capture colours and in depth-residual colours, and
   the points the 3D view draws of the step's cloud;
-- seconds for the next step (key N to frame, a step not visited before: carry forward and snap);
+- seconds for the next step (key N to frame, a step not visited before: carry forward and snap), for each step
+  of the capture in turn (the first is the one compared in docs/annotator.md);
 - a held key: xdotool types D at `--rate` keys per second for `--hold` s into the 3D window while the window runs
   its own loop; nudges applied, events the window received, nudges still applied after the last key was sent
   ("queued at release") and the time from the last key to the last motion.
@@ -240,7 +241,8 @@ def child(args) -> dict:
             out["redraw_ms_residual"], out["redraw_ms_residual_panel"] = redraw_ms(window, timer)
             window.press("R")
             window.render()
-            out["next_step_s"] = next_step_seconds(window)
+            out["next_steps_s"] = [next_step_seconds(window) for _ in range(session.num_steps)]
+            out["next_step_s"] = out["next_steps_s"][0]
             window.press("P")
             window.render()
             session.nudge = timer._nudge
@@ -264,7 +266,8 @@ def report(fig: dict) -> None:
           f"{fig['redraw_ms_panel']:.1f} ms (capture colours), {fig['redraw_ms_residual']:.1f} | "
           f"{fig['redraw_ms_residual_panel']:.1f} ms (residual colours); the 3D view draws {fig['points_drawn']} of "
           f"the cloud's {fig['cloud_points']} points (key to frame = the nudge above + this)")
-    print(f"next step (N, not visited before): {fig['next_step_s']:.2f} s")
+    steps = ", ".join(f"{t:.2f}" for t in fig.get("next_steps_s", [fig["next_step_s"]]))
+    print(f"next step (N, not visited before; steps 1, 2, ... in turn): {steps} s")
     h = fig["held"]
     if h.get("error"):
         print(f"held key: not measured ({h['error']})")

@@ -578,6 +578,48 @@ def test_search_over_the_unexplained_cloud_finds_an_object_far_from_the_push(cap
     assert np.rad2deg(_rotation_error(session, obj, pose, truth[step, obj])) < 2.0
 
 
+def test_the_two_pass_screen_picks_the_starts_of_one_full_pass(capture_dir, truth, tmp_path, monkeypatch):
+    """The searches screen their start poses in two passes (a third of the samples for every start, all of them for
+    the best SCREEN_KEEP_FRACTION): the ICP starts are those one full pass picks, for less of the screen's work."""
+    import annotator.session as sess
+    from annotator import align
+
+    session = sess.Session.open(capture_dir, tmp_path / "work")
+    step, obj = session.num_steps, 1
+    start = pose_to_matrix(truth[step, obj])
+    start[:2, 3] += [0.0, 0.15]
+    others = [(k, truth[step, k]) for k in range(session.num_objects) if k != obj]
+    evaluated: list[int] = []  # sample x pose pairs screened
+    real_screen, real_best = align.screen_quality, sess._best_starts
+
+    def counting(samples, transforms, *args, **kwargs):
+        evaluated.append(len(samples.points) * len(transforms))
+        return real_screen(samples, transforms, *args, **kwargs)
+
+    seen = []
+
+    def both(samples, starts, penalties, tree, views):
+        evaluated.clear()
+        two = real_best(samples, starts, penalties, tree, views)
+        work_two = sum(evaluated)
+        with monkeypatch.context() as m:
+            m.setattr(sess, "SCREEN_KEEP", len(starts))  # one pass over every start with every sample
+            evaluated.clear()
+            one = real_best(samples, starts, penalties, tree, views)
+        seen.append((len(starts), two, one, work_two, sum(evaluated)))
+        return two
+
+    monkeypatch.setattr(align, "screen_quality", counting)
+    monkeypatch.setattr(sess, "_best_starts", both)
+    found = session._search_landed(obj, step, start, others)
+    assert found is not None and found.score.accepted
+    session._search(obj, step - 1, step, pose_to_matrix(truth[step - 1, obj]), others)
+    assert len(seen) == 2 and all(count > sess.SCREEN_KEEP for count, *_ in seen)
+    for count, two, one, work_two, work_one in seen:
+        assert len(two) == sess.SEARCH_ICP_STARTS and np.array_equal(two, one), count
+        assert work_two < 0.6 * work_one
+
+
 def test_auto_export_round_trip_and_validate(capture_dir, truth, tmp_path, capsys):
     from annotator.session import Session
     from dsr_bench.cli import main
