@@ -252,6 +252,9 @@ def test_phases_final_selection_reveal_and_rescore(challenge, tmp_path):
         assert chosen.status_code == 200 and chosen.json()["final"] is True
         over = httpx.post(f"{live.url}/api/submissions/{second}/final", json={"final": True}, headers=auth)
         assert over.status_code == 400 and "unselect one first" in over.json()["detail"]
+        padded = b'{"final": true, "pad": "' + b"x" * 8_000_000 + b'"}'  # read only up to the limit, then refused
+        huge = httpx.post(f"{live.url}/api/submissions/{second}/final", content=padded, headers=auth)
+        assert huge.status_code == 413 and "at most 4096 bytes" in huge.json()["detail"]
         other = {"Authorization": f"Bearer {tokens['<script>alert(1)</script>']}"}
         assert httpx.post(f"{live.url}/api/submissions/{second}/final", json={"final": True},
                           headers=other).status_code == 400  # not that team's

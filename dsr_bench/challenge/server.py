@@ -50,6 +50,8 @@ from dsr_bench.leaderboard.table import COLUMN_TITLES, LINKS, ROLE, SORT_SCRIPT,
 
 SUBMISSION_ID = re.compile(r"[0-9a-f]{32}")
 META_NAME = "meta.json"
+#: bytes of a final-choice request's body read at most ({"final": true} is 15)
+FINAL_BODY_LIMIT = 4096
 
 
 @dataclass
@@ -178,8 +180,14 @@ def create_app(root: str | Path, db_url: str | None = None, settings: Settings |
     @app.post("/api/submissions/{sid}/final")
     async def choose_final(sid: str, request: Request) -> dict:
         team = await team_of(request)
+        raw = bytearray()
+        async for chunk in request.stream():  # a few bytes are expected: never hold more than FINAL_BODY_LIMIT
+            raw += chunk
+            if len(raw) > FINAL_BODY_LIMIT:
+                raise HTTPException(413, f'send {{"final": true}} or {{"final": false}} (at most {FINAL_BODY_LIMIT} '
+                                    'bytes)')
         try:
-            body = await request.json()
+            body = json.loads(bytes(raw))
         except ValueError:
             raise HTTPException(400, 'send {"final": true} or {"final": false}') from None
         final = body.get("final") if isinstance(body, dict) else None
