@@ -10,6 +10,9 @@
   (`physical_problems`): no interpenetration with the other objects, resting on the table or on another object,
   no surface in front of what a camera measured (free space).
 - `render_depth`: the z-depth of posed meshes in a camera (the other objects, as occluders of a view).
+- `refinement`: how far a short ICP from a pose moves it and how much closer it brings the surface to the cloud (a
+  pose a snap would improve is wrong); `sample_colours` / `colour_mismatch`: the colours the cameras saw at the
+  surface samples, compared with those of the same samples at another step (a swapped identity).
 
 Transforms are 4x4 object-to-world matrices; points (..., 3) are (x, y, z) metres in the world/table frame unless
 stated; angles are radians.
@@ -68,6 +71,37 @@ UNEXPLAINED_MIN_POINTS = 30
 #: ... counting only points this high (m) above the table: its measured surface (depth noise, calibration error)
 #: reaches a few millimetres above z = 0 (up to 4 mm seen beside a can: 12% of the points around it).
 UNEXPLAINED_MIN_HEIGHT = 0.01
+#: ... or, for an object lower than that (a phone lying flat, 7 mm high), above UNEXPLAINED_THIN_FRACTION of its
+#: highest point and at least UNEXPLAINED_THIN_FLOOR (m): otherwise none of its measured surface would count.
+UNEXPLAINED_THIN_FRACTION = 0.65
+UNEXPLAINED_THIN_FLOOR = 0.004
+#: ... and a snap would not improve it (`refinement`, only with `fit_score(refine=True)`): a short ICP of
+#: REFINE_ITERATIONS steps from the pose may move it (the origin) at most REFINE_TRANSLATION (m) and
+#: REFINE_ROTATION (rad) unless it brings the visible samples no closer than REFINE_GAIN (m, the mean distance to
+#: the nearest cloud point, capped at REFINE_CAP m) to the cloud, and may turn it more than REFINE_TURN (rad) only
+#: with a gain under REFINE_TURN_GAIN (m). Set from the true poses of `bench/bench_annotate_errors.py -n 3 --steps 5`
+#: (realistic sensor noise and calibration error; 15 iterations of `annotator.align.icp`): with --seed 3 they moved
+#: at most 2.0 mm and 1.5 deg, with gains up to 0.24 mm; with --seed 4 (larger calibration errors) up to 4.4 mm
+#: with gains up to 0.61 mm, and a sofa, whose turn the cloud hardly fixes, 4.6 deg without a gain. The wrong poses
+#: the other checks missed (10-20 deg turns, a mug turned 180 deg with its handle on the wrong side, 10 mm shifts)
+#: moved 4.6 mm or 6.7 deg and more, with gains of 0.23 mm (turns) and 0.48 mm (shifts) and more. A shift along a
+#: direction the cloud does not constrain moves the pose without a gain.
+REFINE_ITERATIONS = 15
+REFINE_TRANSLATION = 0.0035
+REFINE_ROTATION = float(np.deg2rad(4.0))
+REFINE_GAIN = 0.00035
+REFINE_TURN = float(np.deg2rad(6.0))
+REFINE_TURN_GAIN = 0.00012
+REFINE_CAP = 0.01
+#: ... and its colours match those of another step (`colour_mismatch`, only with `fit_score(reference_colours=)`):
+#: at most COLOUR_FRACTION of the surface samples seen at both (at least COLOUR_MIN_SAMPLES, each brighter than
+#: COLOUR_MIN_BRIGHTNESS, 0..1) may differ in chromaticity (r, g, b over their sum) by more than COLOUR_DISTANCE
+#: (L1); chromaticity does not change with shading. True poses of the simulated captures: at most 1% of the
+#: samples differ; two cans of different colours swapped: all of them.
+COLOUR_DISTANCE = 0.1
+COLOUR_FRACTION = 0.3
+COLOUR_MIN_SAMPLES = 30
+COLOUR_MIN_BRIGHTNESS = 0.05
 #: A fit is good when at least this fraction of the visible samples has a cloud point within INLIER_DISTANCE ...
 MIN_COVERAGE = 0.65
 #: ... and the inlier RMSE is at most this (m).
@@ -236,13 +270,15 @@ class View:
     """A calibrated camera and its measured z-depth (H, W) in metres (0 = missing), for visibility tests;
     `occluders`: the z-depth (H, W) m of the other objects' posed meshes in this camera (inf where none,
     `render_depth`), or None (no other objects known); `bounds`: the box (2, 3) (lowest, highest x, y, z, m) outside
-    which the cloud holds no points (`Capture.cloud` keeps the grid's), or None."""
+    which the cloud holds no points (`Capture.cloud` keeps the grid's), or None; `color`: the colour image (H, W, 3)
+    uint8 of this camera, or None."""
 
     camera: Camera
     depth: np.ndarray
     occluders: np.ndarray | None = None
     bounds: np.ndarray | None = None  # (2, 3) lowest and highest (x, y, z) m of the cloud's points (it is cut there)
     near: np.ndarray | None = None  # `near_depth(depth)`, computed once (None: computed where needed)
+    color: np.ndarray | None = None  # the colour image (H, W, 3) uint8 (or float 0..1), for `sample_colours`
 
     def with_occluders(self, occluders: np.ndarray | None) -> View:
         """This view with another occluder depth (H, W) m (or None)."""
@@ -442,13 +478,16 @@ def physical_problems(samples: SurfaceSamples, transform: np.ndarray,
 def unexplained_fraction(samples: SurfaceSamples, transform: np.ndarray, crop: np.ndarray,
                          neighbours: Sequence[tuple[str, SurfaceSamples, np.ndarray]]) -> tuple[float, int]:
     """(fraction, count) of the cloud crop's points (M, 3) within UNEXPLAINED_REACH m of the posed mesh's surface
-    samples and UNEXPLAINED_MIN_HEIGHT m above the table that lie farther than INLIER_DISTANCE from its samples
+    samples and UNEXPLAINED_MIN_HEIGHT m above the table (lower for a thin object: UNEXPLAINED_THIN_FRACTION of
+    its highest point, at least UNEXPLAINED_THIN_FLOOR) that lie farther than INLIER_DISTANCE from its samples
     and from every neighbour's (name, samples, 4x4 transform); count: the points tested. Only the band around
     the object's own surface counts, so that a wrong neighbour a little farther away does not flag it."""
     from scipy.spatial import cKDTree
 
     pts = posed_samples(samples, transform)[0]
-    high = crop[crop[:, 2] > UNEXPLAINED_MIN_HEIGHT]
+    top = float((pts if samples.vertices is None else samples.vertices @ transform[:3, :3].T + transform[:3, 3])[:, 2]
+                .max())
+    high = crop[crop[:, 2] > min(UNEXPLAINED_MIN_HEIGHT, max(UNEXPLAINED_THIN_FLOOR, UNEXPLAINED_THIN_FRACTION * top))]
     if len(high) == 0:
         return 0.0, 0
     own, _ = cKDTree(pts).query(high, distance_upper_bound=UNEXPLAINED_REACH)
@@ -470,19 +509,65 @@ def unexplained_fraction(samples: SurfaceSamples, transform: np.ndarray, crop: n
     return len(loose) / len(near), len(near)
 
 
+def sample_colours(points: np.ndarray, normals: np.ndarray, views: Sequence[View],
+                   tolerance: float = INLIER_DISTANCE) -> np.ndarray:
+    """The colour (S, 3) 0..1 the cameras saw at each posed sample (points, normals (S, 3) world): the mean over the
+    views that see it (`visible_samples`, one view at a time) with their measured depth within `tolerance` m of it
+    (so the pixel shows this surface, not another in front or behind); NaN rows where no view with a colour image
+    (`View.color`) does."""
+    total = np.zeros((len(points), 3))
+    count = np.zeros(len(points))
+    for view in views:
+        if view.color is None:
+            continue
+        seen = visible_samples(points, normals, [view])
+        if not seen.any():
+            continue
+        idx = np.flatnonzero(seen)
+        u, v, z, inside = _pixels(view.camera, points[idx])
+        idx, u, v, z = idx[inside], u[inside], v[inside], z[inside]
+        close = np.abs(view.depth[v, u] - z) <= tolerance
+        idx, u, v = idx[close], u[close], v[close]
+        colour = np.asarray(view.color[v, u], dtype=np.float64)
+        total[idx] += colour / 255.0 if np.asarray(view.color).dtype == np.uint8 else colour
+        count[idx] += 1
+    out = np.full((len(points), 3), np.nan)
+    seen_any = count > 0
+    out[seen_any] = total[seen_any] / count[seen_any, None]
+    return out
+
+
+def colour_mismatch(observed: np.ndarray, reference: np.ndarray) -> tuple[float, int]:
+    """(fraction, count) of the samples seen in both colour sets (S, 3) 0..1 (`sample_colours`: NaN rows unseen)
+    and brighter than COLOUR_MIN_BRIGHTNESS (mean of r, g, b) in both, whose chromaticity (r, g, b over their sum)
+    differs by more than COLOUR_DISTANCE (L1); count: those compared."""
+    both = np.all(np.isfinite(observed), 1) & np.all(np.isfinite(reference), 1)
+    both &= (np.nan_to_num(observed).mean(1) > COLOUR_MIN_BRIGHTNESS) \
+        & (np.nan_to_num(reference).mean(1) > COLOUR_MIN_BRIGHTNESS)
+    if not both.any():
+        return 0.0, 0
+    a, b = observed[both], reference[both]
+    diff = np.abs(a / a.sum(1, keepdims=True) - b / b.sum(1, keepdims=True)).sum(1)
+    return float((diff > COLOUR_DISTANCE).mean()), int(both.sum())
+
+
 # --- scores and ICP ------------------------------------------------------------------------------------------------
 
 
 def fit_score(samples: SurfaceSamples, transform: np.ndarray, crop: np.ndarray, views: Sequence[View],
               inlier_distance: float = INLIER_DISTANCE, tree=None, with_fitness: bool = True,
               neighbours: Sequence[tuple[str, SurfaceSamples, np.ndarray]] | None = None,
-              explain: bool = False) -> FitScore:
+              explain: bool = False, refine: bool = False,
+              reference_colours: np.ndarray | None = None) -> FitScore:
     """Score of the mesh at `transform` (4, 4) against a cloud crop (M, 3) (see FitScore); accepted when the
     coverage is at least MIN_COVERAGE, the RMSE at most MAX_RMSE and, when `neighbours` (the other objects:
     name, samples, 4x4 transform) are given, no physical check fails (`physical_problems`) and at most
     UNEXPLAINED_FRACTION of the cloud around it is explained by no object (`unexplained_fraction`; only with
-    `explain`: when the neighbours are all the other objects of the scene). `tree`: a cKDTree of
-    `crop` to reuse; `with_fitness=False` skips the fitness (reported as NaN), for fast screening."""
+    `explain`: when the neighbours are all the other objects of the scene). When all of these pass, two more
+    checks: with `reference_colours` (S, 3) (`sample_colours` of the same samples at another step, NaN unseen),
+    at most COLOUR_FRACTION of the samples seen at both may have changed colour (`colour_mismatch`), and with
+    `refine`, a short ICP from the pose may not improve it (`refinement`, `Refinement.improves`). `tree`: a
+    cKDTree of `crop` to reuse; `with_fitness=False` skips the fitness (reported as NaN), for fast screening."""
     from scipy.spatial import cKDTree
 
     pts, nrm = posed_samples(samples, transform)
@@ -512,6 +597,16 @@ def fit_score(samples: SurfaceSamples, transform: np.ndarray, crop: np.ndarray, 
         unexplained, count = unexplained_fraction(samples, transform, crop, neighbours) if explain else (0.0, 0)
         if count >= UNEXPLAINED_MIN_POINTS and unexplained > UNEXPLAINED_FRACTION:
             problems.append(f"{unexplained:.0%} of the cloud around it is explained by no object")
+    if not problems and reference_colours is not None:
+        changed, compared = colour_mismatch(sample_colours(pts, nrm, views), reference_colours)
+        if compared >= COLOUR_MIN_SAMPLES and changed > COLOUR_FRACTION:
+            problems.append(f"{changed:.0%} of its surface has another colour than at the reference step "
+                            "(another object?)")
+    if not problems and refine:
+        moved = refinement(samples, transform, crop, views, tree)
+        if moved.improves():
+            problems.append(f"a snap would move it {moved.translation * 1000:.0f} mm, "
+                            f"{np.rad2deg(moved.rotation):.0f} deg and fit {moved.gain * 1000:.1f} mm closer")
     reason = "; ".join(problems) if problems else f"rmse {rmse * 1000:.1f} mm, coverage {coverage:.0%}"
     return FitScore(rmse, coverage, fitness, not problems, reason, nvis)
 
@@ -548,12 +643,102 @@ def _tukey(r: np.ndarray, c: float) -> np.ndarray:
     return np.where(np.abs(r) < c, w, 0.0)
 
 
+def _icp_subset(samples: SurfaceSamples) -> SurfaceSamples:
+    """A fixed random subset of at most ICP_SAMPLES of the samples (all of them when fewer), for ICP's iterations."""
+    if len(samples.points) <= ICP_SAMPLES:
+        return samples
+    keep = np.random.default_rng(0).choice(len(samples.points), ICP_SAMPLES, replace=False)
+    return SurfaceSamples(samples.points[keep], samples.normals[keep], samples.centre, samples.radius)
+
+
+def _icp_step(samples: SurfaceSamples, current: np.ndarray, crop: np.ndarray, tree, views: Sequence[View],
+              dist: float) -> tuple[np.ndarray | None, bool, int]:
+    """One damped Gauss-Newton point-to-plane step of the samples at `current` (4, 4) against the cloud crop (M, 3)
+    (its cKDTree `tree`), matching within `dist` m: (the step (4, 4) to apply on the left, or None when fewer than
+    MIN_CORRESPONDENCES samples matched; whether the step is negligible; the matched count)."""
+    pts, nrm = posed_samples(samples, current)
+    vis = visible_samples(pts, nrm, views)
+    d, j = tree.query(pts[vis], distance_upper_bound=dist)
+    ok = np.isfinite(d)
+    if ok.sum() < MIN_CORRESPONDENCES:
+        return None, False, int(ok.sum())
+    p, n = pts[vis][ok], nrm[vis][ok]
+    q = crop[j[ok]]
+    r = np.einsum("ij,ij->i", p - q, n)
+    w = _tukey(r, max(dist, 1e-6))
+    centroid = p.mean(0)
+    jac = np.hstack([np.cross(p - centroid, n), n])
+    a = jac.T @ (w[:, None] * jac)
+    damping = ICP_DAMPING * max(float(np.trace(a)), 1e-12) / 6
+    x = np.linalg.solve(a + damping * np.eye(6), -jac.T @ (w * r))
+    rot = rotvec_to_matrix(x[:3])
+    step = np.eye(4)
+    step[:3, :3] = rot
+    step[:3, 3] = centroid - rot @ centroid + x[3:]
+    small = bool(np.linalg.norm(x[3:]) < 1e-5 and np.linalg.norm(x[:3]) < 1e-4)
+    return step, small, int(ok.sum())
+
+
+@dataclass
+class Refinement:
+    """What a short ICP from a pose did (`refinement`): how far it moved the pose (m, the origin; rad), and how
+    much closer (m) it brought the visible samples to the cloud (mean distance to the nearest cloud point, capped
+    at REFINE_CAP, before minus after; negative when it fits worse)."""
+
+    translation: float
+    rotation: float
+    gain: float
+
+    def improves(self) -> bool:
+        """Whether a snap would improve the pose: it moves more than REFINE_TRANSLATION or REFINE_ROTATION and
+        gains more than REFINE_GAIN, or turns more than REFINE_TURN and gains more than REFINE_TURN_GAIN."""
+        moved = self.translation > REFINE_TRANSLATION or self.rotation > REFINE_ROTATION
+        return (moved and self.gain > REFINE_GAIN) or (self.rotation > REFINE_TURN and self.gain > REFINE_TURN_GAIN)
+
+
+def _capped_distance(samples: SurfaceSamples, transform: np.ndarray, tree, views: Sequence[View]) -> float:
+    """Mean distance (m) of the visible posed samples to their nearest cloud point (cKDTree), capped at REFINE_CAP
+    (REFINE_CAP when none is visible)."""
+    pts, nrm = posed_samples(samples, transform)
+    vis = visible_samples(pts, nrm, views)
+    if not vis.any():
+        return REFINE_CAP
+    d, _ = tree.query(pts[vis], distance_upper_bound=REFINE_CAP)
+    return float(np.minimum(d, REFINE_CAP).mean())
+
+
+def refinement(samples: SurfaceSamples, transform: np.ndarray, crop: np.ndarray, views: Sequence[View],
+               tree=None, iterations: int = REFINE_ITERATIONS) -> Refinement:
+    """Run `iterations` ICP steps (as `icp`: the correspondence distance shrinking from MAX_CORRESPONDENCE to
+    2 x INLIER_DISTANCE, no jump limits) of the samples from `transform` (4, 4) against the cloud crop (M, 3) and
+    report how far the pose moved and how much closer the surface came to the cloud (`Refinement`); a wrong pose
+    that the other checks cannot tell (a 10 degree turn; a mug turned 180 degrees, its handle where it is not)
+    moves towards the cloud and fits it better, a true pose moves by the noise and gains nothing."""
+    from scipy.spatial import cKDTree
+
+    tree = cKDTree(crop) if tree is None else tree
+    subset = _icp_subset(samples)
+    current = np.asarray(transform, dtype=np.float64)
+    dist, floor = MAX_CORRESPONDENCE, 2 * INLIER_DISTANCE
+    for _ in range(iterations):
+        step, small, _ = _icp_step(subset, current, crop, tree, views, dist)
+        if step is None:
+            break
+        current = step @ current
+        if small and dist <= floor:
+            break
+        dist = max(floor, dist * 0.75)
+    moved_t, moved_r = pose_delta(transform, current)
+    gain = _capped_distance(subset, transform, tree, views) - _capped_distance(subset, current, tree, views)
+    return Refinement(moved_t, moved_r, gain)
+
+
 def icp(samples: SurfaceSamples, crop: np.ndarray, start: np.ndarray, views: Sequence[View], *,
         max_correspondence: float = MAX_CORRESPONDENCE, inlier_distance: float = INLIER_DISTANCE,
         iterations: int = 40, max_translation: float = MAX_JUMP_TRANSLATION,
         max_rotation: float = MAX_JUMP_ROTATION, tree=None,
-        neighbours: Sequence[tuple[str, SurfaceSamples, np.ndarray]] | None = None, explain: bool = False
-        ) -> IcpResult:
+        neighbours: Sequence[tuple[str, SurfaceSamples, np.ndarray]] | None = None, explain: bool = False,
+        reference_colours: np.ndarray | None = None) -> IcpResult:
     """Point-to-plane ICP of the mesh's visible samples against a cloud crop (M, 3), from `start` (4, 4).
 
     Each iteration matches the visible posed samples to their nearest cloud points within a correspondence
@@ -561,53 +746,33 @@ def icp(samples: SurfaceSamples, crop: np.ndarray, start: np.ndarray, views: Seq
     normals with Tukey's biweight, and takes one damped Gauss-Newton step (rotation about the matched samples'
     centroid). The result is rejected (transform = start, score.accepted False, reason given) when it moved more
     than `max_translation` m or `max_rotation` rad from the start, or found too few correspondences.
-    `neighbours`, `explain`: the other objects (name, samples, 4x4 transform), for the score's physical checks,
-    and whether they are all of them (`fit_score`).
+    `neighbours`, `explain`, `reference_colours`: the other objects (name, samples, 4x4 transform), for the
+    score's physical checks, whether they are all of them, and the colours to compare with (`fit_score`; the
+    result is not checked with `refine`: ICP has converged there).
     """
     from scipy.spatial import cKDTree
 
     start = np.asarray(start, dtype=np.float64)
-    checks: dict = {"neighbours": neighbours, "explain": explain}
+    checks: dict = {"neighbours": neighbours, "explain": explain, "reference_colours": reference_colours}
     if len(crop) < MIN_CORRESPONDENCES:
         score = fit_score(samples, start, crop, views, inlier_distance, **checks)
         score.accepted, score.reason = False, f"only {len(crop)} cloud points near the object: move it onto its points"
         return IcpResult(start, score, 0, 0.0, 0.0, False)
     tree = cKDTree(crop) if tree is None else tree
-    if len(samples.points) > ICP_SAMPLES:
-        keep = np.random.default_rng(0).choice(len(samples.points), ICP_SAMPLES, replace=False)
-        fit_samples = SurfaceSamples(samples.points[keep], samples.normals[keep], samples.centre, samples.radius)
-    else:
-        fit_samples = samples
+    fit_samples = _icp_subset(samples)
     current = start.copy()
     dist = max_correspondence
     floor = 2 * inlier_distance
     it = 0
     for it in range(1, iterations + 1):
-        pts, nrm = posed_samples(fit_samples, current)
-        vis = visible_samples(pts, nrm, views)
-        d, j = tree.query(pts[vis], distance_upper_bound=dist)
-        ok = np.isfinite(d)
-        if ok.sum() < MIN_CORRESPONDENCES:
+        step, small, matched = _icp_step(fit_samples, current, crop, tree, views, dist)
+        if step is None:
             score = fit_score(samples, start, crop, views, inlier_distance, tree, **checks)
             score.accepted = False
-            score.reason = (f"only {int(ok.sum())} mesh points have cloud points within {dist * 100:.1f} cm: "
+            score.reason = (f"only {matched} mesh points have cloud points within {dist * 100:.1f} cm: "
                             "nudge the object onto its points and snap again")
             return IcpResult(start, score, it, 0.0, 0.0, False)
-        p, n = pts[vis][ok], nrm[vis][ok]
-        q = crop[j[ok]]
-        r = np.einsum("ij,ij->i", p - q, n)
-        w = _tukey(r, max(dist, 1e-6))
-        centroid = p.mean(0)
-        jac = np.hstack([np.cross(p - centroid, n), n])
-        a = jac.T @ (w[:, None] * jac)
-        damping = ICP_DAMPING * max(float(np.trace(a)), 1e-12) / 6
-        x = np.linalg.solve(a + damping * np.eye(6), -jac.T @ (w * r))
-        rot = rotvec_to_matrix(x[:3])
-        step = np.eye(4)
-        step[:3, :3] = rot
-        step[:3, 3] = centroid - rot @ centroid + x[3:]
         current = step @ current
-        small = np.linalg.norm(x[3:]) < 1e-5 and np.linalg.norm(x[:3]) < 1e-4
         if small and dist <= floor:
             break
         dist = max(floor, dist * 0.75)

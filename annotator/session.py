@@ -205,6 +205,7 @@ class Session:
         self._clouds: OrderedDict[int, tuple] = OrderedDict()
         self._shown: dict[int, np.ndarray] = {}  # the window's subset of each cached cloud (`shown`)
         self._occluders: OrderedDict[tuple, list] = OrderedDict()  # (step, others' poses) -> depth per view
+        self._colours: OrderedDict[tuple, np.ndarray] = OrderedDict()  # (object, step, pose) -> `_reference_colours`
         self._generation = 0  # journal generation of the last snapshot written or read
         self._records = 0  # records in the journal since
         self._capture_sha256 = capture_sha256 or capture_digest(capture)  # what state.json and the journal are bound to
@@ -372,7 +373,8 @@ class Session:
             bounds, views = cloud_bounds(), []
             for name, cam in self.capture.cameras.items():
                 depth = self.capture.depth(step, name)
-                views.append(align.View(cam.camera, depth, bounds=bounds, near=align.near_depth(depth)))
+                views.append(align.View(cam.camera, depth, bounds=bounds, near=align.near_depth(depth),
+                                        color=self.capture.color(step, name)))
             self._clouds[step] = self.capture.cloud(step) + (views,)
             while len(self._clouds) > CLOUD_CACHE:
                 self._shown.pop(self._clouds.popitem(last=False)[0], None)
@@ -427,13 +429,14 @@ class Session:
         """(object, pose (7,)) of the other objects posed at a step in the state."""
         return [(k, p) for k in range(self.num_objects) if k != obj and (p := self.state.pose(step, k)) is not None]
 
-    def _context(self, obj: int, step: int, others: list[tuple[int, np.ndarray]] | None = None
-                 ) -> tuple[list[align.View], dict]:
+    def _context(self, obj: int, step: int, others: list[tuple[int, np.ndarray]] | None = None,
+                 colours: bool = True) -> tuple[list[align.View], dict]:
         """(views, keywords) to score object `obj` at a step with: the step's views with the other objects' posed
         meshes as occluders (`align.View.occluders`), and the keywords of `align.fit_score` / `align.icp` for the
-        physical checks: `neighbours`, those objects as (name, samples, 4x4 transform), and `explain`, whether
-        they are all the other objects (then the cloud around the object must be explained). others: (object,
-        pose (7,)) of the other objects (default: the state's)."""
+        physical checks: `neighbours`, those objects as (name, samples, 4x4 transform), `explain`, whether
+        they are all the other objects (then the cloud around the object must be explained), and
+        `reference_colours`, the object's colours at another checked step (`_reference_colours`; None without
+        `colours`). others: (object, pose (7,)) of the other objects (default: the state's)."""
         others = self._others(obj, step) if others is None else [(k, p) for k, p in others if k != obj]
         others = [(k, np.asarray(p, dtype=np.float64)) for k, p in others if np.all(np.isfinite(p))]
         views = self._views(step)
@@ -451,16 +454,40 @@ class Session:
         views = [view.with_occluders(occ) for view, occ in zip(views, self._occluders[key])]
         neighbours = [(f"object {k + 1} ({self.capture.objects[k].name})", self.samples(k), pose_to_matrix(p))
                       for k, p in others]
-        return views, {"neighbours": neighbours, "explain": len({k for k, _ in others}) == self.num_objects - 1}
+        return views, {"neighbours": neighbours, "explain": len({k for k, _ in others}) == self.num_objects - 1,
+                       "reference_colours": self._reference_colours(obj, step) if colours else None}
+
+    def _reference_colours(self, obj: int, step: int) -> np.ndarray | None:
+        """The colours (S, 3) 0..1 the cameras saw at object `obj`'s surface samples (`align.sample_colours`, NaN
+        unseen) at the nearest other step (the earlier of two) where its pose is confirmed, or snapped with an
+        accepted score, or None when there is none; cached per step and pose."""
+        checked = [s for s in range(self.num_steps + 1) if s != step and (
+            self.state.status[s, obj] == "confirmed" or (self.state.status[s, obj] == "snapped"
+                                                         and (self.state.scores[s][obj] or {}).get("accepted")))]
+        if not checked:
+            return None
+        ref = min(checked, key=lambda s: (abs(s - step), s))
+        pose = self.state.pose(ref, obj)
+        assert pose is not None  # a checked status has a pose
+        key = (obj, ref, pose.tobytes())
+        if key not in self._colours:
+            views, _ = self._context(obj, ref, colours=False)
+            self._colours[key] = align.sample_colours(*align.posed_samples(self.samples(obj), pose_to_matrix(pose)),
+                                                      views)
+            while len(self._colours) > OCCLUDER_CACHE:
+                self._colours.popitem(last=False)
+        return self._colours[key]
 
     def _fit(self, obj: int, step: int, pose: np.ndarray, others: list[tuple[int, np.ndarray]] | None = None
              ) -> FitScore:
         """Fit score of object `obj` at `pose` (7,) at a step, occlusion-aware and with the physical checks against
-        the other objects (`others`: (object, pose); default: the state's poses at the step)."""
+        the other objects (`others`: (object, pose); default: the state's poses at the step), the colours of a
+        checked step (`_reference_colours`) and the refinement (a snap may not improve it: `align.refinement`)."""
         transform = pose_to_matrix(pose)
         samples = self.samples(obj)
         views, checks = self._context(obj, step, others)
-        return align.fit_score(samples, transform, self._crop(step, transform, samples), views, **checks)
+        return align.fit_score(samples, transform, self._crop(step, transform, samples), views, refine=True,
+                               **checks)
 
     def score(self, obj: int, step: int | None = None) -> FitScore:
         """Fit score of object `obj`'s current pose at a step (default the current one) against its cloud."""

@@ -3,8 +3,9 @@
     python bench/bench_annotate_errors.py --captures captures/bench-errors -n 2 --steps 5 --seed 3 [--json out.json]
 
 Generates the captures first where missing (`dsr-bench generate-captures`: realistic sensor noise and calibration
-error), takes their true poses as the annotation, and injects wrong poses one at a time (the other objects at
-their true poses, unless the kind moves them too):
+error), takes their true poses as the annotation (every one confirmed: the colour check compares a pose with the
+object's colours at the nearest other step), and injects wrong poses one at a time (the other objects at their
+true poses, unless the kind moves them too):
 
 - translation: the object moved by 5, 10, 20, 50 or 100 mm in a random horizontal direction;
 - rotation: turned by 5, 10, 20, 45, 90 or 180 degrees about its centre of mass, about a random axis (for an
@@ -21,10 +22,12 @@ their true poses, unless the kind moves them too):
   10 degrees) since.
 
 A pose counts as flagged when the window would show it for a check (`Session.next_to_check`: its fit score, with
-the other objects at their poses of the kind, is not accepted: coverage, RMSE or a physical check). The error of a
-pose is its translation (mm) and its rotation up to a continuous symmetry (deg) from the truth
-(`bench_annotate.pose_errors`); every kind is reported per size bucket of that error. False alarms: the true
-poses (as annotated) flagged under the captures' sensor noise. Figures only, never asserted.
+the other objects at their poses of the kind, is not accepted: coverage, RMSE, a physical check, the colours or
+the refinement, `annotator.align.fit_score`). The error of a pose is its translation (mm) and its rotation up to a
+continuous symmetry (deg) from the truth (`bench_annotate.pose_errors`); every kind is reported per size bucket of
+that error. False alarms: the true
+poses (as annotated) flagged under the captures' sensor noise. The cost of scoring a true pose (every check runs)
+is timed, and the refinement's and the colour check's shares apart. Figures only, never asserted.
 """
 
 from __future__ import annotations
@@ -119,6 +122,30 @@ def injections(session, truth: np.ndarray, infos: list, t: int, k: int, rng: np.
             yield "left_behind", "", {k: truth[t - 1, k].copy()}
 
 
+def check_costs(session, t: int, k: int, truth_t: np.ndarray) -> dict[str, float]:
+    """Seconds to score object k's true pose at step t (`Session._fit`, every check), and of that the refinement
+    (`align.refinement`) and the colour check (`align.sample_colours` + `colour_mismatch`), timed apart."""
+    from annotator import align
+
+    others = [(i, truth_t[i]) for i in range(len(truth_t)) if i != k]
+    start = time.perf_counter()
+    session._fit(k, t, truth_t[k], others)
+    fit = time.perf_counter() - start
+    transform = pose_to_matrix(truth_t[k])
+    samples = session.samples(k)
+    views, checks = session._context(k, t, others)
+    crop = session._crop(t, transform, samples)
+    start = time.perf_counter()
+    align.refinement(samples, transform, crop, views)
+    refine = time.perf_counter() - start
+    start = time.perf_counter()
+    if checks["reference_colours"] is not None:
+        align.colour_mismatch(align.sample_colours(*align.posed_samples(samples, transform), views),
+                              checks["reference_colours"])
+    colour = time.perf_counter() - start
+    return {"fit_s": fit, "refine_s": refine, "colour_s": colour}
+
+
 def flagged(session, t: int, poses: dict[int, np.ndarray], truth_t: np.ndarray) -> tuple[bool, str]:
     """Whether any object given a pose in `poses` (the others at their true poses) would be shown for a check."""
     scene = {i: truth_t[i] for i in range(len(truth_t))} | poses
@@ -148,12 +175,17 @@ def run_capture(path: Path, work: Path, rng: np.random.Generator) -> tuple[list[
 
     session = Session.open(path, work)
     truth = session.capture.truth_poses()
+    # the annotation: every true pose confirmed (the colour check compares each pose with the object's colours at
+    # the nearest other confirmed step, `Session._reference_colours`)
+    session._commit("confirm", {(t, k): (truth[t, k], "confirmed", None) for t in range(len(truth))
+                                for k in range(session.num_objects)})
     infos = [ObjectInfo(*session.capture.mesh(k)) for k in range(session.num_objects)]
     wrong, right = [], []
     for t in range(len(truth)):
         for k in range(session.num_objects):
             flag, why = flagged(session, t, {k: truth[t, k]}, truth[t])
-            right.append({"capture": path.name, "step": t, "object": k, "flagged": flag, "reason": why})
+            right.append({"capture": path.name, "step": t, "object": k, "flagged": flag, "reason": why,
+                          **check_costs(session, t, k, truth[t])})
             for kind, size, poses in injections(session, truth, infos, t, k, rng):
                 err = pose_errors(poses[k], truth[t, k], infos[k])
                 if err["off_p90_mm"] < TWIN_SURFACE_MM and len(poses) == 1:
@@ -208,8 +240,12 @@ def report(wrong: list[dict], right: list[dict]) -> dict:
               f"({e['translation_mm']:.0f} mm, {e['rotation_deg']:.0f} deg{shape})")
     for e in alarms[:10]:
         print(f"  false alarm: {e['capture']} step {e['step']} object {e['object'] + 1}: {e['reason']}")
+    costs = {key: float(np.mean([e[key] for e in right])) * 1000 for key in ("fit_s", "refine_s", "colour_s")}
+    print(f"scoring a true pose (every check runs): {costs['fit_s']:.0f} ms on average, of which the refinement "
+          f"{costs['refine_s']:.0f} ms and the colour check {costs['colour_s']:.1f} ms")
     return {"rows": rows, "recall_at_aim": recall, "errors_at_aim": len(errors), "missed": missed,
-            "false_alarm_rate": false_alarms, "correct_poses": len(right), "false_alarms": alarms}
+            "false_alarm_rate": false_alarms, "correct_poses": len(right), "false_alarms": alarms,
+            "true_pose_scoring_ms": costs}
 
 
 def parse_args() -> argparse.Namespace:
