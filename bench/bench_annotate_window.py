@@ -119,46 +119,50 @@ class NudgeTimer:
     """Wraps a session's `nudge` to add up the seconds spent in it."""
 
     def __init__(self, session):
-        self.seconds = 0.0
+        self.seconds = self.cpu = 0.0
         self._nudge = session.nudge
         session.nudge = self
 
     def __call__(self, *args, **kwargs):
-        start = time.perf_counter()
+        start, cpu = time.perf_counter(), time.process_time()
         try:
             return self._nudge(*args, **kwargs)
         finally:
             self.seconds += time.perf_counter() - start
+            self.cpu += time.process_time() - cpu
 
 
-def redraw_ms(window, timer: NudgeTimer, count: int = 12) -> tuple[float, float]:
+def redraw_ms(window, timer: NudgeTimer, count: int = 12) -> tuple[float, float, float]:
     """Median ms from a nudge key to the 3D view's frame and to the panel's, less the time in Session.nudge (keys D
-    and A in turn, 1 mm each, 50 ms apart)."""
+    and A in turn, 1 mm each, 50 ms apart), and the median CPU ms of this process (Mesa's rendering threads
+    included, the X server's work not) to both frames, less the nudge's: less sensitive to the machine's load."""
     view, panel = DrawClock(window.vis), DrawClock(window.panel_vis)
     window.vis, window.panel_vis = view, panel
-    out_view, out_panel = [], []
+    out_view, out_panel, out_cpu = [], [], []
     try:
         for k in range(count):
             time.sleep(0.05)  # the X server done with the last frame
-            timer.seconds, view.drawn, panel.drawn = 0.0, None, None
-            start = time.perf_counter()
+            timer.seconds, timer.cpu, view.drawn, panel.drawn = 0.0, 0.0, None, None
+            start, cpu = time.perf_counter(), time.process_time()
             window.press("D" if k % 2 == 0 else "A")
             window.render()
             window.render()  # draws what the first left flagged for the next frame
             end = time.perf_counter()
+            out_cpu.append(time.process_time() - cpu - timer.cpu)
             out_view.append((view.drawn or end) - start - timer.seconds)
             out_panel.append((panel.drawn or end) - start - timer.seconds)
     finally:
         window.vis, window.panel_vis = view.vis, panel.vis
-    return ms(out_view), ms(out_panel)
+    return ms(out_view), ms(out_panel), ms(out_cpu)
 
 
-def next_step_seconds(window) -> float:
-    """Seconds from key N (a step not visited before) to its frame."""
-    start = time.perf_counter()
+def next_step_seconds(window) -> tuple[float, float]:
+    """Seconds from key N (a step not visited before) to its frame, and CPU seconds of this process meanwhile."""
+    start, cpu = time.perf_counter(), time.process_time()
     window.press("N")
     window.render()
-    return time.perf_counter() - start
+    window.render()
+    return time.perf_counter() - start, time.process_time() - cpu
 
 
 def type_keys(key: str, count: int, rate: float, done: dict) -> None:
@@ -235,13 +239,15 @@ def child(args) -> dict:
             window.render()
             timer = NudgeTimer(session)
             out["cloud_points"], out["points_drawn"] = len(session.cloud()[0]), len(window.cloud.points)
-            out["redraw_ms"], out["redraw_ms_panel"] = redraw_ms(window, timer)
+            out["redraw_ms"], out["redraw_ms_panel"], out["redraw_cpu_ms"] = redraw_ms(window, timer)
             window.press("R")
             window.render()
-            out["redraw_ms_residual"], out["redraw_ms_residual_panel"] = redraw_ms(window, timer)
+            out["redraw_ms_residual"], out["redraw_ms_residual_panel"], out["redraw_cpu_ms_residual"] = redraw_ms(
+                window, timer)
             window.press("R")
             window.render()
-            out["next_steps_s"] = [next_step_seconds(window) for _ in range(session.num_steps)]
+            steps = [next_step_seconds(window) for _ in range(session.num_steps)]
+            out["next_steps_s"], out["next_steps_cpu_s"] = [t for t, _ in steps], [c for _, c in steps]
             out["next_step_s"] = out["next_steps_s"][0]
             window.press("P")
             window.render()
@@ -265,9 +271,11 @@ def report(fig: dict) -> None:
     print(f"redraw after a nudge key, key to the 3D view's frame | to the panel's: {fig['redraw_ms']:.1f} | "
           f"{fig['redraw_ms_panel']:.1f} ms (capture colours), {fig['redraw_ms_residual']:.1f} | "
           f"{fig['redraw_ms_residual_panel']:.1f} ms (residual colours); the 3D view draws {fig['points_drawn']} of "
-          f"the cloud's {fig['cloud_points']} points (key to frame = the nudge above + this)")
-    steps = ", ".join(f"{t:.2f}" for t in fig.get("next_steps_s", [fig["next_step_s"]]))
-    print(f"next step (N, not visited before; steps 1, 2, ... in turn): {steps} s")
+          f"the cloud's {fig['cloud_points']} points (key to frame = the nudge above + this); CPU to both frames "
+          f"{fig['redraw_cpu_ms']:.1f} ms, {fig['redraw_cpu_ms_residual']:.1f} ms")
+    steps = ", ".join(f"{t:.2f}" for t in fig["next_steps_s"])
+    cpu = ", ".join(f"{t:.2f}" for t in fig["next_steps_cpu_s"])
+    print(f"next step (N, not visited before; steps 1, 2, ... in turn): {steps} s (CPU {cpu} s)")
     h = fig["held"]
     if h.get("error"):
         print(f"held key: not measured ({h['error']})")
