@@ -20,7 +20,7 @@ stated; angles are radians.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass
 
 import numpy as np
@@ -560,8 +560,8 @@ def colour_mismatch(observed: np.ndarray, reference: np.ndarray) -> tuple[float,
 def fit_score(samples: SurfaceSamples, transform: np.ndarray, crop: np.ndarray, views: Sequence[View],
               inlier_distance: float = INLIER_DISTANCE, tree=None, with_fitness: bool = True,
               neighbours: Sequence[tuple[str, SurfaceSamples, np.ndarray]] | None = None,
-              explain: bool = False, refine: bool = False,
-              reference_colours: np.ndarray | None = None) -> FitScore:
+              explain: bool = False, refine: bool = False, reference_colours: np.ndarray | None = None,
+              shared_shift: Callable[[], np.ndarray | None] | None = None) -> FitScore:
     """Score of the mesh at `transform` (4, 4) against a cloud crop (M, 3) (see FitScore); accepted when the
     coverage is at least MIN_COVERAGE, the RMSE at most MAX_RMSE and, when `neighbours` (the other objects:
     name, samples, 4x4 transform) are given, no physical check fails (`physical_problems`) and at most
@@ -569,7 +569,8 @@ def fit_score(samples: SurfaceSamples, transform: np.ndarray, crop: np.ndarray, 
     `explain`: when the neighbours are all the other objects of the scene). When all of these pass, two more
     checks: with `reference_colours` (S, 3) (`sample_colours` of the same samples at another step, NaN unseen),
     at most COLOUR_FRACTION of the samples seen at both may have changed colour (`colour_mismatch`), and with
-    `refine`, a short ICP from the pose may not improve it (`refinement`, `Refinement.improves`). `tree`: a
+    `refine`, a short ICP from the pose may not improve it (`refinement`, `Refinement.improves`; `shared_shift`,
+    called only then: the shift the scene's other objects share, or None). `tree`: a
     cKDTree of `crop` to reuse; `with_fitness=False` skips the fitness (reported as NaN), for fast screening."""
     from scipy.spatial import cKDTree
 
@@ -606,7 +607,8 @@ def fit_score(samples: SurfaceSamples, transform: np.ndarray, crop: np.ndarray, 
             problems.append(f"{changed:.0%} of its surface has another colour than at the reference step "
                             "(another object?)")
     if not problems and refine:
-        moved = refinement(samples, transform, crop, views, tree)
+        shared = None if shared_shift is None else shared_shift()
+        moved = refinement(samples, transform, crop, views, tree, shared=shared)
         if moved.improves():
             problems.append(f"a snap would move it {moved.translation * 1000:.0f} mm, "
                             f"{np.rad2deg(moved.rotation):.0f} deg and fit {moved.gain * 1000:.1f} mm closer")
@@ -684,13 +686,15 @@ def _icp_step(samples: SurfaceSamples, current: np.ndarray, crop: np.ndarray, tr
 
 @dataclass
 class Refinement:
-    """What a short ICP from a pose did (`refinement`): how far it moved the pose (m, the origin; rad), and how
-    much closer (m) it brought the visible samples to the cloud (mean distance to the nearest cloud point, capped
-    at REFINE_CAP, before minus after; negative when it fits worse)."""
+    """What a short ICP from a pose did (`refinement`): how far it moved the pose (m, the origin, less the shift
+    the whole scene shares when one is given; rad), how much closer (m) it brought the visible samples to the cloud
+    (mean distance to the nearest cloud point, capped at REFINE_CAP, before minus after; negative when it fits
+    worse), and the origin's shift (3,) m itself."""
 
     translation: float
     rotation: float
     gain: float
+    shift: np.ndarray
 
     def improves(self) -> bool:
         """Whether a snap would improve the pose: it moves more than REFINE_TRANSLATION or REFINE_ROTATION and
@@ -711,12 +715,14 @@ def _capped_distance(samples: SurfaceSamples, transform: np.ndarray, tree, views
 
 
 def refinement(samples: SurfaceSamples, transform: np.ndarray, crop: np.ndarray, views: Sequence[View],
-               tree=None, iterations: int = REFINE_ITERATIONS) -> Refinement:
+               tree=None, iterations: int = REFINE_ITERATIONS, shared: np.ndarray | None = None) -> Refinement:
     """Run `iterations` ICP steps (as `icp`: the correspondence distance shrinking from MAX_CORRESPONDENCE to
     2 x INLIER_DISTANCE, no jump limits) of REFINE_SAMPLES of the samples from `transform` (4, 4) against the cloud
     crop (M, 3) and report how far the pose moved and how much closer the surface came to the cloud (`Refinement`);
     a wrong pose that the other checks cannot tell (a 10 degree turn; a mug turned 180 degrees, its handle where it
-    is not) moves towards the cloud and fits it better, a true pose moves by the noise and gains nothing."""
+    is not) moves towards the cloud and fits it better, a true pose moves by the noise and gains nothing.
+    `shared`: the shift (3,) m that the refinement gives the other objects of the scene (the cameras' calibration
+    error against the table frame moves them all alike); the translation is measured from it."""
     from scipy.spatial import cKDTree
 
     tree = cKDTree(crop) if tree is None else tree
@@ -731,9 +737,11 @@ def refinement(samples: SurfaceSamples, transform: np.ndarray, crop: np.ndarray,
         if small and dist <= floor:
             break
         dist = max(floor, dist * 0.75)
-    moved_t, moved_r = pose_delta(transform, current)
+    shift = current[:3, 3] - np.asarray(transform, dtype=np.float64)[:3, 3]
+    moved_r = pose_delta(transform, current)[1]
+    moved_t = float(np.linalg.norm(shift if shared is None else shift - shared))
     gain = _capped_distance(subset, transform, tree, views) - _capped_distance(subset, current, tree, views)
-    return Refinement(moved_t, moved_r, gain)
+    return Refinement(moved_t, moved_r, gain, shift)
 
 
 def icp(samples: SurfaceSamples, crop: np.ndarray, start: np.ndarray, views: Sequence[View], *,

@@ -206,6 +206,7 @@ class Session:
         self._shown: dict[int, np.ndarray] = {}  # the window's subset of each cached cloud (`shown`)
         self._occluders: OrderedDict[tuple, list] = OrderedDict()  # (step, others' poses) -> depth per view
         self._colours: OrderedDict[tuple, np.ndarray] = OrderedDict()  # (object, step, pose) -> `_reference_colours`
+        self._shifts: OrderedDict[tuple, np.ndarray] = OrderedDict()  # (step, object, pose) -> refinement's shift
         self._generation = 0  # journal generation of the last snapshot written or read
         self._records = 0  # records in the journal since
         self._capture_sha256 = capture_sha256 or capture_digest(capture)  # what state.json and the journal are bound to
@@ -482,12 +483,34 @@ class Session:
              ) -> FitScore:
         """Fit score of object `obj` at `pose` (7,) at a step, occlusion-aware and with the physical checks against
         the other objects (`others`: (object, pose); default: the state's poses at the step), the colours of a
-        checked step (`_reference_colours`) and the refinement (a snap may not improve it: `align.refinement`)."""
+        checked step (`_reference_colours`) and the refinement (a snap may not improve it beyond the shift the
+        other objects share: `align.refinement`, `_shared_shift`)."""
         transform = pose_to_matrix(pose)
         samples = self.samples(obj)
         views, checks = self._context(obj, step, others)
+        posed = self._others(obj, step) if others is None else others
         return align.fit_score(samples, transform, self._crop(step, transform, samples), views, refine=True,
-                               **checks)
+                               shared_shift=lambda: self._shared_shift(obj, step, posed), **checks)
+
+    def _shared_shift(self, obj: int, step: int, others: list[tuple[int, np.ndarray]]) -> np.ndarray | None:
+        """The shift (3,) m that the refinement (`align.refinement`, the step's views without occluders) gives the
+        objects other than `obj` at their poses (`others`: (object, pose)), the median per axis; None with fewer
+        than 2 of them. Every object of a step shares the cameras' calibration error against the table frame (3-4 mm
+        in some simulated captures), so only a move beyond it says a pose is wrong. Cached per step, object and
+        pose."""
+        shifts = []
+        for k, p in others:
+            pose = np.asarray(p, dtype=np.float64)
+            if k == obj or not np.all(np.isfinite(pose)):
+                continue
+            key = (step, k, pose.tobytes())
+            if key not in self._shifts:
+                m, samples = pose_to_matrix(pose), self.samples(k)
+                self._shifts[key] = align.refinement(samples, m, self._crop(step, m, samples), self._views(step)).shift
+                while len(self._shifts) > OCCLUDER_CACHE:
+                    self._shifts.popitem(last=False)
+            shifts.append(self._shifts[key])
+        return np.median(np.asarray(shifts), axis=0) if len(shifts) >= 2 else None
 
     def score(self, obj: int, step: int | None = None) -> FitScore:
         """Fit score of object `obj`'s current pose at a step (default the current one) against its cloud."""

@@ -122,3 +122,20 @@ def test_a_thin_object_shifted_along_the_table_leaves_its_cloud_unexplained():
     shifted[0, 3] += 0.02  # 20 mm across: its top face still lies on 30 of the 50 mm of the measured one
     fraction, count = align.unexplained_fraction(samples, shifted, measured, [])
     assert count >= align.UNEXPLAINED_MIN_POINTS and fraction > align.UNEXPLAINED_FRACTION
+
+
+def test_a_shift_every_object_shares_is_the_calibration_not_a_wrong_pose(capture_dir, truth, tmp_path):
+    from annotator.session import Session
+
+    session = Session.open(capture_dir, tmp_path / "work")
+    shifted = truth[0].copy()
+    shifted[:, 1] += 0.004  # 4 mm across the cameras' view: the cloud shows it (box 0 hardly: too thin along y)
+    for obj in (1, 2):
+        alone = session._fit(obj, 0, shifted[obj], [(k, truth[0, k]) for k in range(session.num_objects)])
+        assert not alone.accepted and "a snap would move it 4 mm" in alone.reason
+        # every object 4 mm off alike (as the cameras' calibration error puts a whole scene): none is flagged
+        together = [(k, shifted[k]) for k in range(session.num_objects)]
+        np.testing.assert_allclose(session._shared_shift(obj, 0, together), [0.0, -0.004, 0.0], atol=5e-4)
+        assert session._fit(obj, 0, shifted[obj], together).accepted
+    assert session._shared_shift(1, 0, [(2, truth[0, 2])]) is None  # one other object: no shared shift
+    session.close()
