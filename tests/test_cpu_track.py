@@ -230,9 +230,39 @@ def test_stage_one_is_shared_by_the_history_variants_and_init_skips_it(tmp_path,
     assert not (tmp_path / "nowarp.stage1.pt").exists()
 
 
+def test_a_finished_run_is_continued_in_chunks_from_its_weights_file(tmp_path, monkeypatch):
+    """--init with a finished run's weights file continues that run: --multi-batches more of stage 2 from its
+    weights, on windows of their own, recorded after its stages with the loss curve; twice in a row, in place."""
+    monkeypatch.setenv("DSR_BENCH_CACHE", str(tmp_path / "cache"))
+    data = write_synthetic_dataset(tmp_path / "data", num_sequences=2, num_steps=2, split="train")
+    common = ["--data", str(data), "--single-batches", "2", "--window", "2", "--batch-size", "2",
+              "--bn-recalibration", "1", "--quiet", "--track", "cpu"]
+    first = tmp_path / "3dflow.pt"
+    assert main(["train", "--model", "3dflow", "--out", str(first), "--multi-batches", "1", *common]) == 0
+    before = torch.load(first, weights_only=True)
+    more = tmp_path / "3dflow-more.pt"
+    assert main(["train", "--model", "3dflow", "--out", str(more), "--init", str(first), "--multi-batches", "2",
+                 *common]) == 0
+    after = torch.load(more, weights_only=True)
+    assert after["stages"]["single"] == before["stages"]["single"] and after["stages"]["multi"] == \
+        before["stages"]["multi"]  # the run's own record kept
+    (chunk,) = after["stages"]["continued"]
+    assert chunk["from"] == "3dflow.pt" and chunk["batches"] == 2 * 2  # no history: x window single-step batches
+    assert len(chunk["loss_every_10"]) == 1 and chunk["loss_every_10"][0] > 0
+    assert any(not torch.equal(v, after["model"][k]) for k, v in before["model"].items()
+               if v.is_floating_point() and "running" not in k)  # trained on, not a copy
+    assert not (tmp_path / "3dflow-more.stage1.pt").exists()
+    # a second chunk, written in place over the file it continues
+    assert main(["train", "--model", "3dflow", "--out", str(more), "--init", str(more), "--multi-batches", "1",
+                 *common]) == 0
+    again = torch.load(more, weights_only=True)
+    assert [c["from"] for c in again["stages"]["continued"]] == ["3dflow.pt", "3dflow-more.pt"]
+    assert again["recipe"]["init"] == str(more)
+
+
 @pytest.mark.parametrize("extra, message", [
     (["--init", "missing.stage1.pt"], "not found"),
-    (["--init", "dsr.pt"], "not the stage-1 weights"),
+    (["--init", "dsr.pt"], "holds a 'dsr' model, not 'nowarp'"),  # a finished run continues only its own model
     (["--init", "dsr.stage1.pt", "--lr", "0.01"], "other settings (lr)"),
     (["--init", "dsr.stage1.pt", "--multi-batches", "0"], "give --multi-batches"),
 ])

@@ -24,7 +24,9 @@ def train(
     split: Optional[str] = typer.Option(None, "--split", help="Training split (default: the only one)."),
     val_split: Optional[str] = typer.Option(None, "--val-split", help="Validation split (IoU after each epoch)."),
     init: Optional[Path] = typer.Option(None, "--init", help="Start from this checkpoint's weights (next stage; "
-                                         "--track cpu: another run's .stage1.pt, stage 1 skipped)."),
+                                         "--track cpu: another run's .stage1.pt, stage 1 skipped; or a finished "
+                                         "run's weights file of this model: --multi-batches more of stage 2, "
+                                         "continuing it)."),
     resume: Optional[Path] = typer.Option(None, "--resume", help="Resume a run exactly (optimizer, schedule, RNG, "
                                           "data)."),
     epochs: Optional[int] = typer.Option(None, "--epochs", help="Override the stage's epochs."),

@@ -15,6 +15,11 @@ each stage's rate halved at 50% and again at 75% of its batches (the paper's ste
 Stage 1 is the same computation for dsr, nowarp, gtwarp and single (a single-step window has no
 history, the initial weights and the windows come from the same seed), so its weights are saved beside
 the result (`<out>.stage1.pt`) and `init` starts another of these models from them, skipping stage 1.
+`init` may also be a finished run's weights file of the same model: the run continues it (a longer run in chunks,
+each resumable from the last file written): `multi_batches` more of stage 2's batches from those weights, Adam
+restarted and stage 2's rate and decay run again, on windows drawn from a seed of their own (the recipe's + 10 +
+the continuations before), recorded in `stages["continued"]` after the file's own stages (with the loss every
+10 batches: the curve).
 Then precise BatchNorm (`trainer.recalibrate_batchnorm`): the running statistics are re-estimated on
 `bn_recalibration` batches of whole windows with the state carried, as prediction runs, so that eval
 mode does not diverge along a sequence (docs/models.md, BatchNorm). The result is a weights file
@@ -54,7 +59,8 @@ class CpuRecipe:
     width: int = 2
     bn_recalibration: int = 16
     seed: int = 0
-    #: a stage-1 weights file (`<out>.stage1.pt` of an earlier run) to start stage 2 from; None: run stage 1
+    #: a stage-1 weights file (`<out>.stage1.pt` of an earlier run) to start stage 2 from, or a finished run's
+    #: weights file of this model to continue (`multi_batches` more of stage 2's batches); None: run stage 1
     init: str | None = None
     #: a model without history trains stage 2 on the history models' windows of `window` steps (a zero state,
     #: step t's loss under step t-1's matching, an optimiser step per step): the history models' protocol
@@ -163,6 +169,32 @@ def _load_stage1(net, path: Path, recipe: CpuRecipe) -> dict:
     return {**state["stages"]["single"], "from": path.name, "model": saved.name}
 
 
+def _init_role(path: Path) -> str:
+    """The role of an --init file ("stage1" or "weights"), checked as a voxel model's weights file."""
+    if not path.is_file():
+        raise UserError(f"--init {path}: not found; give a .stage1.pt file or a CPU-track run's weights file")
+    try:
+        return read_weights(path, kind=registry.VOXEL).role
+    except UserError as exc:
+        raise UserError(f"--init {exc}") from None
+
+
+def _load_trained(net, path: Path, recipe: CpuRecipe) -> dict:
+    """Load a finished CPU-track run's weights (`path`: role "weights", the same model and architecture) into
+    `net` to continue it; returns that run's stages record."""
+    try:
+        state = read_weights(path, kind=registry.VOXEL, model=recipe.model_name, role="weights")
+    except UserError as exc:
+        raise UserError(f"--init {exc}") from None
+    saved = state.config
+    if (saved.grid, saved.width, saved.voxel_factor) != (net.config.grid, net.config.width, net.config.voxel_factor) \
+            or not isinstance(state.get("stages"), dict):
+        raise UserError(f"--init {path}: not a CPU-track run of {recipe.model_name!r} with this recipe's grid and "
+                        "width; continue a file `dsr-bench train --track cpu` wrote")
+    state.load_into(net)
+    return dict(state["stages"])
+
+
 def train_cpu(recipe: CpuRecipe, data_dir: Path, split: str | None, out: Path, workers: int = 1,
               report: Callable[[str], None] = print) -> Path:
     """Train one CPU-track model by `recipe` on DATA_DIR's split and write its weights file to `out`."""
@@ -181,18 +213,25 @@ def train_cpu(recipe: CpuRecipe, data_dir: Path, split: str | None, out: Path, w
     torch.manual_seed(recipe.seed)
     net = DSRNet(config)
     history = config.history != "none"
-    if recipe.init is None:
-        stages = {"single": _stage(net, data, recipe.single_batches, 1, recipe, recipe.lr, recipe.seed,
-                                   f"{config.name} stage 1", report)}
-        save_weights(stage1_path(out), config, net.state_dict(), "stage1", data=provenance,
-                     recipe=dataclasses.asdict(recipe), stages=dict(stages))
+    batches, window = ((recipe.multi_batches, recipe.window) if history or recipe.same_windows
+                       else (recipe.multi_batches * recipe.window, 1))
+    if recipe.init is not None and _init_role(Path(recipe.init)) == "weights":
+        stages = _load_trained(net, Path(recipe.init), recipe)
+        continued = list(stages.get("continued", []))
+        record = _stage(net, data, batches, window, recipe, recipe.multi_lr, recipe.seed + 10 + len(continued),
+                        f"{config.name} continued {len(continued) + 1}", report)
+        stages["continued"] = [*continued, {**record, "from": Path(recipe.init).name}]
     else:
-        stages = {"single": _load_stage1(net, Path(recipe.init), recipe)}
-    if recipe.multi_batches:
-        batches, window = ((recipe.multi_batches, recipe.window) if history or recipe.same_windows
-                           else (recipe.multi_batches * recipe.window, 1))
-        stages["multi"] = _stage(net, data, batches, window, recipe, recipe.multi_lr, recipe.seed + 1,
-                                 f"{config.name} stage 2", report)
+        if recipe.init is None:
+            stages = {"single": _stage(net, data, recipe.single_batches, 1, recipe, recipe.lr, recipe.seed,
+                                       f"{config.name} stage 1", report)}
+            save_weights(stage1_path(out), config, net.state_dict(), "stage1", data=provenance,
+                         recipe=dataclasses.asdict(recipe), stages=dict(stages))
+        else:
+            stages = {"single": _load_stage1(net, Path(recipe.init), recipe)}
+        if recipe.multi_batches:
+            stages["multi"] = _stage(net, data, batches, window, recipe, recipe.multi_lr, recipe.seed + 1,
+                                     f"{config.name} stage 2", report)
     passes = 0
     moving = {k: v.clone() for k, v in net.state_dict().items() if "running_" in k or "num_batches" in k}
     if recipe.bn_recalibration:

@@ -64,8 +64,9 @@ def end_workers(iterator: object) -> None:
 
 def fit(step: Step, net: torch.nn.Module, batches: Iterable[dict], count: int, lr: float, label: str,
         report: Callable[[str], None]) -> dict:
-    """Train `net` on `count` batches; returns the stage's record: batches, lr, seconds, and the mean loss
-    terms of the first and last tenth (each batch's terms averaged over its time steps first)."""
+    """Train `net` on `count` batches; returns the stage's record: batches, lr, seconds, the mean loss
+    terms of the first and last tenth (each batch's terms averaged over its time steps first), and the curve:
+    the mean total loss of every 10 batches."""
     optimizer = torch.optim.Adam(net.parameters(), lr=lr, betas=(0.9, 0.95))
     halve = {int(count * 0.5), int(count * 0.75)}
     net.train()
@@ -86,4 +87,6 @@ def fit(step: Step, net: torch.nn.Module, batches: Iterable[dict], count: int, l
     first, last = np.mean(records[:tenth], 0), np.mean(records[-tenth:], 0)
     return {"batches": count, "lr": lr, "seconds": round(time.perf_counter() - start, 1),
             "loss_first_tenth": {k: round(float(v), 5) for k, v in zip(keys, first)},
-            "loss_last_tenth": {k: round(float(v), 5) for k, v in zip(keys, last)}}
+            "loss_last_tenth": {k: round(float(v), 5) for k, v in zip(keys, last)},
+            "loss_every_10": [round(float(np.mean([r[keys.index("total")] for r in records[i:i + 10]])), 5)
+                              for i in range(0, len(records), 10)] if "total" in keys else []}
