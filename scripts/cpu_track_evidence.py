@@ -20,6 +20,9 @@ rebuilt. Predictions already in WORK are reused (delete them to predict again).
 weights; `dsr-history-none`), and DSR-Net with its state not warped (`dsr-history-nowarp`): whether the
 trained networks use what their state carries. --controls NAME... scores further weights files
 DIR/NAME.pt (e.g. single-same-windows: SingleStep trained with `--same-windows`), never on the leaderboard.
+--against DIR2 scores each model's namesake DIR2/<model>.pt too (WORK/against-<model>) and gives the paired
+differences model - namesake (`vs_against`): e.g. weights continued from DIR2's (`--track cpu --init`) against them.
+The summary records its own command and each weights file's SHA-256 and training stages.
 """
 
 from __future__ import annotations
@@ -27,6 +30,7 @@ from __future__ import annotations
 import argparse
 import json
 import subprocess
+import shlex
 import sys
 from pathlib import Path
 
@@ -57,6 +61,19 @@ def torch_config(path: Path) -> dict:
     return read_weights(path)["model_config"]
 
 
+def weights_record(path: Path) -> dict:
+    """A weights file's SHA-256 and its training stages as recorded in it (CPU-track files: stage records, the
+    continued chunks without their curves)."""
+    from dsr_bench.dataset.manifest import file_sha256
+    from dsr_bench.models.training.checkpoints import read_weights
+
+    stages = read_weights(path).get("stages") or {}
+    shown = {k: v for k, v in stages.items() if k != "continued"}
+    if "continued" in stages:
+        shown["continued"] = [{k: v for k, v in c.items() if k != "loss_every_10"} for c in stages["continued"]]
+    return {"file": path.name, "sha256": file_sha256(path), "stages": shown}
+
+
 def predict_with_history(weights: Path, model: str, history: str, data: Path, out: Path) -> None:
     """Predict the split with `model`'s weights, its history replaced at test time by `history`."""
     import dataclasses
@@ -82,6 +99,7 @@ def main() -> None:
     parser.add_argument("--leaderboard", type=Path)
     parser.add_argument("--history-variants", action="store_true")
     parser.add_argument("--controls", nargs="*", default=[])
+    parser.add_argument("--against", type=Path, help="Another weights folder: each model against its namesake there.")
     args = parser.parse_args()
     if args.out:  # before the work: the results can be written
         check_writable(args.out, "--out", directory=False)
@@ -121,8 +139,22 @@ def main() -> None:
             run(*cli, "evaluate", str(pred), "--data", str(args.data), "--out", str(scored))
         results[label] = json.loads(scored.read_text())
 
+    against = {}
+    for name in args.models if args.against else ():
+        label = f"against-{name}"
+        pred, scored = args.work / label, args.work / f"{label}.json"
+        if not scored.is_file():
+            if not (pred / "meta.json").is_file():
+                run(*cli, "predict", "--model", name, "--checkpoint", str(args.against / f"{name}.pt"),
+                    "--data", str(args.data), "--out", str(pred))
+            run(*cli, "evaluate", str(pred), "--data", str(args.data), "--out", str(scored))
+        against[name] = json.loads(scored.read_text())
+
     per_seq = {name: r["per_sequence"] for name, r in results.items()}
-    summary = {"data": str(args.data), "split": results["static"]["split"],
+    summary = {"command": shlex.join(["python", "scripts/cpu_track_evidence.py", *sys.argv[1:]]),
+               "weights": {name: weights_record(args.weights / f"{name}.pt") for name in (*args.models,
+                                                                                         *args.controls)},
+               "data": str(args.data), "split": results["static"]["split"],
                "split_checksum": results["static"]["split_checksum"], "sequences": len(per_seq["static"]),
                "means": {name: {m: r["metrics"][m] for m in METRICS} for name, r in results.items()},
                "grid": {name: r["meta"].get("parameters", {}).get("grid") for name, r in results.items()},
@@ -133,6 +165,10 @@ def main() -> None:
     for name in args.models:
         summary["vs_static"][name] = {m: paired(per_seq[name], per_seq["static"], m) for m in METRICS}
         summary["vs_push"][name] = {m: paired(per_seq[name], per_seq["push"], m) for m in METRICS[:2]}
+    if against:
+        summary["against"] = {name: weights_record(args.against / f"{name}.pt") for name in against}
+        summary["vs_against"] = {name: {m: paired(per_seq[name], r["per_sequence"], m) for m in METRICS}
+                                 for name, r in against.items()}
     pairs = list(PAIRS) + [(f"{n}-history-{h}", n) for n, h in variants] + \
         [(c, "single") for c in args.controls] + [("dsr", c) for c in args.controls]
     for a, b in pairs:
@@ -149,7 +185,7 @@ def main() -> None:
         print(f"{name:>8} " + " ".join(f"{v:.3f}" for v in summary["per_step"][name]["iou_ordered"])
               + f" | occluded {b['iou_occluded_objects'] or 0:.3f} ({b['occluded_object_steps']}), "
               f"visible {b['iou_visible_objects'] or 0:.3f}")
-    for key in ("vs_static", "vs_push", "pairs"):
+    for key in ("vs_static", "vs_push", "pairs", *(("vs_against",) if against else ())):
         print(f"\npaired differences ({key}), mean +- standard error:")
         for name, row in summary[key].items():
             print(f"{name:>16} " + " ".join(f"{m} {v['mean']:+.4f} +- {v['se']:.4f}" for m, v in row.items()))
