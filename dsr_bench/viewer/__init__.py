@@ -182,22 +182,26 @@ def load_predictions(pred_dir: Path, seq: SequenceReader) -> dict:
     return pred
 
 
+def workspace_eye():
+    """The 3D views' eye: EYE_POSITION looking at EYE_TARGET, z up (a rerun `EyeControls3D`)."""
+    import rerun.blueprint as rrb
+
+    return rrb.EyeControls3D(position=EYE_POSITION, look_target=EYE_TARGET, eye_up=(0.0, 0.0, 1.0))
+
+
 def blueprint(cameras: list[str], has_predictions: bool, has_policy: bool = True):
     """A layout that opens ready to read: the 3D views framed on the workspace (EYE_POSITION looking at
     EYE_TARGET), the ground truth on top and the prediction against it below, beside the camera views and charts."""
     import rerun.blueprint as rrb
 
-    def eye():
-        return rrb.EyeControls3D(position=EYE_POSITION, look_target=EYE_TARGET, eye_up=(0.0, 0.0, 1.0))
-
     # camera images stay in their 2D views: drawn in 3D, a depth image is a cloud coloured by depth
     hide_images = [f"- /world/cameras/{c}/image/{kind}" for c in cameras for kind in ("color", "depth", "mask")]
-    scene = [rrb.Spatial3DView(origin="world", name="scene (ground truth)", eye_controls=eye(),
+    scene = [rrb.Spatial3DView(origin="world", name="scene (ground truth)", eye_controls=workspace_eye(),
                                contents=["+ /world/**", "- /world/pred/**", "- /world/tsdf", *hide_images])]
     if has_predictions:
         scene.append(rrb.Spatial3DView(
             origin="world", name="predictions vs ground truth: grey correct, orange wrong object, red only "
-            "predicted, blue missed; flow green true, magenta predicted", eye_controls=eye(),
+            "predicted, blue missed; flow green true, magenta predicted", eye_controls=workspace_eye(),
             contents=["+ /world/pred/compare/**", "+ /world/pred/flow", "+ /world/pred/flow_2d", "+ /world/gt/flow",
                       "+ /world/push/**"]))
     # colour with the visible mask over it; the depth in a view of its own (over the colour it hid it in a rainbow)
@@ -262,7 +266,8 @@ def _log_static(rec, rr, seq: SequenceReader) -> None:
                             colors=[object_color(i + 1)], show_labels=False), static=True)  # on hover
 
 
-def _log_voxels(rec, rr, entity: str, labels: np.ndarray) -> None:
+def log_voxels(rec, rr, entity: str, labels: np.ndarray) -> None:
+    """Log the labelled voxels of `labels` (Y, X, Z) as world points, class id = label, at `entity`."""
     occupied = np.argwhere(labels > 0)
     rec.log(entity, rr.Points3D(voxel_to_world(occupied), class_ids=labels[tuple(occupied.T)], radii=VOXEL_SIZE / 2,
                                 show_labels=False))
@@ -298,7 +303,7 @@ def log_sequence(rec, seq: SequenceReader, predictions: dict | None = None, seed
             rec.log("world/gt/cloud", rr.Points3D(cloud, colors=rgb, radii=rr.Radius.ui_points(2.5)))  # no gaps
         rec.log("world/tsdf", rr.Points3D(voxel_to_world(band), colors=[180, 180, 180], radii=VOXEL_SIZE / 2))
         mask = seq.read("mask_3d", t)
-        _log_voxels(rec, rr, "world/gt/mask", mask)
+        log_voxels(rec, rr, "world/gt/mask", mask)
         for i in range(seq.num_objects):
             rec.log(f"world/objects/{i + 1}", rr.Transform3D(translation=poses[t, i, :3],
                                                             quaternion=rr.Quaternion(xyzw=poses[t, i, 3:])))
@@ -307,7 +312,7 @@ def log_sequence(rec, seq: SequenceReader, predictions: dict | None = None, seed
         if predictions is not None and "mask" in predictions:  # the predicted mask of observation t, from tick 2t
             pm = predictions["mask"][t]
             matched = match_slots(pm, mask, predictions["num_slots"], seq.num_objects)[pm]
-            _log_voxels(rec, rr, "world/pred/mask", matched)
+            log_voxels(rec, rr, "world/pred/mask", matched)
             for kind, idx in compare_voxels(matched, mask).items():
                 rec.log(f"world/pred/compare/{kind}", rr.Points3D(voxel_to_world(idx), colors=[COMPARE_COLORS[kind]],
                                                                   radii=VOXEL_SIZE / 2))

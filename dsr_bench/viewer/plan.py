@@ -62,23 +62,17 @@ def push_arrows(actions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return origins, vectors
 
 
-def _voxels(rec, rr, entity: str, labels: np.ndarray, **kwargs) -> None:
-    occupied = np.argwhere(labels > 0)
-    rec.log(entity, rr.Points3D(voxel_to_world(occupied), class_ids=labels[tuple(occupied.T)], radii=VOXEL_SIZE / 2,
-                                show_labels=False, **kwargs))
-
-
 def plan_blueprint():
     """The plan's layout: its 3D view framed on the workspace as `dsr-bench view`'s (`EYE_POSITION` looking at
     `EYE_TARGET`), beside the camera image, the cost plot and the description."""
     import rerun.blueprint as rrb
 
-    from dsr_bench.viewer import EYE_POSITION, EYE_TARGET
+    from dsr_bench.viewer import workspace_eye
 
-    eye = rrb.EyeControls3D(position=EYE_POSITION, look_target=EYE_TARGET, eye_up=(0.0, 0.0, 1.0))
     return rrb.Blueprint(
         rrb.Horizontal(
-            rrb.Spatial3DView(origin="world", name="plan", eye_controls=eye, contents=["+ /world/**", "- /world/tsdf"]),
+            rrb.Spatial3DView(origin="world", name="plan", eye_controls=workspace_eye(),
+                              contents=["+ /world/**", "- /world/tsdf"]),
             rrb.Vertical(rrb.Spatial2DView(origin="camera", name="front camera"),
                          rrb.TimeSeriesView(origin="cost", name="cost"),
                          rrb.TextDocumentView(origin="description", name="plan")),
@@ -93,7 +87,7 @@ def log_plan(rec, arrays: dict, attrs: dict) -> None:
     """Log a plan (`dsr_bench.planning.plans.read_plan`) to a rerun RecordingStream."""
     import rerun as rr
 
-    from dsr_bench.viewer import object_color
+    from dsr_bench.viewer import PUSH_COLOR, log_voxels, object_color
 
     n = arrays["target/object_poses"].shape[0]
     steps = len(arrays["actions"])
@@ -110,12 +104,12 @@ def log_plan(rec, arrays: dict, attrs: dict) -> None:
     infos = [rr.AnnotationInfo(id=0, label="background", color=(0, 0, 0))]
     infos += [rr.AnnotationInfo(id=i, label=str(i), color=object_color(i)) for i in range(1, max(n, 5) + 1)]
     rec.log("world", rr.AnnotationContext(infos), static=True)
-    _voxels(rec, rr, "world/target/mask", arrays["target/mask_3d"])
+    log_voxels(rec, rr, "world/target/mask", arrays["target/mask_3d"])
     for t in range(steps + 1):
         rec.set_time("step", sequence=2 * t)
         for entity in ("world/candidates", "world/push", "world/predicted"):
             rec.log(entity, rr.Clear(recursive=True))
-        _voxels(rec, rr, "world/state/mask", arrays["states/mask_3d"][t])
+        log_voxels(rec, rr, "world/state/mask", arrays["states/mask_3d"][t])
         tsdf = arrays["states/tsdf"][t]
         band = np.argwhere((tsdf < 0) & (tsdf > -1))
         rec.log("world/tsdf", rr.Points3D(voxel_to_world(band), colors=[180, 180, 180], radii=VOXEL_SIZE / 2))
@@ -123,7 +117,7 @@ def log_plan(rec, arrays: dict, attrs: dict) -> None:
             rec.log("camera/color", rr.Image(arrays["states/color"][t]))
         if t == steps:
             break
-        _voxels(rec, rr, "world/planner/mask", arrays["planner_masks"][t])
+        log_voxels(rec, rr, "world/planner/mask", arrays["planner_masks"][t])
         rec.set_time("step", sequence=2 * t + 1)
         costs = arrays["costs"][t]
         cands = arrays["candidates"][t]
@@ -135,9 +129,9 @@ def log_plan(rec, arrays: dict, attrs: dict) -> None:
         chosen = int(arrays["chosen"][t])
         d, row, col = (int(x) for x in arrays["actions"][t])
         label = f"push {t}: direction {d}, cell ({row}, {col}), cost {labels[chosen]}"
-        rec.log("world/push", rr.Arrows3D(origins=o, vectors=v, colors=[(255, 215, 0)], radii=0.004, labels=[label],
+        rec.log("world/push", rr.Arrows3D(origins=o, vectors=v, colors=[PUSH_COLOR], radii=0.004, labels=[label],
                                           show_labels=False))
-        _voxels(rec, rr, "world/predicted/mask", arrays["predicted"][t])
+        log_voxels(rec, rr, "world/predicted/mask", arrays["predicted"][t])
         if np.isfinite(costs[chosen]):
             rec.log("cost/chosen", rr.Scalars(float(costs[chosen])))
             rec.log("cost/median", rr.Scalars(float(np.nanmedian(costs))))
