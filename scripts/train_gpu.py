@@ -20,7 +20,7 @@ A run, for each model of --models in turn (the training time, --minutes less --e
    An epoch is the paper's, 40,000 sample-steps (--epoch-samples: the official scripts' 4000 sequences of 10
    pushes), drawn from the few sequences that travel in repeated shuffled passes: the stages and learning
    rates keep the paper's length in sample-steps (about 2.8M in all), whatever data a run carries. Each run
-   should carry other sequences of procedural-train (below: the shard of the run's number).
+   should carry sequences no earlier run saw (below: a base seed of the run's number).
 3. writes OUT/<model>.pt: the last checkpoint, fp16, without Adam's moments, `progress` extended by this
    run; `dsr-bench predict --checkpoint OUT/<model>.pt` reads it like any weights file.
 Then OUT/curve.json and OUT/curve.png (per batch: loss, its motion and mask terms, learning rate, the run,
@@ -527,7 +527,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--install", type=Path, metavar="OUT", help="Replace the committed weights and curve with "
                         "OUT's (a folder this script wrote) and stop.")
     parser.add_argument("--runs", action="store_true", help="Print how many runs the committed weights of --models "
-                        "have had (the next run's number: its shard of procedural-train) and stop.")
+                        "have had (the next run's number: its training sequences' base seed is 900000 + it) and stop.")
     return parser.parse_args(argv)
 
 
