@@ -24,6 +24,9 @@ STATUS_COLORS: dict[str, tuple[float, float, float]] = {
 #: a status colour (`muted_colors`); every status colour drawn in 3D is at least STATUS_MIN_SATURATION.
 MUTED_SATURATION = 0.3
 STATUS_MIN_SATURATION = 0.6
+#: The depth-residual colour scale's top (m): `residual_ramp` reaches red there (`Session.residual_colors`, the
+#: panel's legend).
+RESIDUAL_SCALE = 0.01
 #: Silhouettes keep the parts of a mesh at least this far in front of the camera (m, camera z): a ray through a
 #: pixel centre sees what lies in front of the camera, and the projection of points nearer than this overflows.
 SILHOUETTE_NEAR = 1e-6

@@ -18,8 +18,8 @@ from typing import Sequence
 
 import numpy as np
 
-from annotator.images import (SELECTED_COLOR, STATUS_COLORS, mask_boundary, muted_colors, object_colors,
-                               residual_ramp, resize_image, scaled_camera, silhouette_masks)
+from annotator.images import (RESIDUAL_SCALE, SELECTED_COLOR, STATUS_COLORS, mask_boundary, muted_colors,
+                               object_colors, residual_ramp, resize_image, scaled_camera, silhouette_masks)
 from annotator.keys import ViewState, format_score, key_help_lines, object_name
 from dsr_bench.errors import UserError
 
@@ -30,8 +30,6 @@ PANEL_FONT_SIZE = 14
 #: The colour legend: (label, RGB 0..1) of the selected object and each status, as meshes and outlines use them.
 LEGEND: list[tuple[str, tuple[float, float, float]]] = [("selected", SELECTED_COLOR)] + [
     (name, rgb) for name, rgb in STATUS_COLORS.items()]
-#: The residual colour scale's top (m): `Session.residual_colors`' default `max_residual`.
-RESIDUAL_SCALE = 0.01
 #: Panel-sized colour images kept in memory ((step, camera) pairs).
 IMAGE_CACHE = 8
 #: Fit scores kept in memory before the cache is emptied.

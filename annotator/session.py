@@ -28,6 +28,7 @@ import numpy as np
 
 from annotator import align
 from annotator.align import FitScore
+from annotator.images import RESIDUAL_SCALE, residual_ramp
 from annotator.journal import (JOURNAL_FILE, JOURNAL_FORMAT, STATE_FILE, Saved, acquire_lock, append_record,
                                capture_digest, check_file, name_holder, read_saved, release_lock,
                                write_snapshot)
@@ -1039,12 +1040,12 @@ class Session:
         return best
 
     # display helpers --------------------------------------------------------------------------------------------------
-    def residual_colors(self, step: int | None = None, max_residual: float = 0.01,
+    def residual_colors(self, step: int | None = None, max_residual: float = RESIDUAL_SCALE,
                         index: np.ndarray | None = None) -> np.ndarray:
         """Colours (M, 3) in 0..1 of `cloud(step)`'s points (of those at `index` (K,) only, e.g. `shown(step)`: then
         (K, 3)) by their distance to the nearest posed mesh surface: blue (0) through green and yellow to red
-        (>= `max_residual` m) within 2 x `max_residual`; other points (table, unannotated things) keep a dimmed grey
-        of their own colour."""
+        (>= `max_residual` m, `residual_ramp`) within 2 x `max_residual`; other points (table, unannotated things)
+        keep a dimmed grey of their own colour."""
         from scipy.spatial import cKDTree
 
         step = self._step(step)
@@ -1060,11 +1061,8 @@ class Session:
         d = np.full(len(points), np.inf)
         d[above] = cKDTree(np.vstack(surfaces)).query(points[above], distance_upper_bound=2 * max_residual)[0]
         near = np.isfinite(d)
-        x = np.clip(d[near] / max_residual, 0.0, 1.0)
-        ramp = np.stack([np.clip(2 * x, 0, 1), np.clip(2 - 2 * x, 0, 1) * np.clip(2 * x + 0.5, 0, 1),
-                         np.clip(1 - 2 * x, 0, 1)], axis=1)
         out = grey.copy()
-        out[near] = ramp
+        out[near] = residual_ramp(d[near] / max_residual)
         return out
 
     def progress(self) -> dict:
