@@ -14,13 +14,12 @@ committed and never changed after, so copying DIR/submissions after the database
 from __future__ import annotations
 
 import os
-import secrets
 import shutil
 import sqlite3
 import subprocess
 from pathlib import Path
 
-from dsr_bench.atomic import fsync_path
+from dsr_bench.atomic import atomic_path
 from dsr_bench.errors import UserError
 
 
@@ -49,43 +48,36 @@ def backup_database(url: str, out: str | Path) -> str:
                     "use the database's own dump tool")
 
 
-def _temporary(out: Path) -> Path:
-    """A fresh empty file beside `out`, readable by its owner only."""
-    tmp = out.parent / f".{out.name}.tmp-{secrets.token_hex(6)}"
+def _create_private(tmp: Path) -> None:
+    """Create `tmp` (an `atomic_path` temporary) empty, readable by its owner only: the copy holds the token hashes."""
     os.close(os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600))
-    return tmp
 
 
 def _backup_sqlite(database: str, out: Path) -> str:
     if not database or database == ":memory:" or not Path(database).is_file():
         raise UserError(f"{database or '(no file)'}: no SQLite database file there; give the challenge DIR whose "
                         "server has run (or --db sqlite:///PATH)")
-    tmp = _temporary(out)
     try:
-        source = sqlite3.connect(database, timeout=30)
-        try:
-            source.execute("PRAGMA busy_timeout=30000")
-            copy = sqlite3.connect(tmp)
+        with atomic_path(out, fsync=True) as tmp:
+            _create_private(tmp)
+            source = sqlite3.connect(database, timeout=30)
             try:
-                source.backup(copy)  # pages=-1: every page in one step, one read transaction: one commit's state
-                copy.execute("PRAGMA journal_mode=DELETE")  # one self-contained file
-                found = [row[0] for row in copy.execute("PRAGMA integrity_check")]
-                tables = copy.execute("SELECT count(*) FROM sqlite_master WHERE type='table'").fetchone()[0]
+                source.execute("PRAGMA busy_timeout=30000")
+                copy = sqlite3.connect(tmp)
+                try:
+                    source.backup(copy)  # pages=-1: every page in one step, one read transaction: one commit's state
+                    copy.execute("PRAGMA journal_mode=DELETE")  # one self-contained file
+                    found = [row[0] for row in copy.execute("PRAGMA integrity_check")]
+                    tables = copy.execute("SELECT count(*) FROM sqlite_master WHERE type='table'").fetchone()[0]
+                finally:
+                    copy.close()
             finally:
-                copy.close()
-        finally:
-            source.close()
-        if found != ["ok"]:
-            raise UserError(f"the copy of {database} fails its integrity check ({found[0][:120]}); the database "
-                            "itself may be damaged: run `sqlite3 DB 'PRAGMA integrity_check'`")
-        with open(tmp, "rb") as f:
-            os.fsync(f.fileno())
-        os.rename(tmp, out)
-        fsync_path(out.parent)
+                source.close()
+            if found != ["ok"]:
+                raise UserError(f"the copy of {database} fails its integrity check ({found[0][:120]}); the "
+                                "database itself may be damaged: run `sqlite3 DB 'PRAGMA integrity_check'`")
     except sqlite3.DatabaseError as exc:
         raise UserError(f"{database}: cannot be copied ({exc}); check that it is the challenge's database") from None
-    finally:
-        tmp.unlink(missing_ok=True)
     return f"copied {database} to {out} ({out.stat().st_size} bytes, {tables} tables, integrity ok)"
 
 
@@ -100,17 +92,11 @@ def _backup_postgresql(parsed, out: Path) -> str:
     env = dict(os.environ)
     if parsed.password:
         env["PGPASSWORD"] = str(parsed.password)  # not on the command line (ps shows it)
-    tmp = _temporary(out)
-    try:
+    with atomic_path(out, fsync=True) as tmp:
+        _create_private(tmp)
         done = subprocess.run([pg_dump, "--format=custom", "--no-owner", f"--file={tmp}", f"--dbname={libpq}"],
                               capture_output=True, text=True, env=env, timeout=3600)
         if done.returncode != 0:
             first = (done.stderr.strip().splitlines() or ["no message"])[0]
             raise UserError(f"pg_dump of {shown} failed: {first[:200]}; check --db")
-        with open(tmp, "rb") as f:
-            os.fsync(f.fileno())
-        os.rename(tmp, out)
-        fsync_path(out.parent)
-    finally:
-        tmp.unlink(missing_ok=True)
     return f"dumped {shown} to {out} with pg_dump ({out.stat().st_size} bytes; restore with pg_restore)"
