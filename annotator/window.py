@@ -36,6 +36,7 @@ from __future__ import annotations
 import os
 import sys
 import time
+from collections.abc import Callable
 from functools import partial
 
 import numpy as np
@@ -93,16 +94,18 @@ def display_problem() -> str | None:
 
 
 def pick_points(points: np.ndarray, colors: np.ndarray | None, title: str,
-                mesh: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
-    """Indices of the points a user shift-clicks in a `annotator.picking.ClickPicker` window (closed with Q / Esc),
-    messages to the terminal (the annotator window shows them in its panel instead)."""
+                mesh: tuple[np.ndarray, np.ndarray] | None = None, *, idle: Callable[[], None] | None = None,
+                **window) -> np.ndarray:
+    """Indices of the points a user shift-clicks in a `annotator.picking.ClickPicker` window (closed with Q / Esc);
+    `window`: the picker's other keywords (default: messages to the terminal; the annotator window passes its panel,
+    place and size), `idle`: called each frame (`ClickPicker.run`)."""
     from annotator.picking import ClickPicker
 
     try:
-        picker = ClickPicker(points, colors, title, mesh=mesh)
+        picker = ClickPicker(points, colors, title, mesh=mesh, **window)
     except RuntimeError:
         raise UserError(f"could not open the picking window; {NO_DISPLAY_HINT}") from None
-    return picker.run()
+    return picker.run(idle=idle)
 
 
 class AnnotatorWindow:
@@ -256,16 +259,11 @@ class AnnotatorWindow:
 
     def pick(self, points: np.ndarray, colors: np.ndarray | None, title: str,
              mesh: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
-        """The Controller's picker: a `ClickPicker` over the 3D view's place, its messages in the panel."""
-        from annotator.picking import ClickPicker
-
+        """The Controller's picker: `pick_points` over the 3D view's place, its messages in the panel."""
         x, y, w, h = self.layout.view
         self.say(self.ctl.view.message)  # what to pick (the Controller set it)
-        try:
-            picker = ClickPicker(points, colors, title, mesh=mesh, say=self.say, width=w, height=h, left=x, top=y)
-        except RuntimeError:
-            raise UserError(f"could not open the picking window; {NO_DISPLAY_HINT}") from None
-        return picker.run(idle=self._poll_panel)
+        return pick_points(points, colors, title, mesh, idle=self._poll_panel, say=self.say, width=w, height=h,
+                           left=x, top=y)
 
     def _poll_panel(self) -> None:
         if self.panel_vis is not None:
