@@ -110,7 +110,7 @@ def add_hidden_set(layout: Layout, source: str | Path, name: str = "real", publi
     manifest, split at random into a public and a private part, pinned (scored digests and file SHA-256 in
     pins.json) and recorded in challenge.json; the participants' inputs (DIR/inputs) are written again to hold
     its inputs beside the simulated ones. Returns the set's entry in challenge.json."""
-    from dsr_bench.atomic import write_text
+    from dsr_bench.atomic import atomic_directory, write_text
     from dsr_bench.dataset.manifest import build_manifest, file_sha256, write_manifest
     from dsr_bench.dataset.scored import file_scored_digests
 
@@ -133,11 +133,8 @@ def add_hidden_set(layout: Layout, source: str | Path, name: str = "real", publi
                             "are not in it yet")
     names = [f"seq_{name}_{i:04d}" for i in range(len(files))]  # datasets hold seq_*.h5
     target = layout.hidden_set(name)
-    if target.exists():  # a stopped earlier run's, never recorded in challenge.json
-        shutil.rmtree(target)
-    tmp = layout.root / f".{target.name}.tmp-{secrets.token_hex(6)}"
-    (tmp / "splits").mkdir(parents=True)
-    try:
+    with atomic_directory(target, fsync=True) as tmp:  # replaces a stopped earlier run's, never in challenge.json
+        (tmp / "splits").mkdir()
         for path, seq in zip(files, names):
             shutil.copyfile(path, tmp / f"{seq}.h5")
         parts = _draw_parts(names, public_fraction)
@@ -145,10 +142,6 @@ def add_hidden_set(layout: Layout, source: str | Path, name: str = "real", publi
             (tmp / "splits" / f"{split}.txt").write_text("".join(f"{n}\n" for n in members))
         write_manifest(tmp, build_manifest(tmp))
         _fsync_tree(tmp)
-        os.rename(tmp, target)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
     for path, seq in zip(files, names):
         pins_all["sequences"][seq] = {"scored": file_scored_digests(target / f"{seq}.h5"), "sha256": digests[path]}
     write_text(layout.pins, json.dumps(pins_all, indent=1, sort_keys=True) + "\n")
@@ -211,46 +204,45 @@ def export_inputs(layout: Layout, out: str | Path, progress: Callable[[], None] 
     """Write the participants' inputs of every hidden sequence (of every hidden set: the simulated one's and, e.g.,
     the real captures' `seq_real_0000`, ...) to the new directory `out`: one inputs file per sequence
     (`write_inputs_file`), splits/challenge.txt listing them, and digests.json ({file: sha256}). Built in a
-    temporary directory beside `out` and renamed when complete: `out` appears whole or not at all."""
-    from dsr_bench.dataset.manifest import file_sha256
+    temporary directory beside `out` and renamed when complete (`atomic_directory`): `out` appears whole or not at
+    all."""
+    from dsr_bench.atomic import atomic_directory
 
     out = Path(out)
     if out.exists():
         raise UserError(f"{out} exists; give a new directory to export the inputs into (or delete it)")
-    sources = {n: hset.directory / f"{n}.h5" for hset in hidden_sets(layout, open_challenge(layout.root)[1])
-               for n in hset.sequences}
-    names = list(sources)
     out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.parent / f".{out.name}.tmp-{secrets.token_hex(6)}"
-    tmp.mkdir()
-    try:
-        digests = {}
-        for name in names:
-            write_inputs_file(sources[name], tmp / f"{name}.h5")
-            digests[f"{name}.h5"] = file_sha256(tmp / f"{name}.h5")
-            if progress:
-                progress()
-        (tmp / "splits").mkdir()
-        (tmp / "splits" / f"{INPUTS_SPLIT}.txt").write_text("".join(f"{n}\n" for n in names))
-        (tmp / DIGESTS_NAME).write_text(json.dumps(digests, indent=1, sort_keys=True) + "\n")
-        _fsync_tree(tmp)
-        os.rename(tmp, out)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
+    with atomic_directory(out, fsync=True) as tmp:
+        _write_inputs(layout, tmp, progress)
     return out
 
 
 def refresh_inputs(layout: Layout) -> Path:
     """Write DIR/inputs again (after a hidden set was added): the new inputs are exported beside it and swapped in
-    by two renames (the server finds no inputs for that instant, never a mix)."""
-    fresh = export_inputs(layout, layout.root / f".inputs.new-{secrets.token_hex(6)}")
-    old = layout.root / f".inputs.old-{secrets.token_hex(6)}"
-    if layout.inputs.exists():
-        os.rename(layout.inputs, old)
-    os.rename(fresh, layout.inputs)
-    shutil.rmtree(old, ignore_errors=True)
+    by two renames (`atomic_directory`: the server finds no inputs for that instant, never a mix)."""
+    from dsr_bench.atomic import atomic_directory
+
+    with atomic_directory(layout.inputs, fsync=True) as tmp:
+        _write_inputs(layout, tmp)
     return layout.inputs
+
+
+def _write_inputs(layout: Layout, into: Path, progress: Callable[[], None] | None = None) -> None:
+    """Fill the empty directory `into` with the inputs `export_inputs` describes, flushed to the device."""
+    from dsr_bench.dataset.manifest import file_sha256
+
+    sources = {n: hset.directory / f"{n}.h5" for hset in hidden_sets(layout, open_challenge(layout.root)[1])
+               for n in hset.sequences}
+    digests = {}
+    for name, source in sources.items():
+        write_inputs_file(source, into / f"{name}.h5")
+        digests[f"{name}.h5"] = file_sha256(into / f"{name}.h5")
+        if progress:
+            progress()
+    (into / "splits").mkdir()
+    (into / "splits" / f"{INPUTS_SPLIT}.txt").write_text("".join(f"{n}\n" for n in sources))
+    (into / DIGESTS_NAME).write_text(json.dumps(digests, indent=1, sort_keys=True) + "\n")
+    _fsync_tree(into)
 
 
 def _fsync_tree(root: Path) -> None:
