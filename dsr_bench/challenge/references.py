@@ -76,6 +76,7 @@ def store_reference(layout: Layout, session_factory: sessionmaker, team_id: int,
     submissions/<id>.tar and queue it (its row written last); returns the submission's id."""
     from dsr_bench.atomic import fsync_path
     from dsr_bench.challenge.storage import check_archive
+    from dsr_bench.dataset.manifest import file_sha256
 
     allowed = {f"{name}.h5" for name in all_sequences(config)} | {"meta.json"}
     problems = check_archive(archive, allowed, int(config["max_extracted_bytes"]), float(config["max_ratio"]))
@@ -91,18 +92,12 @@ def store_reference(layout: Layout, session_factory: sessionmaker, team_id: int,
     try:
         with session_factory.begin() as session:
             session.add(Submission(id=sid, team_id=team_id, method=method, phase=None, state="queued",
-                                   created_at=utcnow(), attempts=0, archive_sha256=_sha256(target),
+                                   created_at=utcnow(), attempts=0, archive_sha256=file_sha256(target),
                                    archive_bytes=target.stat().st_size, messages="[]", final=False, rescore=False))
     except BaseException:
         target.unlink(missing_ok=True)
         raise
     return sid
-
-
-def _sha256(path: Path) -> str:
-    from dsr_bench.dataset.manifest import file_sha256
-
-    return file_sha256(path)
 
 
 def add_references(layout: Layout, config: dict, session_factory: sessionmaker, models: Sequence[str],
