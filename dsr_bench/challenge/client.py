@@ -8,7 +8,6 @@ status until it is scored, refused (each problem printed as `dsr-bench evaluate`
 from __future__ import annotations
 
 import json
-import os
 import tarfile
 import tempfile
 import time
@@ -124,46 +123,38 @@ def describe(status: dict, pred_dir: Path) -> list[str]:
 
 def download_inputs(server: str, out: Path, echo: Callable[[str], None]) -> Path:
     """Download the challenge's inputs into the new directory `out`, each file checked against its digest, and
-    write splits/challenge.txt; built in a temporary directory renamed when complete."""
+    write splits/challenge.txt; built in a temporary directory renamed when complete (`atomic_directory`)."""
     import hashlib
-    import secrets
-    import shutil
 
     import httpx
 
+    from dsr_bench.atomic import atomic_directory
     from dsr_bench.challenge.layout import FILE_PATTERN, INPUTS_SPLIT
 
     if out.exists():
         raise UserError(f"{out} exists; give a new directory to download the inputs into")
     server = server.rstrip("/")
-    tmp = out.parent / f".{out.name}.tmp-{secrets.token_hex(6)}"
     out.parent.mkdir(parents=True, exist_ok=True)
-    tmp.mkdir()
-    try:
-        with httpx.Client(timeout=60.0) as client:
-            index = client.get(f"{server}/api/inputs")
-            if index.status_code != 200:
-                raise UserError(f"--server {server}: no inputs ({index.status_code}: {_detail(index)})")
-            files = index.json()["files"]
-            for name, digest in sorted(files.items()):
-                if not FILE_PATTERN.fullmatch(name):
-                    raise UserError(f"--server {server} lists an input named {name[:80]!r}; refusing it")
-                h = hashlib.sha256()
-                with client.stream("GET", f"{server}/api/inputs/{name}") as reply, open(tmp / name, "wb") as f:
-                    if reply.status_code != 200:
-                        raise UserError(f"--server {server}: {name}: {reply.status_code}")
-                    for chunk in reply.iter_bytes(1 << 20):
-                        h.update(chunk)
-                        f.write(chunk)
-                if h.hexdigest() != digest:
-                    raise UserError(f"{name}: its digest differs from the server's list; download again")
-                echo(f"{name}: ok")
+    with atomic_directory(out) as tmp, httpx.Client(timeout=60.0) as client:
+        index = client.get(f"{server}/api/inputs")
+        if index.status_code != 200:
+            raise UserError(f"--server {server}: no inputs ({index.status_code}: {_detail(index)})")
+        files = index.json()["files"]
+        for name, digest in sorted(files.items()):
+            if not FILE_PATTERN.fullmatch(name):
+                raise UserError(f"--server {server} lists an input named {name[:80]!r}; refusing it")
+            h = hashlib.sha256()
+            with client.stream("GET", f"{server}/api/inputs/{name}") as reply, open(tmp / name, "wb") as f:
+                if reply.status_code != 200:
+                    raise UserError(f"--server {server}: {name}: {reply.status_code}")
+                for chunk in reply.iter_bytes(1 << 20):
+                    h.update(chunk)
+                    f.write(chunk)
+            if h.hexdigest() != digest:
+                raise UserError(f"{name}: its digest differs from the server's list; download again")
+            echo(f"{name}: ok")
         (tmp / "splits").mkdir()
         names = sorted(n[:-3] for n in files if n.endswith(".h5"))
         (tmp / "splits" / f"{INPUTS_SPLIT}.txt").write_text("".join(f"{n}\n" for n in names))
         (tmp / "digests.json").write_text(json.dumps(files, indent=1, sort_keys=True) + "\n")
-        os.rename(tmp, out)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
     return out
