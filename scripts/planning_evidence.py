@@ -51,6 +51,8 @@ def main() -> None:
     summary = {"task_set": first["task_set"], "task_checksum": first["task_checksum"],
                "commands": {name: r["command"] for name, r in results.items()},
                "coverage": {name: r["coverage"] for name, r in results.items()},
+               "weights": {name: r["planner"]["weights"]["sha256"] for name, r in results.items()
+                           if (r.get("planner") or {}).get("weights")},  # a learned planner's weights file
                "means": {name: {m: sum(t[m] for t in rows.values()) / len(rows) for m in METRICS}
                          for name, rows in per_task.items()},
                "pairs": {}}
