@@ -29,9 +29,11 @@ from __future__ import annotations
 
 import argparse
 import json
-import subprocess
 import shlex
+import subprocess
 import sys
+from collections.abc import Callable
+from functools import partial
 from pathlib import Path
 
 
@@ -105,50 +107,41 @@ def main() -> None:
         check_writable(args.out, "--out", directory=False)
 
     cli = [sys.executable, "-m", "dsr_bench"]
+
+    def scored(label: str, predict: Callable[[Path], None]) -> dict:
+        """WORK/<label>.json, the results of `predict(WORK/<label>)` evaluated; either one reused when there."""
+        pred, results_file = args.work / label, args.work / f"{label}.json"
+        if not results_file.is_file():
+            if not (pred / "meta.json").is_file():
+                predict(pred)
+            run(*cli, "evaluate", str(pred), "--data", str(args.data), "--out", str(results_file))
+        return json.loads(results_file.read_text())
+
+    def predict_cli(model: str, checkpoint: Path | None) -> Callable[[Path], None]:
+        extra = [] if checkpoint is None else ["--checkpoint", str(checkpoint)]
+        return lambda pred: run(*cli, "predict", "--model", model, *extra, "--data", str(args.data), "--out",
+                                str(pred))
+
     results = {}
     for name in (*REFERENCES, *args.models):
-        pred, scored = args.work / name, args.work / f"{name}.json"
-        if not scored.is_file():
-            extra = [] if name in REFERENCES else ["--checkpoint", str(args.weights / f"{name}.pt")]
-            if not (pred / "meta.json").is_file():
-                run(*cli, "predict", "--model", name, *extra, "--data", str(args.data), "--out", str(pred))
-            run(*cli, "evaluate", str(pred), "--data", str(args.data), "--out", str(scored))
-        results[name] = json.loads(scored.read_text())
+        results[name] = scored(name, predict_cli(name, None if name in REFERENCES else args.weights / f"{name}.pt"))
         if args.leaderboard:
-            run(*cli, "leaderboard", "add", str(scored), "--predictions", str(pred), "--data", str(args.data),
-                "--root", str(args.leaderboard))
+            run(*cli, "leaderboard", "add", str(args.work / f"{name}.json"), "--predictions", str(args.work / name),
+                "--data", str(args.data), "--root", str(args.leaderboard))
     if args.leaderboard:
         run(*cli, "leaderboard", "build", "--root", str(args.leaderboard))
 
     variants = [("dsr", "none"), ("dsr", "nowarp"), ("nowarp", "none")] if args.history_variants else []
     for name, history in variants:
-        label = f"{name}-history-{history}"
-        pred, scored = args.work / label, args.work / f"{label}.json"
-        if not scored.is_file():
-            if not (pred / "meta.json").is_file():
-                predict_with_history(args.weights / f"{name}.pt", name, history, args.data, pred)
-            run(*cli, "evaluate", str(pred), "--data", str(args.data), "--out", str(scored))
-        results[label] = json.loads(scored.read_text())
+        results[f"{name}-history-{history}"] = scored(
+            f"{name}-history-{history}",
+            partial(predict_with_history, args.weights / f"{name}.pt", name, history, args.data))
     for label in args.controls:
-        pred, scored = args.work / label, args.work / f"{label}.json"
-        if not scored.is_file():
-            model = torch_config(args.weights / f"{label}.pt")["name"]
-            if not (pred / "meta.json").is_file():
-                run(*cli, "predict", "--model", model, "--checkpoint", str(args.weights / f"{label}.pt"),
-                    "--data", str(args.data), "--out", str(pred))
-            run(*cli, "evaluate", str(pred), "--data", str(args.data), "--out", str(scored))
-        results[label] = json.loads(scored.read_text())
+        weights = args.weights / f"{label}.pt"
+        results[label] = scored(label, lambda pred, w=weights: predict_cli(torch_config(w)["name"], w)(pred))
 
-    against = {}
-    for name in args.models if args.against else ():
-        label = f"against-{name}"
-        pred, scored = args.work / label, args.work / f"{label}.json"
-        if not scored.is_file():
-            if not (pred / "meta.json").is_file():
-                run(*cli, "predict", "--model", name, "--checkpoint", str(args.against / f"{name}.pt"),
-                    "--data", str(args.data), "--out", str(pred))
-            run(*cli, "evaluate", str(pred), "--data", str(args.data), "--out", str(scored))
-        against[name] = json.loads(scored.read_text())
+    against = {name: scored(f"against-{name}", predict_cli(name, args.against / f"{name}.pt"))
+               for name in (args.models if args.against else ())}
 
     per_seq = {name: r["per_sequence"] for name, r in results.items()}
     summary = {"command": shlex.join(["python", "scripts/cpu_track_evidence.py", *sys.argv[1:]]),
