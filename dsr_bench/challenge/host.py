@@ -231,7 +231,7 @@ def _write_inputs(layout: Layout, into: Path, progress: Callable[[], None] | Non
     """Fill the empty directory `into` with the inputs `export_inputs` describes, flushed to the device."""
     from dsr_bench.dataset.manifest import file_sha256
 
-    sources = {n: hset.directory / f"{n}.h5" for hset in hidden_sets(layout, open_challenge(layout.root)[1])
+    sources = {n: layout.hidden_set(hset.name) / f"{n}.h5" for hset in hidden_sets(open_challenge(layout.root)[1])
                for n in hset.sequences}
     digests = {}
     for name, source in sources.items():

@@ -102,11 +102,10 @@ class Layout:
 
 @dataclass(frozen=True)
 class HiddenSet:
-    """One hidden set of a challenge: its name, dataset directory, sequence names and their public and private
-    parts, and where its sequences come from ("simulated", "annotated")."""
+    """One hidden set of a challenge: its name, sequence names and their public and private parts, and where its
+    sequences come from ("simulated", "annotated"); its dataset directory is `Layout.hidden_set(name)`."""
 
     name: str
-    directory: Path
     sequences: tuple[str, ...]
     public: tuple[str, ...]
     private: tuple[str, ...]
@@ -121,13 +120,13 @@ class HiddenSet:
         return part if self.name == SIMULATED else f"{self.name}-{part}"
 
 
-def hidden_sets(layout: Layout, config: dict) -> list[HiddenSet]:
-    """The challenge's hidden sets: the simulated one first, then the others by name."""
-    sets = [HiddenSet(SIMULATED, layout.hidden, tuple(config["sequences"]), tuple(config["public"]),
-                      tuple(config["private"]), "simulated")]
+def hidden_sets(config: dict) -> list[HiddenSet]:
+    """The challenge's hidden sets (from its configuration): the simulated one first, then the others by name."""
+    sets = [HiddenSet(SIMULATED, tuple(config["sequences"]), tuple(config["public"]), tuple(config["private"]),
+                      "simulated")]
     for name, entry in sorted((config.get("hidden_sets") or {}).items()):
-        sets.append(HiddenSet(name, layout.hidden_set(name), tuple(entry["sequences"]), tuple(entry["public"]),
-                              tuple(entry["private"]), str(entry.get("source", ""))))
+        sets.append(HiddenSet(name, tuple(entry["sequences"]), tuple(entry["public"]), tuple(entry["private"]),
+                              str(entry.get("source", ""))))
     return sets
 
 

@@ -171,10 +171,10 @@ def leaderboard(session: Session, config: dict) -> dict[str, Any]:
     metric), and once revealed the final ranking on the private part; the same per further hidden set (real
     captures) under "hidden_sets"; and the reference rows the server scored on each set under
     "hidden_references" ({set: {"public": {track: rows}, and once revealed "private"}})."""
-    from dsr_bench.challenge.layout import HiddenSet, Layout, hidden_sets
+    from dsr_bench.challenge.layout import hidden_sets
 
     reveal = bool(config.get("reveal_private"))
-    sets: list[HiddenSet] = hidden_sets(Layout(Path()), config)  # (their names and parts; no directory is read)
+    sets = hidden_sets(config)
     out: dict[str, Any] = {"rank_by": config["rank_by"], "tracks": public_rows(session, config),
                            "private_revealed": reveal,
                            "phases": [{"name": p.name, "start": f"{p.starts_at:%Y-%m-%dT%H:%M:%SZ}",

@@ -130,9 +130,10 @@ def evaluate_submission(layout: Layout, config: dict, pins: dict, sid: str) -> O
     layout.work.mkdir(parents=True, exist_ok=True)
     hide = {str(work.resolve()) + "/all/": "", str(work.resolve()): "<submission>", str(work) + "/all/": "",
             str(work): "<submission>", str(layout.root.resolve()): "<challenge>", str(layout.root): "<challenge>"}
-    sets = hidden_sets(layout, config)
+    sets = hidden_sets(config)
     for hset in sets:
-        hide = {str(hset.directory.resolve()): "<hidden>", str(hset.directory): "<hidden>", **hide}
+        where = layout.hidden_set(hset.name)
+        hide = {str(where.resolve()): "<hidden>", str(where): "<hidden>", **hide}
     try:
         work.mkdir(mode=0o700)
         allowed = {f"{n}.h5" for n in all_sequences(config)} | {META_NAME}
@@ -157,7 +158,7 @@ def evaluate_submission(layout: Layout, config: dict, pins: dict, sid: str) -> O
                         os.link(work / "all" / f"{name}.h5", part_dir / f"{name}.h5")
                 if (work / "all" / META_NAME).exists():
                     os.link(work / "all" / META_NAME, part_dir / META_NAME)
-                evaluation = evaluate(part_dir, hset.directory, part, workers=1)
+                evaluation = evaluate(part_dir, layout.hidden_set(hset.name), part, workers=1)
                 messages += [line for where, problem in evaluation.problems
                              if (line := _sanitize(f"{where}: {problem}" if where else problem, hide)) not in messages]
                 if evaluation.results is not None:
