@@ -172,7 +172,9 @@ def generate_plan_tasks(
 
 
 def plan(
-    model: str = typer.Option(..., "--model", help="random | oracle | dsr | single | nowarp | 3dflow"),
+    model: str = typer.Option(..., "--model", help="random | oracle | dsr | single | nowarp | 3dflow, or learned "
+                              "models separated by commas (3dflow,single,dsr): an ensemble moving the first's "
+                              "objects by the mean of their motions."),
     tasks: str = typer.Option("plan-novel-test", "--tasks", help="Task directory, or a task set's name "
                               "(data/<name>)."),
     out: Path = typer.Option(..., "--out", "-o", help="Directory for the plan files and results.json."),

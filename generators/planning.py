@@ -306,18 +306,13 @@ def plan_tasks(model: str, tasks: str, out: Path, candidates: int, workers: int 
 
     from dsr_bench.atomic import write_text
     from dsr_bench.parallel import run_in_order
-    from dsr_bench.planning.planners import PLANNER_NAMES, make_planner
+    from dsr_bench.planning.planners import make_planner, planner_members
     from dsr_bench.planning.protocol import DEFAULT_BATCH
     from dsr_bench.planning.results import build_results
     from dsr_bench.planning.verify import verify_tasks
     from dsr_bench.atomic import check_writable
 
-    if model not in PLANNER_NAMES:
-        from dsr_bench.models.predictors import IMAGE_MODELS
-
-        why = (" (the 2D track's models predict image flow, not the 3D masks a plan is scored on)"
-               if model in IMAGE_MODELS else "")
-        raise UserError(f"--model {model!r}: choose one of {', '.join(PLANNER_NAMES)}{why}")
+    planner_members(model, checkpoint)  # a one-line error for a name that is not a planner, before anything runs
     if candidates < 1:
         raise UserError(f"--candidates {candidates}: must be at least 1")
     if workers < 1:

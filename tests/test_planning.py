@@ -227,6 +227,14 @@ def test_errors_of_the_commands_are_one_line_with_exit_2(tmp_path, capsys):
     assert "choose one of random, oracle" in capsys.readouterr().err
     assert main(["plan", "--model", "se3net", "--tasks", str(tmp_path), "--out", str(tmp_path / "o")]) == 2
     assert "predict image flow, not the 3D masks" in capsys.readouterr().err
+    for model, words in (("3dflow,random", "'random' is not a planner"), ("3dflow,3dflow", "named twice"),
+                         ("3dflow,gtwarp", "gtwarp needs ground-truth flow"), ("3dflow,se3net", "predict image")):
+        assert main(["plan", "--model", model, "--tasks", str(tmp_path), "--out", str(tmp_path / "o")]) == 2
+        err = capsys.readouterr().err
+        assert words in err and err.count("\n") == 1, model
+    assert main(["plan", "--model", "3dflow,single", "--checkpoint", str(tmp_path / "c.pt"), "--tasks", str(tmp_path),
+                 "--out", str(tmp_path / "o")]) == 2
+    assert "an ensemble (--model 3dflow,single) plans with each model's shipped weights" in capsys.readouterr().err
     assert main(["generate-plan-tasks", "--tasks", "nosuch", "--out", str(tmp_path)]) == 2
     assert "unknown task set 'nosuch'" in capsys.readouterr().err
 
@@ -386,3 +394,42 @@ def test_batched_candidates_match_the_networks_forward_pass():
             torch.testing.assert_close(motion[i: i + 1], out["motion"], rtol=1e-4, atol=1e-4)
     assert np.array_equal(labels, coarse.unpool_mask(slot_labels(out["mask"])[0].numpy()))
     assert model.predict(actions).shape == (3,) + GRID_SHAPE
+
+
+def test_an_ensemble_moves_the_first_models_objects_by_the_mean_motion():
+    """`3dflow,single,dsr`: the first model's labels, each voxel moved by the mean of the three models' flows at it
+    (checked against moving them by hand), each model carrying its own history; one member twice is that member."""
+    pytest.importorskip("torch")
+    from dsr_bench.models.predictors import load_predictor, shipped_weights
+    from dsr_bench.planning.learned import BatchedModel, MotionEnsemble, moved_labels
+    from dsr_bench.planning.planners import make_planner
+
+    if any(shipped_weights(m) is None for m in ("3dflow", "single", "dsr")):
+        pytest.skip("no shipped weights")
+    tsdf = np.ones(GRID_SHAPE, np.float32)
+    tsdf[40:60, 40:60, :8] = -0.5
+    tsdf[80:96, 70:90, :6] = -0.5
+    actions = np.array([[0, 50, 30], [3, 20, 90], [6, 64, 64]], np.int64)
+    planner = make_planner("3dflow,single,dsr", masks="observed")
+    assert planner.name == "mean(3dflow-cpu, single-cpu, dsr-cpu)+observed" and len(planner.weights) == 3
+    alone = [BatchedModel(load_predictor(m), masks) for m, masks in (("3dflow", "observed"), ("single", "model"),
+                                                                     ("dsr", "model"))]
+    for step in range(2):  # the second step runs on the histories the executed push left
+        labels = planner.observe(tsdf)
+        for model in alone:
+            model.observe(tsdf)
+        assert np.array_equal(labels, alone[0]._labels)
+        v = np.argwhere(labels > 0)
+        flows = [model.motion_at(actions, v) for model in alone]
+        assert max(float(np.abs(a - b).max()) for a, b in zip(flows, flows[1:])) > 0.1  # the members differ
+        expected = moved_labels(labels, (flows[0] + flows[1] + flows[2]) / np.float32(3), v)
+        got = planner.predict_labels(actions)
+        assert all(np.array_equal(a.dense(), b.dense()) for a, b in zip(got, expected)), step
+        planner.executed(actions[step])
+        for model in alone:
+            model.executed(actions[step])
+    twice = MotionEnsemble([BatchedModel(load_predictor("3dflow")), BatchedModel(load_predictor("3dflow"))])
+    one = BatchedModel(load_predictor("3dflow"))
+    twice.observe(tsdf), one.observe(tsdf)
+    assert all(np.array_equal(a.dense(), b.dense()) for a, b in zip(twice.predict_labels(actions),
+                                                                     one.predict_labels(actions)))

@@ -128,17 +128,24 @@ class BatchedModel:
                 out.append(self.model.motion_of(rep, mask, maps[part]))
         return torch.cat(out)
 
-    def predict_labels(self, actions: np.ndarray) -> list[SparseLabels]:
-        """Candidate actions (B, 3) -> predicted next masks as `SparseLabels` (see the module doc)."""
+    def motion_at(self, actions: np.ndarray, voxels: np.ndarray) -> np.ndarray:
+        """Candidate actions (B, 3) -> the model's flow (B, 3, M) float32 in benchmark voxels (dy, dx, dz) at
+        `voxels` (M, 3), indices on the benchmark grid (a coarse model's flow is read at the coarse voxel holding
+        each and scaled by its factor)."""
         motion = self.motion(actions).cpu().numpy()  # (B, 3, *grid) model voxels
-        v = self._voxels
-        assert v is not None and self._labels is not None, "observe(tsdf) first"
+        v = voxels
         if self.factor == 1:
             at = motion[:, :, v[:, 0], v[:, 1], v[:, 2]]
         else:
             c = v // self.factor
             at = motion[:, :, c[:, 0], c[:, 1], c[:, 2]] * np.float32(self.factor)
-        return moved_labels(self._labels, at.astype(np.float32), v)
+        return at.astype(np.float32)
+
+    def predict_labels(self, actions: np.ndarray) -> list[SparseLabels]:
+        """Candidate actions (B, 3) -> predicted next masks as `SparseLabels` (see the module doc)."""
+        v = self._voxels
+        assert v is not None and self._labels is not None, "observe(tsdf) first"
+        return moved_labels(self._labels, self.motion_at(actions, v), v)
 
     def predict(self, actions: np.ndarray) -> np.ndarray:
         """Candidate actions (B, 3) -> predicted next masks (B, Y, X, Z) uint8 (see the module doc)."""
@@ -149,3 +156,45 @@ class BatchedModel:
         """Carry the history: `DSRNet.next_state` of this step's outputs for the executed action."""
         outputs = {"representation": self._rep, "mask": self._mask, "motion": self.motion(np.asarray(action)[None])}
         self.state = self.model.next_state(outputs)
+
+
+class MotionEnsemble:
+    """Several models against one state, planning with the mean of their motions (an ensemble of learned
+    dynamics: the members' independent errors partly cancel).
+
+    The labels are the first member's (its masks, or the observed objects given its slots: `BatchedModel`), each
+    voxel moved by the mean over the members of their flow at it (`BatchedModel.motion_at`, benchmark voxels);
+    every member runs its own network on the observation and carries its own history."""
+
+    def __init__(self, models: list[BatchedModel]):
+        if len(models) < 2:
+            raise ValueError("an ensemble needs at least two models")
+        self.models = models
+
+    def reset(self) -> None:
+        for model in self.models:
+            model.reset()
+
+    def observe(self, tsdf: np.ndarray) -> np.ndarray:
+        """TSDF (Y, X, Z) -> the first member's labels (Y, X, Z) uint8; every member observes."""
+        labels = self.models[0].observe(tsdf)
+        for model in self.models[1:]:
+            model.observe(tsdf)
+        return labels
+
+    def predict_labels(self, actions: np.ndarray) -> list[SparseLabels]:
+        """Candidate actions (B, 3) -> the first member's labels moved by the members' mean flow, as `SparseLabels`."""
+        first = self.models[0]
+        v, labels = first._voxels, first._labels
+        assert v is not None and labels is not None, "observe(tsdf) first"
+        flow = np.mean([model.motion_at(actions, v) for model in self.models], axis=0, dtype=np.float32)
+        return moved_labels(labels, np.asarray(flow), v)
+
+    def predict(self, actions: np.ndarray) -> np.ndarray:
+        """Candidate actions (B, 3) -> predicted next masks (B, Y, X, Z) uint8."""
+        return np.stack([s.dense() for s in self.predict_labels(actions)])
+
+    def executed(self, action: np.ndarray) -> None:
+        """Carry each member's history (`BatchedModel.executed`)."""
+        for model in self.models:
+            model.executed(action)
