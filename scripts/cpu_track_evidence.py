@@ -122,9 +122,13 @@ def main() -> None:
         return lambda pred: run(*cli, "predict", "--model", model, *extra, "--data", str(args.data), "--out",
                                 str(pred))
 
+    from dsr_bench.models.predictors import SHIPPED_WEIGHTS
+
+    shipped = args.weights.resolve() == SHIPPED_WEIGHTS.resolve()  # predicted as users do: no --checkpoint
     results = {}
     for name in (*REFERENCES, *args.models):
-        results[name] = scored(name, predict_cli(name, None if name in REFERENCES else args.weights / f"{name}.pt"))
+        checkpoint = None if name in REFERENCES or shipped else args.weights / f"{name}.pt"
+        results[name] = scored(name, predict_cli(name, checkpoint))
         if args.leaderboard:
             run(*cli, "leaderboard", "add", str(args.work / f"{name}.json"), "--predictions", str(args.work / name),
                 "--data", str(args.data), "--root", str(args.leaderboard))

@@ -17,9 +17,9 @@ One weights format (`WEIGHTS_FORMAT`, version `WEIGHTS_VERSION`): a plain dict, 
 
 Version 1, the files written before this format, is still read: "dsr-bench-checkpoint" (last.pt),
 "dsr-bench-cpu-weights", "dsr-bench-cpu-weights-stage1", "dsr-bench-image-weights" (their model type is
-their config's name, their role is what the format said). The shipped CPU-track weights are version-1
-files and stay byte for byte as they are: their SHA-256 is recorded in the leaderboard's entries and
-docs/models.md. The authors' released files are another layout (`models.official_weights`).
+their config's name, their role is what the format said). The shipped CPU-track weights stay byte for byte
+as they were written (3DFlow's and the 2D track's are version-1 files): their SHA-256 is recorded in the
+leaderboard's entries and docs/models.md. The authors' released files are another layout (`models.official_weights`).
 
 Also the pieces every user of a checkpoint shares: `torch_device` (a --device option checked),
 `unwrap` (the network inside DDP and torch.compile wrappers) and the RNG states that make a resumed
