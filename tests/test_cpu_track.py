@@ -252,11 +252,13 @@ def test_a_finished_run_is_continued_in_chunks_from_its_weights_file(tmp_path, m
     assert any(not torch.equal(v, after["model"][k]) for k, v in before["model"].items()
                if v.is_floating_point() and "running" not in k)  # trained on, not a copy
     assert not (tmp_path / "3dflow-more.stage1.pt").exists()
-    # a second chunk, written in place over the file it continues
+    assert chunk["lr"] == 5e-4  # stage 2's rate
+    # a second chunk at a rate of its own (a cooling chunk), written in place over the file it continues
     assert main(["train", "--model", "3dflow", "--out", str(more), "--init", str(more), "--multi-batches", "1",
-                 *common]) == 0
+                 "--multi-lr", "1e-4", *common]) == 0
     again = torch.load(more, weights_only=True)
     assert [c["from"] for c in again["stages"]["continued"]] == ["3dflow.pt", "3dflow-more.pt"]
+    assert [c["lr"] for c in again["stages"]["continued"]] == [5e-4, 1e-4]
     assert again["recipe"]["init"] == str(more)
 
 
@@ -265,6 +267,8 @@ def test_a_finished_run_is_continued_in_chunks_from_its_weights_file(tmp_path, m
     (["--init", "dsr.pt"], "holds a 'dsr' model, not 'nowarp'"),  # a finished run continues only its own model
     (["--init", "dsr.stage1.pt", "--lr", "0.01"], "other settings (lr)"),
     (["--init", "dsr.stage1.pt", "--multi-batches", "0"], "give --multi-batches"),
+    (["--multi-lr", "0"], "--multi-lr 0.0: a learning rate must be a finite number above 0"),
+    (["--multi-lr", "nan"], "--multi-lr nan: a learning rate must be a finite number above 0"),
 ])
 def test_init_errors(tmp_path, monkeypatch, capsys, extra, message):
     monkeypatch.setenv("DSR_BENCH_CACHE", str(tmp_path / "cache"))

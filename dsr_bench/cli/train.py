@@ -60,6 +60,9 @@ def train(
                                                  "2000)."),
     multi_batches: int = typer.Option(300, "--multi-batches", help="--track cpu: stage 2 batches of --window "
                                       "steps (models without history: x window single-step batches)."),
+    multi_lr: Optional[float] = typer.Option(None, "--multi-lr", help="--track cpu: stage 2's learning rate "
+                                             "(default 5e-4, halved at 50% and 75% of its batches), also a "
+                                             "continued chunk's (--init a finished run)."),
     same_windows: bool = typer.Option(False, "--same-windows", help="--track cpu, single and 3dflow: stage 2 on the "
                                       "history models' --window-step windows (zero state) instead of single steps."),
     quiet: bool = typer.Option(False, "--quiet", help="No progress bar."),
@@ -71,7 +74,7 @@ def train(
     if kind == registry.IMAGE:
         given = [flag for flag, value in (("--stage", stage), ("--init", init), ("--resume", resume),
                                           ("--window", window), ("--val-split", val_split), ("--epochs", epochs),
-                                          ("--epoch-samples", epoch_samples))
+                                          ("--epoch-samples", epoch_samples), ("--multi-lr", multi_lr))
                  if value is not None]
         if given:
             raise UserError(f"{given[0]} is not an option of the 2D track's models (single-step, one stage); drop it")
@@ -84,10 +87,13 @@ def train(
         if epoch_samples is not None:
             raise UserError("--epoch-samples is an option of the full track (its recipe counts batches); drop it")
         _train_cpu(model, stage, data, out, split, batch_size, lr, window, seed, workers, bn_recalibration,
-                   3000 if single_batches is None else single_batches, multi_batches, init, same_windows, quiet)
+                   3000 if single_batches is None else single_batches, multi_batches, multi_lr, init, same_windows,
+                   quiet)
         return
     if track != "full":
         raise UserError(f"--track {track!r}: choose full or cpu")
+    if multi_lr is not None:
+        raise UserError("--multi-lr is the CPU track's stage-2 rate (--track cpu); the full track's is --lr")
     # TrainConfig checks its own values (--stage, --max-steps, --max-minutes, --workers, --resume with --init)
     config = TrainConfig(model_name=model, stage_name=stage or "", data=data, out=out, split=split, val_split=val_split,
                          epochs=epochs, epoch_samples=epoch_samples, batch_size=batch_size, lr=lr, window=window,
@@ -104,7 +110,8 @@ def train(
 
 def _train_cpu(model: str, stage: str | None, data: Path, out: Path, split: str | None, batch_size: int | None,
                lr: float | None, window: int | None, seed: int, workers: int, bn_recalibration: int,
-               single_batches: int, multi_batches: int, init: Path | None, same_windows: bool, quiet: bool) -> None:
+               single_batches: int, multi_batches: int, multi_lr: float | None, init: Path | None, same_windows: bool,
+               quiet: bool) -> None:
     """`--track cpu`: the CPU track's recipe (`models.training.cpu_track`), one weights file (and its
     stage-1 weights beside it); --init: stage 2 from another run's stage-1 weights."""
     from dsr_bench.errors import UserError
@@ -115,8 +122,8 @@ def _train_cpu(model: str, stage: str | None, data: Path, out: Path, split: str 
     if out.is_dir():
         raise UserError(f"--out {out} is a directory; --track cpu writes one weights file "
                         f"(e.g. {out / (model + '.pt')})")
-    overrides: dict[str, Any] = {k: v for k, v in {"batch_size": batch_size, "lr": lr, "window": window}.items()
-                                 if v is not None}
+    overrides: dict[str, Any] = {k: v for k, v in {"batch_size": batch_size, "lr": lr, "multi_lr": multi_lr,
+                                                   "window": window}.items() if v is not None}
     recipe = CpuRecipe(model, single_batches=single_batches, multi_batches=multi_batches, seed=seed,
                        bn_recalibration=bn_recalibration, init=None if init is None else str(init),
                        same_windows=same_windows, **overrides)

@@ -30,6 +30,7 @@ file: role "stage1"), read by `dsr-bench predict --checkpoint` like any checkpoi
 from __future__ import annotations
 
 import dataclasses
+import math
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from functools import partial
@@ -70,6 +71,9 @@ class CpuRecipe:
     def __post_init__(self):
         if min(self.single_batches, self.batch_size, self.window) < 1 or self.multi_batches < 0:
             raise UserError("--single-batches, --batch-size and --window must be at least 1, --multi-batches >= 0")
+        for flag, rate in (("--lr", self.lr), ("--multi-lr", self.multi_lr)):
+            if not (math.isfinite(rate) and rate > 0):
+                raise UserError(f"{flag} {rate}: a learning rate must be a finite number above 0")
         if self.batch_size < 2:
             raise UserError(f"--batch-size {self.batch_size}: the CPU track needs at least 2 (on its grid BatchNorm "
                             "in the SE(3) head sees one voxel per sample, so training statistics need two samples)")
