@@ -314,3 +314,15 @@ def test_predict_uses_the_shipped_weights_without_a_checkpoint(tmp_path):
     meta = json.loads((out / "meta.json").read_text())
     assert meta["weights"]["source"] == "dsr-bench, shipped CPU-track weights"
     assert meta["weights"]["sha256"] == file_sha256(shipped_weights("dsr")) and meta["name"] == "dsr-cpu"
+
+
+@pytest.mark.parametrize("model, track, message", [
+    ("dsr", "full", "--multi-lr is the CPU track's stage-2 rate (--track cpu); the full track's is --lr"),
+    ("se3net", "cpu", "--multi-lr is not an option of the 2D track's models"),
+])
+def test_multi_lr_belongs_to_the_cpu_tracks_voxel_models(tmp_path, capsys, model, track, message):
+    assert main(["train", "--model", model, "--track", track, "--data", str(tmp_path), "--out",
+                 str(tmp_path / "w.pt"), "--multi-lr", "1e-4"]) == 2
+    err = capsys.readouterr().err
+    assert message in err and len(err.strip().splitlines()) == 1
+    assert not (tmp_path / "w.pt").exists()
