@@ -6,9 +6,9 @@
 RUNS_DIR/<model>.pt are `dsr-bench train --track cpu` files. Each is checked (it reads as a weights file,
 `models.training.checkpoints.read_weights`: weights_only=True, role "weights", a CPU-track model of that
 name (for the 2D track's 2dflow, se3net, se3posenet: one on 120 x 160 images), its weights are fp16), its
-provenance is kept (recipe, stage losses, git hash, the data it saw by directory name and split checksum,
-never a local path; --data fills in the training split's checksum where a file lacks it) and it is written
-to dsr_bench/models/weights/cpu-track/<model>.pt; the stage-1 files stay out.
+provenance is kept (recipe, stage losses, git hash, the data it saw by directory name and split checksum, the
+--init it started from by file name: never a local path; --data fills in the training split's checksum where a
+file lacks it) and it is written to dsr_bench/models/weights/cpu-track/<model>.pt; the stage-1 files stay out.
 Prints each file's size and SHA-256 for docs/models.md.
 """
 
@@ -52,6 +52,9 @@ def main() -> None:
         if not data.get("split_checksum") and args.data:
             data["split_checksum"] = trained_split_checksum(args.data, data.get("split"))
         payload["data"] = data
+        recipe = payload.get("recipe")
+        if isinstance(recipe, dict) and recipe.get("init"):
+            recipe["init"] = Path(str(recipe["init"])).name  # a file name, not a path of this machine
         buffer = io.BytesIO()
         torch.save(payload, buffer)
         target = SHIPPED_WEIGHTS / f"{model}.pt"

@@ -141,6 +141,14 @@ def _stage(net, data, batches: int, window: int, recipe: CpuRecipe, lr: float, s
     return {**record, "window": window}
 
 
+def _recorded(recipe: CpuRecipe) -> dict:
+    """The recipe as a weights file records it: --init by its file name, never a path of this machine."""
+    record = dataclasses.asdict(recipe)
+    if record["init"] is not None:
+        record["init"] = Path(record["init"]).name
+    return record
+
+
 def stage1_path(out: Path) -> Path:
     """Where a run writing `out` keeps its stage-1 weights."""
     return Path(out).with_suffix(".stage1.pt")
@@ -230,7 +238,7 @@ def train_cpu(recipe: CpuRecipe, data_dir: Path, split: str | None, out: Path, w
             stages = {"single": _stage(net, data, recipe.single_batches, 1, recipe, recipe.lr, recipe.seed,
                                        f"{config.name} stage 1", report)}
             save_weights(stage1_path(out), config, net.state_dict(), "stage1", data=provenance,
-                         recipe=dataclasses.asdict(recipe), stages=dict(stages))
+                         recipe=_recorded(recipe), stages=dict(stages))
         else:
             stages = {"single": _load_stage1(net, Path(recipe.init), recipe)}
         if recipe.multi_batches:
@@ -245,5 +253,5 @@ def train_cpu(recipe: CpuRecipe, data_dir: Path, split: str | None, out: Path, w
     net.eval()
     # the training's moving averages, which recalibration replaced, are kept (scripts/batchnorm_modes.py)
     return save_weights(out, config, net.state_dict(), "weights", fp16=True, data=provenance,
-                        recipe=dataclasses.asdict(recipe), stages=stages, bn_recalibration_passes=passes,
+                        recipe=_recorded(recipe), stages=stages, bn_recalibration_passes=passes,
                         bn_moving_averages=half(moving))
