@@ -228,7 +228,8 @@ def test_errors_of_the_commands_are_one_line_with_exit_2(tmp_path, capsys):
     assert main(["plan", "--model", "se3net", "--tasks", str(tmp_path), "--out", str(tmp_path / "o")]) == 2
     assert "predict image flow, not the 3D masks" in capsys.readouterr().err
     for model, words in (("3dflow,random", "'random' is not a planner"), ("3dflow,3dflow", "named twice"),
-                         ("3dflow,gtwarp", "gtwarp needs ground-truth flow"), ("3dflow,se3net", "predict image")):
+                         ("3dflow,gtwarp", "gtwarp needs ground-truth flow"), ("3dflow,se3net", "predict image"),
+                         ("random ", "'random ' is not a planner"), ("3dflow, single", "' single' is not a planner")):
         assert main(["plan", "--model", model, "--tasks", str(tmp_path), "--out", str(tmp_path / "o")]) == 2
         err = capsys.readouterr().err
         assert words in err and err.count("\n") == 1, model

@@ -118,7 +118,7 @@ def planner_members(name: str, checkpoint: Path | None = None) -> list[str]:
     `checkpoint`); a one-line UserError otherwise."""
     from dsr_bench.models.predictors import IMAGE_MODELS, LEARNED_MODELS
 
-    members = [n.strip() for n in name.split(",")]
+    members = name.split(",")
     choose = f"choose one of {', '.join(PLANNER_NAMES)}, or several learned ones separated by commas (an ensemble)"
     for member in members:
         if member in IMAGE_MODELS:
