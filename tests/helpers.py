@@ -1,5 +1,11 @@
 """Plain helpers shared by test modules (fixtures live in conftest.py)."""
 
+import contextlib
+import os
+import shutil
+import subprocess
+import tempfile
+from collections.abc import Iterator
 from pathlib import Path
 
 import h5py
@@ -64,3 +70,43 @@ def pin_split(monkeypatch, data_dir: Path, split: str) -> dict:
     monkeypatch.setattr(splits, "pinned_digests", lambda: pins)
     monkeypatch.setitem(splits.SPLITS, split, splits.Split(**{**spec.__dict__, "pinned_checksum": pin["checksum"]}))
     return pin
+
+
+@contextlib.contextmanager
+def virtual_display(screen: str = "1600x1200x24") -> Iterator[dict[str, str]]:
+    """Start a private Xvfb server with one `screen` (WIDTHxHEIGHTxDEPTH) and yield os.environ with DISPLAY set to
+    it; the server is stopped on exit. The server picks a free display number itself (-displayfd), so parallel
+    test workers never race for one as `xvfb-run -a` can (two workers took the same number and a window opened
+    on no display). Uses $DISPLAY as it is when Xvfb is not installed but a display is; otherwise skips."""
+    import pytest
+
+    xvfb = shutil.which("Xvfb")
+    if xvfb is None:
+        if os.environ.get("DISPLAY"):
+            yield dict(os.environ)
+            return
+        pytest.skip("no display: neither $DISPLAY nor Xvfb is available (install xvfb: scripts/setup.sh)")
+    read_end, write_end = os.pipe()
+    log = tempfile.TemporaryFile()  # a file, not a pipe: a chatty server never blocks on a full pipe
+    server = subprocess.Popen([xvfb, "-displayfd", str(write_end), "-screen", "0", screen, "-nolisten", "tcp"],
+                              pass_fds=(write_end,), stdout=subprocess.DEVNULL, stderr=log)
+    os.close(write_end)
+    try:
+        with os.fdopen(read_end, "rb") as reader:
+            number = reader.readline().strip()  # written once the server accepts connections; empty if it died
+        if not number.isdigit():
+            server.kill()
+            server.wait()
+            log.seek(0)
+            raise RuntimeError(f"Xvfb did not start: {log.read().decode(errors='replace')[-1000:]}")
+        env = {k: v for k, v in os.environ.items() if k not in ("XAUTHORITY", "WAYLAND_DISPLAY")}
+        yield {**env, "DISPLAY": f":{number.decode()}"}
+    finally:
+        if server.poll() is None:
+            server.terminate()
+            try:
+                server.wait(timeout=10)
+            except subprocess.TimeoutExpired:
+                server.kill()
+                server.wait()
+        log.close()

@@ -4,7 +4,6 @@ checks."""
 
 from __future__ import annotations
 
-import os
 import shutil
 import subprocess
 import sys
@@ -23,6 +22,7 @@ from annotator import window as win  # noqa: E402
 from annotator.session import Session  # noqa: E402
 from dsr_bench.errors import UserError  # noqa: E402
 from dsr_bench.geometry import make_camera, pose_to_matrix  # noqa: E402
+from helpers import virtual_display  # noqa: E402
 
 #: The Session methods the window calls (annotator/session.py, see the annotator docs) ...
 SESSION_METHODS = {"poses", "status", "cloud", "go_to", "select", "init_from_picks", "init_from_previous", "nudge",
@@ -695,29 +695,21 @@ def _watchdog(window, timeout: float = 20.0) -> None:
         window.ctl.view.quit = True
 
 
-def _display_command() -> list[str]:
-    if shutil.which("xvfb-run"):
-        return ["xvfb-run", "-a", "-s", "-screen 0 1600x1200x24"]
-    if os.environ.get("DISPLAY"):
-        return []
-    pytest.skip("no display: neither $DISPLAY nor xvfb-run is available (install xvfb: scripts/setup.sh)")
-
-
-def _run_child(prefix: list[str], call: str) -> None:
-    """Run `call` (an expression on this module as `t`, e.g. "t.picker_child('out.npz')") in a fresh Python under
-    the display `prefix` (`_display_command`); fails the test with the child's output when it fails."""
+def _run_child(call: str) -> None:
+    """Run `call` (an expression on this module as `t`, e.g. "t.picker_child('out.npz')") in a fresh Python on a
+    private virtual display (helpers.virtual_display); fails the test with the child's output when it fails."""
     code = (f"import sys; sys.path.insert(0, {str(Path(__file__).parent)!r}); import test_annotator_window as t; "
             + call)
-    env = {**os.environ, "PYTHONPATH": str(Path(__file__).parents[1])}
-    proc = subprocess.run([*prefix, sys.executable, "-c", code], capture_output=True, text=True, timeout=90, env=env,
-                          cwd=str(Path(__file__).parents[1]))
+    with virtual_display("1600x1200x24") as display_env:
+        env = {**display_env, "PYTHONPATH": str(Path(__file__).parents[1])}
+        proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=90, env=env,
+                              cwd=str(Path(__file__).parents[1]))
     assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-3000:]
 
 
 def test_window_renders_and_moves_the_selected_mesh_under_xvfb(capture_dir, tmp_path):
-    prefix = _display_command()
     out = tmp_path / "shots.npz"
-    _run_child(prefix, f"t.display_child({str(capture_dir)!r}, {str(tmp_path / 'work')!r}, {str(out)!r})")
+    _run_child(f"t.display_child({str(capture_dir)!r}, {str(tmp_path / 'work')!r}, {str(out)!r})")
     shots = np.load(out)
     before, after, panel_shot = shots["before"], shots["after"], shots["panel"]
     # objects still unset: no mesh drawn in the selected colour, only the cloud
@@ -790,9 +782,8 @@ def picker_child(out: str) -> None:
 
 
 def test_mesh_pick_window_picks_the_nearest_visible_sample_under_xvfb(tmp_path):
-    prefix = _display_command()
     out = tmp_path / "pick.npz"
-    _run_child(prefix, f"t.picker_child({str(out)!r})")
+    _run_child(f"t.picker_child({str(out)!r})")
     r = np.load(out)
     assert 0.2 < float(r["frac_visible"]) < 0.8  # the far side of the can is hidden by its near side
     assert float(r["gap"]) >= 3  # the click was between samples ...
@@ -845,11 +836,10 @@ def mouse_child(out: str) -> None:
 
 
 def test_pick_window_mouse_rotates_and_shift_click_picks_under_xvfb(tmp_path):
-    prefix = _display_command()
     if shutil.which("xdotool") is None:
         pytest.skip("xdotool is not installed: no real mouse events")
     out = tmp_path / "mouse.npz"
-    _run_child(prefix, f"t.mouse_child({str(out)!r})")
+    _run_child(f"t.mouse_child({str(out)!r})")
     r = np.load(out)
     assert bool(r["rotated"]) and int(r["picked_by_drag"]) == 0  # a plain drag turns the view and picks nothing
     assert int(r["picked"]) == 1  # shift + click on the can's middle picks a sample
@@ -888,11 +878,10 @@ def resize_child(capture_dir: str, work_dir: str, out: str) -> None:
 
 
 def test_the_panel_is_laid_out_again_when_its_window_is_resized_under_xvfb(capture_dir, tmp_path):
-    prefix = _display_command()
     if shutil.which("xdotool") is None:
         pytest.skip("xdotool is not installed: no window to resize from outside")
     out = tmp_path / "resize.npz"
-    _run_child(prefix, f"t.resize_child({str(capture_dir)!r}, {str(tmp_path / 'work')!r}, {str(out)!r})")
+    _run_child(f"t.resize_child({str(capture_dir)!r}, {str(tmp_path / 'work')!r}, {str(out)!r})")
     r = np.load(out)
     selected_rgb = np.round(np.array(images.SELECTED_COLOR) * 255).astype(np.uint8)
     for name in ("larger", "smaller"):

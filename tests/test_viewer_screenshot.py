@@ -1,9 +1,8 @@
 """`dsr-bench view`, as a person sees it: the real rerun viewer renders a recording off-screen (Xvfb, and wgpu on
 Mesa's lavapipe, a CPU Vulkan driver) and writes a screenshot, which must show the scene and the comparison of
-prediction and truth in their colours. Skips, saying which, where xvfb-run, Mesa's Vulkan driver or rerun is missing
-(Debian: `apt-get install xvfb xauth mesa-vulkan-drivers`)."""
+prediction and truth in their colours. Skips, saying which, where Xvfb, Mesa's Vulkan driver or rerun is missing
+(Debian: `apt-get install xvfb mesa-vulkan-drivers`)."""
 
-import os
 import shutil
 import subprocess
 import sys
@@ -20,32 +19,31 @@ from dsr_bench.dataset.sequence import SequenceReader  # noqa: E402
 from dsr_bench.scoring.predictions import write_predictions  # noqa: E402
 from dsr_bench.testing import write_synthetic_sequence  # noqa: E402
 from dsr_bench.viewer import COMPARE_COLORS  # noqa: E402
+from helpers import virtual_display  # noqa: E402
 
 LAVAPIPE = Path("/usr/share/vulkan/icd.d/lvp_icd.x86_64.json")
 WINDOW = (1400, 900)
 
 
-def _tools() -> tuple[str, str]:
-    xvfb = shutil.which("xvfb-run")
-    if xvfb is None:
-        pytest.skip("xvfb-run is not installed (Debian: apt-get install xvfb xauth)")
+def _tools() -> str:
+    if shutil.which("Xvfb") is None:
+        pytest.skip("Xvfb is not installed (Debian: apt-get install xvfb)")
     if not LAVAPIPE.is_file():
         pytest.skip(f"Mesa's lavapipe Vulkan driver is not installed ({LAVAPIPE}; Debian: mesa-vulkan-drivers)")
     local = Path(sys.executable).parent / "rerun"
     rerun = str(local) if local.exists() else shutil.which("rerun")
     if rerun is None:
         pytest.skip("the rerun command-line tool is not installed")
-    return xvfb, rerun
+    return rerun
 
 
 def screenshot(rrd: Path, png: Path, timeout: float = 240.0) -> subprocess.CompletedProcess:
     """Render `rrd` in the native rerun viewer on a virtual display (1400x900 window) and save it as `png`."""
-    xvfb, rerun = _tools()
-    env = {**os.environ, "VK_ICD_FILENAMES": str(LAVAPIPE)}
-    env.pop("DISPLAY", None)
-    env.pop("WAYLAND_DISPLAY", None)
-    cmd = [xvfb, "-a", rerun, str(rrd), "--window-size", f"{WINDOW[0]}x{WINDOW[1]}", "--screenshot-to", str(png)]
-    return subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=timeout)
+    rerun = _tools()
+    cmd = [rerun, str(rrd), "--window-size", f"{WINDOW[0]}x{WINDOW[1]}", "--screenshot-to", str(png)]
+    with virtual_display("1600x1200x24") as display_env:
+        env = {**display_env, "VK_ICD_FILENAMES": str(LAVAPIPE)}
+        return subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=timeout)
 
 
 def _near(pixels: np.ndarray, color: tuple[int, int, int], tol: int = 40) -> int:
