@@ -68,6 +68,9 @@ TASK_SETS: dict[str, TaskSet] = {s.name: s for s in (
     TaskSet("plan-val", "procedural", 50, 72_000,
             "Validation tasks on the training objects, for choosing a planner's settings (never reported as a "
             "result: the novel-object tasks of plan-novel-test are)"),
+    TaskSet("plan-novel-replicate", "procedural-novel", 100, 73_000,
+            "A second 100 novel-object tasks, made as plan-novel-test's, to replicate its results with planners and "
+            "settings fixed before these tasks were made (never used to choose one; docs/planning.md)"),
 )}
 
 
