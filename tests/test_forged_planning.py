@@ -306,3 +306,57 @@ def test_check_results_reports_garbage_without_raising(junk):
 
     problems = check_results(junk)
     assert problems and all(isinstance(p, str) and "\n" not in p for p in problems)
+
+
+def test_planning_evidence_recomputes_a_results_json_with_raised_scores(copy, tmp_path):
+    """scripts/planning_evidence.py reads a planner's scores from its plan files, never from results.json: a
+    results.json whose per-task IoUs and mean were raised is named on stderr and in the summary, and the summary's
+    means and paired differences are the honest run's."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    tasks, plans, results = copy
+    (tmp_path / "P").mkdir()
+    shutil.move(str(plans), tmp_path / "P" / "random")
+    forged = json.loads(json.dumps(results))
+    for row in forged["per_task"].values():
+        row["iou"] = 1.0
+    forged["metrics"]["iou"] = 1.0
+    (tmp_path / "P" / "random" / "results.json").write_text(json.dumps(forged))
+    out = tmp_path / "evidence.json"
+    root = Path(__file__).parents[1]
+    proc = subprocess.run([sys.executable, str(root / "scripts" / "planning_evidence.py"), str(tmp_path / "P"),
+                           "--tasks", str(tasks), "--planners", "random", "--out", str(out)],
+                          capture_output=True, text=True, cwd=root, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    assert "random/results.json differs from its plan files in metrics.iou" in proc.stderr
+    summary = json.loads(out.read_text())
+    honest = [row["iou"] for row in results["per_task"].values()]
+    assert summary["means"]["random"]["iou"] == pytest.approx(sum(honest) / len(honest), abs=1e-12)
+    assert summary["means"]["random"]["iou"] < 1.0
+    assert "metrics.iou" in summary["differed_from_results_json"]["P/random"]
+    start = [row["start_iou"] for row in results["per_task"].values()]
+    assert summary["pairs"]["random - no push"]["iou"]["mean"] == pytest.approx(
+        (sum(honest) - sum(start)) / len(honest), abs=1e-12)
+
+
+def test_planning_evidence_pools_two_task_sets_task_by_task(mini, tmp_path):
+    """Two PLANS_DIRs pool their tasks (named i:set/task): the means are over every task of both."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    tasks, plans, results = mini
+    for d in ("A", "B"):
+        (tmp_path / d).mkdir()
+        shutil.copytree(plans, tmp_path / d / "random")
+    out = tmp_path / "pooled.json"
+    root = Path(__file__).parents[1]
+    proc = subprocess.run([sys.executable, str(root / "scripts" / "planning_evidence.py"), str(tmp_path / "A"),
+                           str(tmp_path / "B"), "--tasks", str(tasks), str(tasks), "--planners", "random",
+                           "--out", str(out)], capture_output=True, text=True, cwd=root, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    summary = json.loads(out.read_text())
+    assert summary["pairs"]["random - no push"]["iou"]["n"] == 2 * len(results["per_task"])
+    assert summary["means"]["random"]["iou"] == pytest.approx(results["metrics"]["iou"], abs=1e-12)
