@@ -98,7 +98,8 @@ def main() -> None:
             subprocess.run([sys.executable, "-m", "dsr_bench", "leaderboard", "add",
                             str(args.plans[0] / name / "results.json"), "--plans", str(args.plans[0] / name), *extra,
                             "--root", str(args.leaderboard)], check=True)
-    summary = {"command": shlex.join(["python", *sys.argv]), "task_set": " + ".join(checksums), "task_checksum": " + ".join(checksums.values()),
+    summary = {"command": shlex.join(["python", *sys.argv]), "task_set": " + ".join(checksums),
+               "task_checksum": " + ".join(checksums.values()),
                "task_sets": checksums, "recomputed": True, "differed_from_results_json": differed,
                "commands": {name: [r["command"] for r in rs] if pooled else rs[0]["command"]
                             for name, rs in runs.items()},
