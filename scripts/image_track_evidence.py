@@ -24,6 +24,7 @@ from __future__ import annotations
 import argparse
 import itertools
 import json
+import shlex
 import subprocess
 import sys
 from pathlib import Path
@@ -74,7 +75,8 @@ def main() -> None:
 
     per_seq = {name: r["per_sequence"] for name, r in results.items()}
     learned = [*args.models, *args.projected]
-    summary = {"data": str(args.data), "split": results["static"]["split"],
+    summary = {"command": shlex.join(["python", "scripts/image_track_evidence.py", *sys.argv[1:]]),
+               "data": str(args.data), "split": results["static"]["split"],
                "split_checksum": results["static"]["split_checksum"], "sequences": len(per_seq["static"]),
                "metric": "motion_2d (cm², front-camera object pixels)",
                "means": {name: r["metrics"]["motion_2d"] for name, r in results.items()},
