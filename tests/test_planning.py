@@ -434,3 +434,20 @@ def test_an_ensemble_moves_the_first_models_objects_by_the_mean_motion():
     twice.observe(tsdf), one.observe(tsdf)
     assert all(np.array_equal(a.dense(), b.dense()) for a, b in zip(twice.predict_labels(actions),
                                                                      one.predict_labels(actions)))
+
+
+def test_every_task_set_is_pinned_whole_and_seeded_apart_from_every_split():
+    """Each named task set has a pin of exactly its tasks (task_0000.. in order) and a checksum, and its base
+    seed is its own: no other task set's or benchmark split's, so no task repeats a scene of another set or of a
+    training or test sequence of the same objects."""
+    from dsr_bench.dataset.splits import SPLITS
+    from dsr_bench.planning.tasks import PINS_FILE, TASK_SETS, task_name
+
+    pins = json.loads(PINS_FILE.read_text())["task_sets"]
+    for name, spec in TASK_SETS.items():
+        assert name in pins, f"{name} is not pinned (dsr-bench generate-plan-tasks --tasks {name} --pin)"
+        assert list(pins[name]["tasks"]) == [task_name(i) for i in range(spec.num_tasks)], name
+        assert len(pins[name]["checksum"]) == 64
+    seeds = [s.base_seed for s in TASK_SETS.values()]
+    assert len(set(seeds)) == len(seeds)
+    assert not set(seeds) & {s.base_seed for s in SPLITS.values()}
