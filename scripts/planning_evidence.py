@@ -60,6 +60,12 @@ def recomputed_runs(plans: list[Path], tasks: list[str | None], planners: list[s
             runs[name].append(recomputed)
     if not runs:
         raise SystemExit("no planner's results in every directory; check the PLANS_DIR and --planners")
+    for name, rs in runs.items():  # pooled directories hold one planner under one name: the same weights
+        weights = {json.dumps(weights_sha256((r.get("planner") or {}).get("weights") or {"sha256": None}))
+                   for r in rs}
+        if len(weights) > 1:
+            raise SystemExit(f"error: {name} was run with different weights in {', '.join(map(str, plans))}; pool "
+                             "runs of one planner only")
     checksums = {r["task_set"]: r["task_checksum"] for r in next(iter(runs.values()))}
     return runs, differed, checksums
 

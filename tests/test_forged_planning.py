@@ -360,3 +360,25 @@ def test_planning_evidence_pools_two_task_sets_task_by_task(mini, tmp_path):
     summary = json.loads(out.read_text())
     assert summary["pairs"]["random - no push"]["iou"]["n"] == 2 * len(results["per_task"])
     assert summary["means"]["random"]["iou"] == pytest.approx(results["metrics"]["iou"], abs=1e-12)
+
+
+def test_planning_evidence_refuses_to_pool_one_name_run_with_different_weights(mini, tmp_path):
+    """Pooling is of one planner: two directories whose runs under one name record different weights are
+    refused with one line naming the planner."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    tasks, plans, results = mini
+    for d in ("A", "B"):
+        (tmp_path / d).mkdir()
+        shutil.copytree(plans, tmp_path / d / "random")
+    other = json.loads(json.dumps(results))
+    other["planner"]["weights"] = {"sha256": "0" * 64}  # self-reported: recompute_results keeps it
+    (tmp_path / "B" / "random" / "results.json").write_text(json.dumps(other))
+    root = Path(__file__).parents[1]
+    proc = subprocess.run([sys.executable, str(root / "scripts" / "planning_evidence.py"), str(tmp_path / "A"),
+                           str(tmp_path / "B"), "--tasks", str(tasks), str(tasks), "--planners", "random"],
+                          capture_output=True, text=True, cwd=root, timeout=120)
+    assert proc.returncode != 0
+    assert "random was run with different weights" in proc.stderr.strip().splitlines()[-1]
