@@ -308,14 +308,21 @@ def test_check_results_reports_garbage_without_raising(junk):
     assert problems and all(isinstance(p, str) and "\n" not in p for p in problems)
 
 
-def test_planning_evidence_recomputes_a_results_json_with_raised_scores(copy, tmp_path):
-    """scripts/planning_evidence.py reads a planner's scores from its plan files, never from results.json: a
-    results.json whose per-task IoUs and mean were raised is named on stderr and in the summary, and the summary's
-    means and paired differences are the honest run's."""
+def _evidence(*args: str):
+    """scripts/planning_evidence.py ARGS in a fresh Python: the CompletedProcess (text)."""
     import subprocess
     import sys
     from pathlib import Path
 
+    root = Path(__file__).parents[1]
+    return subprocess.run([sys.executable, str(root / "scripts" / "planning_evidence.py"), *args],
+                          capture_output=True, text=True, cwd=root, timeout=120)
+
+
+def test_planning_evidence_recomputes_a_results_json_with_raised_scores(copy, tmp_path):
+    """scripts/planning_evidence.py reads a planner's scores from its plan files, never from results.json: a
+    results.json whose per-task IoUs and mean were raised is named on stderr and in the summary, and the summary's
+    means and paired differences are the honest run's."""
     tasks, plans, results = copy
     (tmp_path / "P").mkdir()
     shutil.move(str(plans), tmp_path / "P" / "random")
@@ -325,10 +332,7 @@ def test_planning_evidence_recomputes_a_results_json_with_raised_scores(copy, tm
     forged["metrics"]["iou"] = 1.0
     (tmp_path / "P" / "random" / "results.json").write_text(json.dumps(forged))
     out = tmp_path / "evidence.json"
-    root = Path(__file__).parents[1]
-    proc = subprocess.run([sys.executable, str(root / "scripts" / "planning_evidence.py"), str(tmp_path / "P"),
-                           "--tasks", str(tasks), "--planners", "random", "--out", str(out)],
-                          capture_output=True, text=True, cwd=root, timeout=120)
+    proc = _evidence(str(tmp_path / "P"), "--tasks", str(tasks), "--planners", "random", "--out", str(out))
     assert proc.returncode == 0, proc.stderr
     assert "random/results.json differs from its plan files in metrics.iou" in proc.stderr
     summary = json.loads(out.read_text())
@@ -343,19 +347,13 @@ def test_planning_evidence_recomputes_a_results_json_with_raised_scores(copy, tm
 
 def test_planning_evidence_pools_two_task_sets_task_by_task(mini, tmp_path):
     """Two PLANS_DIRs pool their tasks (named i:set/task): the means are over every task of both."""
-    import subprocess
-    import sys
-    from pathlib import Path
-
     tasks, plans, results = mini
     for d in ("A", "B"):
         (tmp_path / d).mkdir()
         shutil.copytree(plans, tmp_path / d / "random")
     out = tmp_path / "pooled.json"
-    root = Path(__file__).parents[1]
-    proc = subprocess.run([sys.executable, str(root / "scripts" / "planning_evidence.py"), str(tmp_path / "A"),
-                           str(tmp_path / "B"), "--tasks", str(tasks), str(tasks), "--planners", "random",
-                           "--out", str(out)], capture_output=True, text=True, cwd=root, timeout=120)
+    proc = _evidence(str(tmp_path / "A"), str(tmp_path / "B"), "--tasks", str(tasks), str(tasks), "--planners",
+                     "random", "--out", str(out))
     assert proc.returncode == 0, proc.stderr
     summary = json.loads(out.read_text())
     assert summary["pairs"]["random - no push"]["iou"]["n"] == 2 * len(results["per_task"])
@@ -365,10 +363,6 @@ def test_planning_evidence_pools_two_task_sets_task_by_task(mini, tmp_path):
 def test_planning_evidence_refuses_to_pool_one_name_run_with_different_weights(mini, tmp_path):
     """Pooling is of one planner: two directories whose runs under one name record different weights are
     refused with one line naming the planner."""
-    import subprocess
-    import sys
-    from pathlib import Path
-
     tasks, plans, results = mini
     for d in ("A", "B"):
         (tmp_path / d).mkdir()
@@ -376,9 +370,7 @@ def test_planning_evidence_refuses_to_pool_one_name_run_with_different_weights(m
     other = json.loads(json.dumps(results))
     other["planner"]["weights"] = {"sha256": "0" * 64}  # self-reported: recompute_results keeps it
     (tmp_path / "B" / "random" / "results.json").write_text(json.dumps(other))
-    root = Path(__file__).parents[1]
-    proc = subprocess.run([sys.executable, str(root / "scripts" / "planning_evidence.py"), str(tmp_path / "A"),
-                           str(tmp_path / "B"), "--tasks", str(tasks), str(tasks), "--planners", "random"],
-                          capture_output=True, text=True, cwd=root, timeout=120)
+    proc = _evidence(str(tmp_path / "A"), str(tmp_path / "B"), "--tasks", str(tasks), str(tasks), "--planners",
+                     "random")
     assert proc.returncode != 0
     assert "random was run with different weights" in proc.stderr.strip().splitlines()[-1]
