@@ -140,7 +140,8 @@ def generate_captures(
 def generate_plan_tasks(
     tasks: str = typer.Option("plan-novel-test", "--tasks",
                               help="Task set: plan-novel-test (100) | plan-novel-mini (4) | plan-val (50, "
-                              "training objects) | plan-novel-replicate (100, a second novel-object set)."),
+                              "training objects) | plan-novel-replicate (100, a second novel-object set) | "
+                              "plan-novel-confirm (1,000, a third)."),
     out: Path | None = typer.Option(None, "--out", "-o", help="Directory to write (default data/<task set>)."),
     workers: int = typer.Option(1, "--workers", "-w", help="Parallel worker processes."),
     num_tasks: int | None = typer.Option(None, "--num-tasks", "-n", help="Only the first N tasks of the set."),
