@@ -12,9 +12,11 @@ import typer
 from dsr_bench.engine_options import (RayAddress, Slurm, SlurmLocal, SlurmLogs, SlurmPartition, SlurmTasks,
                                          SlurmTime)
 from dsr_bench.constants import CAMERAS, MODEL_CAMERA, PLAN_MARGIN
+from dsr_bench.planning.tasks import TASK_SETS
 from generators.objects import OBJECT_SET_NAMES
 
 OBJECT_SETS_HELP = " | ".join(OBJECT_SET_NAMES)
+TASK_SETS_HELP = " | ".join(f"{s.name} ({s.num_tasks} tasks, {s.objects} objects)" for s in TASK_SETS.values())
 
 
 def generate(
@@ -139,9 +141,7 @@ def generate_captures(
 
 def generate_plan_tasks(
     tasks: str = typer.Option("plan-novel-test", "--tasks",
-                              help="Task set: plan-novel-test (100) | plan-novel-mini (4) | plan-val (50, "
-                              "training objects) | plan-novel-replicate (100, a second novel-object set) | "
-                              "plan-novel-confirm (1,000, a third)."),
+                              help=f"Task set: {TASK_SETS_HELP}."),
     out: Path | None = typer.Option(None, "--out", "-o", help="Directory to write (default data/<task set>)."),
     workers: int = typer.Option(1, "--workers", "-w", help="Parallel worker processes."),
     num_tasks: int | None = typer.Option(None, "--num-tasks", "-n", help="Only the first N tasks of the set."),

@@ -52,3 +52,15 @@ def test_no_display_only_on_linux_without_x11_or_wayland(monkeypatch):
     monkeypatch.delenv("WAYLAND_DISPLAY")
     monkeypatch.setattr(sys, "platform", "darwin")
     assert not no_display()
+
+
+def test_generate_plan_tasks_help_lists_every_task_set(capsys, monkeypatch):
+    """The --tasks help of generate-plan-tasks names every task set with its size and objects (from TASK_SETS)."""
+    from dsr_bench.planning.tasks import TASK_SETS
+
+    monkeypatch.setenv("COLUMNS", "400")
+    assert main(["generate-plan-tasks", "--help"]) == 0
+    text = " ".join(capsys.readouterr().out.split())
+    assert "plan-val (50 tasks, procedural objects)" in text
+    for spec in TASK_SETS.values():
+        assert f"{spec.name} ({spec.num_tasks} tasks, {spec.objects} objects)" in text, spec.name
