@@ -3,19 +3,21 @@
 The folder (docs/annotator.md, "Real captures in"):
 
     SRC/rig.json                 cameras (intrinsics, distortion, depth scale, optional extrinsics), board, objects
-    SRC/front_color_<N>.png      (H, W, 3) 8-bit RGB, one per step N (any integers, any zero padding: 0, 000017, ...)
+    SRC/front_color_<N>.png      (H, W, 3) 8-bit RGB (not RGBA), one per step N (any zero padding: 0, 000017, ...)
     SRC/front_depth_<N>.png      (H, W) 16-bit depth in depth units, aligned to the colour image (same pixels, same
     SRC/back_color_<N>.png       intrinsics: the RealSense's "align depth to colour"), 0 = no depth
     SRC/back_depth_<N>.png
     SRC/pushes.json              the robot's log of the T pushes (annotator.pushes), or --pushes
 
 Steps are the numbers N sorted numerically and renumbered 0..T; every camera needs colour and depth at the same
-N. Images with distortion coefficients are undistorted (colour bilinear, depth nearest: a depth is never mixed
+N, and the numbers run without a gap (a gap is a dropped step, which the push count cannot show when its push was
+dropped too), unless the push log gives each push's "between": [N, M] (then N may be frame numbers, checked against
+it). Images with distortion coefficients are undistorted (colour bilinear, depth nearest: a depth is never mixed
 with its neighbours) onto the same fx, fy, cx, cy. Extrinsics come from the rig file or from the ChArUco board
 (`annotator.calibrate`); the front camera must see the whole grid. Everything is checked before anything is
 written, and the capture is written atomically (`write_capture`). The output is checked to be writable first, and
 every input before it is used (`annotator.inputs`): JSON values of the right type and range, PNG sizes from their
-headers, paths that stay inside SRC.
+headers, PNGs whole (chunk CRCs, IEND), paths that stay inside SRC, capture and object names that are plain names.
 
 A folder of RealSense `.bag` recordings instead (front.bag, back.bag) is the other form (`annotator.realsense`):
 `import_capture` dispatches on the folder's content; what both forms share (the rig file, the board calibration,
@@ -30,9 +32,10 @@ from pathlib import Path
 
 import numpy as np
 
-from annotator.inputs import MAX_IMAGE_SIDE, finite, image_side, inside, numbers, png_shape, resolved_inside
-from annotator.rig import (PUSHES_FILE, calibrate_cameras, check_out, default_file, load_rig, read_objects, rig_error,
-                           undistort, undistort_maps)
+from annotator.inputs import (MAX_IMAGE_SIDE, finite, image_side, inside, json_text, numbers, plain_name, png_intact,
+                              png_shape, resolved_inside)
+from annotator.rig import (PUSHES_FILE, calibrate_cameras, capture_name, check_out, default_file, load_rig,
+                           read_objects, rig_error, undistort, undistort_maps)
 from dsr_bench.constants import CAMERAS, MODEL_CAMERA
 from dsr_bench.dataset.capture import CaptureCamera, parse_camera, write_capture
 from dsr_bench.errors import UserError
@@ -123,23 +126,86 @@ def find_steps(src: Path, cameras: list[str]) -> tuple[list[int], dict[tuple[str
     return steps, files
 
 
+def logged_between(log: Path) -> list[tuple[int, int]] | None:
+    """Each push's "between": [N, M] in the push log (the step numbers N of the images before and after it), or None
+    when no push gives it or the log cannot be read (`read_pushes` says why); UserError naming the log and the push
+    when one gives it and another does not, or when it is not two increasing whole numbers."""
+    try:
+        data = json.loads(log.read_text())
+    except (OSError, ValueError, RecursionError):
+        return None
+    entries = data.get("pushes") if isinstance(data, dict) else None
+    if not isinstance(entries, list) or not any(isinstance(e, dict) and "between" in e for e in entries):
+        return None
+    out = []
+    for i, entry in enumerate(entries):
+        value = entry.get("between") if isinstance(entry, dict) else None
+        if not (isinstance(value, list) and len(value) == 2 and all(type(v) is int for v in value)
+                and 0 <= value[0] < value[1]):
+            raise UserError(f"--pushes {log}: push {i} \"between\" must be [N, M], the step numbers (as in "
+                            f"<camera>_color_<N>.png) of the images before and after it, N < M, got "
+                            f"{json_text(value)}; give it for every push or for none")
+        out.append((value[0], value[1]))
+    return out
+
+
+def check_step_numbers(src: Path, steps: list[int], files: dict[tuple[str, str, int], Path],
+                       between: list[tuple[int, int]] | None, log: Path) -> None:
+    """Refuse a dropped step, which counting cannot show when its push is missing from the log as well (T + 1 steps
+    and T pushes still agree, and every later push would be paired with the wrong images). Without "between" in the
+    push log the numbers N count steps: they must run without a gap (N0, N0 + 1, ...). With it (the numbers may then
+    be frame numbers), push i must be logged between the i-th and (i + 1)-th numbers. UserError naming the missing
+    step (or push) and the fix."""
+    def image(n: int) -> str:  # the front colour image of step n, zero-padded as its neighbours are
+        near = min(steps, key=lambda k: abs(k - n))
+        digits = files[(MODEL_CAMERA, "color", near)].stem.rsplit("_", 1)[1]
+        width = len(digits) if digits.startswith("0") else 0
+        return f"{MODEL_CAMERA}_color_{n:0{width}d}.png"
+
+    if between is None:
+        for a, b in zip(steps, steps[1:]):
+            if b - a > 1:
+                more = f" and {b - a - 2} more" if b - a > 2 else ""
+                raise UserError(f"{src}: step {a + 1}{more} missing (the image numbers jump from {a} to {b}: no "
+                                f"{image(a + 1)}; a dropped frame, whose push may be gone from the log too); re-export "
+                                "it, or, if the numbers are frame numbers rather than steps, log each push's "
+                                "\"between\": [N, M] (docs/annotator.md, 'Pushes')")
+        return
+    have = set(steps)
+    for i, pair in enumerate(between):
+        expected = (steps[i], steps[i + 1]) if i + 1 < len(steps) else None
+        if pair == expected:
+            continue
+        gone = [n for n in pair if n not in have]
+        said = f"--pushes {log}: push {i} is logged between steps {pair[0]} and {pair[1]}"
+        if gone:
+            raise UserError(f"{said}, but {src} has no images of step {gone[0]} (no {image(gone[0])}: a dropped "
+                            "frame); re-export it, or cut the capture and its log before it")
+        if expected is not None:
+            raise UserError(f"{said}, but the images go from step {expected[0]} to {expected[1]}, and no push between "
+                            "them is logged (a dropped push); log it, or cut the capture there")
+
+
 def read_image(path: Path, camera: CaptureCamera, kind: str) -> np.ndarray:
-    """A step image checked against the camera: colour (H, W, 3) uint8 RGB, depth (H, W) uint16 units. Its PNG
-    header is checked first (size, bit depth, colour type): an image of another size or type is refused before it is
-    decoded (a decoder allocates what the header declares)."""
+    """A step image checked against the camera: colour (H, W, 3) uint8 RGB (RGBA refused: alpha is not dropped
+    silently), depth (H, W) uint16 units. Its PNG header is checked first (size, bit depth, colour type): an image of
+    another size or type is refused before it is decoded (a decoder allocates what the header declares); then that the
+    file is whole (`png_intact`: a PNG cut short decodes without error when only its tail is gone)."""
     from PIL import Image
 
     shape, dtype, depth, colour = png_shape(path)
-    ok = depth == 8 and colour in (2, 6) if kind == "color" else depth == 16 and colour == 0
+    if kind == "color" and depth == 8 and colour == 6 and shape[:2] == (camera.height, camera.width):
+        raise UserError(f"{path}: an 8-bit RGBA PNG (with an alpha channel), where colour images are 8-bit RGB; the "
+                        "importer does not drop alpha for you: save it as RGB (e.g. PIL's .convert('RGB'))")
+    ok = depth == 8 and colour == 2 if kind == "color" else depth == 16 and colour == 0
     if not ok or shape[:2] != (camera.height, camera.width):
-        _wrong_image(path, camera, kind, shape[:2] + (3,) if kind == "color" and colour == 6 else shape, dtype)
+        _wrong_image(path, camera, kind, shape, dtype)
+    png_intact(path)
     try:
         with Image.open(path) as im:
             array = np.asarray(im)
     except (OSError, ValueError) as exc:
         raise UserError(f"{path}: unreadable image ({exc}); re-export it as PNG") from None
-    if kind == "color" and array.ndim == 3 and array.shape[2] == 4:
-        array = array[..., :3]
     shape = (camera.height, camera.width, 3) if kind == "color" else (camera.height, camera.width)
     ok = array.shape == shape and (array.dtype == np.uint8 if kind == "color" else array.dtype == np.uint16)
     if not ok:
@@ -186,6 +252,8 @@ def import_capture(src: str | Path, out: str | Path, *, rig: str | Path | None =
         raise UserError(f"{src}: no such folder; give the folder of <camera>_color_<N>.png / _depth_<N>.png images or "
                         "of front.bag / back.bag recordings")
     check_out(out, overwrite)
+    if name is not None:  # both forms: the name becomes part of output paths and identities
+        plain_name(name, "the capture name", "--name")
     has_bags = any(src.glob("*.bag"))
     has_pngs = any(IMAGE_PATTERN.match(p.name) for p in src.iterdir())
     if has_bags and has_pngs:
@@ -231,7 +299,10 @@ def import_png_folder(src: str | Path, out: str | Path, *, rig: str | Path | Non
     objects = read_objects(rig_path, src, spec.get("objects"))
     board_files = board_images(rig_path, src, spec, names)
     steps, files = find_steps(src, names)
-    actions, pushes_world = read_pushes(default_file(src, pushes, PUSHES_FILE, "the push log"), len(steps) - 1)
+    log = default_file(src, pushes, PUSHES_FILE, "the push log")
+    check_step_numbers(src, steps, files, logged_between(log), log)
+    actions, pushes_world = read_pushes(log, len(steps) - 1)
+    title = capture_name(name, spec, rig_path, out)
 
     maps = {n: undistort_maps(cameras[n], d) for n, d in distortion.items() if d is not None}  # names' order
 
@@ -256,7 +327,7 @@ def import_png_folder(src: str | Path, out: str | Path, *, rig: str | Path | Non
     source = {"kind": "real", "importer": "annotator.importer", "format": "png-folder", "src": str(src),
               "rig": spec, "step_numbers": steps, "undistorted": sorted(maps), "calibration": report,
               "policy": "recorded"}
-    written = write_capture(out, name=name or str(spec.get("name") or out.name), cameras=cameras, colors=colors,
+    written = write_capture(out, name=title, cameras=cameras, colors=colors,
                             depths=depths, actions=actions, pushes_world=pushes_world, objects=objects,
                             source=source, overwrite=overwrite)
     return written, report

@@ -13,7 +13,7 @@ from typing import cast
 
 import numpy as np
 
-from annotator.inputs import inside
+from annotator.inputs import inside, plain_name
 from dsr_bench.atomic import check_writable
 from dsr_bench.dataset.capture import CaptureCamera
 from dsr_bench.errors import UserError
@@ -70,7 +70,8 @@ def read_objects(path: Path, src: Path, entries) -> list[tuple[str, np.ndarray, 
             raise rig_error(path, f"object {i + 1} mesh {entry['mesh']!r} is not an object in metres (diagonal "
                                    f"{size:.4g}, {len(faces)} triangles); rescale it to metres")
         identity = dict(entry.get("identity", {}))
-        out.append((str(entry.get("name", mesh_path.stem)), vertices, faces, identity))
+        name = plain_name(entry.get("name", mesh_path.stem), f"object {i + 1} name", path, f"object_{i + 1}")
+        out.append((name, vertices, faces, identity))
     return out
 
 
@@ -88,7 +89,20 @@ def load_rig(src: Path, rig: str | Path | None) -> tuple[Path, dict]:
         raise rig_error(rig_path, 'expected {"cameras": {"front": {...}, "back": {...}}, "objects": [...], ...}')
     if not isinstance(spec.get("name", ""), str):
         raise rig_error(rig_path, f"'name' must be a string (the capture's name), got {json.dumps(spec['name'])[:40]}")
+    if spec.get("name"):
+        plain_name(spec["name"], "'name' (the capture's)", rig_path)
     return rig_path, spec
+
+
+def capture_name(name: str | None, spec: dict, rig_path: Path, out: Path) -> str:
+    """The capture's name: `--name`, else the rig file's "name", else OUT's directory name; each checked to be one
+    plain name (`annotator.inputs.plain_name`: it becomes part of output paths and identities)."""
+    if name is not None:
+        return plain_name(name, "the capture name", "--name")
+    if spec.get("name"):
+        return plain_name(spec["name"], "'name' (the capture's)", rig_path)
+    return plain_name(out.name, "its directory name (the capture's name without --name or a rig file 'name')",
+                      f"--out {out}")
 
 
 def default_file(src: Path, given: str | Path | None, name: str, what: str) -> Path:
@@ -98,7 +112,11 @@ def default_file(src: Path, given: str | Path | None, name: str, what: str) -> P
 
 def check_out(out: Path, overwrite: bool) -> None:
     """Refuse (one line) an existing `out` without --overwrite, and an `out` that cannot be written (the capture is
-    written as a temporary directory beside it, then renamed over it), before any work."""
+    written as a temporary directory beside it, then renamed over it), and an `out` that names no directory of its own
+    (`..`, `/`: with --overwrite it would replace its parent), before any work."""
+    if out.name in ("", ".", ".."):
+        raise UserError(f"--out {out}: names no capture directory of its own (it ends in {out.name or str(out)!r}); "
+                        "give the capture's directory, e.g. captures/real_0042")
     if out.exists() and not overwrite:
         raise UserError(f"{out} already exists; pass --overwrite to replace it or choose another --out")
     check_writable(out, "--out")

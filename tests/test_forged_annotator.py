@@ -9,7 +9,9 @@ an adversary's. Each forged case is refused in one line (UserError; the CLI exit
 - import-capture (annotator/importer.py, inputs.py, realsense.py): rig numbers that are true or strings, image sizes
   of 10^9, meshes / board images / frames / the rig file / the push log / bags outside SRC (`..`, absolute, links),
   a 12000 x 12000 depth PNG (refused from its header: the test traces the allocations), typed board, push and
-  step-time fields, and an output made immutable with `chattr +i`.
+  step-time fields, an output made immutable with `chattr +i`; RGBA colour images (alpha never dropped silently),
+  PNGs cut short or with a bad CRC (PIL decodes a PNG missing its last 20 bytes without error), a dropped step whose
+  push is gone from the log too (the counts agree), and capture and object names that are paths ('..', '/').
 
 The import corpus is a tiny synthetic folder (2 steps, 48 x 64 black images, a 5 cm box, given extrinsics at the
 benchmark's camera placement): untouched, it imports (the baseline), so each refusal is the forgery's.
@@ -191,6 +193,48 @@ def _png_lies(folder):  # a JPEG (or anything) named .png
     (folder / "front_depth_1.png").write_bytes(b"\xff\xd8\xff\xe0" + b"\0" * 64)
 
 
+def _rgba(folder):  # alpha would be dropped silently
+    rgba = np.zeros(SHAPE + (4,), np.uint8)
+    rgba[..., 3] = 40
+    _write_png(folder / "front_color_1.png", rgba)
+
+
+def _cut(name: str, size: int):
+    """A forgery: SRC's PNG `name` with its last `size` bytes cut off (12: IEND; 20: also the last IDAT's zlib
+    checksum and CRC, which PIL decodes without error)."""
+    def forge(folder):
+        data = (folder / name).read_bytes()
+        (folder / name).write_bytes(data[:-size])
+    return forge
+
+
+def _bad_crc(folder):
+    data = bytearray((folder / "back_color_0.png").read_bytes())
+    data[-14] ^= 0x01  # the last byte of the IDAT chunk's CRC
+    (folder / "back_color_0.png").write_bytes(bytes(data))
+
+
+def _steps_0123(folder, drop: int | None, between: list | None, pushes: int = 3) -> None:
+    """SRC with steps 0..3 (step 2, 3 copies of step 0), step `drop`'s images of every camera deleted, and a push log
+    of `pushes` pushes, each with its "between" from `between` if given."""
+    for name in ("front", "back"):
+        for step in (2, 3):
+            for kind in ("color", "depth"):
+                shutil.copy(folder / f"{name}_{kind}_0.png", folder / f"{name}_{kind}_{step}.png")
+        if drop is not None:
+            for kind in ("color", "depth"):
+                (folder / f"{name}_{kind}_{drop}.png").unlink()
+    entries = [{"start": [0.4, 0.0], "direction": [1.0, 0.0]} for _ in range(pushes)]
+    for entry, pair in zip(entries, between or []):
+        entry["between"] = pair
+    (folder / "pushes.json").write_text(json.dumps({"pushes": entries}))
+
+
+def _mesh_named_dotdot(folder):  # no 'name': the mesh's stem is the object's name
+    shutil.copy(folder / "meshes" / "box.ply", folder / "meshes" / "...ply")
+    _rig(folder, lambda s: s.__setitem__("objects", [{"mesh": "meshes/...ply"}]))
+
+
 IMPORT_CORPUS = [
     (lambda f: _rig(f, _camera("fx", True)), "camera 'front' 'fx' must be a finite positive number (a JSON number, "
                                              "not true)"),
@@ -218,6 +262,33 @@ IMPORT_CORPUS = [
     (_pushes_string, "push 0 start must be 2 finite numbers"),
     (_board_squares, "board squares must be 2 integers"),
     (_png_lies, "front_depth_1.png: not a PNG file"),
+    (_rgba, "front_color_1.png: an 8-bit RGBA PNG (with an alpha channel), where colour images are 8-bit RGB; the "
+            "importer does not drop alpha for you: save it as RGB"),
+    (_cut("front_color_1.png", 12), "front_color_1.png: truncated PNG (it ends at byte"),
+    (_cut("front_color_1.png", 20), "front_color_1.png: truncated PNG (its 'IDAT' chunk at byte 33 runs past the end"),
+    (_cut("back_depth_1.png", 16), "back_depth_1.png: truncated PNG (its 'IDAT' chunk at byte 33 runs past the end"),
+    (_bad_crc, "back_color_0.png: corrupt PNG (its 'IDAT' chunk at byte 33 fails its CRC)"),
+    # a dropped step whose push is dropped too: 3 steps, 2 pushes, the counts agree
+    (lambda f: _steps_0123(f, 2, None, 2), "step 2 missing (the image numbers jump from 1 to 3: no front_color_2.png; "
+                                           "a dropped frame"),
+    (lambda f: _steps_0123(f, 2, None, 3), "step 2 missing"),  # the frame alone: named before the push count
+    (lambda f: _steps_0123(f, 2, [[0, 1], [1, 2]], 2), "push 1 is logged between steps 1 and 2, but "),
+    (lambda f: _steps_0123(f, 2, [[0, 1], [2, 3]], 2), "has no images of step 2 (no front_color_2.png: a dropped "
+                                                       "frame)"),
+    (lambda f: _steps_0123(f, None, [[0, 1], [2, 3]], 2), "push 1 is logged between steps 2 and 3, but the images go "
+                                                          "from step 1 to 2, and no push between them is logged"),
+    (lambda f: _steps_0123(f, None, [[0, 1], [1, "2"]], 3), 'push 1 "between" must be [N, M], the step numbers'),
+    (lambda f: _steps_0123(f, None, [[0, 1]], 3), 'push 1 "between" must be [N, M]'),  # for every push or none
+    (lambda f: _rig(f, lambda s: s.__setitem__("name", "../../evil")), "rig.json: 'name' (the capture's) "
+                                                                       '"../../evil" is not a plain name: it holds'),
+    (lambda f: _rig(f, lambda s: s.__setitem__("name", "..")), "'name' (the capture's) \"..\" is not a plain name: "
+                                                               "'..' is a path"),
+    (lambda f: _rig(f, lambda s: s["objects"][0].__setitem__("name", "../../box")), 'object 1 name "../../box" is not '
+                                                                                   "a plain name"),
+    (lambda f: _rig(f, lambda s: s["objects"][0].__setitem__("name", "/etc/box")), 'object 1 name "/etc/box"'),
+    (lambda f: _rig(f, lambda s: s["objects"][0].__setitem__("name", "box\nline")),
+     'object 1 name "box\\nline" is not a plain name: it holds control'),
+    (_mesh_named_dotdot, "object 1 name \"..\" is not a plain name"),
 ]
 
 
@@ -239,6 +310,50 @@ def test_forged_import_inputs_are_refused_in_one_line(rig_folder, tmp_path, caps
     out = tmp_path / "out"
     _one_line_refusal(capsys, ["import-capture", str(src), "--out", str(out)], expected)
     assert _tree(tmp_path) == before  # nothing written: no capture, no temporary beside it
+
+
+@pytest.mark.parametrize("args, expected", [
+    (["--name", "../../evil"], '--name: the capture name "../../evil" is not a plain name: it holds'),
+    (["--name", ".."], '--name: the capture name ".." is not a plain name'),
+    (["--name", ""], '--name: the capture name "" is not a plain name: it is empty'),
+])
+def test_capture_names_that_are_paths_are_refused(rig_folder, tmp_path, capsys, args, expected):
+    """--name, like the rig file's 'name' and the objects' (IMPORT_CORPUS), becomes part of output paths: one plain
+    name or a one-line refusal, nothing written."""
+    before = _tree(tmp_path)
+    _one_line_refusal(capsys, ["import-capture", str(rig_folder), "--out", str(tmp_path / "out"), *args], expected)
+    assert _tree(tmp_path) == before
+
+
+def test_an_out_that_names_no_directory_of_its_own_is_refused(rig_folder, tmp_path, capsys):
+    """--out DIR/.. with --overwrite would replace DIR's parent with the capture: refused before any work."""
+    (tmp_path / "dir").mkdir()
+    before = _tree(tmp_path)
+    _one_line_refusal(capsys, ["import-capture", str(rig_folder), "--out", f"{tmp_path}/dir/..", "--overwrite"],
+                      f"--out {tmp_path}/dir/..: names no capture directory of its own (it ends in '..')")
+    assert _tree(tmp_path) == before
+
+
+def test_frame_numbers_import_when_the_log_says_between_which_steps_each_push_lies(rig_folder, tmp_path, capsys):
+    """Step numbers with gaps (frame numbers) import when every push gives its "between": [N, M]; without it a gap
+    is a dropped step (IMPORT_CORPUS)."""
+    from dsr_bench.cli import main
+    from dsr_bench.dataset.capture import load_capture
+
+    src = tmp_path / "src"
+    shutil.copytree(rig_folder, src)
+    for path in sorted(src.glob("*_[01].png")):
+        frame = {"0": 1043, "1": 1187}[path.stem[-1]]
+        path.rename(src / f"{path.stem[:-1]}{frame}.png")
+    push = {"start": [0.4, 0.0], "direction": [1.0, 0.0]}
+    (src / "pushes.json").write_text(json.dumps({"pushes": [push]}))
+    _one_line_refusal(capsys, ["import-capture", str(src), "--out", str(tmp_path / "cap")],
+                      "step 1044 and 142 more missing (the image numbers jump from 1043 to 1187")
+    (src / "pushes.json").write_text(json.dumps({"pushes": [{**push, "between": [1043, 1187]}]}))
+    assert main(["import-capture", str(src), "--out", str(tmp_path / "cap")]) == 0
+    capture = load_capture(tmp_path / "cap")
+    assert capture.num_steps == 1 and capture.source["step_numbers"] == [1043, 1187]
+    assert capture.actions.tolist() == [[0, 64, 39]]
 
 
 def test_a_huge_png_is_refused_from_its_header_before_it_is_decoded(rig_folder, huge_png, tmp_path, capsys):

@@ -363,6 +363,22 @@ def _wrong_size(spec, folder):
     spec["cameras"]["back"]["width"] = 640
 
 
+def _dropped_step(spec, folder):  # step 18's images and its push both lost: 2 steps, 1 push, the counts agree
+    for name in ("front", "back"):
+        for kind in ("color", "depth"):
+            (folder / f"{name}_{kind}_{FIRST_STEP + 1:06d}.png").unlink()
+    log = json.loads((folder / "pushes.json").read_text())
+    (folder / "pushes.json").write_text(json.dumps({"pushes": log["pushes"][:1]}))
+
+
+def _rgba_board(spec, folder):  # a board image saved with alpha: refused, not silently dropped
+    from PIL import Image
+
+    path = folder / "board" / "back_color.png"
+    with Image.open(path) as im:
+        im.convert("RGBA").save(path)
+
+
 @pytest.mark.parametrize("edit, expected", [
     (_rename_camera, "rig.json: camera names ['front', 'left'] must be 'front' (the view models see; required) and "
                      "'back': rename 'left'"),
@@ -378,6 +394,9 @@ def _wrong_size(spec, folder):
     (_twice, "front_color_000017.png and front_color_17.png are both step 17; keep one"),
     (_wrong_size, "back_color_000017.png: expected an 8-bit RGB PNG of 640x720 (the rig file's 'back' width x "
                  "height), got shape (720, 1280, 3)"),
+    (_dropped_step, "step 18 missing (the image numbers jump from 17 to 19: no front_color_000018.png; a dropped "
+                    "frame"),
+    (_rgba_board, "board/back_color.png: an 8-bit RGBA PNG (with an alpha channel), where colour images are 8-bit RGB"),
 ])
 def test_import_errors_are_one_line_naming_the_input_and_the_fix(rig, tmp_path, capsys, edit, expected):
     from dsr_bench.cli import main
