@@ -16,7 +16,8 @@ import pytest
 from dsr_bench.cli import main
 from dsr_bench.constants import GRID_SHAPE, IMAGE_SHAPE
 from dsr_bench.scoring import predictions
-from dsr_bench.scoring.predictions import MAX_STEP_CHUNKS, check_prediction_header, write_predictions
+from dsr_bench.scoring.predictions import (MAX_STEP_CHUNKS, check_prediction_header, prediction_attrs,
+                                           write_predictions)
 from dsr_bench.testing import write_synthetic_dataset
 
 STEPS = 2
@@ -46,6 +47,7 @@ def _declare(path: Path, steps: int, chunks: dict, arrays: dict | None = None, *
     argument; absent: one step a chunk), holding `arrays` or, without them, no data at all (chunks never written)."""
     with h5py.File(path, "w") as f:
         f.attrs["num_slots"] = 3 if arrays is None else arrays["num_slots"]
+        f.attrs.update(prediction_attrs(path.stem))  # the sequence and layout a prediction file states
         for name, shape in SHAPES.items():
             layout = chunks.get(name, (1,) + shape)
             if arrays is None:

@@ -17,6 +17,7 @@ from dsr_bench.cli import main
 from dsr_bench.scoring.evaluate import pin_warning
 from dsr_bench.dataset.manifest import load_manifest, split_digest
 from dsr_bench.dataset.splits import SPLITS, Split
+from dsr_bench.models.predictors import MODEL_NAMES
 from dsr_bench.testing import write_synthetic_dataset
 from helpers import pin_split
 
@@ -72,11 +73,14 @@ def _outside_copy(pred: Path) -> Path:
 
 
 def _rewrite(path: Path, build) -> None:
-    """Replace `path` by a fresh file holding the valid num_slots and what `build(f, arrays)` writes."""
+    """Replace `path` by a fresh file holding the valid root attributes (num_slots, the sequence and layout it
+    states) and what `build(f, arrays)` writes."""
     arrays = _arrays(path)
+    with h5py.File(path, "r") as f:
+        attrs = dict(f.attrs)
     path.unlink()
     with h5py.File(path, "w") as f:
-        f.attrs["num_slots"] = arrays["num_slots"]
+        f.attrs.update(attrs)
         build(f, arrays)
 
 
@@ -148,12 +152,18 @@ def test_dangling_symlink(pred, data, capsys):
     _refused(pred, data, capsys, TARGET, "dangling")
 
 
-def test_symlink_inside_the_directory_is_accepted(pred, data, capsys, tmp_path):
-    (pred / TARGET).rename(pred / "kept.bin")
-    os.symlink("kept.bin", pred / TARGET)
-    out = tmp_path / "results.json"
-    assert main(["evaluate", str(pred), "--data", str(data), "--out", str(out), "--workers", "1"]) == 0
-    assert json.loads(out.read_text())["metrics"]["iou_ordered"] == 1.0
+@pytest.mark.parametrize("file", [TARGET, "meta.json"])
+def test_symlink_to_a_sibling_is_refused(pred, data, capsys, file):
+    """seq_0001.h5 -> seq_0000.h5 would submit one sequence's predictions for two: a predictions directory holds
+    regular files only, wherever a link leads."""
+    sibling = "seq_0001.h5" if file == TARGET else "meta-kept.json"
+    if file == TARGET:
+        (pred / TARGET).unlink()
+    else:
+        (pred / file).rename(pred / sibling)
+    os.symlink(sibling, pred / file)
+    _refused(pred, data, capsys, file, f"is a symlink to '{sibling}' in the predictions directory",
+             "regular files only: copy the file in place of the link")
 
 
 # -- links and storage outside the file: a borrowed ground truth must not score --
@@ -418,12 +428,15 @@ def test_no_dataset_at_all(pred, data, capsys):
 
 
 def _only_2d(pred: Path, build) -> None:
-    """Every file of `pred` rewritten as a valid 2D-only prediction, TARGET by `build(f, motion_2d)` instead."""
+    """Every file of `pred` rewritten as a valid 2D-only prediction (the sequence and flow components it states
+    kept), TARGET by `build(f, motion_2d)` instead."""
     for path in sorted(pred.glob("*.h5")):
         with h5py.File(path, "r") as f:
             flow = f["motion_2d"][()]
+            attrs = {k: f.attrs[k] for k in ("sequence", "flow_components") if k in f.attrs}
         path.unlink()
         with h5py.File(path, "w") as f:
+            f.attrs.update(attrs)
             (build if path.name == TARGET else lambda f, m: f.create_dataset("motion_2d", data=m))(f, flow)
 
 
@@ -475,3 +488,116 @@ def test_2d_only_file_cannot_borrow_the_ground_truth_through_a_virtual_dataset(p
         f.create_virtual_dataset("motion_2d", layout, fillvalue=0)
     _only_2d(pred, build)
     _refused(pred, data, capsys, TARGET, "motion_2d: a virtual dataset", TARGET)
+
+
+# -- forged folders: another sequence's file, extra entries, y and x swapped (issue 41) --
+
+@pytest.mark.parametrize("how", ["copy", "hard-link"])
+def test_another_sequences_predictions_under_this_ones_name(pred, data, capsys, how):
+    """seq_0001.h5 holding seq_0000's predictions, byte for byte: the file states the sequence it predicts."""
+    (pred / "seq_0001.h5").unlink()
+    (shutil.copyfile if how == "copy" else os.link)(pred / TARGET, pred / "seq_0001.h5")
+    _refused(pred, data, capsys, "seq_0001.h5", "attribute sequence is 'seq_0000', but the file is seq_0001.h5",
+             "another sequence's predictions under this one's name")
+
+
+LAYOUT = "(volumes (T, Y, X, Z) = world y, world x, z)"
+
+
+@pytest.mark.parametrize("key, value, text", [
+    ("sequence", None, "attribute sequence must name the sequence this file predicts ('seq_0000'), it is missing"),
+    ("sequence", "seq_0000.h5", "attribute sequence is 'seq_0000.h5', but the file is seq_0000.h5"),
+    ("sequence", np.array(["seq_0000"] * 2, dtype=h5py.string_dtype()), "predicts ('seq_0000'), got an array of "
+                                                                         "shape (2,)"),
+    ("axis_order", None, f"attribute axis_order must be 'y,x,z' {LAYOUT}, it is missing"),
+    ("axis_order", "x,y,z", f"attribute axis_order must be 'y,x,z' {LAYOUT}, got 'x,y,z'"),
+    ("axis_order", 3, f"attribute axis_order must be 'y,x,z' {LAYOUT}, got type int64"),
+    ("flow_components", None, "attribute flow_components must be 'dy,dx,dz' (motion components (dy, dx, dz)), it is "
+                              "missing"),
+    ("flow_components", "dx,dy,dz", "attribute flow_components must be 'dy,dx,dz' (motion components (dy, dx, dz)), "
+                                    "got 'dx,dy,dz'"),
+], ids=["sequence-missing", "sequence-wrong", "sequence-array", "axis_order-missing", "axis_order-x,y,z",
+        "axis_order-int", "flow_components-missing", "flow_components-dx,dy,dz"])
+def test_the_sequence_and_layout_a_file_states(pred, data, capsys, key, value, text):
+    with h5py.File(pred / TARGET, "r+") as f:
+        if key in f.attrs:
+            del f.attrs[key]
+        if value is not None:
+            f.attrs[key] = value
+    _refused(pred, data, capsys, TARGET, text)
+
+
+def test_the_stated_attributes_of_any_string_type_are_accepted(pred, data, tmp_path):
+    """Fixed-length byte strings (as MATLAB or h5py's np.bytes_ write them) state the same as variable-length ones."""
+    with h5py.File(pred / TARGET, "r+") as f:
+        for key in ("sequence", "axis_order", "flow_components"):
+            f.attrs[key] = np.bytes_(f.attrs[key].encode())
+    out = tmp_path / "results.json"
+    assert main(["evaluate", str(pred), "--data", str(data), "--out", str(out), "--workers", "1"]) == 0
+
+
+def test_write_predictions_states_the_sequence_and_layout(tmp_path):
+    from dsr_bench.scoring.predictions import write_predictions
+
+    steps = 1
+    mask, motion = np.zeros((steps, 128, 128, 48), np.uint8), np.zeros((steps, 3, 128, 128, 48), np.float16)
+    with h5py.File(write_predictions(tmp_path / "seq_0007.h5", mask, motion, 4), "r") as f:
+        assert (f.attrs["sequence"], f.attrs["axis_order"], f.attrs["flow_components"]) == ("seq_0007", "y,x,z",
+                                                                                            "dy,dx,dz")
+    flow = np.zeros((steps, 240, 320, 3), np.float16)
+    with h5py.File(write_predictions(tmp_path / "seq_0008.h5", motion_2d=flow), "r") as f:  # 2D-only: no volumes
+        assert dict(f.attrs) == {"format": "dsr-bench-predictions", "sequence": "seq_0008",
+                                 "flow_components": "dy,dx,dz"}
+
+
+@pytest.mark.parametrize("entry, kind, text", [
+    ("notes.txt", "file", "extra file: a predictions directory holds one SEQUENCE.h5 per sequence of the split and "
+                          "meta.json, nothing else; move it out of the directory"),
+    ("seq_0000.npz", "file", "extra file: a predictions directory holds one SEQUENCE.h5"),
+    ("results", "directory", "extra directory: a predictions directory holds one SEQUENCE.h5"),
+    (".seq_0001.h5.tmp-host-123-ab12", "file", "extra file: the temporary of a write still running or interrupted"),
+], ids=["text", "npz", "directory", "temporary"])
+def test_extra_entries_are_refused(pred, data, capsys, entry, kind, text):
+    """Strict, as a submission format is: nothing in the directory is silently left unscored."""
+    if kind == "directory":
+        (pred / entry).mkdir()
+    else:
+        (pred / entry).write_text("x")
+    _refused(pred, data, capsys, entry, text)
+
+
+def test_the_slurm_logs_folder_is_allowed(pred, data, tmp_path):
+    """`evaluate --slurm` keeps its logs in PRED_DIR/slurm-logs by default: a later evaluation accepts it."""
+    (pred / "slurm-logs").mkdir()
+    (pred / "slurm-logs" / "0_0_log.out").write_text("")
+    out = tmp_path / "results.json"
+    assert main(["evaluate", str(pred), "--data", str(data), "--out", str(out), "--workers", "1"]) == 0
+
+
+def _swap_y_and_x(path: Path) -> None:
+    """`path`'s mask and motion stored with y and x swapped (volumes (X, Y, Z), motion (dx, dy, dz)): the same
+    shapes, as X == Y; the attributes it states are kept."""
+    _rewrite(path, lambda f, a: (f.create_dataset("mask", data=a["mask"].transpose(0, 2, 1, 3)),
+                                 f.create_dataset("motion", data=a["motion"].transpose(0, 1, 3, 2, 4)[:, [1, 0, 2]])))
+
+
+@pytest.mark.parametrize("model", ["oracle", "static"])
+def test_volumes_with_y_and_x_swapped_are_refused(pred, data, capsys, model):
+    """The masks lie on the observed surface (tsdf < 0) as stored, not swapped; swapped, the other way round."""
+    if model != "oracle":
+        shutil.rmtree(pred)
+        assert main(["predict", "--model", model, "--data", str(data), "--out", str(pred)]) == 0
+    _swap_y_and_x(pred / TARGET)
+    _refused(pred, data, capsys, TARGET, "of its voxels lie on the observed surface (tsdf < 0) with y and x swapped",
+             "the volumes look transposed; store mask and motion as (T, Y, X, Z)")
+
+
+@pytest.mark.parametrize("model", MODEL_NAMES)
+def test_the_toolkits_own_predictions_are_never_refused(data, tmp_path, capsys, model):
+    """Every model of the registry (the references; the learned ones with their shipped weights) passes every check,
+    the layout's included."""
+    pred = tmp_path / model
+    assert main(["predict", "--model", model, "--data", str(data), "--out", str(pred)]) == 0
+    out = tmp_path / "results.json"
+    rc = main(["evaluate", str(pred), "--data", str(data), "--out", str(out), "--workers", "1"])
+    assert rc == 0 and out.exists(), capsys.readouterr().err

@@ -12,6 +12,15 @@ from dsr_bench.engine_options import (RayAddress, Slurm, SlurmLocal, SlurmLogs, 
                                          SlurmTime)
 from dsr_bench.models import registry
 
+#: The kernels `dsr-bench predict` runs the shipped CPU-track networks with on a CPU: set in the environment before
+#: torch loads (it reads them then), where the user has not set them. MKL's reproducible SSE2 branch for every matrix
+#: product, which is what torch's convolutions and linear layers are there (by default MKL picks its kernels by
+#: instruction set and by vendor: an Intel Xeon's predictions differed from an AMD EPYC's in every file), and ATen's
+#: AVX2 kernels (its AVX-512 ones give the same bits today, its default ones do not: no FMA). With
+#: `inference.same_bits_on_any_cpu` (one thread, no oneDNN) the predictions are the same bytes on every x86-64 CPU
+#: with AVX2 (docs/models.md, "Predictions across CPUs").
+SAME_BITS_ENV = {"MKL_CBWR": "COMPATIBLE", "ATEN_CPU_CAPABILITY": "avx2"}
+
 leaderboard_app = typer.Typer(help="Build the leaderboard tables or add a results entry.", no_args_is_help=True)
 
 
@@ -43,13 +52,40 @@ def predict(
     from dsr_bench.scoring.predictions import record_source
 
     check_writable(out)  # before the model is loaded and run
+    # the shipped CPU-track weights on a CPU: the same kernels on every CPU (SAME_BITS_ENV, before torch loads)
+    shipped = (checkpoint is None and weights is None and device.split(":")[0] == "cpu"
+               and registry.model_entry(model).kind != registry.REFERENCE)
+    if shipped:
+        _same_kernels_on_any_cpu()
     predictor = load_predictor(model, checkpoint, device, weights=weights, warp=warp, bn_batch=bn_batch)
     split, names = read_split(data, split)
-    with Progress(transient=True) as bar:
+    with Progress(transient=True) as bar, _same_bits(shipped):
         task = bar.add_task(f"predict {model}", total=len(names))
         predict_split(predictor, data, names, out, progress=lambda: bar.advance(task))
     record_source(out, data, split)  # what `evaluate OUT` and `view --predictions OUT` infer --data and --split from
     typer.echo(f"wrote {len(names)} prediction files for split {split} to {out}")
+
+
+def _same_kernels_on_any_cpu() -> None:
+    """Set `SAME_BITS_ENV`'s variables that the environment leaves unset, if torch has not loaded yet (a process that
+    imported torch before keeps the kernels it chose: its predictions are the same bytes on that machine only)."""
+    import os
+    import sys
+
+    if "torch" not in sys.modules:
+        for name, value in SAME_BITS_ENV.items():
+            os.environ.setdefault(name, value)
+
+
+def _same_bits(shipped: bool):
+    """`inference.same_bits_on_any_cpu` for the shipped weights on a CPU, else nothing."""
+    import contextlib
+
+    if not shipped:
+        return contextlib.nullcontext()
+    from dsr_bench.models.inference import same_bits_on_any_cpu
+
+    return same_bits_on_any_cpu()
 
 
 def _print_results(results: dict) -> None:
@@ -92,7 +128,8 @@ def _printable(text: str) -> str:
 
 
 def evaluate(
-    pred_dir: Path = typer.Argument(..., help="Predictions directory (one .h5 per sequence, meta.json)."),
+    pred_dir: Path = typer.Argument(..., help="Predictions directory: one SEQUENCE.h5 per sequence of the "
+                                     "split and meta.json, nothing else (regular files, no links)."),
     data: Optional[Path] = typer.Option(None, "--data", help="Dataset directory with the ground truth (default: the "
                                         "one PRED_DIR/meta.json names, as `dsr-bench predict` writes it)."),
     split: Optional[str] = typer.Option(None, "--split", help="Split to score (default: the one meta.json names for "

@@ -1,10 +1,11 @@
 """`dsr-bench evaluate`: score a predictions directory against a split, strictly.
 
-Structure is checked first for every file, reading no array data (names, presence, regular files
-inside the directory, the root's members and links, storage inside the file, filters, shapes,
-dtypes, `num_slots`, meta.json: `dsr_bench.scoring.predictions`); the data checks (unreadable chunks,
-NaN/inf, slot ids out of range) happen in the same streaming pass that scores, one sequence per
-worker at a time. Any problem means no score, unless `allow_partial`, which scores the valid
+Structure is checked first for every file, reading no array data (names, presence, nothing else in
+the directory, regular files of its own (no symlinks), the root's members and links, storage inside the file,
+filters, shapes, dtypes, `num_slots`, the attributes stating the sequence and layout, meta.json:
+`dsr_bench.scoring.predictions`); the data checks (unreadable chunks, NaN/inf, slot ids out of range, masks
+that lie on the observed surface only with y and x swapped) happen in the same streaming pass that scores, one
+sequence per worker at a time. Any problem means no score, unless `allow_partial`, which scores the valid
 sequences and states the coverage. A named split whose checksum differs from the toolkit's pin
 is scored with a warning (`pin_warning`) and `"pinned": false` in the results.
 A 2D-only submission (every file motion_2d alone, the 2D track) is scored on the front camera's 2D
@@ -44,6 +45,12 @@ FINITE_WITNESS = "motion_full"
 META_KEYS = tuple(META_TYPES)
 #: errors h5py raises on a damaged or hostile file
 READ_ERRORS = (OSError, KeyError, ValueError, TypeError, RuntimeError)
+#: a 3D prediction's masks look transposed (y and x swapped) when, over its steps, at least SWAP_MIN_SHARE of their
+#: voxels lie on the observed surface (tsdf < 0) with y and x swapped and SWAP_RATIO times as many as stored: the
+#: toolkit's predictors (oracle, static, push, the CPU-track learned models) put 20-100% of their mask voxels on it
+#: as stored and at most 0.58 times as many swapped; swapped, 1.73 times as many or more (docs/evaluation.md)
+SWAP_MIN_SHARE = 0.1
+SWAP_RATIO = 1.5
 
 
 @dataclass
@@ -99,6 +106,25 @@ def no_2d_ground_truth(gt_path: str | Path) -> str:
             f"{GT_2D}; score it against a dataset with the front camera's 2D data (`dsr-bench generate` writes it)")
 
 
+def surface_counts(mask: np.ndarray, tsdf: np.ndarray) -> np.ndarray:
+    """[voxels a mask volume (Y, X, Z) labels, those on the observed surface (tsdf < 0) as stored, and with its y
+    and x axes swapped]: the evidence of `transposed_problem`."""
+    labelled, surface = mask != 0, tsdf < 0
+    return np.array([np.count_nonzero(labelled), np.count_nonzero(labelled & surface),
+                     np.count_nonzero(labelled.transpose(1, 0, 2) & surface)], dtype=np.int64)
+
+
+def transposed_problem(counts: np.ndarray) -> str | None:
+    """The problem of masks whose voxels lie on the observed surface far more with y and x swapped than as stored
+    (`surface_counts` summed over the steps), else None: volumes stored (X, Y, Z) instead of (Y, X, Z)."""
+    labelled, stored, swapped = (int(c) for c in counts)
+    if not labelled or swapped < SWAP_MIN_SHARE * labelled or swapped < SWAP_RATIO * stored:
+        return None
+    return (f"mask: {swapped / labelled:.0%} of its voxels lie on the observed surface (tsdf < 0) with y and x "
+            f"swapped, {stored / labelled:.0%} as stored: the volumes look transposed; store mask and motion as "
+            "(T, Y, X, Z) = (world y, world x, z), motion components (dy, dx, dz)")
+
+
 def score_sequence(args: tuple[str, str, str]) -> tuple[str, list[str], dict | None]:
     """Check and score one sequence, args = (name, prediction file, ground-truth file): returns
     (name, problems, per-step values or None): every metric of `metrics.METRICS` that its tracks score, by key.
@@ -118,7 +144,7 @@ def score_sequence(args: tuple[str, str, str]) -> tuple[str, list[str], dict | N
         return name, ["not a regular file"], None
     try:
         with SequenceReader(gt_path) as gt, h5py.File(pred_path, "r") as pred:
-            problems = check_prediction_header(pred, gt.num_steps)  # nothing is read before this passes
+            problems = check_prediction_header(pred, gt.num_steps, name)  # nothing is read before this passes
             if problems:
                 return name, problems, None
             steps = gt.num_steps
@@ -137,11 +163,13 @@ def score_sequence(args: tuple[str, str, str]) -> tuple[str, list[str], dict | N
                     problems.append(f"mask: slot id {int(pred_mask.max())} > num_slots {num_slots}")
                 gt_mask = gt.read("mask_3d", slice(0, steps))
                 pred_motion, gt_flow, gt_tsdf = pred["motion"], gt.dataset("scene_flow_3d"), gt.dataset("tsdf")
+                surface = np.zeros(3, dtype=np.int64)  # the masks against the observed surface (transposed_problem)
             for t in range(steps):
                 if has_3d:
                     motion = read_step(pred_motion, t)
                     flow, columns = read_step_and_columns(gt_flow, t)
                     tsdf = read_step(gt_tsdf, t)
+                    surface += surface_counts(pred_mask[t], tsdf)
                     # a bool volume's nonzero is 10x faster than a uint8 one's
                     objects = np.flatnonzero(gt_mask[t] != 0)
                     digests.mask_step(t, gt_mask[t], objects)
@@ -161,6 +189,8 @@ def score_sequence(args: tuple[str, str, str]) -> tuple[str, list[str], dict | N
                         continue
                     for k, v in compute_step("2D", Step2D(m2, *_truth_2d(gt, t, digests))).items():
                         per_step[k][t] = v
+            if has_3d and (swapped := transposed_problem(surface)):
+                problems.append(swapped)
             if problems:
                 return name, problems, None
             if has_3d:
@@ -207,13 +237,9 @@ def check_structure(pred_dir: Path, data_dir: Path, names: list[str]) -> tuple[d
     naming a file of each kind, and then no file passes."""
     from dsr_bench.scoring.predictions import check_prediction_header, file_problem, is_2d_only, read_meta
 
-    problems: list[tuple[str, str]] = []
+    problems: list[tuple[str, str]] = extra_entries(pred_dir, names)
     valid: dict[str, Path] = {}
     kinds: dict[bool, str] = {}  # 2D-only? -> the first such file
-    expected = set(names)
-    for path in sorted(pred_dir.glob("*.h5")):
-        if path.stem not in expected:
-            problems.append((path.name, "extra file: not a sequence of this split"))
     for name in names:
         where = f"{name}.h5"
         if "/" in name or "\\" in name or name.startswith(".."):
@@ -235,7 +261,7 @@ def check_structure(pred_dir: Path, data_dir: Path, names: list[str]) -> tuple[d
             continue
         try:
             with h5py.File(path, "r") as f:
-                found = check_prediction_header(f, steps)
+                found = check_prediction_header(f, steps, name)
                 only_2d = not found and is_2d_only(f)
         except READ_ERRORS as exc:
             found = [f"unreadable HDF5 file ({type(exc).__name__}: {' '.join(str(exc).split())})"]
@@ -251,6 +277,32 @@ def check_structure(pred_dir: Path, data_dir: Path, names: list[str]) -> tuple[d
         valid = {}
     problems += [("meta.json", p) for p in read_meta(pred_dir)[1]]
     return valid, problems
+
+
+def extra_entries(pred_dir: Path, names: list[str]) -> list[tuple[str, str]]:
+    """What a predictions directory holds besides its split's SEQUENCE.h5 files and meta.json, as (name, problem):
+    strict, as a submission format is, so that nothing is silently left unscored. Allowed too: the folder
+    `evaluate --slurm` keeps its logs in by default (`engines.LOGS_NAME`)."""
+    from dsr_bench.engines import LOGS_NAME
+    from dsr_bench.scoring.predictions import META_NAME
+
+    allowed = {f"{name}.h5" for name in names} | {META_NAME}
+    problems = []
+    with os.scandir(pred_dir) as found:
+        entries = sorted(found, key=lambda e: e.name)
+    for entry in entries:
+        if entry.name in allowed or (entry.name == LOGS_NAME and entry.is_dir(follow_symlinks=False)):
+            continue
+        kind = "directory" if entry.is_dir(follow_symlinks=False) else "file"
+        if entry.name.endswith(".h5") and kind == "file":
+            problems.append((entry.name, "extra file: not a sequence of this split"))
+        elif entry.name.startswith(".") and ".tmp-" in entry.name:
+            problems.append((entry.name, f"extra {kind}: the temporary of a write still running or interrupted "
+                             "(`dsr-bench predict`); let it finish, or remove it"))
+        else:
+            problems.append((entry.name, f"extra {kind}: a predictions directory holds one SEQUENCE.h5 per "
+                             "sequence of the split and meta.json, nothing else; move it out of the directory"))
+    return problems
 
 
 def mixed_problem(file_3d: str, file_2d: str) -> str:

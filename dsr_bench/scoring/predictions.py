@@ -5,7 +5,10 @@ PRED_DIR/seq_0042.h5 holds, for each push t = 0..T-1 (made after observations 0.
   motion     (T, 3, 128, 128, 48) float16 or float32  scene flow t -> t+1 in voxels, (dy, dx, dz)
   motion_2d  (T, 240, 320, 3) float16/32, optional    front-camera flow in metres, (dy, dx, dz)
 and, with mask, the root attribute `num_slots` (K - 1, the number of object slots the model has: a
-scalar integer in 1..254; slot numbers are the model's own, matching is the metric's job).
+scalar integer in 1..254; slot numbers are the model's own, matching is the metric's job). Every file states, in
+string root attributes (`prediction_attrs`, which `write_predictions` writes), the sequence it predicts (`sequence`:
+its name without .h5), `flow_components` "dy,dx,dz" and, with mask, `axis_order` "y,x,z" (volumes (Y, X, Z) = world
+y, world x, z); another sequence (a file copied under another's name), another layout, or none, is refused.
 mask and motion come together (the 3D track, optionally with motion_2d); a file with motion_2d alone
 is a 2D-only prediction (the 2D track: image-space models), scored on the 2D flow only, and needs no
 num_slots (if present, it must still be valid). A directory is all 3D or all 2D-only.
@@ -18,7 +21,7 @@ results do not carry them.
 
 What a prediction file must not be, so that a score cannot be borrowed, hang or crash the
 evaluator (`check_prediction_header`, `file_problem`, `read_meta`; nothing is read before these pass):
-- anything but a regular file inside PRED_DIR (a FIFO, a directory, a device, a symlink leading out);
+- anything but a regular file of PRED_DIR's own (a FIFO, a directory, a device, a symlink, even to a sibling);
 - a file whose root holds anything but those datasets: no extra dataset or group, no soft,
   external or user-defined link, no dataset linked twice; mask without motion or motion without mask;
   none of mask, motion and motion_2d;
@@ -30,7 +33,8 @@ evaluator (`check_prediction_header`, `file_problem`, `read_meta`; nothing is re
   MAX_STEP_CHUNKS chunks per step (HDF5 keeps about 6.6 kB for each chunk one read touches, written or not),
   or a chunk holding more bytes than the whole dataset (HDF5 inflates a chunk whole);
 - a shape or dtype other than the contract's, checked before any data is read, so memory stays
-  bounded by the sequence's size.
+  bounded by the sequence's size;
+- a missing or wrong `sequence`, `axis_order` or `flow_components` (`check_layout_attrs`).
 """
 
 from __future__ import annotations
@@ -46,7 +50,7 @@ import numpy as np
 from h5py import h5d, h5l, h5o, h5z
 
 from dsr_bench.atomic import atomic_path, write_text
-from dsr_bench.constants import GRID_SHAPE, IMAGE_SHAPE
+from dsr_bench.constants import AXIS_ORDER, FLOW_COMPONENTS, GRID_SHAPE, IMAGE_SHAPE
 from dsr_bench.errors import UserError
 
 PREDICTION_FORMAT = "dsr-bench-predictions"
@@ -72,13 +76,20 @@ META_TYPES: dict[str, tuple[tuple[type, ...], str]] = {
 }
 
 
+def prediction_attrs(sequence: str, three_d: bool = True) -> dict[str, str]:
+    """The root attributes a prediction file of `sequence` states besides num_slots: the sequence, the flow components
+    and, in a 3D file (mask and motion), the axis order. By hand: `f.attrs.update(prediction_attrs("seq_0042"))`."""
+    attrs = {"sequence": sequence, "flow_components": FLOW_COMPONENTS}
+    return {**attrs, "axis_order": AXIS_ORDER} if three_d else attrs
+
+
 def write_predictions(path: str | Path, mask: np.ndarray | None = None, motion: np.ndarray | None = None,
                       num_slots: int | None = None, motion_2d: np.ndarray | None = None) -> Path:
     """Validate arrays against the contract and write them atomically to `path` (.h5).
 
     3D: mask (T, 128, 128, 48) uint8 slots and motion (T, 3, 128, 128, 48) float16/32 voxels (dy, dx, dz), with
     num_slots (1..254), optionally motion_2d (T, 240, 320, 3) float16/32 metres (dy, dx, dz). 2D-only: motion_2d
-    alone (mask and motion None; num_slots, then unused, is not written)."""
+    alone (mask and motion None; num_slots, then unused, is not written). The file states `prediction_attrs`."""
     path = Path(path)
     problems = []
     if (mask is None) != (motion is None):
@@ -119,6 +130,7 @@ def write_predictions(path: str | Path, mask: np.ndarray | None = None, motion: 
     path.parent.mkdir(parents=True, exist_ok=True)
     with atomic_path(path) as tmp, h5py.File(tmp, "w") as f:
         f.attrs["format"] = PREDICTION_FORMAT
+        f.attrs.update(prediction_attrs(path.stem, three_d=mask is not None))
         opts = {"compression": "gzip", "compression_opts": 1}
         if mask is not None:
             assert num_slots is not None  # checked above with mask
@@ -149,9 +161,13 @@ def _kind(mode: int) -> str:
     return "not a regular file"
 
 
+#: the fix named when a symlink stands in a predictions directory
+LINK_FIX = "a predictions directory holds regular files only: copy the file in place of the link"
+
+
 def file_problem(path: Path, root: Path) -> str | None:
-    """Why `path` may not be read as a file of the directory `root` (None: a regular file inside it).
-    Only stats: a FIFO or device is never opened. A symlink must resolve to a regular file inside `root`."""
+    """Why `path` may not be read as a file of the directory `root` (None: a regular file of its own). Only stats: a
+    FIFO is never opened. A symlink is refused wherever it leads (to a sibling: one file for two sequences)."""
     try:
         mode = os.lstat(path).st_mode
     except FileNotFoundError:
@@ -162,10 +178,10 @@ def file_problem(path: Path, root: Path) -> str | None:
         try:
             target = path.resolve(strict=True)
         except (OSError, RuntimeError):
-            return "a dangling or looping symlink"
+            return f"is a dangling or looping symlink; {LINK_FIX}"
         if not target.is_relative_to(root.resolve()):
-            return "resolves outside the predictions directory (a symlink leading out of it)"
-        mode = os.stat(target).st_mode
+            return f"resolves outside the predictions directory (a symlink leading out of it); {LINK_FIX}"
+        return f"is a symlink to {_show(target.name)} in the predictions directory; {LINK_FIX}"
     if not stat.S_ISREG(mode):
         return f"is {_kind(mode)}, not a regular file"
     return None
@@ -208,6 +224,46 @@ def check_num_slots(attrs: h5py.AttributeManager) -> list[str]:
     if not 1 <= int(value) <= MAX_SLOTS:
         return [f"{expected}, got {int(value)}"]
     return []
+
+
+def _string_attr(attrs: h5py.AttributeManager, key: str) -> tuple[str | None, str]:
+    """(A scalar string attribute's value, "") or (None, what it is instead), checked before its value is read."""
+    if key not in attrs:
+        return None, "it is missing"
+    aid = attrs.get_id(key)
+    try:
+        dtype = aid.dtype
+    except (TypeError, ValueError):
+        return None, "got an unsupported HDF5 type"
+    if aid.shape != ():
+        return None, "got an empty attribute" if aid.shape is None else f"got an array of shape {aid.shape}"
+    if dtype.kind != "S" and h5py.check_string_dtype(dtype) is None:
+        return None, f"got type {dtype}"
+    value = attrs[key]
+    return (value.decode("utf-8", "backslashreplace") if isinstance(value, bytes) else str(value)), ""
+
+
+def check_layout_attrs(attrs: h5py.AttributeManager, sequence: str, three_d: bool) -> list[str]:
+    """Problems of the attributes stating what a prediction file predicts (`prediction_attrs`): `sequence`, the one it
+    is named for; `flow_components` and (3D, or where present) `axis_order`, the contract's."""
+    problems = []
+    value, got = _string_attr(attrs, "sequence")
+    if value is None:
+        problems.append(f"attribute sequence must name the sequence this file predicts ({sequence!r}), {got}; "
+                        "write it with write_predictions, or set prediction_attrs")
+    elif value != sequence:
+        problems.append(f"attribute sequence is {_show(value)}, but the file is {sequence}.h5: another sequence's "
+                        "predictions under this one's name; write each sequence's own predictions")
+    expected = {"flow_components": (FLOW_COMPONENTS, "motion components (dy, dx, dz)")}
+    if three_d or "axis_order" in attrs:
+        expected["axis_order"] = (AXIS_ORDER, "volumes (T, Y, X, Z) = world y, world x, z")
+    for key, (want, words) in expected.items():
+        value, got = _string_attr(attrs, key)
+        if value != want:
+            problems.append(f"attribute {key} must be {want!r} ({words}), "
+                            f"{got if value is None else 'got ' + _show(value)}; store the arrays in that order "
+                            "and say so (write_predictions does)")
+    return problems
 
 
 def _storage_problems(name: str, dset: h5py.Dataset) -> list[str]:
@@ -306,13 +362,16 @@ def _root_problems(f: h5py.File) -> tuple[list[str], set[str], set[str]]:
     return problems, present, found
 
 
-def check_prediction_header(f: h5py.File, num_steps: int) -> list[str]:
+def check_prediction_header(f: h5py.File, num_steps: int, sequence: str | None = None) -> list[str]:
     """Structural problems of an open prediction file for a sequence of `num_steps` pushes: the
-    root's members and links, num_slots, each dataset's shape, dtype, storage, filters and chunk layout. Reads no
+    root's members and links, num_slots, each dataset's shape, dtype, storage, filters and chunk layout, and (given
+    the `sequence` it is named for) the attributes stating what it predicts (`check_layout_attrs`). Reads no
     array data, so it is safe (and cheap) on any file."""
     links, present, found = _root_problems(f)
     has_3d = "mask" in present or "motion" in present
     problems = check_num_slots(f.attrs) if has_3d or "num_slots" in f.attrs else []
+    if sequence is not None:
+        problems += check_layout_attrs(f.attrs, sequence, has_3d)
     problems += links
     if ("mask" in present) != ("motion" in present):
         given, other = ("mask", "motion") if "mask" in present else ("motion", "mask")
