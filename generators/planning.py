@@ -181,6 +181,17 @@ class SimEnvironment:
         return np.stack(out)
 
 
+def replay_plan(task, actions: np.ndarray) -> list:
+    """The states (`dsr_bench.planning.runner.WorldState`, PLAN_STEPS + 1) that pushes (S, 3) (d, row, col) give
+    from `task`'s start in a fresh world: what `dsr-bench plan` (resuming) and `dsr_bench.planning.verify` compare a
+    plan file's stored states with (registered as the `plan-replay` simulator, `dsr_bench.planning.replay`)."""
+    env = SimEnvironment()
+    try:
+        return [env.reset(task)] + [env.step(action) for action in actions]
+    finally:
+        env.close()
+
+
 # --- running plans ----------------------------------------------------------------------------------------
 def _one_thread() -> None:
     """One thread per worker process (parallelism comes from --workers): torch's OpenMP threads spinning at their
@@ -210,8 +221,8 @@ def _planner(model: str, env: SimEnvironment, checkpoint: str | None, device: st
 
 
 def _plan_job(job: tuple) -> tuple[str, dict, str | None]:
-    """(name, scores, a warning line or None) of one task: an existing plan file of the same run is rescored from
-    its stored final state (`dsr_bench.planning.verify.plan_scores`), anything else is planned (again)."""
+    """(name, scores, a warning line or None) of one task: an existing plan file of the same run is replayed and
+    rescored (`dsr_bench.planning.verify.plan_scores`), anything else is planned (again)."""
     from dsr_bench.planning.plans import plan_arrays, write_plan
     from dsr_bench.planning.runner import run_plan
     from dsr_bench.planning.results import score_plan
@@ -253,10 +264,11 @@ def _steps() -> int:
 def _finished(path: Path, task, model: str, checkpoint: str | None, candidates: int,
               seed: int, margin: float, masks: str) -> tuple[dict | None, str | None]:
     """(scores, None) of an existing plan file of this task made with the same planner, checkpoint, candidates, seed,
-    lambda, margin, clear candidates and masks (a rerun resumes): recomputed from its stored final state against
-    the verified task, never read from its attributes. (None, None) when there is no such file or it is another
-    run's (planned again, the file replaced); (None, a warning line) when the file is not a valid plan of its
-    task (planned again too)."""
+    lambda, margin, clear candidates and masks (a rerun resumes): its executed pushes replayed from the verified
+    task's start and every stored state compared with the replay (`dsr_bench.planning.replay`), the scores
+    recomputed from the replayed final state, never read from its attributes. (None, None) when there is no such
+    file or it is another run's (planned again, the file replaced); (None, a warning line) when the file is not a
+    valid plan of its task or not its replay (planned again too)."""
     from dsr_bench.planning.plans import read_plan_attrs
     from dsr_bench.planning.verify import PlanMismatch, plan_scores
 
@@ -272,7 +284,7 @@ def _finished(path: Path, task, model: str, checkpoint: str | None, candidates: 
     if any(made.get(k) != v for k, v in same.items()):
         return None, None  # another run's plan (other options): replaced, as always
     try:
-        return plan_scores(path, task, task.ground_truth_sha256)[0], None
+        return plan_scores(path, task, task.ground_truth_sha256, replay_plan)[0], None
     except PlanMismatch as exc:
         return None, f"{exc.problem}: planned again"
 
@@ -297,10 +309,10 @@ def plan_tasks(model: str, tasks: str, out: Path, candidates: int, workers: int 
     OUT/results.json; return the results (`dsr_bench.planning.results.build_results`). The tasks are verified first
     (`dsr_bench.planning.verify.verify_tasks`: a task that differs from the pin is one line to `warn` and makes
     the results unpinned). Plan files already in `out` made for the same task with the same planner, candidates
-    and seed are kept and rescored from their final states (a rerun resumes); an invalid one is planned again
-    with a line to `warn`. `margin`: what an object push's predicted cost must beat the best clear push's by
-    (`dsr_bench.planning.runner.choose`; default the planner's own: PLAN_MARGIN for a learned model, 0 for the
-    oracle). `masks`: a learned planner's masks of the current state, its network's ("model") or the objects its
+    and seed are kept, replayed and rescored (a rerun resumes); an invalid one (or one its replay contradicts) is
+    planned again with a line to `warn`. `margin`: what an object push's predicted cost must beat the best clear
+    push's by (`dsr_bench.planning.runner.choose`; default the planner's own: PLAN_MARGIN for a learned model, 0 for
+    the oracle). `masks`: a learned planner's masks of the current state, its network's ("model") or the objects its
     TSDF shows ("observed", `dsr_bench.planning.observed`)."""
     import json
 

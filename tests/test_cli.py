@@ -1,7 +1,12 @@
-"""The `dsr-bench` command line: version, help listing every command, usage errors."""
+"""The `dsr-bench` command line: version, help listing every command, usage errors, and the errors a user can fix
+(a missing optional extra, a read-only directory) as one line."""
 
+import errno
+import os
 import subprocess
 import sys
+
+import pytest
 
 from dsr_bench import __version__
 from dsr_bench.cli import main
@@ -64,3 +69,62 @@ def test_generate_plan_tasks_help_lists_every_task_set(capsys, monkeypatch):
     assert "plan-val (50 tasks, procedural objects)" in text
     for spec in TASK_SETS.values():
         assert f"{spec.name} ({spec.num_tasks} tasks, {spec.objects} objects)" in text, spec.name
+
+
+def _without(modules: tuple[str, ...], argv: list[str], cwd) -> subprocess.CompletedProcess:
+    """`dsr-bench ARGV` in a fresh interpreter in which importing each of `modules` fails, as without its extra."""
+    code = (f"import sys\nfor m in {modules!r}:\n    sys.modules[m] = None\n"
+            f"from dsr_bench.cli import main\nsys.exit(main({argv!r}))\n")
+    return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=cwd)
+
+
+def _one_line_error(result: subprocess.CompletedProcess) -> str:
+    assert result.returncode == 2 and result.stdout == "", (result.returncode, result.stderr[-2000:])
+    lines = result.stderr.splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error: "), result.stderr[-2000:]
+    return lines[0]
+
+
+def test_view_save_without_the_viewer_extra_is_one_line_naming_it(tmp_path):
+    """Without rerun, `view --save` ends in one line naming the extra to install, never an ImportError."""
+    from dsr_bench.testing import write_synthetic_dataset
+
+    data = write_synthetic_dataset(tmp_path / "data", num_sequences=1, num_steps=1)
+    result = _without(("rerun",), ["view", "seq_0000", "--data", str(data), "--save", str(tmp_path / "out.rrd")],
+                      tmp_path)
+    line = _one_line_error(result)
+    assert "rerun" in line and "pip install 'dsr-bench[viewer]'" in line
+    assert not (tmp_path / "out.rrd").exists()
+
+
+def test_challenge_commands_without_the_challenge_extra_are_one_line_naming_it(tmp_path):
+    """Without SQLAlchemy `challenge add-team`, without FastAPI `serve`, without httpx `submit`: one line each,
+    naming the module and the extra to install."""
+    (tmp_path / "pred").mkdir()
+    for modules, argv, module in ((("sqlalchemy",), ["challenge", "add-team", str(tmp_path / "ch"), "team"],
+                                   "sqlalchemy"),
+                                  (("fastapi",), ["serve", str(tmp_path / "ch")], "fastapi"),
+                                  (("httpx",), ["submit", str(tmp_path / "pred"), "--server", "http://127.0.0.1:9",
+                                                "--token", "t", "--method", "m"], "httpx")):
+        line = _one_line_error(_without(modules, argv, tmp_path))
+        assert f"needs {module}, which is not installed: pip install 'dsr-bench[challenge]'" in line, line
+
+
+def test_challenge_create_on_a_read_only_file_system_is_one_line(tmp_path, monkeypatch, capsys):
+    """`challenge create RO/ch` where the file system refuses writes (EROFS, simulated: the tests run as root, for whom
+    a 0555 directory is writable): one line naming the directory and the reason, nothing made."""
+    pytest.importorskip("pybullet")  # `challenge create` comes with the simulator (generators)
+    read_only = tmp_path / "ro"
+    real_mkdir = os.mkdir
+
+    def mkdir(path, *args, **kwargs):
+        if str(path).startswith(str(read_only)):
+            raise OSError(errno.EROFS, os.strerror(errno.EROFS), str(path))
+        return real_mkdir(path, *args, **kwargs)
+
+    monkeypatch.setattr(os, "mkdir", mkdir)
+    assert main(["challenge", "create", str(read_only / "ch"), "--split", "procedural-novel-mini", "-n", "2"]) == 2
+    err = capsys.readouterr().err
+    assert len(err.splitlines()) == 1 and err.startswith("error: dsr-bench challenge create: cannot write "), err
+    assert str(read_only) in err and os.strerror(errno.EROFS) in err
+    assert not read_only.exists()

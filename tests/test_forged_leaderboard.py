@@ -1,6 +1,7 @@
 """Forged results never reach the leaderboard: `leaderboard add` recomputes every number from the predictions (plans)
 and refuses a file that differs, in one line, writing nothing; `leaderboard build` skips an entry file that breaks the
-schema or its own consistency with one warning line and builds the rest; names are escaped and never collide."""
+schema or its own consistency with one warning line and builds the rest; names are escaped and never collide; a row
+is a reference row by provenance, never by a name that reads like one; JSON Python cannot read is one line too."""
 
 import copy
 import json
@@ -176,7 +177,7 @@ def test_names_never_collide_and_are_escaped_in_the_tables(pinned, root, tmp_pat
     legacy = reference.rename(root / "entries" / "static-procedural-novel-mini.json")  # the repository's naming
     kept = legacy.read_bytes()
     hostile = "a|b <img src=x onerror=alert(1)>\n**0.999**"
-    for name, pred in (("Static!", static), (hostile, static)):
+    for name, pred in (("stationary", static), (hostile, static)):  # (`Static!` reads as static: refused, below)
         rc, out, err = _add(root, _results(pred, pinned, name=name), tmp_path, capsys)
         assert rc == 0 and out.startswith("added "), err
     # a reference row's name on other predictions: the no-motion yardstick would be spoofed
@@ -196,6 +197,83 @@ def test_names_never_collide_and_are_escaped_in_the_tables(pinned, root, tmp_pat
     assert "<img src=x" not in md  # the only images are the build's own figures
     assert "<img src=x" not in (root / "index.html").read_text()
     assert markdown_cell("short_schedule.py _x_ `c`") == "short_schedule.py \\_x\\_ \\`c\\`"
+
+
+#: names that read as a reference row without being it (the row named): look-alike letters (Cyrillic, Greek),
+#: invisible characters, NBSP, case, punctuation, a track suffix or note, an alias, another track's reference row
+LOOK_ALIKES = [("\u0455tatic", "static"), ("st\u200batic", "static"), ("s\u00a0tatic", "static"),
+               ("STATIC", "static"), ("Static!", "static"), ("static-cpu", "static"), ("Static (mine)", "static"),
+               ("No motion", "static"), ("\u03bfr\u0430cle", "oracle"), ("\u0420ush", "push"),
+               ("random", "random"), ("no push", "no push")]
+
+
+def test_a_look_alike_of_a_reference_row_is_refused_and_never_shown_as_one(pinned, root, tmp_path, capsys):
+    """Oracle predictions whose meta.json names them `st\u0430tic` (a Cyrillic a) are refused in one line, nothing
+    written; so is every other way of writing a reference row's name; an entry file holding one (an older toolkit's,
+    or one placed by hand) is skipped by `build` with one warning, never shown (as a trained row of 0 / 0 / 1 / 1)."""
+    lookalike = "st\u0430tic"
+    results = _results(pinned.parent / "oracle", pinned, name=lookalike)
+    entry = {k: v for k, v in results.items() if k != "_pred"}
+    before = _snapshot(root)
+    rc, out, err = _add(root, results, tmp_path, capsys)
+    assert rc == 2 and out == "" and len(err.splitlines()) == 1, err
+    assert "reads as the reference row 'static'" in err and "meta.json's name" in err
+    genuine = _results(pinned.parent / "oracle", pinned)
+    for name, row in LOOK_ALIKES:
+        rc, out, err = _add(root, {**genuine, "method": name}, tmp_path, capsys)
+        assert rc == 2 and len(err.splitlines()) == 1 and f"reference row {row!r}" in err, (name, err)
+    rc, out, err = _add(root, {**genuine, "method": "\u202estatic"}, tmp_path, capsys)  # a bidi override
+    assert rc == 2 and len(err.splitlines()) == 1 and "bidi control U+202E" in err, err
+    assert _snapshot(root) == before
+    (root / "entries").mkdir()
+    (root / "entries" / "lookalike.json").write_text(json.dumps(entry))
+    assert main(["leaderboard", "build", "--root", str(root)]) == 0
+    warnings = capsys.readouterr().err.splitlines()
+    assert len(warnings) == 1 and "lookalike.json" in warnings[0] and "reference row 'static'" in warnings[0]
+    md = (root / "README.md").read_text()
+    assert lookalike not in md and f"## {SPLIT}" not in md
+
+
+def test_a_name_that_reads_like_another_entrys_is_refused(pinned, root, tmp_path, capsys):
+    """A method named like an entry already on the leaderboard (look-alike letters, case, spaces, punctuation,
+    invisible characters aside) without being its exact name is refused in one line; the exact name is that method
+    (other predictions of it: an entry of their own)."""
+    assert _add(root, _results(pinned.parent / "static", pinned, name="my-model"), tmp_path, capsys)[0] == 0
+    oracle = pinned.parent / "oracle"
+    rc, out, err = _add(root, _results(oracle, pinned, name="m\u0443-model"), tmp_path, capsys)  # Cyrillic u
+    assert rc == 2 and len(err.splitlines()) == 1 and "reads like the entry 'my-model'" in err, err
+    genuine = _results(oracle, pinned)
+    for name in ("My Model", "my_model", "my-model\u200b", "m\u0443-m\u043ed\u0435l"):
+        rc, out, err = _add(root, {**genuine, "method": name}, tmp_path, capsys)
+        assert rc == 2 and len(err.splitlines()) == 1 and "reads like the entry 'my-model'" in err, (name, err)
+    assert len(list((root / "entries").iterdir())) == 1
+    rc, out, err = _add(root, _results(oracle, pinned, name="my-model"), tmp_path, capsys)
+    assert rc == 0 and out.startswith("added "), err
+    assert len(list((root / "entries").iterdir())) == 2
+
+
+def test_json_python_cannot_read_is_one_line_naming_the_file(root, tmp_path, capsys):
+    """A results file holding a 5000-digit integer (past Python's int conversion limit) or nested 100,000 deep is
+    refused by `add` in one line naming it; entry files like them are skipped by `build` with one warning each."""
+    huge = '{"format": "dsr-bench-results", "version": ' + "7" * 5000 + "}"
+    deep = "[" * 100_000 + "]" * 100_000
+    for raw, why in ((huge, "an integer of more than"), (deep, "nested deeper")):
+        rc, out, err = _add(root, {}, tmp_path, capsys, "--predictions", str(tmp_path), raw=raw)
+        assert rc == 2 and len(err.splitlines()) == 1 and "submitted.json: unreadable results file" in err, err
+        assert why in err
+    plans = tmp_path / "plans"  # a plan run's own results.json, which `add --plans` reads too
+    plans.mkdir()
+    (plans / "results.json").write_text(deep)
+    rc, out, err = _add(root, {"format": "dsr-bench-plan-results"}, tmp_path, capsys, "--plans", str(plans))
+    assert rc == 2 and len(err.splitlines()) == 1 and "plans/results.json: unreadable results file" in err, err
+    (root / "entries").mkdir()
+    (root / "planning").mkdir()
+    (root / "entries" / "huge.json").write_text(huge)
+    (root / "planning" / "deep.json").write_text(deep)
+    assert main(["leaderboard", "build", "--root", str(root)]) == 0
+    warnings = capsys.readouterr().err.splitlines()
+    assert len(warnings) == 2 and all(w.startswith("warning: skipped ") for w in warnings)
+    assert "huge.json: an integer of more than" in warnings[0] and "deep.json: JSON nested deeper" in warnings[1]
 
 
 def test_meta_json_that_would_break_the_tables_is_refused(pinned, root, tmp_path, capsys):
@@ -320,3 +398,67 @@ def test_genuine_planning_results_are_recomputed_and_written(plan_run, root, tmp
     assert first_difference(written, recompute_results(plans, tasks), "plans") is None and check_entry(written) == []
     assert "| random (planning) |" in (root / "README.md").read_text()
     assert main(args) == 0 and capsys.readouterr().out.startswith(f"replaced {entry}")
+
+
+def _forged_plans(plans: Path, tasks: Path, out: Path, edit) -> Path:
+    """A copy of a plan run whose plan files `edit` changed, with the results.json a forger would write for them (the
+    run's own, its method and planner those the changed files name)."""
+    import h5py
+
+    shutil.copytree(plans, out)
+    for plan in sorted(out.glob("*.h5")):
+        with h5py.File(plan, "r+") as f:
+            edit(f)
+            planner, description = str(f.attrs["planner"]), str(f.attrs["description"])
+    results = json.loads((out / "results.json").read_text())
+    results["method"] = results["planner"]["name"] = planner
+    results["planner"]["description"] = description
+    (out / "results.json").write_text(json.dumps(results))
+    return out
+
+
+def _as_random(f) -> None:
+    """A plan file relabelled as the random planner's (its planner name and description)."""
+    from dsr_bench.planning.planners import RandomPlanner
+
+    f.attrs["planner"], f.attrs["description"] = "random", RandomPlanner.description
+
+
+def test_planning_reference_rows_are_so_by_provenance(plan_run, root, tmp_path, capsys):
+    """Planning results whose plan files name the planner like a reference row (`r\u0430ndom`, `no push`) are refused
+    in one line; the oracle planner's genuine plans relabelled random (every score genuine) are refused too: the
+    planner they name is not the model that made them (and a replay as random's would find other pushes than the ones
+    random draws from the seeds); nothing is written."""
+    tasks, plans = plan_run
+    oracle = tmp_path / "oracle"
+    assert main(["plan", "--model", "oracle", "--tasks", str(tasks), "--out", str(oracle), "--candidates", "3"]) == 0
+    cases = [(plans, lambda f: f.attrs.__setitem__("planner", "r\u0430ndom"), "reads as the reference row 'random'"),
+             (plans, lambda f: f.attrs.__setitem__("planner", "no push"), "reference row 'no push'"),
+             (oracle, _as_random, "its planner 'random' was not made by the model 'oracle' it records")]
+    before = _snapshot(root)
+    for i, (run, edit, named) in enumerate(cases):
+        forged = _forged_plans(run, tasks, tmp_path / f"forged-{i}", edit)
+        capsys.readouterr()
+        assert main(["leaderboard", "add", str(forged / "results.json"), "--plans", str(forged), "--tasks", str(tasks),
+                     "--root", str(root)]) == 2
+        err = capsys.readouterr().err
+        assert len(err.splitlines()) == 1 and named in err, err
+    assert _snapshot(root) == before
+
+
+def test_a_results_file_of_another_toolkit_version_is_refused_not_rewritten(plan_run, root, tmp_path, capsys):
+    """The issue's case: `toolkit_version` edited to 9.9.9 was accepted and quietly rewritten, though the help says
+    the file must equal the recomputation in every field but the date: now it is one line naming the field, and
+    nothing is written."""
+    tasks, plans = plan_run
+    forged = tmp_path / "plans"
+    shutil.copytree(plans, forged)
+    results = json.loads((forged / "results.json").read_text())
+    (forged / "results.json").write_text(json.dumps({**results, "toolkit_version": "9.9.9"}))
+    before = _snapshot(root)
+    capsys.readouterr()
+    assert main(["leaderboard", "add", str(forged / "results.json"), "--plans", str(forged), "--tasks", str(tasks),
+                 "--root", str(root)]) == 2
+    err = capsys.readouterr().err
+    assert len(err.splitlines()) == 1 and "toolkit_version is \"9.9.9\"" in err, err
+    assert _snapshot(root) == before

@@ -415,6 +415,14 @@ def test_a_2d_only_entry_joins_the_2d_track_only(board, tmp_path):
                                                        ("static", "4.000")]
 
 
+def _planner(method: str) -> dict:
+    """The planner record of `dsr-bench plan --model METHOD`'s results: a reference planner's own description."""
+    from dsr_bench.planning.planners import OraclePlanner, RandomPlanner
+
+    described = {"random": RandomPlanner.description, "oracle": OraclePlanner.description}
+    return {"name": method, "description": described.get(method, "x")}
+
+
 def _plan_results(method, iou, pinned=True, partial=False):
     """Valid planning results on plan-novel-test (as `dsr-bench plan` writes them), every task scoring `iou`."""
     from dsr_bench.planning.results import build_results
@@ -424,7 +432,7 @@ def _plan_results(method, iou, pinned=True, partial=False):
               "start_iou_occupancy": 0.2, "iou_per_object": [0.25, 0.75], "seconds": 30.0}
     checksum = pinned_checksums()["plan-novel-test"] if pinned else "0" * 64
     r = build_results({f"task_{i:04d}": scores for i in range(60 if partial else 100)},
-                      {"name": method, "description": "x"}, {"task_set": "plan-novel-test", "checksum": checksum}, 100,
+                      _planner(method), {"task_set": "plan-novel-test", "checksum": checksum}, 100,
                       [], f"dsr-bench plan --model {method}", {"candidates": 100})
     return {**r, "date": "2026-11-25T00:00:00Z"}
 
@@ -510,7 +518,7 @@ def _plan_varied(method, ious, starts):
                                   "start_iou_identity": start, "start_iou_occupancy": start,
                                   "iou_per_object": [iou], "seconds": 1.0}
                 for i, (iou, start) in enumerate(zip(ious, starts))}
-    r = build_results(per_task, {"name": method, "description": "x"},
+    r = build_results(per_task, _planner(method),
                       {"task_set": "plan-novel-test", "checksum": pinned_checksums()["plan-novel-test"]}, 100, [],
                       f"dsr-bench plan --model {method}", {"candidates": 100})
     return {**r, "date": "2026-11-25T00:00:00Z"}
@@ -599,3 +607,52 @@ def test_render_table_escapes_every_text_cell_and_link_in_markdown_and_html():
     assert table.comparable and table.markdown[2].startswith("| static |  | 0.500 |  |")
     assert table.markdown[3].startswith("| MyNet |  | 0.400 \u25bc |")
     assert table.markdown[4].startswith("| static |  | **0.450** | reference |")
+
+
+def test_build_of_a_missing_root_is_one_line_and_of_an_empty_one_an_empty_board(tmp_path, capsys):
+    """`leaderboard build --root` of a folder that does not exist (or is a file): one line naming it, nothing made;
+    of an empty folder: a leaderboard that says it has no entries (docs/evaluation.md)."""
+    from dsr_bench.cli import main
+
+    missing, a_file, empty = tmp_path / "missing", tmp_path / "a-file", tmp_path / "empty"
+    a_file.write_text("")
+    empty.mkdir()
+    for root, why in ((missing, "no such directory"), (a_file, "not a directory")):
+        assert main(["leaderboard", "build", "--root", str(root)]) == 2
+        err = capsys.readouterr().err
+        assert len(err.splitlines()) == 1 and err.startswith(f"error: --root {root}: {why}"), err
+    assert not missing.exists()
+    assert main(["leaderboard", "build", "--root", str(empty)]) == 0
+    assert capsys.readouterr().err == ""
+    assert sorted(p.name for p in empty.iterdir()) == ["README.md", "index.html"]
+    assert (empty / "README.md").read_text().rstrip().endswith("No entries yet.")
+    assert "<p>No entries yet.</p>" in (empty / "index.html").read_text()
+
+
+def test_reference_rows_are_so_by_provenance_never_by_name(board, capsys):
+    """A row is a reference row (noted "reference", the yardstick others are marked and paired against) only where
+    its provenance says so (`table.REFERENCE`, which `build` sets from the entry): a row named static that says it
+    is none is a trained row; an entry named like a reference row whose record contradicts it (meta.parameters not
+    static's), or named so only in part (`Static (mine)`), is skipped by `build` with a warning."""
+    static = _results("static", iou_ordered=0.2)
+    _put(board, static)
+    (board / "entries" / "other-static.json").write_text(json.dumps(
+        {**_results("static", iou_ordered=0.9), "predictions_checksum": "d" * 64,
+         "meta": {"name": "static", "parameters": {"grid": [128, 128, 48], "num_slots": 3}}}))
+    (board / "entries" / "mine.json").write_text(json.dumps(_results("Static (mine)", iou_ordered=0.95)))
+    build(board, warn=lambda line: print(line, file=sys.stderr))
+    warnings = capsys.readouterr().err.splitlines()
+    assert len(warnings) == 2 and "mine.json" in warnings[0] and "other-static.json" in warnings[1], warnings
+    assert "reads as the reference row 'static'" in warnings[0] and "meta (name, parameters)" in warnings[1]
+    table = _markdown_tables(build(board, warn=lambda line: None)[0].read_text())[
+        "procedural-novel-mini: 3D track (reproduced)"]
+    assert [row[0] for row in table[1:]] == ["static"] and "reference" in table[1][-4]
+
+    from dsr_bench.leaderboard.table import REFERENCE, render_table
+
+    rows = [{"method": "static", "iou_ordered": 0.5, REFERENCE: ""}, {"method": "MyNet", "iou_ordered": 0.4}]
+    rendered = render_table(rows, "3D", ["iou_ordered"])
+    assert not rendered.comparable and "reference" not in "".join(rendered.markdown)  # no yardstick: none marked
+    rendered = render_table([{**rows[0], REFERENCE: "static"}, rows[1]], "3D", ["iou_ordered"])
+    line = next(m for m in rendered.markdown if m.startswith("| static |"))
+    assert rendered.comparable and "**0.500** | reference |" in line

@@ -60,6 +60,10 @@ def test_a_learned_planner_moves_the_observed_objects(tmp_path):
     from dsr_bench.planning.planners import make_planner
     from dsr_bench.planning.plans import read_plan
     from dsr_bench.planning.tasks import read_task
+    import h5py
+
+    from dsr_bench.errors import UserError
+    from dsr_bench.planning.verify import recompute_results
 
     tasks = tmp_path / "tasks"
     assert main(["generate-plan-tasks", "--tasks", "plan-novel-mini", "--num-tasks", "1", "--out", str(tasks)]) == 0
@@ -77,4 +81,13 @@ def test_a_learned_planner_moves_the_observed_objects(tmp_path):
     assert "--masks observed" in results["command"]
     arrays, attrs = read_plan(out / "task_0000.h5")
     assert attrs["masks"] == "observed" and arrays["clear"].shape == (3, 12)
+    # a learned plan replays: its states, its candidates around its masks, its choice and the chosen push's cost
+    assert recompute_results(out, tasks) == results
+    with h5py.File(out / "task_0000.h5", "a") as f:  # the chosen push's predicted masks edited: its cost is not theirs
+        predicted = f["predicted"][()]
+        predicted[1] = 0
+        f["predicted"].write_direct(predicted)
+    with pytest.raises(UserError, match="task_0000.h5: step 1: the chosen push's cost is not the cost of its stored "
+                                        "predicted masks"):
+        recompute_results(out, tasks)
     assert main(["plan", "--model", "random", "--masks", "observed", "--tasks", str(tasks), "--out", str(out)]) == 2

@@ -2,18 +2,74 @@
 
 Registered through the `dsr_bench.commands` entry point; `challenge create`, which runs the simulator, is added to
 the same group by `generators.challenge`. Heavy imports (FastAPI, SQLAlchemy, httpx) happen inside the commands.
+Every command ends in one line (`dsr_bench.errors.UserError`) where the challenge extra is not installed (naming
+`pip install 'dsr-bench[challenge]'`) or where a file cannot be written (a read-only file system, no permission,
+no space: the path and the reason): the group's commands through `ChallengeGroup`, `serve` through `one_line`.
 """
 
 from __future__ import annotations
 
+import contextlib
+import errno
 import threading
+from collections.abc import Iterator
 from pathlib import Path
-from typing import Optional
+from typing import Any, Optional
 
 import typer
+from typer.core import TyperGroup
+
+from dsr_bench.errors import UserError
+
+#: how to install what the challenge's commands need beyond the toolkit (pyproject.toml's challenge extra)
+INSTALL = "pip install 'dsr-bench[challenge]'"
+#: the top-level modules of the challenge extra's packages (and of what they bring: starlette, pydantic)
+EXTRA_MODULES = frozenset(("fastapi", "starlette", "pydantic", "uvicorn", "sqlalchemy", "alembic", "multipart",
+                           "python_multipart", "argon2", "psycopg", "httpx"))
+#: the errors of a file that cannot be written, said in one line: read-only file system, no permission, no space
+_WRITE_ERRORS = (errno.EROFS, errno.EACCES, errno.EPERM, errno.ENOSPC, errno.EDQUOT)
+
+
+def one_line_error(exc: BaseException, command: str) -> UserError | None:
+    """What a host or participant can fix, as a one-line UserError (None for anything else): a module of the
+    challenge extra missing (naming `INSTALL`), a file `command` cannot write (naming it and why)."""
+    module = (exc.name or "").split(".")[0] if isinstance(exc, ImportError) else ""
+    if module in EXTRA_MODULES:
+        return UserError(f"dsr-bench {command} needs {module}, which is not installed: {INSTALL}")
+    if isinstance(exc, OSError) and exc.errno in _WRITE_ERRORS and exc.filename is not None:
+        return UserError(f"dsr-bench {command}: cannot write {exc.filename} ({exc.strerror}); choose a directory on "
+                         "a writable file system that you may write to (and with space left)")
+    return None
+
+
+@contextlib.contextmanager
+def one_line(command: str) -> Iterator[None]:
+    """Run the block with `one_line_error`'s errors raised as UserErrors."""
+    try:
+        yield
+    except (ImportError, OSError) as exc:
+        error = one_line_error(exc, command)
+        if error is None:
+            raise
+        raise error from None
+
+
+class ChallengeGroup(TyperGroup):
+    """The `challenge` group: each of its commands (`create` too, which `generators.challenge` adds) ends in one
+    line on `one_line_error`'s errors."""
+
+    def invoke(self, ctx: Any) -> Any:  # (typer's vendored click.Context)
+        try:
+            return super().invoke(ctx)
+        except (ImportError, OSError) as exc:
+            error = one_line_error(exc, f"challenge {ctx.invoked_subcommand or ''}".rstrip())
+            if error is None:
+                raise
+            raise error from None
+
 
 challenge_app = typer.Typer(help="Host a challenge: a hidden test set, teams, phases, re-scoring.",
-                            no_args_is_help=True)
+                            no_args_is_help=True, cls=ChallengeGroup)
 
 DbOption = typer.Option(None, "--db", help="Database URL (default: DIR/challenge.db, SQLite); e.g. "
                         "postgresql+psycopg://user@host/dbname.")
@@ -199,12 +255,12 @@ def serve(
     migrated first. Ctrl-C stops both."""
     import multiprocessing as mp
 
-    import uvicorn
+    with one_line("serve"):
+        import uvicorn
 
-    from dsr_bench.challenge.layout import open_challenge
-    from dsr_bench.challenge.server import Settings, create_app
-    from dsr_bench.challenge.worker import worker_main
-    from dsr_bench.errors import UserError
+        from dsr_bench.challenge.layout import open_challenge
+        from dsr_bench.challenge.server import Settings, create_app
+        from dsr_bench.challenge.worker import worker_main
 
     if workers < 1:
         raise UserError(f"--workers {workers}: give 1 or more evaluation workers")
@@ -213,7 +269,8 @@ def serve(
                         "`dsr-bench leaderboard build` writes, e.g. leaderboard")
     layout, _ = open_challenge(root)
     url = db or layout.default_db_url()
-    app = create_app(root, url, Settings(leaderboard=leaderboard))
+    with one_line("serve"):
+        app = create_app(root, url, Settings(leaderboard=leaderboard))
     context = mp.get_context("spawn")
     stopping = threading.Event()
     procs = [context.Process(target=worker_main, args=(str(root), url), daemon=True) for _ in range(workers)]
@@ -241,7 +298,8 @@ def serve(
 
 
 def submit(
-    predictions: Path = typer.Argument(..., help="Predictions directory (one .h5 per sequence, meta.json)."),
+    predictions: Path = typer.Argument(..., help="Predictions directory: one SEQUENCE.h5 per sequence of the "
+                                     "split and meta.json, nothing else (regular files, no links)."),
     server: str = typer.Option(..., "--server", help="The challenge server's URL, e.g. http://127.0.0.1:8000."),
     token: str = typer.Option(..., "--token", envvar="DSR_BENCH_TOKEN", help="Your team's token (or "
                               "$DSR_BENCH_TOKEN)."),
@@ -254,8 +312,9 @@ def submit(
     from dsr_bench.challenge.client import describe, submit as run
     from dsr_bench.challenge.layout import check_name
 
-    state, status = run(predictions, server, token, check_name(method, "--method"), typer.echo, timeout=timeout,
-                        follow=not no_wait)
+    with one_line("submit"):  # without httpx (the challenge extra): one line naming it
+        state, status = run(predictions, server, token, check_name(method, "--method"), typer.echo, timeout=timeout,
+                            follow=not no_wait)
     if no_wait:
         return
     for line in describe(status, predictions):

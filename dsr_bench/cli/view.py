@@ -33,6 +33,9 @@ def view(
         raise UserError(f"--save {save}: the recording file must end in .rrd")
     if grpc_port is not None and not web:
         raise UserError("--grpc-port is a port of the web viewer: add --web, or drop it")
+    from dsr_bench.viewer import import_rerun
+
+    import_rerun()  # before any work: without the viewer extra, one line naming it
     if sequence.endswith(".h5") and Path(sequence).is_file() and predictions is None and data is None:
         from dsr_bench.viewer.plan import is_plan_file
 

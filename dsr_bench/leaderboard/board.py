@@ -1,21 +1,23 @@
 """The leaderboard: results entries (one JSON per entry) and the tables built from them.
 
-leaderboard/entries/*.json are results of `dsr-bench evaluate` as `add` recomputed them from the predictions
-(plus an optional "label"), never a submitted file's numbers; leaderboard/planning/*.json likewise results of
-`dsr-bench plan` recomputed from the plan files (complete runs on a pinned task set), shown in the planning IoU
-column. `dsr_bench.leaderboard.entries` validates both before `add` writes and when `build` reads (a file that fails
-is skipped with one warning line). leaderboard/paper.json holds the paper's published numbers, always shown apart
-and marked "reported in the paper". A 2D-only entry (results holding motion_2d alone) joins the 2D track's table
-only. `build` writes leaderboard/README.md (a table per split and track, best per column in bold; every text
-cell escaped), a static, sortable leaderboard/index.html and, for each table of reproduced rows whose entries
-hold per-step values, leaderboard/plots/<split>-3d.png (-2d.png for the 2D track; an earlier version of a split:
-<split>-<checksum>-3d.png) comparing the rows step by step, shown under the table.
+leaderboard/entries/*.json are results of `dsr-bench evaluate` as `add` (`dsr_bench.leaderboard.add`) recomputed
+them from the predictions (plus an optional "label"), never a submitted file's numbers; leaderboard/planning/*.json
+likewise results of `dsr-bench plan` recomputed from the plan files (complete runs on a pinned task set), shown in
+the planning IoU column. `dsr_bench.leaderboard.entries` validates both before `add` writes and when `build` reads
+(a file that fails is skipped with one warning line). leaderboard/paper.json holds the paper's published numbers,
+always shown apart and marked "reported in the paper". A 2D-only entry (results holding motion_2d alone) joins the
+2D track's table only. `build` writes leaderboard/README.md (a table per split and track, best per column in bold;
+every text cell escaped), a static, sortable leaderboard/index.html and, for each table of reproduced rows whose
+entries hold per-step values, leaderboard/plots/<split>-3d.png (-2d.png for the 2D track; an earlier version of a
+split: <split>-<checksum>-3d.png) comparing the rows step by step, shown under the table. A row is a reference
+row (label "reference", a yardstick of the paired differences and the marks) by its provenance
+(`provenance.reference_of`, under `table.REFERENCE`), never by its name alone. A missing --root is a one-line error;
+an empty one builds a leaderboard that says it has no entries.
 """
 
 from __future__ import annotations
 
 import html
-import json
 import re
 import sys
 from collections.abc import Callable
@@ -24,159 +26,16 @@ from pathlib import Path
 from dsr_bench.atomic import write_text
 from dsr_bench.constants import GRID_SHAPE, IMAGE_SHAPE
 from dsr_bench.errors import UserError
-from dsr_bench.models.predictors import REFERENCE_MODELS
-from dsr_bench.leaderboard.entries import (PLAN_RESULTS_FORMAT, RESULTS_FORMAT, check_entry, entry_identity,
-                                       entry_name, first_difference, is_2d_only, markdown_cell, show)
-from dsr_bench.leaderboard.table import (COLUMN_TITLES, LOWER_IS_BETTER, NO_MOTION, NO_PUSH, SEQ,  # noqa: F401
-                                         SORT_SCRIPT, TRACKS, _WORSE_MARK, _difference, _yardsticks, html_table,
-                                         is_oracle, md_row, render_table)
-from dsr_bench.scoring.plots import FIGURE_WIDTH_PX, is_reference_method
+from dsr_bench.leaderboard.add import _first, add_entry  # noqa: F401 - `add`, the command's entry, beside `build`
+from dsr_bench.leaderboard.entries import (PLAN_RESULTS_FORMAT, RESULTS_FORMAT, UnreadableJSON, check_entry,
+                                           is_2d_only, markdown_cell, read_json, show)
+from dsr_bench.leaderboard.provenance import reference_of
+from dsr_bench.leaderboard.table import (COLUMN_TITLES, LOWER_IS_BETTER, NO_MOTION, NO_PUSH, REFERENCE,  # noqa: F401
+                                         SEQ, SORT_SCRIPT, TRACKS, _WORSE_MARK, _difference, _yardsticks,
+                                         html_table, is_named, is_oracle_row, is_reference_row, md_row, named,
+                                         render_table)
+from dsr_bench.scoring.plots import FIGURE_WIDTH_PX
 from dsr_bench.scoring.spread import paired_difference, unit_values
-
-
-def add_entry(results_path: str | Path, root: str | Path = "leaderboard", label: str | None = None,
-              predictions: str | Path | None = None, data: str | Path | None = None, plans: str | Path | None = None,
-              tasks: str | Path | None = None, workers: int = 0) -> tuple[Path, bool]:
-    """Recompute a results file from its predictions (`evaluate`) or plans (`planning.verify.recompute_results`),
-    refuse it (UserError, one line, nothing written) unless the recomputed results are pinned, complete, a valid
-    entry and equal to the file in every field but date, label and toolkit_version, and write the recomputed
-    results (plus `label`). Returns (the entry's file, whether it replaced the entry of the same method, split and
-    predictions)."""
-    path, root = Path(results_path), Path(root)
-    try:
-        submitted = json.loads(path.read_text())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise UserError(f"{path}: unreadable results file ({type(exc).__name__}); give the results JSON of "
-                        "`dsr-bench evaluate --out` or `dsr-bench plan`") from None
-    kind = submitted.get("format") if isinstance(submitted, dict) else None
-    if kind == PLAN_RESULTS_FORMAT:
-        recomputed = _recompute_plans(path, plans, tasks, root)
-        source, folder = "plans", "planning"
-    elif kind == RESULTS_FORMAT:
-        recomputed = _recompute_predictions(path, submitted, predictions, data, root, workers)
-        source, folder = "predictions", "entries"
-    else:
-        raise UserError(f"{path} is not a dsr-bench results file (format {show(kind)}); produce it with "
-                        "`dsr-bench evaluate --out` or `dsr-bench plan`")
-    difference = first_difference(submitted, recomputed, source)
-    if difference:
-        again = "`dsr-bench plan`" if source == "plans" else "`dsr-bench evaluate`"
-        raise UserError(f"{path}: {difference}; re-run {again} and add the results it writes")
-    entry = {**recomputed, **({"label": label} if label else {})}
-    # the file itself must be well formed too (its date, label and toolkit_version were not compared)
-    problems = check_entry(entry) or check_entry(submitted)
-    if problems:
-        raise UserError(f"{path} cannot join the leaderboard: {_first(problems)}")
-    target, replaced = _entry_path(root / folder, entry)
-    write_text(target, json.dumps(entry, indent=1, sort_keys=True) + "\n")
-    return target, replaced
-
-
-def _first(problems: list[str]) -> str:
-    return problems[0] + (f" (and {len(problems) - 1} more)" if len(problems) > 1 else "")
-
-
-def _recompute_predictions(path: Path, submitted: dict, predictions, data, root: Path, workers: int) -> dict:
-    """The results of `evaluate` on the predictions, on the file's split: pinned and complete, else UserError."""
-    from dsr_bench.atomic import check_writable
-    from dsr_bench.scoring.evaluate import evaluate
-    from dsr_bench.scoring.predictions import infer_source
-
-    if predictions is None:
-        raise UserError(f"{path}: the leaderboard recomputes every score from the predictions and never reads one "
-                        "from a results file; give --predictions PRED_DIR (the directory `dsr-bench evaluate` scored)")
-    split = submitted.get("split")
-    if not isinstance(split, str):
-        raise UserError(f"{path}: split is {show(split)}, not a split's name; produce the results with "
-                        "`dsr-bench evaluate`")
-    check_writable(root / "entries", "--root")
-    predictions = Path(predictions)
-    if not predictions.is_dir():
-        raise UserError(f"--predictions {predictions}: not a directory; give the predictions `dsr-bench evaluate` "
-                        "scored")
-    data, _, _ = infer_source(predictions, Path(data) if data is not None else None, split)  # split as given
-    evaluation = evaluate(predictions, data, split, workers=workers)
-    if evaluation.results is None:
-        where, problem = evaluation.problems[0] if evaluation.problems else ("", "nothing scored")
-        raise UserError(f"{predictions}: {len(evaluation.problems)} problems (first: {where}: {problem}); run "
-                        f"`dsr-bench evaluate {predictions}` to see them all")
-    results = json.loads(json.dumps(evaluation.results))  # as a results file holds it
-    if results.get("pinned") is not True:
-        why = evaluation.warnings[0] if evaluation.warnings else f"split {split!r} is not pinned in this toolkit"
-        raise UserError(f"{path} cannot join the leaderboard: recomputed on {data}, its results are not pinned: {why}")
-    if results["coverage"]["partial"]:
-        raise UserError(f"{path} cannot join the leaderboard: the predictions cover only part of {split}")
-    reference = reference_model(results["method"])
-    if reference is not None:
-        check_reference_predictions(path, predictions, data, split, reference)
-    return results
-
-
-#: the reference rows' methods, made by `dsr-bench predict --model NAME`: a table's yardsticks (static: the no-motion
-#: row every trained row is compared with), so a submission may carry such a name only with those very predictions
-REFERENCE_ROWS = REFERENCE_MODELS
-
-
-def reference_model(method: str) -> str | None:
-    """The reference model a method's name claims to be (case, spaces and punctuation aside), or None."""
-    name = re.sub(r"[^a-z0-9]", "", str(method).lower())
-    return name if name in REFERENCE_ROWS else None
-
-
-def check_reference_predictions(path: Path, predictions: Path, data: Path, split: str, model: str) -> None:
-    """UserError unless every prediction file holds exactly the arrays `dsr-bench predict --model MODEL` writes for
-    it (predicted again here): a reference row's name is the toolkit's to give, never a submitter's."""
-    import tempfile
-
-    import h5py
-    import numpy as np
-
-    from dsr_bench.dataset.manifest import read_split
-    from dsr_bench.models.predictors import load_predictor, predict_split
-
-    _, names = read_split(data, split)
-    with tempfile.TemporaryDirectory(prefix="dsr-bench-reference-") as tmp:
-        predict_split(load_predictor(model), data, names, tmp)
-        for name in names:
-            with h5py.File(Path(tmp) / f"{name}.h5", "r") as want, h5py.File(predictions / f"{name}.h5", "r") as got:
-                same = set(want) == set(got) and want.attrs.get("num_slots") == got.attrs.get("num_slots") and all(
-                    want[k].dtype == got[k].dtype and np.array_equal(want[k][()], got[k][()]) for k in want)
-            if not same:
-                raise UserError(f"{path}: its method is named like the reference row {model!r}, but "
-                                f"{predictions / (name + '.h5')} is not what `dsr-bench predict --model {model}` "
-                                "writes; give your method another name (meta.json's name)")
-
-
-def _recompute_plans(path: Path, plans, tasks, root: Path) -> dict:
-    """The planning results recomputed from the plan files and the verified tasks: pinned and complete, else
-    UserError."""
-    from dsr_bench.atomic import check_writable
-    from dsr_bench.planning.verify import recompute_results
-
-    if plans is None:
-        raise UserError(f"{path}: the leaderboard recomputes every planning score from the plan files and never reads "
-                        "one from a results file; give --plans PLANS_DIR (the --out directory of `dsr-bench plan`)")
-    check_writable(root / "planning", "--root")
-    results = json.loads(json.dumps(recompute_results(Path(plans), tasks)))
-    problems = check_entry(results)
-    if problems:
-        raise UserError(f"{path} cannot join the leaderboard: recomputed from {plans}, {_first(problems)}")
-    return results
-
-
-def _entry_path(folder: Path, entry: dict) -> tuple[Path, bool]:
-    """Where an entry goes: the file already holding the same method, split and predictions (plans), replaced,
-    or its own new file (`entries.entry_name`)."""
-    identity = entry_identity(entry)
-    for existing in sorted(folder.glob("*.json")):
-        try:
-            old = json.loads(existing.read_text())
-        except (OSError, UnicodeDecodeError, json.JSONDecodeError):
-            continue
-        if isinstance(old, dict) and entry_identity(old) == identity:
-            return existing, True
-    folder.mkdir(parents=True, exist_ok=True)
-    return folder / entry_name(entry), False
 
 
 def _read_valid(paths, kind: str, warn) -> list[tuple[Path, dict]]:
@@ -185,9 +44,9 @@ def _read_valid(paths, kind: str, warn) -> list[tuple[Path, dict]]:
     valid = []
     for path in paths:
         try:
-            r = json.loads(path.read_text())
-        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-            warn(f"skipped {path}: unreadable ({type(exc).__name__})")
+            r = read_json(path)
+        except UnreadableJSON as exc:
+            warn(f"skipped {path}: {exc}")
             continue
         problems = check_entry(r) if isinstance(r, dict) and r.get("format") == kind else \
             [f"not a {kind} file (format {show(r.get('format') if isinstance(r, dict) else r)})"]
@@ -237,6 +96,7 @@ def load_rows(root: str | Path = "leaderboard", warn: Callable[[str], None] | No
         default = IMAGE_SHAPE if is_2d_only(r.get("metrics") or {}) else GRID_SHAPE
         grid = params.get("grid") or params.get("image") or list(default)
         rows.append({"method": r["method"], "split": r["split"], "kind": kind, "label": r.get("label", ""),
+                     REFERENCE: reference_of(r, planning=False)[0],
                      "grid": "x".join(str(int(g)) for g in grid), "toolkit": str(r.get("toolkit_version", "")),
                      "date": r.get("date", "")[:10], "checksum": r.get("split_checksum", "")[:12],
                      SEQ: r.get("per_sequence") or {}, **{k: v for k, v in r["metrics"].items()}})
@@ -244,13 +104,18 @@ def load_rows(root: str | Path = "leaderboard", warn: Callable[[str], None] | No
     rows += planning_rows([path for path, _ in plans], include_paper=False)  # paper.json has them
     paper = root / "paper.json"
     if paper.exists():
-        for r in json.loads(paper.read_text())["rows"]:
+        try:
+            published = read_json(paper)["rows"]
+        except (UnreadableJSON, TypeError, KeyError) as exc:
+            raise UserError(f"{paper}: {exc if isinstance(exc, UnreadableJSON) else 'no list of rows'}; restore it "
+                            "from the repository (git checkout leaderboard/paper.json)") from None
+        for r in published:
             # an image-space model of the paper (2D flow alone) has no voxel grid, and the paper gives its image
             # size nowhere we quote: "-", never the 3D models' grid
             grid = "-" if set(r["metrics"]) == {"motion_2d"} else "x".join(map(str, GRID_SHAPE))
             rows.append({"method": r["method"], "split": r["split"], "kind": "reported in the paper", "grid": grid,
                          "toolkit": "", "label": r.get("source", ""), "date": "2020", "checksum": "", SEQ: {},
-                         **r["metrics"]})
+                         REFERENCE: None, **r["metrics"]})  # the repository's own rows: by their names
     return rows
 
 
@@ -266,7 +131,7 @@ def planning_rows(results_files: list[str | Path], include_paper: bool = True) -
     holds them: every planner starts from the same states), and the paper's three rows."""
     rows, start_rows = [], {}
     for path in results_files:
-        r = json.loads(Path(path).read_text())
+        r = read_json(path)
         # the planner's model grid where the results record it (a learned planner); "-" for oracle and random
         grid = "x".join(str(int(g)) for g in (r.get("planner") or {}).get("grid") or ()) or "-"
         kind = "reproduced" if r.get("pinned") else f"task set not pinned ({r.get('task_checksum', '')[:12]})"
@@ -274,7 +139,7 @@ def planning_rows(results_files: list[str | Path], include_paper: bool = True) -
         tasks = r.get("per_task") or {}
         common = {"split": r["task_set"], "kind": kind, "toolkit": str(r.get("toolkit_version", "")),
                   "date": r.get("date", "")[:10], "checksum": r.get("task_checksum", "")[:12]}
-        rows.append({"method": f"{r['method']} (planning)", **common,
+        rows.append({"method": f"{r['method']} (planning)", **common, REFERENCE: reference_of(r, planning=True)[0],
                      "label": f"{r['coverage']['scored']}/{r['coverage']['expected']} tasks"
                               + (" (partial)" if partial else ""), "grid": grid,
                      SEQ: {t: {"planning_iou": v.get("iou")} for t, v in tasks.items()},
@@ -282,25 +147,33 @@ def planning_rows(results_files: list[str | Path], include_paper: bool = True) -
         if (r["task_set"], kind) not in start_rows and "start_iou" in r["metrics"]:
             start_rows[(r["task_set"], kind)] = {
                 "method": NO_PUSH, **common, "label": "the start state's IoU with the target", "grid": "-",
+                REFERENCE: "no push",
                 SEQ: {t: {"planning_iou": v.get("start_iou")} for t, v in tasks.items()},
                 "planning_iou": r["metrics"]["start_iou"]}
     rows += list(start_rows.values())
     if include_paper:
         rows += [{"method": m, "split": "ycb-test", "kind": "reported in the paper", "label": "Sec. 4.3",
-                  "grid": "x".join(map(str, GRID_SHAPE)), "toolkit": "",
+                  "grid": "x".join(map(str, GRID_SHAPE)), "toolkit": "", REFERENCE: None,
                   "date": "2020", "checksum": "", SEQ: {}, "planning_iou": v} for m, v in PLANNING_PAPER_ROWS]
     return rows
+
+
+def _references_last(group):
+    """The rows of a table, in order, the reference rows (by provenance, `table.is_reference_row`) last."""
+    return group.iloc[sorted(range(len(group)), key=lambda i: is_reference_row(group.iloc[i]))]
 
 
 def _tables(rows: list[dict]):
     import pandas as pd
 
+    if not rows:  # an empty leaderboard: no table
+        return
     frame = pd.DataFrame(rows)
     for (split, kind), group in frame.groupby(["split", "kind"], sort=True):
         if "planning_iou" in group and group["planning_iou"].notna().all():  # a planning task set's own table
-            group = group.iloc[sorted(range(len(group)), key=lambda i: is_reference_method(group["method"].iloc[i]))]
+            group = _references_last(group)
             yield split, kind, "planning", group[["method", "grid", "planning_iou", "label", "toolkit", "date",
-                                                  "checksum", SEQ]].reset_index(drop=True), ["planning_iou"]
+                                                  "checksum", SEQ, REFERENCE]].reset_index(drop=True), ["planning_iou"]
             continue
         for track, columns in TRACKS.items():
             cols = [c for c in columns + (("planning_iou",) if track == "3D" else ()) if c in group]
@@ -308,8 +181,9 @@ def _tables(rows: list[dict]):
             cols = [c for c in cols if sub[c].notna().any()]  # a column no row of this table has a value of
             if sub.empty or not cols:
                 continue
-            sub = sub.iloc[sorted(range(len(sub)), key=lambda i: is_reference_method(sub["method"].iloc[i]))]
-            table = sub[["method", "grid", *cols, "label", "toolkit", "date", "checksum", SEQ]].reset_index(drop=True)
+            sub = _references_last(sub)
+            table = sub[["method", "grid", *cols, "label", "toolkit", "date", "checksum", SEQ,
+                         REFERENCE]].reset_index(drop=True)
             yield split, kind, track, table, cols
 
 
@@ -320,8 +194,8 @@ def _difference_tables(table, track: str, cols: list[str]) -> tuple[list[str], s
     md: list[str] = []
     page = []
     for yard in _yardsticks(table, track):
-        base = table[table["method"] == yard].iloc[0]
-        others = [r for _, r in table.iterrows() if r["method"] != yard and not is_oracle(r["method"])]
+        base = named(table, yard).iloc[0]
+        others = [r for _, r in table.iterrows() if not is_named(r, yard) and not is_oracle_row(r)]
         if not others:
             continue
         name = yard.replace(" (planning)", "")
@@ -368,6 +242,9 @@ def build(root: str | Path = "leaderboard", warn: Callable[[str], None] | None =
     from dsr_bench.dataset.splits import SPLITS
 
     root = Path(root)
+    if not root.is_dir():
+        raise UserError(f"--root {root}: {'not a directory' if root.exists() else 'no such directory'}; give the "
+                        "leaderboard's folder (leaderboard in a clone), or make an empty one to start a leaderboard")
     entries = load_entries(root, warn)
     rows = load_rows(root, warn, entries)
     plotted: set[Path] = set()
@@ -482,15 +359,15 @@ def _planning_plot(root: Path, table, split: str, kind: str) -> Path | None:
 
     if kind == "reported in the paper":
         return None
-    rows = [(str(r["method"]).replace(" (planning)", ""), unit_values(r[SEQ], "planning_iou"))
-            for _, r in table.iterrows()]
-    rows = [(m, v) for m, v in rows if v]
-    if not rows:
+    found = [(str(r["method"]).replace(" (planning)", ""), unit_values(r[SEQ], "planning_iou"), is_reference_row(r))
+             for _, r in table.iterrows()]
+    found = [r for r in found if r[1]]
+    if not found:
         return None
     if matplotlib_missing():
         raise UserError(f"cannot draw {root / PLOTS_DIR}: {MISSING_MATPLOTLIB}")
     # planners first, then the reference rows
-    rows = [r for r in rows if not is_reference_method(r[0])] + [r for r in rows if is_reference_method(r[0])]
+    rows = [(m, v) for m, v, ref in found if not ref] + [(m, v) for m, v, ref in found if ref]
     title = f"{split}: planning track" + ("" if kind == "reproduced" else f" ({kind})")
     return write_planning_plot(rows, title, root / PLOTS_DIR / plot_name(split, kind, "planning"), svg=True)
 
@@ -505,7 +382,7 @@ def no_motion_entry(results: dict, root: str | Path | None = None) -> tuple[dict
     if not (root / "entries").is_dir():
         return None, f"no no-motion line: no leaderboard at {root}"
     for entry in load_entries(root, warn=lambda line: None):
-        if entry["method"] == NO_MOTION and entry["split"] == results.get("split") and \
+        if reference_of(entry, planning=False)[0] == NO_MOTION and entry["split"] == results.get("split") and \
                 entry.get("split_checksum") == results.get("split_checksum") and entry.get("per_step"):
             return entry, ""
     return None, (f"no no-motion line: the leaderboard holds no static entry scored on this version of "

@@ -11,10 +11,16 @@ likewise; a 3D result holds the four 3D metrics: one cut to motion_2d shows in i
 breakdowns), the split (a named split with a pin; `pinned` true exactly when split_checksum is that pin, then the
 split's size and sequence names; another split's pin under its name is a relabelled result; an entry of an earlier
 pin stays, shown apart) and, where present, `predictions_sha256` against `predictions_checksum`. Planning results
-(`dsr-bench plan`) are checked by `dsr_bench.planning.verify.check_results`, and must be pinned and complete.
+(`dsr-bench plan`) are checked by `dsr_bench.planning.verify.check_results`, and must be pinned and complete. Both:
+the method's name can be shown (`names.name_problem`) and reads as a reference row's only where it is that row by
+provenance (`provenance.reference_of`).
+
+Every untrusted JSON file of the leaderboard (a submitted results file, an entry) is read by
+`dsr_bench.jsonfile.read_json`: whatever the file holds, its value or `UnreadableJSON` saying why in a few words.
 
 `first_difference(submitted, recomputed)` names the first field where a submitted results file differs from the
-results recomputed from its predictions (`date`, `label` and `toolkit_version` excepted). `entry_name` derives an
+results recomputed from its predictions (`date` and `label` excepted: `toolkit_version` must be this toolkit's, a
+results file of another version is remade with this one). `entry_name` derives an
 entry's file name from its method, split and predictions (or plans) checksum, so two entries never share a file
 unless they are the same method on the same split with the same predictions.
 """
@@ -27,6 +33,7 @@ import json
 import math
 import re
 
+from dsr_bench.jsonfile import UnreadableJSON, read_json  # noqa: F401 - read here and by the board
 from dsr_bench.scoring.evaluate import _mean as aggregate_mean, checksum_of, expected_scored_checksum
 from dsr_bench.scoring.metrics import METRICS, OBJECT_IOUS, metric_keys
 
@@ -39,7 +46,7 @@ OFFICIAL = metric_keys(("3D",), ("official",))
 STEP_ONLY = metric_keys(roles=("breakdown",))
 BREAKDOWNS = tuple(key for pair in OBJECT_IOUS for key in pair) + tuple(m.breakdown for m in METRICS if m.breakdown)
 #: fields never compared between a submitted and a recomputed results file
-UNCOMPARED = ("date", "label", "toolkit_version")
+UNCOMPARED = ("date", "label")
 #: the order in which `first_difference` looks (the rest after these, sorted)
 _FIRST = ("format", "version", "split", "task_set", "split_checksum", "task_checksum", "pinned",
           "ground_truth_verified", "coverage", "predictions_checksum", "plans_checksum", "predictions_sha256", "method",
@@ -122,7 +129,20 @@ def check_entry(results) -> list[str]:
     p += _check_track(results, metrics)
     p += _check_coverage(results)
     p += _check_split(results)
-    return p
+    return p + _check_name(results, planning=False)
+
+
+def _check_name(results: dict, planning: bool) -> list[str]:
+    """A method's name that cannot be shown, or that reads as a reference row's without its provenance
+    (`provenance.reference_of`)."""
+    from dsr_bench.leaderboard.names import name_problem
+    from dsr_bench.leaderboard.provenance import reference_of
+
+    method = results.get("method")
+    if not isinstance(method, str):
+        return []
+    problem = name_problem(method) or reference_of(results, planning)[1]
+    return [problem] if problem else []
 
 
 def check_plan_entry(results: dict) -> list[str]:
@@ -151,7 +171,7 @@ def check_plan_entry(results: dict) -> list[str]:
                  "every task")
     if "label" in results and not isinstance(results["label"], str):
         p.append("label is not a string")
-    return p
+    return p + _check_name(results, planning=True)
 
 
 def _check_fields(r: dict) -> list[str]:

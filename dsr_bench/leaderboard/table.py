@@ -4,8 +4,10 @@ and the challenge server's pages (`dsr_bench.challenge.server`) render their row
 A row is a mapping in `board.load_rows`'s shape: "method", "grid", "label", "toolkit", "date", "checksum", the
 values of its metric columns (`COLUMN_TITLES`' keys; None or NaN: no value) and, optionally, its per-unit values
 under `SEQ` ({sequence or task: {column: value}}), from which each cell's 95% interval is computed, links under
-`LINKS` and its role under `ROLE` (a submission named like a reference row is not one). Every text cell
-is escaped: HTML with `html.escape`, markdown with `entries.markdown_cell`.
+`LINKS`, the reference row it is by provenance under `REFERENCE` (`board.load_rows` sets it from
+`provenance.reference_of`: "" for none) and its role under `ROLE` (a submission named like a reference row is not
+one); only a row without either is a reference row by its name. Every text cell is escaped: HTML with
+`html.escape`, markdown with `entries.markdown_cell`.
 """
 
 from __future__ import annotations
@@ -17,6 +19,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from dsr_bench.leaderboard.entries import markdown_cell
+from dsr_bench.leaderboard.names import fold
 from dsr_bench.scoring.metrics import METRICS, TRACKS as METRIC_TRACKS, metric_keys
 from dsr_bench.scoring.plots import is_reference_method
 from dsr_bench.scoring.spread import Spread, paired_difference, spread, unit_values
@@ -51,9 +54,10 @@ _WORSE_MARK = "\u25bc"
 #: Rows that bound the benchmark from above: never "best" (ground truth as predictions, or a model
 #: warped with the ground-truth flow).
 def is_oracle(method: str) -> bool:
-    """Whether a row is an oracle: its method is `oracle` or says "oracle" (e.g. "GTWarp (oracle warp)"), or it is
-    GTWarp (`gtwarp`, `gtwarp-cpu`: its history is warped by the ground-truth flow)."""
-    name = str(method).lower()
+    """Whether a row is an oracle: its method is `oracle` or says "oracle" (e.g. "GTWarp (oracle warp)", look-alike
+    letters and case aside: `names.fold`), or it is GTWarp (`gtwarp`, `gtwarp-cpu`: its history is warped by the
+    ground-truth flow)."""
+    name = fold(method)
     return "oracle" in name or name.startswith("gtwarp")
 
 
@@ -62,41 +66,54 @@ NO_MOTION = "static"
 
 
 #: where a row may say what it is: "submission" (a challenge's submitted row: never a reference row, whatever its
-#: name) or "reference"; without it a row is a reference row by its name (`is_reference_method`, `is_oracle`)
+#: name) or "reference"; without it (and without `REFERENCE`) a row is a reference row by its name
+#: (`is_reference_method`, `is_oracle`)
 ROLE = "_role"
+#: where a row says which reference row it is by provenance (`provenance.reference_of`: "static", "push", "oracle",
+#: "random", "no push"; "" for none: then no name makes it one)
+REFERENCE = "_reference"
 
 
 def _submitted(row) -> bool:
     return ROLE in row and row[ROLE] == "submission"
 
 
-def _oracle_row(row) -> bool:
-    """Whether a row is an oracle (never best): by its name, unless it is a submission."""
-    return not _submitted(row) and is_oracle(row["method"])
+def _provenance(row) -> str | None:
+    """The reference row a row is by provenance ("" none), or None where the row does not say."""
+    value = row[REFERENCE] if REFERENCE in row else None
+    return None if value is None or value != value else str(value)  # NaN: a row of a frame that does not say
 
 
-def _reference_row(row) -> bool:
-    """Whether a row is a reference row (static, push, oracle, random, no push): by its name, unless a submission."""
+def is_oracle_row(row) -> bool:
+    """Whether a row is an oracle (never best): the oracle reference row, or by its name (`is_oracle`: a name can
+    only keep its own row from being ranked), unless it is a submission."""
+    return not _submitted(row) and (_provenance(row) == "oracle" or is_oracle(row["method"]))
+
+
+def is_reference_row(row) -> bool:
+    """Whether a row is a reference row (static, push, oracle, random, no push): by its provenance where the row
+    says it (`REFERENCE`), else by its name; a submission never is."""
+    reference = _provenance(row)
+    if reference is not None:
+        return bool(reference)
     return not _submitted(row) and is_reference_method(row["method"])
 
 
-def _is_named(row, name: str) -> bool:
-    """Whether a row is the reference row `name` (a submission never is)."""
-    return row["method"] == name and not _submitted(row)
+def is_named(row, name: str) -> bool:
+    """Whether a row is the reference row `name` (a submission, or a row that says it is no reference row, never
+    is)."""
+    return row["method"] == name and not _submitted(row) and _provenance(row) != ""
 
 
-def _named(table, name: str):
-    """The table's rows that are the reference row `name` (submissions of that name aside)."""
-    mask = table["method"] == name
-    if ROLE in table:
-        mask &= table[ROLE] != "submission"
-    return table[mask]
+def named(table, name: str):
+    """The table's rows that are the reference row `name` (`is_named`)."""
+    return table[[is_named(r, name) for _, r in table.iterrows()]] if len(table) else table
 
 
 def _best(table, column):
     """The best non-oracle value of a column, or None (no bold) when the table has no no-motion reference row
     of reproduced results: a best that cannot be compared with predicting no motion is not marked."""
-    values = table[[not _oracle_row(r) for _, r in table.iterrows()]][column].dropna()
+    values = table[[not is_oracle_row(r) for _, r in table.iterrows()]][column].dropna()
     if values.empty:
         return None
     return values.min() if column in LOWER_IS_BETTER else values.max()
@@ -104,14 +121,14 @@ def _best(table, column):
 
 def _no_motion_values(table, columns: list[str]) -> dict[str, float | None]:
     """Per column, the value of the table's (first) no-motion reference row that has one, or None."""
-    rows = _named(table, NO_MOTION)
+    rows = named(table, NO_MOTION)
     return {c: (None if values.empty else values.iloc[0]) for c in columns for values in (rows[c].dropna(),)}
 
 
 def _worse_than_no_motion(ref: float | None, column, row) -> bool:
     """Whether a trained row's value is worse than `ref`, the no-motion reference row's in the same table
     (`_no_motion_values`)."""
-    if ref is None or _is_named(row, NO_MOTION) or _oracle_row(row) or row[column] != row[column]:
+    if ref is None or is_named(row, NO_MOTION) or is_oracle_row(row) or row[column] != row[column]:
         return False
     return row[column] > ref if column in LOWER_IS_BETTER else row[column] < ref
 
@@ -170,7 +187,7 @@ def _yardsticks(table, track: str) -> list[str]:
     """The reference rows a table's rows are compared with, pairwise: static and push, or in a planning table
     no push and random."""
     names = (NO_PUSH, "random (planning)") if track == "planning" else (NO_MOTION, "push")
-    return [n for n in names if not _named(table, n).empty]
+    return [n for n in names if not named(table, n).empty]
 
 
 def _learned_best(table, yardsticks: list[str]) -> float | None:
@@ -178,8 +195,9 @@ def _learned_best(table, yardsticks: list[str]) -> float | None:
     each yardstick (no push, random) has a 95% interval above 0; None when none has, or a yardstick is missing."""
     if len(yardsticks) < 2:
         return None
-    bases = [unit_values(_named(table, y).iloc[0][SEQ], "planning_iou") for y in yardsticks]
-    winners = [r["planning_iou"] for _, r in table.iterrows() if not _reference_row(r) and all(
+    bases = [unit_values(named(table, y).iloc[0][SEQ], "planning_iou") for y in yardsticks]
+    planners = [r for _, r in table.iterrows() if not is_reference_row(r) and not is_oracle_row(r)]
+    winners = [r["planning_iou"] for r in planners if all(
         (d := paired_difference(unit_values(r[SEQ], "planning_iou"), b)).excludes_zero and d.mean > 0 for b in bases)]
     return max(winners) if winners else None
 
@@ -252,21 +270,21 @@ def render_table(rows: Any, track: str, columns: Sequence[str], published: bool 
         cells, tds = [], []
         for c in cols:
             text = _cell(r, c) if not paper else _fmt(r[c], c, published=True)
-            top = best[c] is not None and r[c] == best[c] and not _oracle_row(r) and not (
-                track == "planning" and _reference_row(r))
+            top = best[c] is not None and r[c] == best[c] and not is_oracle_row(r) and not (
+                track == "planning" and is_reference_row(r))
             worse = _worse_than_no_motion(no_motion[c], c, r)
             cells.append((f"**{text}**" if top else text) + (f" {_WORSE_MARK}" if worse else ""))
             classes = " ".join(k for k, on in (("best", top), ("worse", worse)) if on)
             value = "" if r[c] != r[c] else repr(float(r[c]))  # NaN: no value to sort on
             tds.append((html.escape(text) + (f" {_WORSE_MARK}" if worse else ""), value, classes))
         for y in inline:
-            base = _named(table, y).iloc[0]
+            base = named(table, y).iloc[0]
             d = paired_difference(unit_values(r[SEQ], "planning_iou"), unit_values(base[SEQ], "planning_iou"))
-            text = "-" if _is_named(r, y) else _difference(d, "planning_iou")
+            text = "-" if is_named(r, y) else _difference(d, "planning_iou")
             cells.append(text)
             tds.append((html.escape(text), "" if text == "-" else repr(d.mean), ""))
         label = r["label"]
-        if not paper and _reference_row(r) and "reference" not in str(label):
+        if not paper and is_reference_row(r) and "reference" not in str(label):
             label = "reference" + (f"; {label}" if label else "")
         leads = [str(r[key]) for _, key in lead]
         md.append(md_row([*[markdown_cell(t) for t in leads], markdown_cell(r["method"]), markdown_cell(r["grid"]),
@@ -296,7 +314,7 @@ def _marks(table, track: str, cols: list[str], paper: bool) -> tuple[bool, dict[
         yardsticks = _yardsticks(table, track) if not paper else []
         return (not paper and len(yardsticks) == 2,
                 {c: _learned_best(table, yardsticks) if not paper else _best(table, c) for c in cols})
-    comparable = not paper and not _named(table, NO_MOTION).empty
+    comparable = not paper and not named(table, NO_MOTION).empty
     return comparable, {c: _best(table, c) if comparable or paper else None for c in cols}
 
 
@@ -321,4 +339,6 @@ def _frame(rows: Sequence[Mapping[str, Any]], columns: Sequence[str], lead_keys:
     data[SEQ] = [dict(r.get(SEQ) or {}) for r in rows]
     data[LINKS] = [dict(r.get(LINKS) or {}) for r in rows]
     data[ROLE] = ["" if r.get(ROLE) is None else str(r.get(ROLE)) for r in rows]
+    if any(r.get(REFERENCE) is not None for r in rows):  # rows that say which reference row they are (else: None)
+        data[REFERENCE] = [r.get(REFERENCE) for r in rows]
     return pd.DataFrame(data)

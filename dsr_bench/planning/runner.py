@@ -84,6 +84,22 @@ def choose(costs: np.ndarray, clear: np.ndarray, margin: float) -> int:
     return int(push if costs[push] < costs[keep] - margin else keep)
 
 
+def step_candidates(tsdf: np.ndarray, masks: np.ndarray | None, rng: np.random.Generator, predicts: bool,
+                    candidates: int, clear: int) -> tuple[np.ndarray, np.ndarray]:
+    """One step's candidates (C, 3) int64 (d, row, col) and whether each is a clear push (C,) bool, drawn from `rng`
+    in the plan's order: for a planner that predicts nothing one uniform push on a free cell of what the TSDF
+    (Y, X, Z) sees; else up to `clear` clear pushes (at most `candidates` - 1), then the rest around `masks`
+    (Y, X, Z), the clear ones last. A replay draws them again from the same seeds (`dsr_bench.planning.replay`)."""
+    footprint = tsdf_footprint(tsdf)
+    if not predicts:
+        return sample_uniform(free_cells(footprint), rng, 1), np.zeros(1, bool)
+    if masks is None:
+        raise ValueError("a planner that predicts must give the masks to sample around")
+    keep = sample_clear(footprint, rng, min(clear, candidates - 1))
+    acts = np.concatenate([sample_around_masks(masks, rng, candidates - len(keep)), keep])
+    return acts, np.arange(len(acts)) >= len(acts) - len(keep)
+
+
 def run_plan(task: Task, planner, env: Environment, candidates: int, seed: int = 0, batch: int = DEFAULT_BATCH,
              lam: float = COST_LAMBDA, steps: int = PLAN_STEPS, margin: float = 0.0,
              clear: int = CLEAR_CANDIDATES) -> PlanRecord:
@@ -101,14 +117,11 @@ def run_plan(task: Task, planner, env: Environment, candidates: int, seed: int =
     for _ in range(steps):
         start = time.perf_counter()
         masks = planner.observe(state.tsdf)
+        acts, is_clear = step_candidates(state.tsdf, masks, rng, planner.predicts, candidates, clear)
         if not planner.predicts:
-            acts = sample_uniform(free_cells(tsdf_footprint(state.tsdf)), rng, 1)
             costs, pos, iou = np.full(1, np.nan), np.full((1, n), np.nan), np.full((1, n), np.nan)
-            best, best_pred, is_clear = 0, zeros, np.zeros(1, bool)
+            best, best_pred = 0, zeros
         else:
-            keep = sample_clear(tsdf_footprint(state.tsdf), rng, min(clear, candidates - 1))
-            acts = np.concatenate([sample_around_masks(masks, rng, candidates - len(keep)), keep])
-            is_clear = np.arange(len(acts)) >= len(acts) - len(keep)
             costs = np.zeros(len(acts))
             pos, iou = np.zeros((len(acts), n)), np.zeros((len(acts), n))
             cheapest: dict[bool, tuple[int, SparseLabels]] = {}  # per kind (clear or not): the cheapest so far

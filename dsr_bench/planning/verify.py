@@ -1,13 +1,14 @@
-"""The planning track never trusts its files: task files are checked against the toolkit's pin, plan files against
-the task they are named for, and every score is recomputed from verified arrays (docs/planning.md, "What is
-verified").
+"""The planning track never trusts its files: task files are checked against the toolkit's pin, plan files are
+replayed in the simulator from their task's start, and every score is recomputed from verified arrays
+(docs/planning.md, "What is verified").
 
   verify_tasks       a task directory: every task file read (its digests recomputed from its arrays, never read
-                     from its attributes), compared with the pin this toolkit ships for its task set
-                     (`task_pins.json`); the set's checksum recomputed from the files, never read from tasks.json
+                     from its attributes; a named set's seed derived from the set, never read), compared with the pin
+                     this toolkit ships for its task set (`task_pins.json`); the set's checksum recomputed from the
+                     files, never read from tasks.json
   plan_scores        one plan file: it must belong to its task (name, task file, task digest, the task's start and
-                     target states), and its scores are recomputed from its stored final state and the task's
-                     verified start and target (the stored `iou` and the like are never read)
+                     target states) and equal its replay (`dsr_bench.planning.replay`: every state, candidate, choice
+                     and stored score), and its scores are recomputed from the replayed final state
   recompute_results  a `dsr-bench plan --out DIR` directory: the results JSON recomputed, in exactly the format of
                      `dsr_bench.planning.results.build_results`, so a caller compares it field by field with
                      DIR/results.json
@@ -16,29 +17,42 @@ verified").
 
 Recomputed: method and planner name and description (from the plan files), task_set, split, task_checksum,
 split_checksum, pinned, plans_checksum, coverage, parameters candidates/seed/lambda/steps/margin/clear/masks (from the
-plan files), every per-task score and every metric but tasks_per_minute. Self-reported (read from results.json or, for
-seconds, the plan files, and never ranked on): per-task seconds and tasks_per_minute (timing), planner weights and
-grid, parameters hardware and workers, command, toolkit_version and date. The final state in a plan file is the record
-of what the simulator did; it is checked for shape and range, not re-simulated.
+plan files), every per-task score and every metric but tasks_per_minute. Replayed: every state of every plan (the
+simulator is deterministic bit for bit), its candidates (from the seeds and the planner's stored masks), the push it
+chose (from its costs and margin) and that push's cost (from its stored prediction). Self-reported (read from
+results.json or, for seconds, the plan files, and never ranked on): per-task seconds and tasks_per_minute (timing),
+planner weights and grid, parameters hardware and workers, command and date; toolkit_version must be this toolkit's.
+Not recomputed (the planner's network is not run again): the costs of the candidates not chosen and the planner's
+masks.
 """
 
 from __future__ import annotations
 
-import json
 import math
 import re
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 
+from dsr_bench.constants import NUM_DIRECTIONS
 from dsr_bench.errors import UserError
+from dsr_bench.jsonfile import UnreadableJSON, read_json
+from dsr_bench.planning.planners import OraclePlanner, RandomPlanner
+from dsr_bench.planning.replay import Replay
 
 SCORE_KEYS = ("iou", "iou_identity", "iou_occupancy", "start_iou", "start_iou_identity", "start_iou_occupancy")
 #: the plan attributes that say how a plan was made (one run's plans share them)
 RUN_KEYS = ("model", "checkpoint", "planner", "description", "candidates", "seed", "lambda", "margin", "clear", "masks")
+#: the arrays a plan file must hold (`dsr_bench.planning.plans`; states/color only when the world renders one)
+PLAN_ARRAYS = ("states/tsdf", "states/mask_3d", "states/object_poses", "target/mask_3d", "target/object_poses",
+               "actions", "candidates", "costs", "chosen", "clear", "cost_position_mse", "cost_iou", "planner_masks",
+               "predicted")
+#: the planners whose plans are a function of the task and the seeds alone: model -> (planner name, description)
+FIXED_PLANNERS = {"random": (RandomPlanner.name, RandomPlanner.description),
+                  "oracle": (OraclePlanner.name, OraclePlanner.description)}
 TASK_NAME = re.compile(r"task_\d{4}")
 _HEX64 = re.compile(r"[0-9a-f]{64}")
 
@@ -76,6 +90,7 @@ def verify_tasks(tasks: str | Path) -> VerifiedTasks:
     the directory unpinned; a damaged file, a file that says it is another task, or a malformed tasks.json is a
     UserError (one line)."""
     from dsr_bench.dataset.digests import GROUND_TRUTH_KEY, split_checksum
+    from dsr_bench.dataset.splits import sequence_seed
     from dsr_bench.planning.tasks import TASK_SETS, pinned_checksums, pinned_tasks, read_task, resolve_tasks
 
     task_dir, manifest = resolve_tasks(tasks)
@@ -91,6 +106,7 @@ def verify_tasks(tasks: str | Path) -> VerifiedTasks:
     if len(set(names)) != len(names):
         raise UserError(f"{task_dir}/tasks.json lists a task twice; {fix}")
     pins = pinned_tasks(task_set)
+    spec = TASK_SETS.get(task_set)
     listed = {e["name"]: e for e in entries}
     digests, warnings = {}, []
     for name in sorted(names):
@@ -99,6 +115,10 @@ def verify_tasks(tasks: str | Path) -> VerifiedTasks:
             raise UserError(f"{task.path}: its name attribute says {_show(task.name)}, tasks.json lists it as {name} "
                             f"(an edited or misplaced file); {fix}")
         digests[name] = task.ground_truth_sha256
+        # the seed seeds the candidates (`runner.run_plan`) but is no array: a named set's is derived, never believed
+        if spec is not None and task.seed != sequence_seed(spec.base_seed, int(name.split("_")[1])):
+            raise UserError(f"{task.path}: its seed attribute {_show(task.seed)} is not the seed of {task_set} {name} "
+                            f"(an edited file); {fix}")
         if pins is not None and digests[name] != pins.get(name):
             why = "is not in" if name not in pins else "differs from"
             warnings.append(f"{task.path}: its ground truth (recomputed from its arrays) {why} the pin of "
@@ -109,7 +129,6 @@ def verify_tasks(tasks: str | Path) -> VerifiedTasks:
                             "entry; scored as the file is")
     checksum = split_checksum(digests.items())
     pin = pinned_checksums().get(task_set)
-    spec = TASK_SETS.get(task_set)
     return VerifiedTasks(task_dir=task_dir, task_set=task_set, names=tuple(sorted(names)), digests=digests,
                          checksum=checksum, pinned=pin is not None and pin == checksum,
                          expected=spec.num_tasks if spec else len(names), warnings=tuple(warnings))
@@ -125,31 +144,27 @@ class PlanMismatch(UserError):
                          "such a task again)")
 
 
-def _dataset(path: Path, f, name: str) -> np.ndarray:
-    if name not in f:
-        raise PlanMismatch(path, f"a plan file without {name}")
-    return f[name][()]
-
-
-def plan_scores(path: str | Path, task, digest: str, same: Mapping | None = None) -> tuple[dict, dict]:
-    """The scores of a plan file (`dsr_bench.planning.results.score_plan` keys and `seconds`), recomputed from its
-    stored final state and `task`'s start and target (a task read by `read_task`, `digest` its verified
+def plan_scores(path: str | Path, task, digest: str, replay: Replay, same: Mapping | None = None) -> tuple[dict, dict]:
+    """The scores of a plan file (`dsr_bench.planning.results.score_plan` keys and `seconds`), recomputed from the
+    final state of its replay and `task`'s start and target (a task read by `read_task`, `digest` its verified
     ground-truth digest), and the file's attributes. UserError (one line) unless the file is a plan of `task`
-    (its name, task file, task digest, start and target states), of the track's shapes, and, for each key of
-    `same`, made with that value (model, candidates, seed, ...); `PlanMismatch` for a plan file that is not. The
-    stored scores are never read."""
-    import h5py
-
+    (its name, task file, task digest, the task's start and target states), of the track's shapes, made, for each
+    key of `same`, with that value (model, candidates, seed, ...), and equal to its replay in everything the
+    replay determines (`replay`: the simulator's, `dsr_bench.planning.replay`); `PlanMismatch` for a plan file
+    that is not. The stored scores are never taken for the recomputed ones."""
     from dsr_bench.constants import GRID_SHAPE
-    from dsr_bench.planning.plans import read_plan_attrs
+    from dsr_bench.planning.plans import read_plan
     from dsr_bench.planning.protocol import PLAN_STEPS
+    from dsr_bench.planning.replay import replay_problem
     from dsr_bench.planning.results import score_plan
 
     path = Path(path)
     try:
-        attrs = read_plan_attrs(path)
+        plan, attrs = read_plan(path)
     except UserError as exc:
         raise PlanMismatch(path, str(exc).split(": ", 1)[-1].split("; ", 1)[0]) from None
+    except Exception as exc:  # noqa: BLE001 - whatever h5py raises on a damaged file
+        raise PlanMismatch(path, f"unreadable plan file ({type(exc).__name__})") from None
     if path.stem != task.name or attrs.get("task") != task.name or attrs.get("task_file") != f"{task.name}.h5":
         raise PlanMismatch(path, f"a plan of {_show(attrs.get('task'))}, not of the task it is named for "
                                  f"({_show(path.stem)})")
@@ -158,28 +173,39 @@ def plan_scores(path: str | Path, task, digest: str, same: Mapping | None = None
     for key, value in (same or {}).items():
         if attrs.get(key) != value:
             raise PlanMismatch(path, f"made with {key} {_show(attrs.get(key))}, not {_show(value)}")
-    try:
-        with h5py.File(path, "r") as f:
-            states, target = _dataset(path, f, "states/mask_3d"), _dataset(path, f, "target/mask_3d")
-            actions = _dataset(path, f, "actions")
-    except UserError:
-        raise
-    except Exception as exc:  # noqa: BLE001 - whatever h5py raises on a damaged file
-        raise PlanMismatch(path, f"unreadable plan file ({type(exc).__name__})") from None
+    missing = [name for name in PLAN_ARRAYS if name not in plan]
+    if missing:
+        raise PlanMismatch(path, f"a plan file without {missing[0]}")
+    states, target, actions = plan["states/mask_3d"], plan["target/mask_3d"], plan["actions"]
     n = task.num_objects
     if states.shape != (PLAN_STEPS + 1,) + GRID_SHAPE or states.dtype != np.uint8 or int(states.max()) > n:
         raise PlanMismatch(path, f"states/mask_3d is not {PLAN_STEPS + 1} states of object ids 0..{n} on the grid")
     if actions.shape != (PLAN_STEPS, 3) or not np.issubdtype(actions.dtype, np.integer):
         raise PlanMismatch(path, f"actions is not {PLAN_STEPS} pushes (d, row, col)")
-    if not np.array_equal(states[0], task.start_mask) or not np.array_equal(target, task.target_mask):
+    if not np.array_equal(states[0], task.start_mask) or not np.array_equal(target, task.target_mask) or \
+            not _equal(plan["target/object_poses"], task.arrays["target/object_poses"]):
         raise PlanMismatch(path, f"its start or target state is not {task.name}'s")
+    if not all(_number(_plain(attrs.get(k))) for k in ("seed", "candidates", "clear", "margin", "lambda")) or \
+            not all(float(attrs[k]).is_integer() for k in ("seed", "candidates", "clear")):
+        raise PlanMismatch(path, "its seed, candidates, clear, margin or lambda attribute is not a number")
     seconds = attrs.get("seconds")
     if isinstance(seconds, (bool, np.bool_)) or not isinstance(seconds, (int, float, np.number)) or \
             not math.isfinite(float(seconds)) or float(seconds) < 0:
         raise PlanMismatch(path, "its seconds attribute is not a time")
-    scores = score_plan(states[-1], task.start_mask, task.target_mask, n)
+    if np.any((actions[:, 0] < 0) | (actions[:, 0] >= NUM_DIRECTIONS)) or \
+            np.any((actions[:, 1:] < 0) | (actions[:, 1:] >= np.array(GRID_SHAPE[:2]))):
+        raise PlanMismatch(path, "actions is not a list of (direction 0..7, row, col) pushes on the grid")
+    replayed = replay(task, actions)
+    scores = score_plan(replayed[-1].mask_3d, task.start_mask, task.target_mask, n)
+    problem = replay_problem(plan, attrs, task, replayed, scores)
+    if problem:
+        raise PlanMismatch(path, problem)
     scores["seconds"] = float(seconds)
     return scores, attrs
+
+
+def _equal(a: np.ndarray, b: np.ndarray) -> bool:
+    return a.shape == b.shape and bool(np.array_equal(a, b))
 
 
 def _read_results_json(plans_dir: Path) -> dict:
@@ -187,12 +213,12 @@ def _read_results_json(plans_dir: Path) -> dict:
     fix = f"pass the --out directory of a finished `dsr-bench plan` run (rerun `dsr-bench plan ... --out {plans_dir}`)"
     if not plans_dir.is_dir():
         raise UserError(f"plans directory not found: {plans_dir}; {fix}")
+    if not path.is_file():
+        raise UserError(f"{plans_dir} has no results.json; {fix}")
     try:
-        r = json.loads(path.read_text())
-    except FileNotFoundError:
-        raise UserError(f"{plans_dir} has no results.json; {fix}") from None
-    except (OSError, UnicodeDecodeError, ValueError) as exc:
-        raise UserError(f"{path}: unreadable ({type(exc).__name__}); {fix}") from None
+        r = read_json(path)
+    except UnreadableJSON as exc:
+        raise UserError(f"{path}: unreadable results file ({exc}); {fix}") from None
     from dsr_bench.planning.results import RESULTS_FORMAT
 
     if not isinstance(r, dict) or r.get("format") != RESULTS_FORMAT or not isinstance(r.get("per_task"), dict):
@@ -200,16 +226,37 @@ def _read_results_json(plans_dir: Path) -> dict:
     return r
 
 
-def recompute_results(plans_dir: Path, tasks: str | Path | None = None) -> dict:
-    """The results of a `dsr-bench plan --out plans_dir` run recomputed from its plan files and the verified tasks
-    (`tasks`: a task directory or a task set's name, as `plan --tasks`; default: the task set results.json names,
-    as data/<name>), in the format of `dsr_bench.planning.results.build_results`. results.json is read only for the
-    self-reported fields (module doc). UserError (one line): an unreadable file, a plan file that is not a plan of
-    its task, a plan missing from or extra to results.json's per_task, plans that are not a prefix of the tasks
-    (what --num-tasks plans) or not of one run."""
+def _replayed_scores(job: tuple[str, str, str]) -> tuple[str | None, dict]:
+    """(None, scores) of one plan file replayed against its verified task (`plan_scores`), or (the one-line
+    problem, {}): a worker's job of `recompute_results`."""
+    from dsr_bench.planning.replay import load_simulator
+    from dsr_bench.planning.tasks import read_task
+
+    plan_path, task_path, digest = job
+    try:
+        task = read_task(task_path)
+        if task.ground_truth_sha256 != digest:
+            raise UserError(f"{task.path} changed while it was being verified; run again")
+        return None, plan_scores(plan_path, task, digest, load_simulator())[0]
+    except UserError as exc:
+        return str(exc), {}
+
+
+def recompute_results(plans_dir: Path, tasks: str | Path | None = None, workers: int = 1,
+                      progress: Callable[[int, int], None] | None = None) -> dict:
+    """The results of a `dsr-bench plan --out plans_dir` run recomputed from its plan files, each replayed in the
+    simulator (`dsr_bench.planning.replay`; in `workers` processes, `progress(done, total)` per plan), and the
+    verified tasks (`tasks`: a task directory or a task set's name, as `plan --tasks`; default: the task set
+    results.json names, as data/<name>), in the format of `dsr_bench.planning.results.build_results`. results.json
+    is read only for the self-reported fields (module doc). UserError (one line): an unreadable file, a plan file
+    that is not a plan of its task or not its replay, a plan missing from or extra to results.json's per_task,
+    plans that are not a prefix of the tasks (what --num-tasks plans) or not of one run."""
+    from dsr_bench.parallel import as_finished
+    from dsr_bench.planning.plans import read_plan_attrs
     from dsr_bench.planning.protocol import PLAN_STEPS
+    from dsr_bench.planning.replay import load_simulator
     from dsr_bench.planning.results import build_results
-    from dsr_bench.planning.tasks import TASK_SETS, read_task
+    from dsr_bench.planning.tasks import TASK_SETS
 
     plans_dir = Path(plans_dir)
     submitted = _read_results_json(plans_dir)
@@ -238,13 +285,13 @@ def recompute_results(plans_dir: Path, tasks: str | Path | None = None) -> dict:
         missing = next(n for n in verified.names if n not in planned)
         raise UserError(f"{plans_dir}: plans of {len(planned)} tasks but not of {missing}: a partial run is a "
                         f"prefix of the tasks (--num-tasks); {fix}")
-    per_task: dict[str, dict] = {}
+    load_simulator()  # a one-line error before any work when the simulator is missing
     run: dict[str, Any] | None = None
-    for name in planned:
-        task = read_task(verified.path(name))
-        if task.ground_truth_sha256 != verified.digests[name]:
-            raise UserError(f"{task.path} changed while it was being verified; run again")
-        scores, attrs = plan_scores(plans_dir / f"{name}.h5", task, verified.digests[name])
+    for name in planned:  # one run's plans (their attributes alone, before the replays)
+        try:
+            attrs = read_plan_attrs(plans_dir / f"{name}.h5")
+        except UserError as exc:
+            raise PlanMismatch(plans_dir / f"{name}.h5", str(exc).split(": ", 1)[-1].split("; ", 1)[0]) from None
         this = {k: attrs.get(k) for k in RUN_KEYS}
         if run is None:
             run, first = this, name
@@ -252,10 +299,24 @@ def recompute_results(plans_dir: Path, tasks: str | Path | None = None) -> dict:
             key = next(k for k in RUN_KEYS if this[k] != run[k])
             raise UserError(f"{plans_dir}: {name}.h5 was made with {key} {_show(this[key])}, {first}.h5 with "
                             f"{_show(run[key])}: not one run's plans; {fix}")
-        per_task[name] = scores
+    jobs = [(str(plans_dir / f"{name}.h5"), str(verified.path(name)), verified.digests[name]) for name in planned]
+    per_task: dict[str, dict] = {}
+    for done, (position, outcome) in enumerate(as_finished(_replayed_scores, jobs, workers), 1):
+        problem, scores = cast(tuple[str | None, dict], outcome)
+        if problem is not None:  # the first problem found ends the work (the first by name, one worker)
+            raise UserError(problem)
+        per_task[planned[position]] = scores
+        if progress is not None:
+            progress(done, len(jobs))
     assert run is not None  # planned is not empty
     if not all(isinstance(run[k], str) for k in ("planner", "description")):
         raise UserError(f"{plans_dir}/{first}.h5: planner or description is not a string; {fix}")
+    fixed = FIXED_PLANNERS.get(str(run["model"]))  # the reference planners' names and descriptions are theirs alone
+    named = next((m for m, pair in FIXED_PLANNERS.items() if run["planner"] == pair[0]), None)
+    if (fixed is not None and (run["planner"], run["description"]) != fixed) or (named is not None and
+                                                                                 named != run["model"]):
+        raise UserError(f"{plans_dir}/{first}.h5: its planner {_show(run['planner'])} was not made by the model "
+                        f"{_show(run['model'])} it records; {fix}")
     submitted_planner = submitted.get("planner")
     planner = {**(submitted_planner if isinstance(submitted_planner, dict) else {}), "name": run["planner"],
                "description": run["description"]}
@@ -269,8 +330,7 @@ def recompute_results(plans_dir: Path, tasks: str | Path | None = None) -> dict:
     out = build_results(per_task, planner, {"task_set": verified.task_set, "checksum": verified.checksum},
                         verified.expected, [plans_dir / f"{name}.h5" for name in planned], submitted.get("command"),
                         parameters)
-    for key in ("toolkit_version", "date"):  # self-reported
-        out[key] = submitted.get(key)
+    out["date"] = submitted.get("date")  # self-reported; toolkit_version is this toolkit's (build_results)
     return out
 
 

@@ -1,6 +1,7 @@
 """The rerun viewer of sequences and predictions (`dsr-bench view`).
 
-Everything is read through `SequenceReader`; rerun is imported lazily. Timelines: `step`, where
+Everything is read through `SequenceReader`; rerun is imported lazily (`import_rerun`: without it, a one-line
+UserError naming the viewer extra). Timelines: `step`, where
 tick 2t is observation t and tick 2t + 1 is push t (its arrow, the flow t -> t+1 and the
 predictions made at t), and `observation` (t on both). World frame: metres, z up. Entity tree:
 
@@ -58,6 +59,19 @@ METRIC_NAMES = ("iou_unordered", "iou_ordered", "motion_visible", "motion_full",
 _READ_ERRORS = (OSError, KeyError, ValueError, IndexError)
 #: Recordings serving the web viewer's data: a RecordingStream's gRPC server stops when the stream is dropped.
 _SERVING: list = []
+#: how to install what the viewer needs (pyproject.toml's viewer extra: rerun-sdk)
+INSTALL = "pip install 'dsr-bench[viewer]'"
+
+
+def import_rerun():
+    """The rerun module; a one-line UserError naming the viewer extra where it is not installed."""
+    try:
+        import rerun
+    except ImportError as exc:
+        if (exc.name or "").split(".")[0] != "rerun":
+            raise
+        raise UserError(f"the viewer needs rerun (the rerun-sdk package), which is not installed: {INSTALL}") from None
+    return rerun
 
 
 def object_color(object_id: int) -> tuple[int, int, int]:
@@ -374,7 +388,7 @@ def view(path: str | Path, predictions: str | Path | None = None, save: str | Pa
     or serve the web viewer (`web`: page on `web_port`, default 9090, data over gRPC on `grpc_port`,
     default 9876; the servers live as long as the process, which the caller keeps alive). Returns the
     written path when saving, the viewer's URL when serving (`web_ports` gives both ports)."""
-    import rerun as rr
+    rr = import_rerun()
 
     path = Path(path)
     if not path.is_file():

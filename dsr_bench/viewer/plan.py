@@ -141,11 +141,11 @@ def view_plan(path: str | Path, save: str | Path | None = None, web: bool = Fals
               grpc_port: int | None = None) -> Path | str | None:
     """Open a plan file in the rerun viewer, or write a recording to `save` (.rrd, atomically), or serve the web
     viewer; returns as `dsr_bench.viewer.view` does."""
-    import rerun as rr
-
     from dsr_bench.atomic import atomic_path
     from dsr_bench.planning.plans import read_plan
-    from dsr_bench.viewer import _SERVING, APP_ID
+    from dsr_bench.viewer import _SERVING, APP_ID, import_rerun
+
+    rr = import_rerun()
 
     path = Path(path)
     try:
