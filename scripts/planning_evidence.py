@@ -1,9 +1,10 @@
 """The planning track's evidence: every planner's final-vs-target IoU on the pinned tasks, paired task by task,
-recomputed from the plan files and the verified tasks (never read from results.json).
+recomputed from the plan files, each replayed in the simulator, and the verified tasks (never read from
+results.json).
 
     python scripts/planning_evidence.py PLANS_DIR [PLANS_DIR ...] [--tasks TASKS ...]
         [--planners random oracle dsr single 3dflow] [--versus 3dflow] [--out docs/evidence/planning.json]
-        [--leaderboard leaderboard]
+        [--leaderboard leaderboard] [--workers N]
 
 PLANS_DIR/<planner> is the --out of `dsr-bench plan --model <planner> --tasks plan-novel-test`. Each planner's
 results are recomputed (`dsr_bench.planning.verify.recompute_results`) from its plan files against the tasks
@@ -21,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import shlex
 import subprocess
 import sys
@@ -37,9 +39,11 @@ def weights_sha256(weights: dict | list) -> str | list:
     return [w["sha256"] for w in weights] if isinstance(weights, list) else weights["sha256"]
 
 
-def recomputed_runs(plans: list[Path], tasks: list[str | None], planners: list[str]) -> tuple[dict, dict, dict]:
-    """Per planner present in every directory of `plans`: (its recomputed results per directory, {planner: the
-    results.json fields that differed from the recomputation}, {task set: checksum})."""
+def recomputed_runs(plans: list[Path], tasks: list[str | None], planners: list[str],
+                    workers: int = 1) -> tuple[dict, dict, dict]:
+    """Per planner present in every directory of `plans`: (its recomputed results per directory, each plan replayed
+    in `workers` processes; {planner: the results.json fields that differed from the recomputation}, {task set:
+    checksum})."""
     from dsr_bench.planning.verify import differences, recompute_results
 
     runs: dict[str, list[dict]] = {}
@@ -51,7 +55,7 @@ def recomputed_runs(plans: list[Path], tasks: list[str | None], planners: list[s
             continue
         runs[name] = []
         for d, t in zip(plans, tasks):
-            recomputed = recompute_results(d / name, t)
+            recomputed = recompute_results(d / name, t, workers=workers)
             diff = differences(recomputed, json.loads((d / name / "results.json").read_text()))
             if diff:
                 print(f"warning: {d / name}/results.json differs from its plan files in {', '.join(diff[:8])}; "
@@ -80,6 +84,8 @@ def main() -> None:
     parser.add_argument("--versus", nargs="*", default=[], help="Further planners every other is paired with.")
     parser.add_argument("--out", type=Path)
     parser.add_argument("--leaderboard", type=Path)
+    parser.add_argument("--workers", type=int, default=os.cpu_count() or 1,
+                        help="Processes replaying the plans (default: one per core).")
     args = parser.parse_args()
     if args.tasks is not None and len(args.tasks) != len(args.plans):
         parser.error(f"--tasks: {len(args.tasks)} given for {len(args.plans)} PLANS_DIRs; give one per PLANS_DIR")
@@ -90,7 +96,7 @@ def main() -> None:
     tasks = args.tasks or [None] * len(args.plans)
 
     try:
-        runs, differed, checksums = recomputed_runs(args.plans, tasks, args.planners)
+        runs, differed, checksums = recomputed_runs(args.plans, tasks, args.planners, args.workers)
     except UserError as exc:
         raise SystemExit(f"error: {exc}") from None
     pooled = len(args.plans) > 1
