@@ -260,6 +260,14 @@ def test_a_finished_run_is_continued_in_chunks_from_its_weights_file(tmp_path, m
     assert [c["from"] for c in again["stages"]["continued"]] == ["3dflow.pt", "3dflow-more.pt"]
     assert [c["lr"] for c in again["stages"]["continued"]] == [5e-4, 1e-4]
     assert again["recipe"]["init"] == more.name  # a file name, never a path of this machine
+    # what each chunk trained on: its sample-steps and its data, so a long run's file says both of every chunk
+    assert [c["sample_steps"] for c in again["stages"]["continued"]] == [4 * 2, 2 * 2]  # batches x 1 x batch 2
+    assert all(c["data"]["dir"] == "data" and c["data"]["sequences"] == 2 for c in again["stages"]["continued"])
+    from dsr_bench.models.training.cpu_track import sample_steps
+
+    # stage 1: 2 single-step batches, stage 2: 1 batch x window 2 (as 2 single-step batches), then 4 and 2 more
+    assert sample_steps(again["stages"], batch_size=2) == (2 + 2 + 4 + 2) * 2
+    assert sample_steps({"single": {"batches": 3000, "window": 1}, "multi": {"batches": 2000, "window": 1}}) == 40000
 
 
 @pytest.mark.parametrize("extra, message", [

@@ -138,7 +138,16 @@ def _stage(net, data, batches: int, window: int, recipe: CpuRecipe, lr: float, s
 
     windows = draw_windows(data, batches, window, recipe.batch_size, seed, tuple(net.config.grid))
     record = fit(partial(train_step, device="cpu"), net, windows, batches, lr, label, report)
-    return {**record, "window": window}
+    return {**record, "window": window, "sample_steps": batches * window * recipe.batch_size}
+
+
+def sample_steps(stages: dict, batch_size: int = 8) -> int:
+    """The sample-steps (windows x pushes) a CPU-track weights file's stages record (`stages`: stage 1, stage 2 and
+    every continued chunk) trained on; records written before they counted them are counted from their batches,
+    window and `batch_size` (the recipe's)."""
+    records = [stages.get("single"), stages.get("multi"), *stages.get("continued", [])]
+    return sum(int(r.get("sample_steps", r["batches"] * r.get("window", 1) * batch_size))
+               for r in records if isinstance(r, dict))
 
 
 def _recorded(recipe: CpuRecipe) -> dict:
@@ -232,7 +241,7 @@ def train_cpu(recipe: CpuRecipe, data_dir: Path, split: str | None, out: Path, w
         continued = list(stages.get("continued", []))
         record = _stage(net, data, batches, window, recipe, recipe.multi_lr, recipe.seed + 10 + len(continued),
                         f"{config.name} continued {len(continued) + 1}", report)
-        stages["continued"] = [*continued, {**record, "from": Path(recipe.init).name}]
+        stages["continued"] = [*continued, {**record, "from": Path(recipe.init).name, "data": provenance}]
     else:
         if recipe.init is None:
             stages = {"single": _stage(net, data, recipe.single_batches, 1, recipe, recipe.lr, recipe.seed,

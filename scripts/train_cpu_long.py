@@ -1,0 +1,77 @@
+"""A CPU-track model trained towards the paper's length, in resumable chunks (docs/models.md, "The CPU track at the
+paper's length").
+
+    python scripts/train_cpu_long.py --model dsr --data data/cpu-train-4k --runs runs/long --until 1000000 \
+        [--chunk 1000] [--from dsr_bench/models/weights/cpu-track] [--multi-lr 5e-4] [--threads 1]
+
+Each chunk is one `dsr-bench train --track cpu --model M --data DATA --init RUNS/M.pt --multi-batches CHUNK --out
+RUNS/M.pt`: CHUNK more windows of stage 2 (8 windows of 10 pushes a batch: CHUNK x 80 sample-steps), written
+atomically over the file, so the script can be stopped at any moment and run again with the same arguments to
+go on from the last chunk written. The first chunk starts from the shipped weights of --from (their file name
+recorded). It stops once the file has trained on --until sample-steps (`cpu_track.sample_steps`, counted from
+the file's own stage records), and appends one line per chunk to RUNS/M.log.jsonl (the chunk's sample-steps
+reached, seconds, its loss in the first and last tenth).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+
+def trained(path: Path) -> tuple[int, dict]:
+    """(sample-steps, the last stage record) of a CPU-track weights file."""
+    from dsr_bench.models.registry import VOXEL
+    from dsr_bench.models.training.checkpoints import read_weights
+    from dsr_bench.models.training.cpu_track import sample_steps
+
+    state = read_weights(path, kind=VOXEL, role="weights")
+    stages = state["stages"]
+    last = (stages.get("continued") or [stages.get("multi") or stages["single"]])[-1]
+    return sample_steps(stages, int(state["recipe"].get("batch_size", 8))), last
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--model", required=True)
+    parser.add_argument("--data", type=Path, required=True)
+    parser.add_argument("--runs", type=Path, required=True)
+    parser.add_argument("--until", type=int, required=True, help="Sample-steps to reach.")
+    parser.add_argument("--chunk", type=int, default=1000, help="Stage-2 batches per chunk.")
+    parser.add_argument("--from", dest="start", type=Path,
+                        default=Path(__file__).resolve().parents[1] / "dsr_bench/models/weights/cpu-track")
+    parser.add_argument("--multi-lr", type=float, default=5e-4)
+    parser.add_argument("--threads", type=int, default=1, help="torch threads of each chunk's process.")
+    args = parser.parse_args()
+    args.runs.mkdir(parents=True, exist_ok=True)
+    weights, log = args.runs / f"{args.model}.pt", args.runs / f"{args.model}.log.jsonl"
+    if not weights.is_file():
+        shutil.copy2(args.start / f"{args.model}.pt", weights)
+    env = {**os.environ, "OMP_NUM_THREADS": str(args.threads)}
+    while True:
+        done, _ = trained(weights)
+        if done >= args.until:
+            print(f"{args.model}: {done} sample-steps, done", flush=True)
+            return
+        start = time.time()
+        command = [sys.executable, "-m", "dsr_bench", "train", "--track", "cpu", "--model", args.model, "--data",
+                   str(args.data), "--init", str(weights), "--multi-batches", str(args.chunk), "--multi-lr",
+                   str(args.multi_lr), "--out", str(weights)]
+        subprocess.run(command, check=True, env=env)
+        reached, last = trained(weights)
+        line = {"model": args.model, "sample_steps": reached, "seconds": round(time.time() - start, 1),
+                "loss_first_tenth": last.get("loss_first_tenth"), "loss_last_tenth": last.get("loss_last_tenth"),
+                "date": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
+        with open(log, "a") as fh:
+            fh.write(json.dumps(line) + "\n")
+        print(json.dumps(line), flush=True)
+
+
+if __name__ == "__main__":
+    main()
