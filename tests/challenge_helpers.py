@@ -1,6 +1,12 @@
 """Helpers of the challenge tests: a small challenge directory (2 synthetic sequences of 2 pushes, made once per
 session and copied), static predictions on its exported inputs, a uvicorn server on a loopback port, crafted tar
-archives, and a throwaway PostgreSQL cluster."""
+archives, a throwaway PostgreSQL cluster, and waiting on events.
+
+Waiting: a test waits for what it needs to happen (a server answering, a submission's state, a file gone), polled
+until a generous overall `DEADLINE` (`wait_until`, `wait_for_state`, `wait_until_serving`), never for a fixed time a
+loaded machine may exceed (the suite also runs at load 15 on 2 cores); HTTP requests get a per-request timeout
+(`REQUEST_TIMEOUT`) long enough that it is never what limits a test (`get` retries until the deadline, `post` sends
+once: an upload is not repeated behind the server's back)."""
 
 from __future__ import annotations
 
@@ -12,9 +18,90 @@ import subprocess
 import tarfile
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any, TypeVar
 
 _TEMPLATE: dict[str, Path] = {}
+T = TypeVar("T")
+
+#: seconds a test waits, at most, for an event (polled): generous, as passing it means the event never came
+DEADLINE = 600.0
+#: seconds one HTTP request may take (httpx's per-request timeout; its default of 5 s is exceeded under load)
+REQUEST_TIMEOUT = 300.0
+#: the submission states a worker leaves a submission in
+FINISHED = ("scored", "refused", "failed")
+
+
+def wait_until(condition: Callable[[], T], what: str, deadline: float = DEADLINE, interval: float = 0.05) -> T:
+    """Poll `condition()` until it returns something true (returned) or `deadline` seconds pass (AssertionError
+    naming `what` and the last value)."""
+    end = time.monotonic() + deadline
+    while True:
+        value = condition()
+        if value:
+            return value
+        if time.monotonic() > end:
+            raise AssertionError(f"{what}: not within {deadline:.0f} s (last: {value!r})")
+        time.sleep(interval)
+
+
+def get(url: str, deadline: float = DEADLINE, **kwargs: Any):
+    """httpx.get with `REQUEST_TIMEOUT`, tried again after a transport error (a refused connection, a timeout)
+    until `deadline` seconds pass: a GET changes nothing, so repeating it is safe."""
+    import httpx
+
+    kwargs.setdefault("timeout", REQUEST_TIMEOUT)
+    end = time.monotonic() + deadline
+    while True:
+        try:
+            return httpx.get(url, **kwargs)
+        except httpx.TransportError:
+            if time.monotonic() > end:
+                raise
+            time.sleep(0.2)
+
+
+def post(url: str, **kwargs: Any):
+    """httpx.post with `REQUEST_TIMEOUT`, sent once (an upload repeated after a timeout could be stored twice)."""
+    import httpx
+
+    kwargs.setdefault("timeout", REQUEST_TIMEOUT)
+    return httpx.post(url, **kwargs)
+
+
+def wait_for_state(url: str, sid: str, states: tuple[str, ...] = FINISHED, deadline: float = DEADLINE) -> dict:
+    """The status JSON of submission `sid` on the server at `url` once its state is one of `states`, polled until
+    `deadline` seconds pass."""
+    last: dict = {}
+
+    def reached() -> bool:
+        last.clear()
+        last.update(get(f"{url}/api/submissions/{sid}", deadline=deadline).json())
+        return last.get("state") in states
+
+    wait_until(reached, f"submission {sid} in one of {states}", deadline, interval=0.2)
+    return dict(last)
+
+
+def wait_until_serving(url: str, proc: subprocess.Popen | None = None, deadline: float = DEADLINE,
+                       log: Callable[[], str] = lambda: "") -> None:
+    """Wait until the server at `url` answers /healthz with 200 (connections refused meanwhile: it is starting);
+    RuntimeError, with `log()`, if `proc` exits first or `deadline` seconds pass."""
+    import httpx
+
+    end = time.monotonic() + deadline
+    while True:
+        try:
+            if httpx.get(f"{url}/healthz", timeout=REQUEST_TIMEOUT).status_code == 200:
+                return
+        except httpx.TransportError:
+            pass
+        if proc is not None and proc.poll() is not None:
+            raise RuntimeError(f"the server exited ({proc.returncode}) before it answered: {log()}")
+        if time.monotonic() > end:
+            raise RuntimeError(f"the server did not answer within {deadline:.0f} s: {log()}")
+        time.sleep(0.1)
 
 
 def challenge_template(base: Path) -> tuple[Path, Path]:
@@ -62,18 +149,16 @@ class LiveServer:
 
     def __enter__(self) -> LiveServer:
         self.thread.start()
-        end = time.monotonic() + 30
-        while not self.server.started:
-            if time.monotonic() > end or not self.thread.is_alive():
-                raise RuntimeError("the test server did not start")
-            time.sleep(0.02)
+        wait_until(lambda: self.server.started or not self.thread.is_alive(), "the test server starting")
+        if not self.server.started:
+            raise RuntimeError("the test server did not start")
         port = self.server.servers[0].sockets[0].getsockname()[1]
         self.url = f"http://127.0.0.1:{port}"
         return self
 
     def __exit__(self, *exc) -> None:
         self.server.should_exit = True
-        self.thread.join(30)
+        self.thread.join(DEADLINE)
 
 
 def tar_bytes(members: list[tuple[tarfile.TarInfo, bytes | None]], mode: str = "w") -> bytes:
@@ -125,7 +210,7 @@ class PostgresCluster:
 
     def _run(self, *args: str) -> subprocess.CompletedProcess:
         command = [*(["runuser", "-u", "postgres", "--"] if self.as_root else []), *args]
-        return subprocess.run(command, capture_output=True, text=True, timeout=120, check=True)
+        return subprocess.run(command, capture_output=True, text=True, timeout=DEADLINE, check=True)
 
     def start(self) -> PostgresCluster:
         self.base.mkdir(parents=True, exist_ok=True)

@@ -154,34 +154,59 @@ def _rollout(net, batch, batch_stats: bool) -> tuple[np.ndarray, np.ndarray, lis
 def test_precise_bn_stops_the_eval_mode_divergence_of_a_single_step_model():
     """A DSR-Net trained on single-step windows only: its running statistics never saw a state and the
     state's input weights never got a gradient. In eval mode, carrying the state over 10 steps, the
-    first BatchNorm sees several times the variance it normalises by and the error grows by orders
-    of magnitude, while batch statistics stay bounded. Recalibrating on 10-step windows (state
-    carried) brings eval mode back to the batch-statistics errors."""
+    first BatchNorm sees more variance than it normalises by once the state comes in, and the state
+    grows step by step, while batch statistics stay bounded. Recalibrating on 10-step windows (state
+    carried) puts the state's share into that BatchNorm's statistics and brings eval mode back toward
+    the batch-statistics errors.
+
+    The mechanism is asserted, not the dynamics' size: how far eval mode diverges, and whether the
+    recalibrated rollout stays at the batch-statistics error for all ten steps, depend on this tiny
+    network's weights, which its few Adam steps make differently on each CPU (rounding flips the loss's
+    matching and Adam's signs). Measured over 48 draws (seeds 0-5 x ATen default/avx2/avx512 kernels,
+    oneDNN SSE4.1/AVX2/AVX-512, MKL's reproducible branch, one thread): the last step's eval error 1.4 to
+    36,000 times the batch-statistics error; recalibrated, within 2x of it in 38 draws and drifting away
+    later and more slowly in the other 10. Every ratio asserted below held in all 48 draws with at least
+    1.25x to spare (the smallest margin of each in its comment); with `recalibrate_batchnorm` a no-op,
+    the last four fail in every draw."""
     from dsr_bench.models.training.trainer import recalibrate_batchnorm, train_step
 
     torch.manual_seed(0)
     net = DSRNet(ModelConfig.for_model("dsr", grid=TINY))
     initial = net.encoder.level0.conv.weight.detach().clone()
     opt = torch.optim.Adam(net.parameters(), lr=1e-3, betas=(0.9, 0.95))
-    for i in range(20):
+    for i in range(5):
         train_step(net, boxes(4, 1, i), opt, "cpu")
     # channels 4..11 of the first conv see the state: zero in every single-step window, so no gradient
     assert torch.equal(net.encoder.level0.conv.weight[:, 4:], initial[:, 4:])
     assert not torch.equal(net.encoder.level0.conv.weight[:, :4], initial[:, :4])  # TSDF and coordinates: trained
+    # the running statistics a longer single-step stage leaves: moving averages over train-mode forwards of
+    # single-step windows (30: 4% of the initial statistics left)
+    net.train()
+    with torch.no_grad():
+        for i in range(30):
+            b = boxes(4, 1, 100 + i)
+            net(b["tsdf"][:, 0], b["action"][:, 0], net.initial_state(4, "cpu"))
+    norm = net.encoder.level0.norm
+    single_step_var = norm.running_var.clone()
     test = boxes(4, 10, 999)
 
     eval_err, eval_rms, ratios = _rollout(net, test, batch_stats=False)
-    batch_err, batch_rms, _ = _rollout(net, test, batch_stats=True)
-    # the first BatchNorm's input variance relative to its running variance: larger once a state comes
-    # in (step 1 vs the zero state of step 0), then growing with the state fed back
-    assert ratios[1] > 1.5 * ratios[0] and ratios[-1] > 10 * ratios[1], ratios
-    assert eval_err[-1] > 10 * batch_err.max() and eval_rms.max() > 5 * eval_rms[1], (eval_err, batch_err)  # diverges
-    assert batch_rms.max() < 2 * batch_rms[1]  # batch statistics: bounded
+    batch_err, batch_rms, batch_ratios = _rollout(net, test, batch_stats=True)
+    # the first BatchNorm's input variance relative to its running variance: larger once a state comes in
+    # (step 1 vs the zero state of step 0), in eval mode (margin 1.76) and as batch statistics carry it (1.80)
+    assert ratios[1] > 1.5 * ratios[0], ratios
+    assert min(batch_ratios[1:]) > 2.5 * batch_ratios[0], batch_ratios
+    assert eval_rms.max() > 10 * eval_rms[1], eval_rms  # eval mode: the state grows (margin 5.0)
+    assert batch_rms.max() < 1.5 * min(batch_rms[1:]), batch_rms  # batch statistics: bounded (1.39)
 
     recalibrate_batchnorm(net, [boxes(4, 10, 1000 + i) for i in range(4)], "cpu")
-    fixed_err, fixed_rms, fixed_ratios = _rollout(net, test, batch_stats=False)
-    again_err, _, _ = _rollout(net, test, batch_stats=True)
+    fixed_err, _, fixed_ratios = _rollout(net, test, batch_stats=False)
+    again_err, _, again_ratios = _rollout(net, test, batch_stats=True)
     assert np.array_equal(again_err, batch_err)  # batch statistics do not depend on the running ones
-    assert fixed_err.max() < 2 * batch_err.max(), (fixed_err, batch_err)  # bounded: as with batch statistics
-    assert fixed_rms.max() < 2 * fixed_rms[1]
-    assert max(fixed_ratios[1:]) < 2 * min(fixed_ratios[1:]), fixed_ratios  # the same calibration at every step
+    # the first BatchNorm's variance now holds the state's share (margin 1.70) and is what batch statistics
+    # see with the state carried (1.25 above, 1.32 below)
+    gain = float((norm.running_var / single_step_var).mean())
+    assert gain > 2, gain
+    assert 0.8 < np.mean(again_ratios[1:]) < 1.4, again_ratios
+    assert fixed_ratios[1] < ratios[1] / 1.25, (ratios, fixed_ratios)  # eval mode, first step with a state (1.62)
+    assert fixed_err.sum() < eval_err.sum() / 1.5, (fixed_err, eval_err)  # the errors fall (1.61; median 390x)

@@ -14,7 +14,7 @@ pytest.importorskip("sqlalchemy")
 pytest.importorskip("alembic")
 pytest.importorskip("argon2")
 
-from challenge_helpers import PostgresCluster, copy_challenge, postgres_binaries  # noqa: E402
+from challenge_helpers import DEADLINE, PostgresCluster, copy_challenge, postgres_binaries  # noqa: E402
 
 from dsr_bench.cli import main  # noqa: E402
 
@@ -59,7 +59,7 @@ class Writer(threading.Thread):
         except BaseException as exc:  # noqa: BLE001  (reported by the test)
             self.error = exc
 
-    def wait_for(self, count: int, timeout: float = 120.0) -> None:
+    def wait_for(self, count: int, timeout: float = DEADLINE) -> None:
         end = time.monotonic() + timeout
         while self.count < count and self.error is None and time.monotonic() < end:
             time.sleep(0.02)
@@ -108,7 +108,7 @@ def test_backup_of_a_sqlite_database_being_written(tmp_path, tmp_path_factory, c
         writer.wait_for(k + 10)  # the server's writes went on past the copy
     finally:
         writer.stop.set()
-        writer.join(30)
+        writer.join(DEADLINE)
     assert writer.error is None
     with sessions() as session:
         from sqlalchemy import func, select
@@ -170,13 +170,13 @@ def test_backup_of_a_postgresql_database_being_written(tmp_path, tmp_path_factor
             writer.wait_for(writer.count + 10)
         finally:
             writer.stop.set()
-            writer.join(30)
+            writer.join(DEADLINE)
         assert writer.error is None
         engine.dispose()
         restored = cluster.url("restored")
         libpq = restored.replace("postgresql+psycopg://", "postgresql://")
         subprocess.run([str(bin_dir / "pg_restore"), "--no-owner", f"--dbname={libpq}", str(out)], check=True,
-                       capture_output=True, timeout=120)
+                       capture_output=True, timeout=DEADLINE)
         check = create_engine(restored)
         with check.connect() as connection:
             rows = connection.execute(text("SELECT id, state FROM submissions")).all()

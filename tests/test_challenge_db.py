@@ -119,14 +119,22 @@ def test_claims_are_exclusive_and_results_recorded_once(db_url):
 
 
 def test_an_expired_lease_is_taken_again(db_url):
-    from dsr_bench.challenge.db import Submission, open_database
+    import datetime as dt
+
+    from sqlalchemy import update
+
+    from dsr_bench.challenge.db import Submission, open_database, utcnow
     from dsr_bench.challenge.worker import claim, renew
 
     engine, sessions = open_database(db_url)
     sid = _submission(sessions, _team(sessions), 1)[0]
-    assert claim(sessions, "dead", lease=0.3) == sid
+    assert claim(sessions, "dead", lease=3600) == sid
     assert claim(sessions, "alive", lease=60) is None  # leased: nobody else takes it
-    time.sleep(0.5)
+    # the dead worker's lease runs out: its end moved a second into the past (no sleep that a loaded machine could
+    # make outlast a short lease before the check above)
+    with sessions.begin() as session:
+        session.execute(update(Submission).where(Submission.id == sid)
+                        .values(lease_until=utcnow() - dt.timedelta(seconds=1)))
     assert claim(sessions, "alive", lease=60) == sid  # the dead worker's lease expired
     assert not renew(sessions, sid, "dead", 60)  # the dead worker cannot take it back
     with sessions() as session:

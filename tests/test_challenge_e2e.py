@@ -12,7 +12,6 @@ import signal
 import stat
 import subprocess
 import sys
-import time
 
 import h5py
 import pytest
@@ -22,8 +21,7 @@ pytest.importorskip("fastapi")
 pytest.importorskip("httpx")
 pytest.importorskip("argon2")
 
-import httpx  # noqa: E402
-from challenge_helpers import free_port  # noqa: E402
+from challenge_helpers import DEADLINE, free_port, get, post, wait_until, wait_until_serving  # noqa: E402
 
 from dsr_bench.cli import main  # noqa: E402
 
@@ -41,20 +39,14 @@ def server(created):
     proc = subprocess.Popen([sys.executable, "-m", "dsr_bench", "serve", str(created), "--port", str(port)],
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     url = f"http://127.0.0.1:{port}"
-    end = time.monotonic() + 60
-    while True:
-        try:
-            if httpx.get(f"{url}/healthz").status_code == 200:
-                break
-        except httpx.TransportError:
-            pass
-        if time.monotonic() > end or proc.poll() is not None:
-            proc.kill()
-            raise RuntimeError(f"dsr-bench serve did not start: {proc.stdout.read()}")
-        time.sleep(0.2)
+    try:
+        wait_until_serving(url, proc)
+    except RuntimeError as exc:
+        proc.kill()
+        raise RuntimeError(f"dsr-bench serve did not start ({exc}): {proc.communicate()[0]}") from None
     yield url
     proc.send_signal(signal.SIGINT)
-    proc.wait(30)
+    proc.wait(DEADLINE)
 
 
 def test_create_keeps_the_seed_inside_and_exports_inputs_only(created, tmp_path):
@@ -94,7 +86,7 @@ def test_a_participant_downloads_predicts_submits_and_sees_the_score(created, se
     out = capsys.readouterr().out
     assert re.search(r"submission [0-9a-f]{32}: queued", out) and re.search(r"submission [0-9a-f]{32}: scored", out)
     assert "public part: " in out and "iou_ordered" in out
-    board = httpx.get(f"{server}/api/leaderboard").json()
+    board = get(f"{server}/api/leaderboard").json()
     assert [row["team"] for row in board["tracks"]["3D"]] == ["team one"]
     # beside it, the clone's leaderboard's reference rows of a split generated like procedural-novel-test
     assert board["reference_split"] == "cpu-novel-test"
@@ -135,16 +127,19 @@ def test_a_browser_sees_a_submission_go_from_queued_to_scored(created, server, t
 
         predict_split(load_predictor("static"), created / "inputs", ["seq_0000", "seq_0001"], predictions)
         pack(predictions, tmp_path / "p.tar")
-        reply = httpx.post(f"{server}/api/submissions", params={"method": "static (browser)"},
-                           content=(tmp_path / "p.tar").read_bytes(), headers={"Authorization": f"Bearer {token}"})
+        reply = post(f"{server}/api/submissions", params={"method": "static (browser)"},
+                     content=(tmp_path / "p.tar").read_bytes(), headers={"Authorization": f"Bearer {token}"})
         sid = reply.json()["id"]
         browser.get(f"{server}/submissions/{sid}")
         seen = {browser.find_element("id", "state").text}
-        end = time.monotonic() + 120
-        while "scored" not in seen and time.monotonic() < end:
-            time.sleep(0.5)
+
+        def page_scored() -> bool:
             browser.refresh()
             seen.add(browser.find_element("id", "state").text)
+            return "scored" in seen
+
+        if "scored" not in seen:
+            wait_until(page_scored, f"the page of submission {sid} showing it scored (seen: {seen})", interval=0.5)
         assert seen & {"queued", "running"} and "scored" in seen
         assert "public part" in browser.page_source
         shots = os.environ.get("DSR_BENCH_SCREENSHOTS")

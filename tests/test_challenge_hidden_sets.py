@@ -13,8 +13,7 @@ pytest.importorskip("fastapi")
 pytest.importorskip("httpx")
 pytest.importorskip("argon2")
 
-import httpx  # noqa: E402
-from challenge_helpers import LiveServer, copy_challenge  # noqa: E402
+from challenge_helpers import DEADLINE, LiveServer, copy_challenge, get, post  # noqa: E402
 
 from dsr_bench.cli import main  # noqa: E402
 
@@ -65,8 +64,8 @@ def _upload(url, token, predictions, tmp_path, method) -> str:
 
     archive = tmp_path / f"{method}.tar"
     pack(predictions, archive)
-    reply = httpx.post(f"{url}/api/submissions", params={"method": method}, content=archive.read_bytes(),
-                       headers={"Authorization": f"Bearer {token}"}, timeout=30)
+    reply = post(f"{url}/api/submissions", params={"method": method}, content=archive.read_bytes(),
+                 headers={"Authorization": f"Bearer {token}"})
     assert reply.status_code == 202, reply.text
     return reply.json()["id"]
 
@@ -89,7 +88,7 @@ def test_a_real_hidden_set_is_pinned_exported_scored_apart_and_shown(challenge, 
         _with_a_running_worker(layout, sessions, tokens, simulated_only, tmp_path, capsys, wait_for)
     finally:
         stop.set()
-        worker.join(60)
+        worker.join(DEADLINE)
 
 
 def _with_a_running_worker(layout, sessions, tokens, simulated_only, tmp_path, capsys, wait_for):
@@ -134,11 +133,11 @@ def _with_a_running_worker(layout, sessions, tokens, simulated_only, tmp_path, c
         sid = _upload(live.url, tokens["alpha"], both, tmp_path, "both sets")
         sim = _upload(live.url, tokens["beta"], simulated_only, tmp_path, "simulated only")
         half = _upload(live.url, tokens["beta"], partial, tmp_path, "half the real set")
-        assert [wait_for(sessions, s) for s in (sid, sim, half)] == ["scored", "scored", "refused"]
-        status = httpx.get(f"{live.url}/api/submissions/{sid}").json()
+        assert [wait_for(sessions, s, timeout=DEADLINE) for s in (sid, sim, half)] == ["scored", "scored", "refused"]
+        status = get(f"{live.url}/api/submissions/{sid}").json()
         assert status["state"] == "scored" and set(status["scores"]) == {"public", "real-public"}
-        assert httpx.get(f"{live.url}/api/submissions/{sim}").json()["state"] == "scored"
-        refused = httpx.get(f"{live.url}/api/submissions/{half}").json()
+        assert get(f"{live.url}/api/submissions/{sim}").json()["state"] == "scored"
+        refused = get(f"{live.url}/api/submissions/{half}").json()
         assert refused["state"] == "refused" and "seq_real_0001.h5: missing prediction file" in refused["messages"]
         for part in ("public", "private"):  # the numbers are evaluate's on that part of the real set
             direct = tmp_path / f"direct-{part}"
@@ -149,24 +148,24 @@ def _with_a_running_worker(layout, sessions, tokens, simulated_only, tmp_path, c
             expected = evaluate(direct, layout.root / "hidden-real", part, workers=1).results["metrics"]
             if part == "public":
                 assert status["scores"]["real-public"]["metrics"] == pytest.approx(expected)
-        board = httpx.get(f"{live.url}/api/leaderboard").json()
+        board = get(f"{live.url}/api/leaderboard").json()
         assert sorted(r["method"] for r in board["tracks"]["3D"]) == ["both sets", "simulated only"]
         assert [r["id"] for r in board["hidden_sets"]["real"]["tracks"]["3D"]] == [sid]
-        page = httpx.get(live.url + "/").text
+        page = get(live.url + "/").text
         assert "3D track, hidden set real (annotated sequences) (public part)" in page
-        assert "hidden set real, public part" in httpx.get(f"{live.url}/submissions/{sid}").text
+        assert "hidden set real, public part" in get(f"{live.url}/submissions/{sid}").text
 
         write_config(layout, {**open_challenge(layout.root)[1], "reveal_private": True})
-        board = httpx.get(f"{live.url}/api/leaderboard").json()
+        board = get(f"{live.url}/api/leaderboard").json()
         assert [r["id"] for r in board["hidden_sets"]["real"]["final"]["3D"]] == [sid]
         assert board["hidden_sets"]["real"]["final"]["3D"][0]["metrics"] == pytest.approx(expected)
-        assert "Final ranking, 3D track, hidden set real" in httpx.get(live.url + "/").text
+        assert "Final ranking, 3D track, hidden set real" in get(live.url + "/").text
 
         # the server's reference rows are scored on the real set too
         assert main(["challenge", "add-references", str(layout.root)]) == 0
         reference = capsys.readouterr().out.split("queued as submission ")[1].split()[0]
-        assert wait_for(sessions, reference) == "scored"
-        references = httpx.get(f"{live.url}/api/leaderboard").json()["hidden_references"]
+        assert wait_for(sessions, reference, timeout=DEADLINE) == "scored"
+        references = get(f"{live.url}/api/leaderboard").json()["hidden_references"]
         assert [r["method"] for r in references["real"]["public"]["3D"]] == ["static"]
         assert references["real"]["private"]["3D"][0]["metrics"] == pytest.approx(expected)  # the same predictor
 
@@ -215,7 +214,7 @@ def test_reference_rows_are_scored_by_the_server_on_the_hidden_set(challenge, tm
     with _serve(layout) as live:
         mine = _upload(live.url, tokens["alpha"], predictions, tmp_path, "static")  # the same predictor, submitted
         assert _score_all(layout) == 5
-        board = httpx.get(f"{live.url}/api/leaderboard").json()
+        board = get(f"{live.url}/api/leaderboard").json()
         assert [r["id"] for r in board["tracks"]["3D"]] == [mine]  # reference rows are not ranked submissions
         references = board["hidden_references"]["simulated"]
         assert set(references) == {"public"}  # the private part's only once revealed
@@ -223,20 +222,20 @@ def test_reference_rows_are_scored_by_the_server_on_the_hidden_set(challenge, tm
         assert set(rows) == {"static", "push", "dsr"}
         assert [r["method"] for r in references["public"]["2D"]] == ["2dflow"]  # its own track's table
         assert rows["dsr"]["metrics"] != pytest.approx(rows["static"]["metrics"])  # the model's own predictions
-        submitted = httpx.get(f"{live.url}/api/submissions/{mine}").json()["scores"]["public"]["metrics"]
+        submitted = get(f"{live.url}/api/submissions/{mine}").json()["scores"]["public"]["metrics"]
         assert rows["static"]["metrics"] == pytest.approx(submitted)  # scored by the same workers, the same way
         assert rows["push"]["metrics"]["motion_full"] != pytest.approx(rows["static"]["metrics"]["motion_full"])
-        page = httpx.get(live.url + "/").text
+        page = get(live.url + "/").text
         assert f'<a href="/submissions/{rows["static"]["id"]}">static</a>' in page
         assert "reference, scored by this server on the hidden set" in page
         assert "2D track (public part)" in page and ">2dflow</a>" in page
-        assert httpx.get(f"{live.url}/teams/%28reference%20rows%29").status_code == 404
+        assert get(f"{live.url}/teams/%28reference%20rows%29").status_code == 404
 
         write_config(layout, {**open_challenge(layout.root)[1], "reveal_private": True})
-        board = httpx.get(f"{live.url}/api/leaderboard").json()
+        board = get(f"{live.url}/api/leaderboard").json()
         assert [r["id"] for r in board["final"]["3D"]] == [mine]
         private = {r["method"]: r for r in board["hidden_references"]["simulated"]["private"]["3D"]}
-        mine_private = httpx.get(f"{live.url}/api/submissions/{mine}").json()["scores"]["private"]["metrics"]
+        mine_private = get(f"{live.url}/api/submissions/{mine}").json()["scores"]["private"]["metrics"]
         assert private["static"]["metrics"] == pytest.approx(mine_private)
 
     for models, message in (("oracle", "reads the ground truth"), ("nope", "not a model"), (",", "is empty")):

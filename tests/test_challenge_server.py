@@ -19,7 +19,7 @@ pytest.importorskip("httpx")
 pytest.importorskip("argon2")
 
 import httpx  # noqa: E402
-from challenge_helpers import LiveServer, copy_challenge  # noqa: E402
+from challenge_helpers import LiveServer, copy_challenge, get, post  # noqa: E402
 
 SEED = "987654321987654321"  # the template challenge's secret seed
 
@@ -52,8 +52,8 @@ def _upload(url, token, predictions, tmp_path, method="static") -> httpx.Respons
 
     archive = tmp_path / f"{method}.tar"
     pack(predictions, archive)
-    return httpx.post(f"{url}/api/submissions", params={"method": method}, content=archive.read_bytes(),
-                      headers={"Authorization": f"Bearer {token}"}, timeout=30)
+    return post(f"{url}/api/submissions", params={"method": method}, content=archive.read_bytes(),
+                headers={"Authorization": f"Bearer {token}"})
 
 
 def _score_all(layout) -> int:
@@ -73,9 +73,9 @@ def test_no_route_gives_away_the_hidden_set_the_seed_or_another_teams_work(chall
         pages = ["/", "/api/leaderboard", f"/api/submissions/{mine}", f"/submissions/{mine}",
                  f"/api/submissions/{refused}", f"/submissions/{refused}", "/teams/alpha", "/api/inputs",
                  "/api/inputs/seq_0000.h5", "/api/inputs/digests.json"]
-        bodies = {page: httpx.get(live.url + page).content for page in pages}
-        assert all(httpx.get(live.url + page).status_code == 200 for page in pages if "digests" not in page)
-        history = httpx.get(f"{live.url}/api/me/submissions", headers={"Authorization": f"Bearer {other}"})
+        bodies = {page: get(live.url + page).content for page in pages}
+        assert all(get(live.url + page).status_code == 200 for page in pages if "digests" not in page)
+        history = get(f"{live.url}/api/me/submissions", headers={"Authorization": f"Bearer {other}"})
         assert history.status_code == 200 and history.json()["submissions"] == []  # not alpha's
         bodies["history"] = history.content
         for page, body in bodies.items():
@@ -90,13 +90,13 @@ def test_no_route_gives_away_the_hidden_set_the_seed_or_another_teams_work(chall
         assert "seq_0001.h5: missing prediction file" in refusal["messages"]
         for name in ("..%2Fsecret_seed", "%2E%2E%2Fchallenge.json", "challenge.json", "pins.json", "secret_seed",
                      "..%2Fhidden%2Fseq_0000.h5", ".%2E%2Fsubmissions", "digests.json%00"):
-            reply = httpx.get(f"{live.url}/api/inputs/{name}")
+            reply = get(f"{live.url}/api/inputs/{name}")
             assert reply.status_code == 404 and SEED.encode() not in reply.content, name
-        raw = httpx.get(f"{live.url}/api/inputs/../secret_seed")  # normalised by the client: still not the seed
+        raw = get(f"{live.url}/api/inputs/../secret_seed")  # normalised by the client: still not the seed
         assert SEED.encode() not in raw.content
         for path in ["/api/submissions/..%2F..%2Fsecret_seed", f"/api/submissions/{mine}/archive",
                      f"/submissions/{mine}.tar"]:
-            assert httpx.get(live.url + path).status_code == 404
+            assert get(live.url + path).status_code == 404
     assert SEED not in "".join(p.name for p in layout.root.rglob("*"))
 
 
@@ -107,7 +107,7 @@ def test_pages_escape_team_and_method_names(challenge, tmp_path):
                       "<img src=x onerror=alert(2)>").json()["id"]
         _score_all(layout)
         for page in ("/", f"/submissions/{sid}", "/teams/%3Cscript%3Ealert(1)%3C%2Fscript%3E"):
-            body = httpx.get(live.url + page).text
+            body = get(live.url + page).text
             assert "<script>alert(1)" not in body and "<img src=x" not in body, page
             assert "&lt;script&gt;alert(1)&lt;/script&gt;" in body or "&lt;img src=x" in body, page
 
@@ -139,12 +139,12 @@ def test_server_and_local_leaderboard_render_rows_alike_and_escape_method_names(
 
     hostile = "<img src=x onerror=alert(3)>|*x*"
     with _serve(layout, leaderboard=board, split=split) as live:
-        head, rows = _board_rows(httpx.get(live.url + "/").text, "3D track (public part)")
+        head, rows = _board_rows(get(live.url + "/").text, "3D track (public part)")
         lead = "<td></td><td></td>"  # a reference row has no rank and no team
         assert head == ('<tr><th onclick="sortTable(this)">#</th><th onclick="sortTable(this)">team</th>'
                         + local_head[len("<tr>"):])
         assert rows == ["<tr>" + lead + r[len("<tr>"):] for r in local_rows]
-        api = httpx.get(live.url + "/api/leaderboard").json()
+        api = get(live.url + "/api/leaderboard").json()
         assert api["reference_split"] == split
         static = {r["method"]: r for r in api["reference_rows"]["3D"]}["static"]
         assert sorted(r["method"] for r in api["reference_rows"]["3D"]) == ["oracle", "push", "static"]
@@ -153,7 +153,7 @@ def test_server_and_local_leaderboard_render_rows_alike_and_escape_method_names(
         sid = _upload(live.url, tokens["alpha"], predictions, tmp_path, hostile).json()["id"]
         other = _upload(live.url, tokens["<script>alert(1)</script>"], predictions, tmp_path, "static").json()["id"]
         _score_all(layout)
-        page = httpx.get(live.url + "/").text
+        page = get(live.url + "/").text
         head, rows = _board_rows(page, "3D track (public part)")
         assert len(rows) == 5 and rows[0].startswith('<tr><td>1</td><td><a href="/teams/alpha">alpha</a></td>')
         assert f'<a href="/submissions/{sid}">{html.escape(hostile)}</a>' in rows[0]
@@ -164,7 +164,7 @@ def test_server_and_local_leaderboard_render_rows_alike_and_escape_method_names(
         assert 'class="' not in named_static and rows[2:] == ["<tr>" + lead + r[len("<tr>"):] for r in local_rows]
         assert "<img src=x" not in page
         for path in (f"/submissions/{sid}", "/teams/alpha"):
-            shown = httpx.get(live.url + path).text
+            shown = get(live.url + path).text
             assert "<img src=x" not in shown and html.escape(hostile) in shown, path
 
     _put(board, _results(hostile, iou_ordered=0.4))
@@ -200,13 +200,13 @@ def test_tokens_wrong_malformed_revoked_and_slowed(challenge, tmp_path):
     with LiveServer(create_app(layout.root, settings=Settings(keep_free=0, auth_limit=4,
                                                               auth_max_delay=0.01))) as live:
         def me(token):
-            return httpx.get(f"{live.url}/api/me/submissions", headers={"Authorization": f"Bearer {token}"})
+            return get(f"{live.url}/api/me/submissions", headers={"Authorization": f"Bearer {token}"})
 
         assert me(good).status_code == 200
         wrong = good[:-4] + ("AAAA" if not good.endswith("AAAA") else "BBBB")
         for bad in (wrong, "garbage", "dsrc_000000000000_" + "x" * 43):
             assert me(bad).status_code == 401
-        assert httpx.get(f"{live.url}/api/me/submissions").status_code == 401
+        assert get(f"{live.url}/api/me/submissions").status_code == 401
         blocked = me(good)  # 4 failures from this address: even the right token waits now
         assert blocked.status_code == 429 and int(blocked.headers["retry-after"]) > 0
     with _serve(layout) as live:
@@ -244,28 +244,28 @@ def test_phases_final_selection_reveal_and_rescore(challenge, tmp_path):
     with _serve(layout, max_final=1) as live:
         first = _upload(live.url, tokens["alpha"], predictions, tmp_path).json()["id"]
         second = _upload(live.url, tokens["alpha"], predictions, tmp_path, "again").json()["id"]
-        assert httpx.post(f"{live.url}/api/submissions/{first}/final", json={"final": True},
-                          headers=auth).status_code == 400  # queued, not scored yet
+        assert post(f"{live.url}/api/submissions/{first}/final", json={"final": True},
+                    headers=auth).status_code == 400  # queued, not scored yet
         _score_all(layout)
-        assert httpx.get(f"{live.url}/api/submissions/{first}").json()["phase"] == "development"
-        chosen = httpx.post(f"{live.url}/api/submissions/{first}/final", json={"final": True}, headers=auth)
+        assert get(f"{live.url}/api/submissions/{first}").json()["phase"] == "development"
+        chosen = post(f"{live.url}/api/submissions/{first}/final", json={"final": True}, headers=auth)
         assert chosen.status_code == 200 and chosen.json()["final"] is True
-        over = httpx.post(f"{live.url}/api/submissions/{second}/final", json={"final": True}, headers=auth)
+        over = post(f"{live.url}/api/submissions/{second}/final", json={"final": True}, headers=auth)
         assert over.status_code == 400 and "unselect one first" in over.json()["detail"]
         padded = b'{"final": true, "pad": "' + b"x" * 8_000_000 + b'"}'  # read only up to the limit, then refused
-        huge = httpx.post(f"{live.url}/api/submissions/{second}/final", content=padded, headers=auth)
+        huge = post(f"{live.url}/api/submissions/{second}/final", content=padded, headers=auth)
         assert huge.status_code == 413 and "at most 4096 bytes" in huge.json()["detail"]
         other = {"Authorization": f"Bearer {tokens['<script>alert(1)</script>']}"}
-        assert httpx.post(f"{live.url}/api/submissions/{second}/final", json={"final": True},
-                          headers=other).status_code == 400  # not that team's
-        board = httpx.get(f"{live.url}/api/leaderboard").json()
+        assert post(f"{live.url}/api/submissions/{second}/final", json={"final": True},
+                    headers=other).status_code == 400  # not that team's
+        board = get(f"{live.url}/api/leaderboard").json()
         assert len(board["tracks"]["3D"]) == 2 and "final" not in board
         config = open_challenge(layout.root)[1]
         write_config(layout, {**config, "reveal_private": True})
-        board = httpx.get(f"{live.url}/api/leaderboard").json()
+        board = get(f"{live.url}/api/leaderboard").json()
         assert [row["id"] for row in board["final"]["3D"]] == [first]
-        assert "private" in httpx.get(f"{live.url}/api/submissions/{first}").json()["scores"]
-        assert "Final ranking" in httpx.get(live.url + "/").text
+        assert "private" in get(f"{live.url}/api/submissions/{first}").json()["scores"]
+        assert "Final ranking" in get(live.url + "/").text
     assert request_rescore(sessions) == 2
     assert _score_all(layout) == 2
     with sessions() as session:
@@ -327,8 +327,8 @@ def test_what_a_stopped_server_left_is_never_visible(challenge, tmp_path):
     orphan.write_bytes(b"x")
     with _serve(layout) as live:
         assert not list(layout.uploads.iterdir()) and not orphan.exists()
-        assert httpx.get(f"{live.url}/api/submissions/{'ab' * 16}").status_code == 404
+        assert get(f"{live.url}/api/submissions/{'ab' * 16}").status_code == 404
         sid = _upload(live.url, tokens["alpha"], predictions, tmp_path).json()["id"]
     with _serve(layout) as live:  # a restart keeps what was accepted
-        assert httpx.get(f"{live.url}/api/submissions/{sid}").json()["state"] == "queued"
+        assert get(f"{live.url}/api/submissions/{sid}").json()["state"] == "queued"
         assert layout.archive(sid).is_file()

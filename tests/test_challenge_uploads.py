@@ -6,7 +6,6 @@ import gzip
 import random
 import socket
 import tarfile
-import time
 
 import pytest
 
@@ -15,7 +14,7 @@ pytest.importorskip("httpx")
 pytest.importorskip("argon2")
 
 import httpx  # noqa: E402
-from challenge_helpers import LiveServer, copy_challenge, member, tar_bytes  # noqa: E402
+from challenge_helpers import LiveServer, copy_challenge, member, post, tar_bytes, wait_until  # noqa: E402
 
 LIMIT = 4 << 20
 
@@ -39,20 +38,21 @@ def served(tmp_path, tmp_path_factory):
 
 
 def _nothing_stored(layout, sessions) -> None:
+    """Nothing in uploads/ (once the server is done with the refused upload: waited for), nothing accepted."""
     from sqlalchemy import func, select
 
     from dsr_bench.challenge.db import Submission
 
-    time.sleep(0.2)
-    assert not (layout.uploads.exists() and list(layout.uploads.iterdir()))
+    wait_until(lambda: not (layout.uploads.exists() and list(layout.uploads.iterdir())),
+               "the refused upload's temporary removed")
     assert not (layout.submissions.exists() and list(layout.submissions.iterdir()))
     with sessions() as session:
         assert session.scalar(select(func.count()).select_from(Submission)) == 0
 
 
 def _post(url, token, body, **kw):
-    return httpx.post(f"{url}/api/submissions", params={"method": "m"}, content=body,
-                      headers={"Authorization": f"Bearer {token}"}, timeout=30, **kw)
+    return post(f"{url}/api/submissions", params={"method": "m"}, content=body,
+                headers={"Authorization": f"Bearer {token}"}, **kw)
 
 
 H5 = b"\x89HDF\r\n\x1a\n" + b"\0" * 100
@@ -114,7 +114,14 @@ def test_a_stalled_client_is_dropped(served):
 
     def stalls():
         yield b"\0" * 1000
-        time.sleep(3)  # past the server's idle timeout of 1 s
+        seen = []  # stalled past the server's idle timeout of 1 s: until it has dropped the upload's temporary
+
+        def dropped() -> bool:
+            parts = list(layout.uploads.glob(".part-*"))
+            seen.extend(parts)
+            return bool(seen) and not parts
+
+        wait_until(dropped, "the server dropping the stalled upload", interval=0.02)
         yield b"\0" * 1000
 
     try:
@@ -131,8 +138,7 @@ def test_a_client_hanging_up_mid_body_leaves_nothing(served):
     with socket.create_connection((host, int(port))) as s:
         s.sendall(f"POST /api/submissions?method=m HTTP/1.1\r\nHost: x\r\nAuthorization: Bearer {token}\r\n"
                   "Content-Type: application/x-tar\r\nContent-Length: 1000000\r\n\r\n".encode() + b"\0" * 5000)
-        time.sleep(0.3)
-    time.sleep(0.5)
+        wait_until(lambda: list(layout.uploads.glob(".part-*")), "the server receiving the upload")  # then hang up
     _nothing_stored(layout, sessions)
 
 
@@ -142,8 +148,8 @@ def test_a_multipart_form_upload_is_streamed_and_accepted(served, tmp_path):
     url, token, layout, sessions, predictions = served
     pack(predictions, tmp_path / "p.tar")
     form = {"archive": ("p.tar", (tmp_path / "p.tar").read_bytes(), "application/x-tar")}
-    reply = httpx.post(f"{url}/api/submissions", params={"method": "form"},
-                       headers={"Authorization": f"Bearer {token}"}, files=form, timeout=30)
+    reply = post(f"{url}/api/submissions", params={"method": "form"},
+                 headers={"Authorization": f"Bearer {token}"}, files=form)
     assert reply.status_code == 202, reply.text
     stored = layout.archive(reply.json()["id"])
     assert stored.read_bytes() == (tmp_path / "p.tar").read_bytes()

@@ -14,12 +14,13 @@ from dsr_bench.models import registry
 
 #: The kernels `dsr-bench predict` runs the shipped CPU-track networks with on a CPU: set in the environment before
 #: torch loads (it reads them then), where the user has not set them. MKL's reproducible SSE2 branch for every matrix
-#: product, which is what torch's convolutions and linear layers are there (by default MKL picks its kernels by
-#: instruction set and by vendor: an Intel Xeon's predictions differed from an AMD EPYC's in every file), and ATen's
+#: product, which is what torch's 3D convolutions and linear layers are there (by default MKL picks its kernels by
+#: instruction set and by vendor: an Intel Xeon's predictions differed from an AMD EPYC's in every file); oneDNN's
+#: AVX2 kernels for the 2D track's convolutions (its SSE4.1, AVX2 and AVX-512 kernels give different bits); ATen's
 #: AVX2 kernels (its AVX-512 ones give the same bits today, its default ones do not: no FMA). With
-#: `inference.same_bits_on_any_cpu` (one thread, no oneDNN) the predictions are the same bytes on every x86-64 CPU
-#: with AVX2 (docs/models.md, "Predictions across CPUs").
-SAME_BITS_ENV = {"MKL_CBWR": "COMPATIBLE", "ATEN_CPU_CAPABILITY": "avx2"}
+#: `inference.same_bits_on_any_cpu` (one thread) the predictions are the same bytes on every x86-64 CPU with AVX2
+#: (docs/models.md, "Predictions across CPUs").
+SAME_BITS_ENV = {"MKL_CBWR": "COMPATIBLE", "ONEDNN_MAX_CPU_ISA": "AVX2", "ATEN_CPU_CAPABILITY": "avx2"}
 
 leaderboard_app = typer.Typer(help="Build the leaderboard tables or add a results entry.", no_args_is_help=True)
 
@@ -43,7 +44,8 @@ def predict(
     device: str = typer.Option("cpu", "--device", help="cpu or cuda (learned models)."),
 ) -> None:
     """Run a model over a split and write the predictions contract (one .h5 per sequence + meta.json, which
-    names the dataset directory and split for `evaluate` and `view`)."""
+    names the dataset directory and split for `evaluate` and `view`). The shipped weights run on a CPU with fixed
+    kernels on one thread: their predictions are the same bytes on every x86-64 CPU with AVX2 (docs/models.md)."""
     from rich.progress import Progress
 
     from dsr_bench.atomic import check_writable
@@ -74,7 +76,8 @@ def _same_kernels_on_any_cpu() -> None:
 
     if "torch" not in sys.modules:
         for name, value in SAME_BITS_ENV.items():
-            os.environ.setdefault(name, value)
+            if name != "ONEDNN_MAX_CPU_ISA" or "DNNL_MAX_CPU_ISA" not in os.environ:  # (oneDNN's former name)
+                os.environ.setdefault(name, value)
 
 
 def _same_bits(shipped: bool):

@@ -4,11 +4,15 @@ A predictor runs one sequence at a time, or `bn_batch` independent sequences of 
 (`predict_sequences`): the authors' test protocol (their test.py) runs their weights on batches of 12
 consecutive sequences of the split with BatchNorm normalising over the batch at every step, so one
 sequence's predictions depend on the other 11 (`load_official_predictor`, OFFICIAL_BN_BATCH).
+
+`dsr-bench predict` runs the shipped CPU-track networks on a CPU under `same_bits_on_any_cpu`, so that their
+predictions are the same bytes on every x86-64 CPU with AVX2 (docs/models.md, "Predictions across CPUs").
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import cast
@@ -67,9 +71,28 @@ def fast_by_default(model: DSRNet, device: torch.device, official_bn: bool, bf16
     """Whether a predictor runs `fast.FastDSRNet` unless told: on a CPU, fp32, with BatchNorm's running statistics
     (a dsr-bench checkpoint, or the authors' weights with official_bn=False), for a network on the benchmark's full
     128 x 128 x 48 grid, where a step takes a fraction of a second and the copy pays for itself. The CPU track's
-    32 x 32 x 16 networks keep the eager path, so their shipped predictions stay the same bit for bit."""
+    32 x 32 x 16 networks keep the eager path: the fast path would move their predictions by rounding."""
     return (device.type == "cpu" and not official_bn and not bf16 and model.config.voxel_factor == 1
             and tuple(model.config.grid) == GRID_SHAPE)
+
+
+#: threads the shipped CPU-track networks run on under `same_bits_on_any_cpu`: MKL's reproducible branch and oneDNN
+#: give the same bits only for a fixed thread count (DSR-Net's differ on 3 and 8 threads, 2DFlow's on 2)
+SAME_BITS_THREADS = 1
+
+
+@contextmanager
+def same_bits_on_any_cpu() -> Iterator[None]:
+    """Run torch on `SAME_BITS_THREADS` threads, restored after. With `dsr_bench.cli.scoring.SAME_BITS_ENV` in force
+    when torch loaded (MKL's reproducible branch, oneDNN's and ATen's AVX2 kernels), the shipped CPU-track networks'
+    predictions are then the same bytes on every x86-64 CPU with AVX2 (tests/test_prediction_reproducibility.py);
+    without it (torch loaded before), the same bytes on one machine."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(SAME_BITS_THREADS)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(threads)
 
 
 def warp_name(model: DSRNet) -> str:
