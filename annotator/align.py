@@ -131,7 +131,8 @@ class FitScore:
     with a cloud point within the inlier distance); coverage: 0..1, fraction of the visible samples with such a
     point; fitness: 0..1, fraction of the cropped cloud points (around the object, table removed) within the
     inlier distance of the mesh; accepted: the fit (or the ICP result) passed its checks (coverage >= MIN_COVERAGE,
-    RMSE <= MAX_RMSE; for ICP also no jump); reason: why not, or a short summary; visible: visible samples.
+    RMSE <= MAX_RMSE; for ICP also no jump); reason: why not, or what the checks that ran measured (never empty:
+    every verdict says why); visible: visible samples.
     """
 
     rmse: float
@@ -140,6 +141,10 @@ class FitScore:
     accepted: bool
     reason: str
     visible: int = 0  # number of visible samples
+
+    def __post_init__(self) -> None:
+        if not str(self.reason).strip():  # every verdict says why: an empty reason is never stored or shown
+            self.reason = "accepted (no check ran)" if self.accepted else "not accepted (no reason given)"
 
     def as_dict(self) -> dict:
         return {k: (float(v) if isinstance(v, (float, np.floating)) else v) for k, v in asdict(self).items()}
@@ -594,27 +599,37 @@ def fit_score(samples: SurfaceSamples, transform: np.ndarray, crop: np.ndarray, 
         d_back, _ = cKDTree(pts).query(crop, distance_upper_bound=inlier_distance)
         fitness = float(np.isfinite(d_back).mean())
     problems = []
+    passed = []  # what each check that ran measured, for the reason of an accepted fit
     if coverage < MIN_COVERAGE:
         problems.append(f"coverage {coverage:.0%} < {MIN_COVERAGE:.0%}")
     if not np.isfinite(rmse) or rmse > MAX_RMSE:
         problems.append(f"rmse {rmse * 1000:.1f} mm > {MAX_RMSE * 1000:.1f} mm")
     if neighbours is not None:
         problems += physical_problems(samples, transform, neighbours, views)
+        passed.append("physically possible")
         unexplained, count = unexplained_fraction(samples, transform, crop, neighbours) if explain else (0.0, 0)
         if count >= UNEXPLAINED_MIN_POINTS and unexplained > UNEXPLAINED_FRACTION:
             problems.append(f"{unexplained:.0%} of the cloud around it is explained by no object")
+        elif explain:
+            passed.append(f"{unexplained:.0%} of {count} cloud points around it unaccounted for")
     if not problems and reference_colours is not None:
         changed, compared = colour_mismatch(sample_colours(pts, nrm, views), reference_colours)
         if compared >= COLOUR_MIN_SAMPLES and changed > COLOUR_FRACTION:
             problems.append(f"{changed:.0%} of its surface has another colour than at the reference step "
                             "(another object?)")
+        else:
+            passed.append(f"colours {changed:.0%} changed of {compared} samples seen at the reference step")
     if not problems and refine:
         shared = None if shared_shift is None else shared_shift()
         moved = refinement(samples, transform, crop, views, tree, shared=shared)
         if moved.improves():
             problems.append(f"a snap would move it {moved.translation * 1000:.0f} mm, "
                             f"{np.rad2deg(moved.rotation):.0f} deg and fit {moved.gain * 1000:.1f} mm closer")
-    reason = "; ".join(problems) if problems else f"rmse {rmse * 1000:.1f} mm, coverage {coverage:.0%}"
+        else:
+            passed.append(f"a snap would move it {moved.translation * 1000:.1f} mm, {np.rad2deg(moved.rotation):.1f} "
+                          f"deg and fit {moved.gain * 1000:.2f} mm closer (within limits)")
+    reason = "; ".join(problems) if problems else "; ".join([f"rmse {rmse * 1000:.1f} mm, coverage {coverage:.0%}"]
+                                                             + passed)
     return FitScore(rmse, coverage, fitness, not problems, reason, nvis)
 
 

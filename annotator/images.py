@@ -27,6 +27,13 @@ STATUS_MIN_SATURATION = 0.6
 #: The depth-residual colour scale's top (m): `residual_ramp` reaches red there (`Session.residual_colors`, the
 #: panel's legend).
 RESIDUAL_SCALE = 0.01
+#: Cloud points higher than this (m) above the table that no posed mesh explains (none within 2 x RESIDUAL_SCALE)
+#: are red in the residual colours too; below it lies the table's measured surface (its noise and calibration
+#: error reach a few millimetres), which stays grey.
+RESIDUAL_FLOOR = 0.005
+#: An object's preview (`mesh_preview`) is seen from this direction (from the side and above, as the pick window
+#: shows a mesh) and lit from the viewer's side, a little from above.
+PREVIEW_DIRECTION = (0.55, -0.65, 0.52)
 #: Silhouettes keep the parts of a mesh at least this far in front of the camera (m, camera z): a ray through a
 #: pixel centre sees what lies in front of the camera, and the projection of points nearer than this overflows.
 SILHOUETTE_NEAR = 1e-6
@@ -179,3 +186,43 @@ def residual_ramp(x: np.ndarray) -> np.ndarray:
     x = np.clip(np.asarray(x, np.float64), 0.0, 1.0)
     return np.stack([np.clip(2 * x, 0, 1), np.clip(2 - 2 * x, 0, 1) * np.clip(2 * x + 0.5, 0, 1),
                      np.clip(1 - 2 * x, 0, 1)], axis=1)
+
+
+def mesh_preview(vertices: np.ndarray, faces: np.ndarray, size: int, extent: float,
+                 color: Sequence[float] | np.ndarray = (0.7, 0.7, 0.72),
+                 background: Sequence[int] = (44, 44, 50)) -> np.ndarray:
+    """A small picture (size, size, 3) uint8 of a mesh (vertices (V, 3) m in its own frame, faces (F, 3)): seen
+    from PREVIEW_DIRECTION, orthographic, `extent` m across the picture (one scale for all of a scene's objects
+    keeps their sizes comparable), centred on its bounding box, each face shaded by its angle to the light, in
+    `color` (RGB 0..1) on `background` (RGB 0..255). Rasterised with `dsr_bench.render.raster` (the nearest face
+    per pixel)."""
+    from dsr_bench.render.raster import interpolate, nearest, rasterize
+
+    size = int(size)
+    out = np.empty((size, size, 3), np.uint8)
+    out[...] = np.asarray(background, np.uint8)
+    v = np.asarray(vertices, np.float64).reshape(-1, 3)
+    f = np.asarray(faces, np.int64).reshape(-1, 3)
+    if len(f) == 0 or not np.all(np.isfinite(v)) or extent <= 0:
+        return out
+    back = np.asarray(PREVIEW_DIRECTION, np.float64)
+    back /= np.linalg.norm(back)
+    up = np.array([0.0, 0.0, 1.0]) - back[2] * back
+    up /= np.linalg.norm(up)
+    right = np.cross(up, back)
+    p = v - 0.5 * (v.min(0) + v.max(0))
+    scale = (size - 2) / float(extent)
+    uv = np.stack([size / 2 - 0.5 + (p @ right) * scale, size / 2 - 0.5 - (p @ up) * scale], axis=1)
+    frags = rasterize(uv, f, size, size)
+    if len(frags.sample) == 0:
+        return out
+    _, face = nearest(frags, interpolate(frags, f, -(p @ back)), size * size)
+    hit = face >= 0
+    tri = v[f[face[hit]]]
+    normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-12)
+    light = back + 0.4 * up
+    shade = 0.3 + 0.7 * np.abs(normal @ (light / np.linalg.norm(light)))  # either winding: |cos|
+    rgb = np.clip(np.asarray(color, np.float64)[None] * shade[:, None], 0, 1)
+    out.reshape(-1, 3)[hit] = np.round(rgb * 255).astype(np.uint8)
+    return out

@@ -14,7 +14,7 @@ from typing import Any, Callable, NamedTuple, Sequence
 import numpy as np
 
 from annotator.align import FitScore
-from annotator.images import SELECTED_COLOR
+from annotator.images import SELECTED_COLOR, muted_colors
 from dsr_bench.errors import UserError
 
 #: Nudge sizes: fine / coarse translation (m) and rotation (rad).
@@ -33,7 +33,9 @@ class ViewState:
     residual: bool = False  # cloud coloured by depth residual instead of the capture colours
     quit: bool = False
     reset_view: bool = False  # set by the key, cleared by the window once it reset the 3D view
-    message: str = ""
+    message: str = ""  # what the last key did (or, on opening, what the work is)
+    hint: str = ""  # what to do next (`annotator.guide.next_hint`), shown under the message
+    warning: str = ""  # the last key's "wrong object?" (`annotator.guide.wrong_object`), else empty
     score_cache: dict = field(default_factory=dict)
 
     @property
@@ -75,11 +77,14 @@ class Binding(NamedTuple):
 
 
 def _select(ctl: "Controller", obj: int) -> None:
+    from annotator.guide import describe
+
     if obj >= ctl.session.num_objects:
         ctl.view.message = f"no object {obj + 1}: this capture has {ctl.session.num_objects}"
         return
     ctl.session.select(obj)
-    ctl.view.message = f"selected {obj + 1}: {object_name(ctl.session, obj)}"
+    status = ctl.session.status()[obj]
+    ctl.view.message = f"selected {describe(ctl.session, obj)}: " + ("not placed yet" if status == "unset" else status)
 
 
 def _select_next(ctl: "Controller") -> None:
@@ -115,9 +120,21 @@ def _snap(ctl: "Controller") -> None:
     score = ctl.session.snap(ctl.session.selected)
     if not score.kept:  # nothing changed
         ctl.view.message = f"snap rejected, pose unchanged: {score.reason}"
-        return
-    verdict = "snapped" if score.accepted else "snap kept (better than before), fit still poor"
-    ctl.view.message = f"{verdict}: {format_score(score)[5:]}"
+    else:
+        verdict = "snapped" if score.accepted else "snap kept (better than before), fit still poor"
+        ctl.view.message = f"{verdict}: {format_score(score)[5:]}"
+    _warn_wrong_object(ctl, other_shapes=True)
+
+
+def _warn_wrong_object(ctl: "Controller", other_shapes: bool) -> None:
+    """Append "wrong object? ..." to the message when the selected object's pose lies on another object's points
+    (`annotator.guide.wrong_object`; `other_shapes`: also try the unplaced objects' meshes on a poor fit)."""
+    from annotator.guide import wrong_object
+
+    found = wrong_object(ctl.session, ctl.session.selected, other_shapes=other_shapes)
+    if found:
+        ctl.view.message += f" | {found}"
+        ctl.view.warning = found
 
 
 def _confirm(ctl: "Controller") -> None:
@@ -366,8 +383,10 @@ class Controller:
 
     def __init__(self, session, picker: Callable[..., np.ndarray] | None = None,
                  echo: Callable[[str], None] | None = None):
+        from annotator.guide import next_hint, opening_message
+
         self.session = session
-        self.view = ViewState()
+        self.view = ViewState(message=opening_message(session), hint=next_hint(session))
         self.picker = picker
         self.echo = echo or rich_echo
 
@@ -381,6 +400,7 @@ class Controller:
             self.view.message = f"key {key!r} does nothing; see the keys listed below"
             return {"panel"}
         before = self._snapshot()
+        self.view.warning = ""
         try:
             if binding.method == "nudge":
                 binding.action(self, count=max(1, int(count)))
@@ -391,6 +411,7 @@ class Controller:
             self.echo(f"[{binding.label}] {exc}")
         if binding.method not in (None, "recarry"):
             self._offer_recarry()
+        self._update_hint()
         after = self._snapshot()
         changed = {"panel"}
         if before[:2] != after[:2]:
@@ -412,6 +433,16 @@ class Controller:
         if stale:
             self.view.message += (f" | steps {', '.join(map(str, stale))} hold object {s.selected + 1} carried from "
                                   "its old pose: X re-carries them")
+
+    def _update_hint(self) -> None:
+        """The "next:" line after a key (`annotator.guide.next_hint`: statuses only, no fit)."""
+        from annotator.guide import next_hint, undo_hint
+
+        try:
+            self.view.hint = (undo_hint(self.session, self.session.selected) if self.view.warning
+                              else next_hint(self.session))
+        except UserError as exc:
+            self.view.hint = f"next: - ({exc})"
 
     def _snapshot(self) -> tuple:
         s = self.session
@@ -437,6 +468,8 @@ class Controller:
             raise UserError("pick mode needs the annotator window (no picker)")
         s, obj = self.session, self.session.selected
         points, colors = self.cloud()
+        if not self.view.residual:  # muted as the 3D view's: no object's own colour reads as a status colour
+            colors = muted_colors(colors)
         self.view.message = "pick mode: shift + click 3 or more points on the cloud, then Q"
         cloud_idx = self.picker(points, colors, "pick >= 3 cloud points (shift+click), then close with Q", None)
         if len(cloud_idx) < 3:
@@ -455,6 +488,7 @@ class Controller:
             return
         s.init_from_picks(obj, samples[np.asarray(mesh_idx)], points[np.asarray(cloud_idx)])
         self.view.message = f"pose initialised from {len(cloud_idx)} picked pairs"
+        _warn_wrong_object(self, other_shapes=False)
 
     def meshes(self) -> list[tuple[np.ndarray, np.ndarray]]:
         """(vertices, faces) of every object's mesh, object frame."""

@@ -28,7 +28,7 @@ import numpy as np
 
 from annotator import align
 from annotator.align import FitScore
-from annotator.images import RESIDUAL_SCALE, residual_ramp
+from annotator.images import RESIDUAL_FLOOR, RESIDUAL_SCALE, residual_ramp
 from annotator.journal import (JOURNAL_FILE, JOURNAL_FORMAT, STATE_FILE, Saved, acquire_lock, append_record,
                                capture_digest, check_file, name_holder, read_saved, release_lock,
                                write_snapshot)
@@ -1044,25 +1044,26 @@ class Session:
                         index: np.ndarray | None = None) -> np.ndarray:
         """Colours (M, 3) in 0..1 of `cloud(step)`'s points (of those at `index` (K,) only, e.g. `shown(step)`: then
         (K, 3)) by their distance to the nearest posed mesh surface: blue (0) through green and yellow to red
-        (>= `max_residual` m, `residual_ramp`) within 2 x `max_residual`; other points (table, unannotated things)
-        keep a dimmed grey of their own colour."""
+        (>= `max_residual` m, `residual_ramp`) within 2 x `max_residual`; the points higher than RESIDUAL_FLOOR
+        above the table farther from every posed mesh are red too (surface no posed mesh explains: where a wrongly
+        placed object really is, or an object not placed yet); the others (the table) keep a dimmed grey of their
+        own colour."""
         from scipy.spatial import cKDTree
 
         step = self._step(step)
         points, colors, _ = self.cloud(step)
         if index is not None:
             points, colors = points[index], colors[index]
-        grey = np.repeat(colors.mean(1, keepdims=True), 3, axis=1) * 0.5 + 0.1
+        out = np.repeat(colors.mean(1, keepdims=True), 3, axis=1) * 0.5 + 0.1
         surfaces = [align.posed_samples(self.samples(i), pose_to_matrix(p))[0]
                     for i in range(self.num_objects) if (p := self.state.pose(step, i)) is not None]
-        if not surfaces:
-            return grey
         above = np.flatnonzero(points[:, 2] > align.TABLE_MARGIN)  # the table's points stay grey: not queried
         d = np.full(len(points), np.inf)
-        d[above] = cKDTree(np.vstack(surfaces)).query(points[above], distance_upper_bound=2 * max_residual)[0]
+        if surfaces:
+            d[above] = cKDTree(np.vstack(surfaces)).query(points[above], distance_upper_bound=2 * max_residual)[0]
         near = np.isfinite(d)
-        out = grey.copy()
         out[near] = residual_ramp(d[near] / max_residual)
+        out[~near & (points[:, 2] > RESIDUAL_FLOOR)] = residual_ramp(np.ones(1))
         return out
 
     def progress(self) -> dict:

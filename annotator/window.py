@@ -44,6 +44,7 @@ import numpy as np
 from annotator.images import muted_colors, object_colors, posed
 from annotator.keys import KEYMAP, Controller, KeyCoalescer, glfw_code
 from annotator.layout import Layout, panel_layout, screen_size, window_layout
+from annotator.opening import ensure_runtime_dir, fit_zoom, workspace_corners
 from annotator.panel import Panel
 from dsr_bench.display import no_display
 from dsr_bench.errors import UserError
@@ -123,6 +124,7 @@ class AnnotatorWindow:
         problem = display_problem()
         if problem is not None:
             raise UserError(f"no display for the annotator window ({problem}); {NO_DISPLAY_HINT}")
+        ensure_runtime_dir()
         self._o3d = o3d
         self.layout = layout_for(session, screen)
         vx, vy, vw, vh = self.layout.view
@@ -191,7 +193,9 @@ class AnnotatorWindow:
         self.reset_view()
 
     def reset_view(self) -> None:
-        """Look at the workspace from above the front camera (table z up)."""
+        """Look at the workspace from above the front camera (table z up), as close as shows all of it: every corner
+        of the workspace grid (`dsr_bench.constants.GRID_BOUNDS`) inside the view, a margin from its edges
+        (`annotator.opening.fit_zoom`)."""
         from dsr_bench.constants import CAMERAS, WORKSPACE_CENTER
 
         eye, target = np.array(CAMERAS["front"]["eye"]), np.array([*WORKSPACE_CENTER, 0.03])
@@ -201,7 +205,7 @@ class AnnotatorWindow:
         ctr.set_lookat(target)
         ctr.set_front(front)
         ctr.set_up(up / np.linalg.norm(up))
-        ctr.set_zoom(0.45)
+        fit_zoom(ctr, workspace_corners())
 
     def _update_meshes(self) -> list:
         """Posed vertices and colours of the meshes whose pose or colour changed (returned), and the gizmo."""
@@ -445,3 +449,6 @@ def run(session, *, screen: tuple[int, int] | None = None) -> None:
         window.loop()
     finally:
         window.close()
+    from annotator.guide import next_hint
+
+    window.ctl.echo(f"annotator: saved; {next_hint(session)}")

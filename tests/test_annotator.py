@@ -787,7 +787,11 @@ def test_display_helpers(capture_dir, truth, tmp_path):
     session = Session.open(capture_dir, tmp_path / "work")
     points = session.cloud(0)[0]
     grey = session.residual_colors(0)
-    assert grey.shape == points.shape and np.allclose(grey[:, 0], grey[:, 1])  # nothing posed: all grey
+    from annotator.images import RESIDUAL_FLOOR, residual_ramp
+
+    high = points[:, 2] > RESIDUAL_FLOOR  # nothing posed: every object's points red (no mesh explains them) ...
+    assert grey.shape == points.shape and np.allclose(grey[high], residual_ramp(np.ones(1)))
+    assert np.allclose(grey[~high, 0], grey[~high, 1])  # ... the table grey
     _place_from_truth(session, truth, snap=False)
     colors = session.residual_colors(0)
     assert colors.shape == points.shape and colors.min() >= 0 and colors.max() <= 1

@@ -40,6 +40,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "dsr-bench generate --objects shapenet --object-root ~/ShapeNetCore.v2 -n 4000 --out data/shapenet --workers 8":
         ("needs", "https://shapenet.org"),
     f"dsr-bench validate {DATA}": ("run", ""),
+    f"dsr-bench validate {DATA}/seq_0003.h5": ("run", ""),
     f"dsr-bench info {DATA}": ("run", ""),
     f"dsr-bench predict --model static --data {DATA} --split {SPLIT} --out predictions/static": ("run", ""),
     "dsr-bench evaluate predictions/static --out results.json": ("run", ""),

@@ -253,3 +253,32 @@ def test_summary_names_the_first_dataset_level_problems():
     assert line == ("0 sequence files checked, 0 with problems; 5 dataset-level problems (splits/s0.txt: split file "
                     "not in the manifest; splits/s1.txt: split file not in the manifest; splits/s2.txt: split file "
                     "not in the manifest; and 2 more above)")
+
+
+def test_a_single_sequence_file_is_validated_alone(pristine, tmp_path, capsys):
+    """`validate FILE.h5` (an annotator's export): what one file can prove, and it says that the split pins and a
+    manifest need a dataset directory; its problems, a missing file and a folder of other .h5 files."""
+    from dsr_bench.dataset.validate import validate_file
+
+    path = pristine / "seq_0000.h5"
+    assert main(["validate", str(path)]) == 0
+    out = " ".join(capsys.readouterr().out.split())
+    assert out.startswith(f"valid: {path} is a sequence of 2 pushes and 2 objects (source synthetic)")
+    assert "ground truth consistent, digests match its arrays" in out
+    assert "split pins" in out and "need a dataset directory" in out and "dsr-bench manifest DIR" in out
+    copy = tmp_path / "export.h5"
+    shutil.copy(path, copy)
+    with h5py.File(copy, "r+") as f:
+        f["mask_3d"][1, 0, 0, 0] = 9
+    problems, about = validate_file(copy)
+    assert "mask_3d: instance id 9 > num_objects 2" in problems and about["objects"] == 2
+    assert any("digests do not match the arrays" in p for p in problems)  # its own digests, recomputed
+    assert main(["validate", str(copy)]) == 1
+    assert "instance id 9" in capsys.readouterr().out
+    assert main(["validate", str(tmp_path / "missing.h5")]) == 2
+    assert "missing.h5: no such file; give a sequence file (.h5) or a dataset directory" in capsys.readouterr().err
+    folder = tmp_path / "real"  # a folder holding the export under another name: how to check it alone
+    folder.mkdir()
+    shutil.copy(path, folder / "out.h5")
+    found, count = validate_dataset(folder)
+    assert count == 0 and any("out.h5; check one alone with `dsr-bench validate FILE.h5`" in p.message for p in found)

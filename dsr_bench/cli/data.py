@@ -9,13 +9,16 @@ import typer
 
 
 def validate(
-    data_dir: Path = typer.Argument(..., help="Dataset directory (seq_*.h5, splits/, manifest.json)."),
+    data_dir: Path = typer.Argument(..., help="Dataset directory (seq_*.h5, splits/, manifest.json), or one sequence "
+                                              "file (.h5: checked alone, without the manifest and split pins)."),
     no_gt: bool = typer.Option(False, "--no-gt", help="Skip the ground-truth consistency checks (faster)."),
     workers: int = typer.Option(1, "--workers", "-w", help="Parallel worker processes."),
 ) -> None:
     """Check schema, shapes, ranges, checksums and ground-truth consistency; report every problem.
 
-    A valid dataset's splits are named with the pinned split each matches, or none.
+    A valid dataset's splits are named with the pinned split each matches, or none. A single sequence file (an
+    annotator's export) is checked alone: what one file can prove (schema, ranges, ground truth, its own digests);
+    split pins and a manifest need a dataset directory.
     A progress bar (per sequence) shows on stderr when it is a terminal."""
     from rich.console import Console
     from rich.table import Table
@@ -24,6 +27,9 @@ def validate(
     from dsr_bench.dataset.validate import summary_line, validate_dataset
 
     console = Console()
+    if data_dir.is_file() or (data_dir.suffix == ".h5" and not data_dir.is_dir()):
+        _validate_file(data_dir, no_gt, console)
+        return
     with progress_bar("validate") as progress:
         found, count = validate_dataset(data_dir, check_gt=not no_gt, workers=workers, progress=progress)
     problems = [p for p in found if not p.note]
@@ -47,6 +53,29 @@ def validate(
     console.print(table)
     typer.echo(summary_line(found, count, data_dir))  # unwrapped: the one line that says why it failed
     raise typer.Exit(1)
+
+
+def _validate_file(path: Path, no_gt: bool, console) -> None:
+    """`validate FILE.h5`: one sequence file alone (`dsr_bench.dataset.validate.validate_file`); exit 1 on a
+    problem."""
+    from rich.table import Table
+
+    from dsr_bench.dataset.validate import SINGLE_FILE_LIMITS, validate_file
+
+    problems, about = validate_file(path, check_gt=not no_gt)
+    if problems:
+        table = Table(title=f"{len(problems)} problems in {path}")
+        table.add_column("problem")
+        for message in problems:
+            table.add_row(message)
+        console.print(table)
+        typer.echo(f"{path}: {len(problems)} problem{'s' if len(problems) != 1 else ''} ({problems[0]})")
+        raise typer.Exit(1)
+    what = (f"a sequence of {about['steps']} pushes and {about['objects']} objects (source {about['source']})"
+            if about else "a sequence file")
+    checked = "ground truth not checked" if no_gt else "ground truth consistent, digests match its arrays"
+    console.print(f"[green]valid[/green]: {path} is {what}: schema and value ranges, {checked}")
+    typer.echo(f"note: {SINGLE_FILE_LIMITS}")
 
 
 def info(

@@ -139,6 +139,37 @@ def _check_sequence(path: str | Path, check_gt: bool = True, expected: dict | No
     return problems, prints
 
 
+def validate_file(path: str | Path, check_gt: bool = True) -> tuple[list[str], dict]:
+    """(every problem, what it is) of one sequence file given alone (`dsr-bench validate FILE.h5`, e.g. an
+    annotator's export): what the file alone can prove, the checks of `_check_sequence` (schema, value ranges, and
+    with `check_gt` the ground truth against the poses and masks and the file's own digests against its arrays).
+    What it is: {"steps", "objects", "source"} read from the file (empty when it cannot be opened). A manifest's
+    digests and the split pins need a dataset directory: a single file is checked against neither."""
+    from dsr_bench.errors import UserError
+
+    path = Path(path)
+    if not path.is_file():
+        raise UserError(f"{path}: no such file; give a sequence file (.h5) or a dataset directory")
+    problems, _ = _check_sequence(path, check_gt)
+    about: dict = {}
+    seq, _ = _open(path)
+    if seq is not None:
+        try:
+            about = {"steps": int(seq.num_steps), "objects": int(seq.num_objects),
+                     "source": str(seq.attrs.get("source", "?"))}
+        except Exception:  # noqa: BLE001 - reported as problems above
+            about = {}
+        finally:
+            seq.close()
+    return problems, about
+
+
+SINGLE_FILE_LIMITS = ("a single file is checked on its own: its schema, value ranges, ground truth and its digests "
+                      "against its arrays; the split pins (is it a benchmark split's sequence, bit for bit?) and a "
+                      "manifest's checksums need a dataset directory: put the file in one, run `dsr-bench manifest "
+                      "DIR`, then `dsr-bench validate DIR`")
+
+
 def _validate_one(args: tuple[str, bool, dict | None]) -> tuple[str, list[str], dict | None]:
     path, check_gt, expected = args
     return (Path(path).stem, *_check_sequence(path, check_gt, expected))
@@ -236,7 +267,9 @@ def validate_dataset(data_dir: str | Path, check_gt: bool = True, workers: int =
     try:
         manifest = load_manifest(data_dir)
     except UserError as exc:
-        problems.append(Problem(MANIFEST_NAME, str(exc)))
+        alone = " (or check a sequence file alone: `dsr-bench validate FILE.h5`)" if files and not (
+            data_dir / MANIFEST_NAME).exists() else ""
+        problems.append(Problem(MANIFEST_NAME, f"{exc}{alone}"))
     else:
         found, digests = _check_manifest(data_dir, manifest, files)
         problems += found
@@ -258,7 +291,11 @@ def validate_dataset(data_dir: str | Path, check_gt: bool = True, workers: int =
     if manifest is not None:
         problems += _check_pinned(data_dir, manifest, fingerprints)
     if not files:
-        problems.append(Problem("dataset", f"no seq_*.h5 files in {data_dir}"))
+        others = sorted(p.name for p in data_dir.glob("*.h5"))
+        hint = (f" ({len(others)} other .h5 file{'s' if len(others) != 1 else ''}: {', '.join(others[:3])}"
+                f"{' ...' if len(others) > 3 else ''}; check one alone with `dsr-bench validate FILE.h5`)"
+                if others else "")
+        problems.append(Problem("dataset", f"no seq_*.h5 files in {data_dir}{hint}"))
     return problems, len(files)
 
 
