@@ -2,7 +2,8 @@
 generator (2 hidden sequences of 2 pushes from a secret seed), `dsr-bench serve` on a loopback port (uvicorn and a
 worker process), `challenge add-team`, `challenge download`, `dsr-bench predict` on the downloaded inputs and
 `dsr-bench submit`, which sees its submission go from queued to scored; and a real browser (Debian's chromium
-through chromium-driver) watching a submission's page do the same."""
+through chromium-driver) watching a submission's page do the same, then signing in with the team's token, seeing
+the team's history and choosing its final submission on its page; every page fits a 1400 px window."""
 
 import json
 import os
@@ -108,7 +109,7 @@ def _chromium():
         pytest.skip("Debian's chromium and chromium-driver are not installed (apt-get install chromium-driver)")
     options = webdriver.ChromeOptions()
     options.binary_location = binary
-    for arg in ("--headless=new", "--no-sandbox", "--disable-gpu", "--window-size=1200,900"):
+    for arg in ("--headless=new", "--no-sandbox", "--disable-gpu", "--window-size=1400,900"):
         options.add_argument(arg)
     from selenium.webdriver.chrome.service import Service
 
@@ -150,10 +151,47 @@ def test_a_browser_sees_a_submission_go_from_queued_to_scored(created, server, t
         assert row and "static (browser)" in row[0]
         assert not browser.find_elements("css selector", "td b")  # the team's markup shown as text, not rendered
         assert any(tr.text.startswith("static ") for tr in browser.find_elements("css selector", "tbody tr"))
+        assert _fits(browser), "the leaderboard is wider than the window"
         browser.find_element("link text", "<b>browser</b> team").click()
         assert "Team <b>browser</b> team" in browser.find_element("tag name", "h1").text
         if shots:
             browser.get(server + "/")
             browser.save_screenshot(os.path.join(shots, "challenge-leaderboard.png"))
+
+        # the team signs in with its token: its history, and its final choice made on its page
+        browser.get(server + "/me")
+        assert browser.current_url.endswith("/login")
+        browser.find_element("id", "token").send_keys(token)
+        browser.find_element("id", "sign-in").click()
+        wait_until(lambda: "Team <b>browser</b> team: your submissions" in _text(browser, "tag name", "h1"),
+                   "the browser signed in and shown the team's page")
+        row = _text(browser, "id", f"row-{sid}")
+        assert "static (browser)" in row and "scored" in row
+        final_cell = f"#row-{sid} td:nth-child(6)"  # submitted, method, state, track, public part, final, ...
+        assert _text(browser, "css selector", final_cell) == "choose as final"
+        browser.find_element("id", f"final-{sid}").click()
+        wait_until(lambda: _text(browser, "css selector", final_cell).split() == ["final", "unselect"],
+                   "the team's page showing its final choice after the form was sent")
+        assert get(f"{server}/api/submissions/{sid}").json()["final"] is True
+        assert _fits(browser), "the team's page is wider than the window"
+        if shots:
+            browser.save_screenshot(os.path.join(shots, "challenge-history.png"))
+        browser.get(f"{server}/submissions/{sid}")
+        assert _fits(browser), "the submission's page is wider than the window"
     finally:
         browser.quit()
+
+
+def _text(browser, by: str, what: str) -> str:
+    """The text of the element found, "" while the page is being replaced (the element went stale)."""
+    from selenium.common.exceptions import NoSuchElementException, StaleElementReferenceException
+
+    try:
+        return browser.find_element(by, what).text
+    except (NoSuchElementException, StaleElementReferenceException):
+        return ""
+
+
+def _fits(browser) -> bool:
+    """Whether the page needs no horizontal scrolling in the browser's window (1400 px)."""
+    return browser.execute_script("return document.documentElement.scrollWidth <= window.innerWidth")

@@ -5,10 +5,18 @@ token is verified against the row's argon2id hash (argon2-cffi compares in const
 verified against a dummy hash, so a wrong key and a wrong secret take the same time. `FailureThrottle` counts
 failures per client address: each failure is answered after a growing delay, and past `limit` failures within
 `window` seconds the address is refused (429) until the oldest failure leaves the window, whatever it sends.
+
+Browsers: a team signs in on /login with its token once and gets a session cookie (`SessionSigner`): the team's id,
+its token's key and an expiry, signed with HMAC-SHA256 under a key drawn at the server's start (a restart signs
+everyone out; the token stays valid), sent HttpOnly and SameSite=Strict (Secure over HTTPS). A form that changes
+something (a final choice, signing out) carries a CSRF token derived from the cookie (`csrf_token`), checked in
+constant time, and a cross-site Origin is refused: another site can neither read the cookie nor post with it.
 """
 
 from __future__ import annotations
 
+import hashlib
+import hmac
 import re
 import secrets
 import threading
@@ -86,3 +94,39 @@ class FailureThrottle:
         """Failures of `address` within the window."""
         with self._lock:
             return len(self._recent(address, time.monotonic()))
+
+
+class SessionSigner:
+    """Signed session cookies and their CSRF tokens (module doc), under a key drawn when it is made."""
+
+    #: the cookie's name and lifetime (seconds)
+    COOKIE, LIFETIME = "dsr_session", 12 * 3600
+
+    def __init__(self, key: bytes | None = None):
+        self._key = key or secrets.token_bytes(32)
+
+    def _mac(self, text: str) -> str:
+        return hmac.new(self._key, text.encode(), hashlib.sha256).hexdigest()
+
+    def issue(self, team_id: int, token_key: str, now: float | None = None) -> str:
+        """A cookie value for team `team_id` (its token's key `token_key`), valid for `LIFETIME` seconds."""
+        body = f"{team_id}.{token_key}.{int((now or time.time()) + self.LIFETIME)}"
+        return f"{body}.{self._mac(body)}"
+
+    def read(self, value: str, now: float | None = None) -> tuple[int, str] | None:
+        """(team id, token key) of a valid, unexpired cookie value, else None."""
+        parts = value.split(".")
+        if len(parts) != 4 or not parts[0].isdigit() or not parts[2].isdigit():
+            return None
+        body = ".".join(parts[:3])
+        if not hmac.compare_digest(self._mac(body), parts[3]) or int(parts[2]) < (now or time.time()):
+            return None
+        return int(parts[0]), parts[1]
+
+    def csrf_token(self, cookie: str) -> str:
+        """The CSRF token of the forms shown to the holder of session cookie `cookie`."""
+        return self._mac("csrf:" + cookie)[:32]
+
+    def csrf_ok(self, cookie: str, token: str) -> bool:
+        """Whether a form's CSRF `token` is the one of `cookie` (constant time)."""
+        return hmac.compare_digest(self.csrf_token(cookie), token)

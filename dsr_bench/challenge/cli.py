@@ -76,11 +76,13 @@ DbOption = typer.Option(None, "--db", help="Database URL (default: DIR/challenge
 
 
 def _sessions(root: Path, db: Optional[str]):
-    from dsr_bench.challenge.db import open_database
+    """(layout, configuration, session factory) of challenge `root` and its database, once `binding.open_bound`
+    accepted them for each other (bound at the first command of a new challenge)."""
+    from dsr_bench.challenge.binding import open_bound
     from dsr_bench.challenge.layout import open_challenge
 
     layout, config = open_challenge(root)
-    return layout, config, open_database(db or layout.default_db_url())[1]
+    return layout, config, open_bound(layout, db or layout.default_db_url())[1]
 
 
 @challenge_app.command("export-inputs")
@@ -101,16 +103,19 @@ def export_inputs(
 
 @challenge_app.command("add-team")
 def add_team(root: Path = typer.Argument(..., help="Challenge directory."),
-             name: str = typer.Argument(..., help="Team name (1-64 printable characters)."),
+             name: str = typer.Argument(..., help="Team name (1-64 visible characters, NFKC-normalised; one that reads "
+                                       "like a team's name is refused)."),
              db: Optional[str] = DbOption) -> None:
     """Add a team and print its token once (only its argon2 hash is stored: a lost token is revoked and the team
     added again under another name)."""
+    from dsr_bench.challenge.rules import check_name
     from dsr_bench.challenge.service import add_team as run
 
     _, _, sessions = _sessions(root, db)
     token = run(sessions, name)
     typer.echo(token)
-    typer.echo(f"team {name.strip()!r} added; give it the token above (shown once)", err=True)
+    typer.echo(f"team {check_name(name, 'team name')!r} added (the name as stored); give it the token above (shown "
+               "once)", err=True)
 
 
 @challenge_app.command("revoke-team")
@@ -153,12 +158,19 @@ def add_phase(root: Path = typer.Argument(..., help="Challenge directory."),
 
 
 @challenge_app.command("rescore")
-def rescore(root: Path = typer.Argument(..., help="Challenge directory."), db: Optional[str] = DbOption) -> None:
-    """Score every scored or refused submission again with the installed toolkit (after a fix); the running
-    server's workers do it, and each new score records the toolkit version."""
+def rescore(root: Path = typer.Argument(..., help="Challenge directory."),
+            sid: Optional[str] = typer.Argument(None, help="Only this submission (a failed or cancelled one is "
+                                                "queued again)."),
+            db: Optional[str] = DbOption) -> None:
+    """Score every scored or refused submission again with the installed toolkit (after a fix), or only submission
+    ID; the running server's workers do it, and each new score records the toolkit version."""
+    from dsr_bench.challenge.admin import rescore_one
     from dsr_bench.challenge.service import request_rescore
 
     _, _, sessions = _sessions(root, db)
+    if sid is not None:
+        typer.echo(rescore_one(sessions, sid))
+        return
     typer.echo(f"{request_rescore(sessions)} submissions queued to be scored again")
 
 
@@ -246,55 +258,84 @@ def serve(
     host: str = typer.Option("127.0.0.1", "--host", help="Address to listen on."),
     port: int = typer.Option(8000, "--port", help="Port to listen on."),
     db: Optional[str] = DbOption,
-    workers: int = typer.Option(1, "--workers", "-w", help="Evaluation worker processes."),
+    workers: int = typer.Option(1, "--workers", "-w", help="Evaluation worker processes (0: none here, workers on "
+                                "other machines: `dsr-bench challenge worker`)."),
     leaderboard: Optional[Path] = typer.Option(
         None, "--leaderboard", help="Local leaderboard folder whose reference rows (static, push, oracle) of the "
         "challenge's split are shown beside the submissions [default: the clone's leaderboard/, if any]."),
+    forwarded_allow_ips: Optional[str] = typer.Option(
+        None, "--forwarded-allow-ips", help="Your reverse proxy's addresses (comma-separated, or *): only requests "
+        "from them may name the client's address (X-Forwarded-For) and scheme; default: trust no proxy header, the "
+        "connection's peer is the client (the failed-token throttle counts per client address)."),
 ) -> None:
     """Run the challenge's web server (leaderboard, uploads, status) and its evaluation workers; the database is
-    migrated first. Ctrl-C stops both."""
+    migrated and checked to be DIR's first (docs/challenge.md, "What binds DIR and its database"), what a stopped
+    server left is recovered (nothing stored is deleted), then the server starts, and its workers once it serves
+    (they end with it). Ctrl-C stops both."""
     import multiprocessing as mp
+    import os
 
     with one_line("serve"):
         import uvicorn
 
+        from dsr_bench.challenge.binding import open_bound, serving_lock
         from dsr_bench.challenge.layout import open_challenge
+        from dsr_bench.challenge.recovery import recover
         from dsr_bench.challenge.server import Settings, create_app
         from dsr_bench.challenge.worker import worker_main
 
-    if workers < 1:
-        raise UserError(f"--workers {workers}: give 1 or more evaluation workers")
+    if workers < 0:
+        raise UserError(f"--workers {workers}: give 0 or more evaluation workers")
     if leaderboard is not None and not (leaderboard / "entries").is_dir():
         raise UserError(f"--leaderboard {leaderboard}: not a leaderboard folder (no entries/); give the folder "
                         "`dsr-bench leaderboard build` writes, e.g. leaderboard")
     layout, _ = open_challenge(root)
     url = db or layout.default_db_url()
-    with one_line("serve"):
+    with serving_lock(layout), one_line("serve"):
+        engine, sessions = open_bound(layout, url)  # a mismatch is refused before anything is touched
+        try:
+            for line in recover(layout, sessions):  # before the workers start and before any upload
+                typer.echo(line, err=True)
+        finally:
+            engine.dispose()
         app = create_app(root, url, Settings(leaderboard=leaderboard))
-    context = mp.get_context("spawn")
-    stopping = threading.Event()
-    procs = [context.Process(target=worker_main, args=(str(root), url), daemon=True) for _ in range(workers)]
+        server = uvicorn.Server(uvicorn.Config(app, host=host, port=port, log_level="info",
+                                               proxy_headers=bool(forwarded_allow_ips),
+                                               forwarded_allow_ips=forwarded_allow_ips or ""))
+        context = mp.get_context("spawn")
+        stopping = threading.Event()
+        args = (str(root), url, os.getpid())  # the worker ends when this process is gone (worker._watch_parent)
+        procs = [context.Process(target=worker_main, args=args, daemon=True) for _ in range(workers)]
 
-    def supervise() -> None:  # a worker that died (killed, crashed) is replaced; its job's lease expires
-        for p in procs:
-            p.start()
-        while not stopping.wait(1.0):
-            for i, p in enumerate(procs):
-                if not p.is_alive() and not stopping.is_set():
-                    procs[i] = context.Process(target=worker_main, args=(str(root), url), daemon=True)
-                    procs[i].start()
+        def supervise() -> None:  # a worker that died (killed, crashed) is replaced; its job goes back to the queue
+            while not server.started and not stopping.wait(0.1):
+                pass  # the app's start-up ran first
+            for p in procs:
+                if not stopping.is_set():
+                    p.start()
+            while not stopping.wait(1.0):
+                for i, p in enumerate(procs):
+                    if p.pid is not None and not p.is_alive() and not stopping.is_set():
+                        procs[i] = context.Process(target=worker_main, args=args, daemon=True)
+                        procs[i].start()
 
-    supervisor = threading.Thread(target=supervise, daemon=True)
-    supervisor.start()
-    try:
-        uvicorn.run(app, host=host, port=port, log_level="info")
-    finally:
-        stopping.set()
-        supervisor.join()
-        for p in procs:
-            p.terminate()
-        for p in procs:
-            p.join(10)
+        supervisor = threading.Thread(target=supervise, daemon=True)
+        supervisor.start()
+        try:
+            server.run()
+        except KeyboardInterrupt:
+            pass
+        finally:
+            stopping.set()
+            supervisor.join()
+            for p in procs:
+                if p.pid is not None:
+                    p.terminate()
+            for p in procs:
+                if p.pid is not None:
+                    p.join(10)
+    if not server.started:
+        raise typer.Exit(3)  # uvicorn said why (e.g. the port is taken)
 
 
 def submit(
@@ -306,13 +347,22 @@ def submit(
     method: str = typer.Option(..., "--method", help="Your method's name, shown on the leaderboard."),
     no_wait: bool = typer.Option(False, "--no-wait", help="Upload and return; do not follow the submission."),
     timeout: float = typer.Option(3600.0, "--timeout", help="Seconds to follow the submission before giving up."),
+    final: bool = typer.Option(False, "--final", help="Once scored, choose it as one of your team's final "
+                               "submissions (`dsr-bench challenge final` changes the choice)."),
 ) -> None:
-    """Upload predictions to a challenge server and follow them until scored (exit 0) or refused or failed (exit
-    1, each problem on one line as `dsr-bench evaluate` prints it)."""
-    from dsr_bench.challenge.client import describe, submit as run
-    from dsr_bench.challenge.layout import check_name
+    """Upload predictions to a challenge server and follow them until scored.
 
-    with one_line("submit"):  # without httpx (the challenge extra): one line naming it
+    Exit 0: scored (and, with --final, chosen); 1: stored but refused or failed (each problem on one line as
+    `dsr-bench evaluate` prints it; a refused one does not use a daily try); 2: one line, nothing scored: the upload
+    refused (token, daily quota, phase closed, too large, archive, method name), the server unreachable, no outcome
+    within --timeout, or the final choice refused."""
+    from dsr_bench.challenge.client import choose_final, describe, submit as run
+
+    if no_wait and final:
+        raise UserError("--final needs the score: drop --no-wait, or choose later with `dsr-bench challenge final`")
+    with one_line("submit"):  # without httpx or SQLAlchemy (the challenge extra): one line naming it
+        from dsr_bench.challenge.rules import check_name
+
         state, status = run(predictions, server, token, check_name(method, "--method"), typer.echo, timeout=timeout,
                             follow=not no_wait)
     if no_wait:
@@ -321,9 +371,41 @@ def submit(
         typer.echo(line, err=state != "scored")
     if state != "scored":
         raise typer.Exit(1)
+    if final:
+        choose_final(server, token, status["id"])
+        typer.echo(f"submission {status['id']}: chosen as one of your final submissions")
+
+
+@challenge_app.command("final")
+def final_choice(
+    submission: Optional[str] = typer.Argument(None, help="The submission to choose (its id, 32 hex digits); none: "
+                                               "list your team's submissions."),
+    server: str = typer.Option(..., "--server", help="The challenge server's URL, e.g. http://127.0.0.1:8000."),
+    token: str = typer.Option(..., "--token", envvar="DSR_BENCH_TOKEN", help="Your team's token (or "
+                              "$DSR_BENCH_TOKEN)."),
+    undo: bool = typer.Option(False, "--undo", help="Unselect SUBMISSION instead."),
+) -> None:
+    """(Participant) Choose one of your team's final submissions, or list them.
+
+    The best of the final submissions by the private part ranks the team (none chosen: its newest scored one);
+    --undo unselects SUBMISSION; without SUBMISSION, the team's submissions are listed (id, time, state, method,
+    public scores, FINAL). A refusal (not yours, not scored, too many, the challenge ended) is one line, exit 2."""
+    from dsr_bench.challenge.client import choose_final, history_lines, my_submissions
+
+    if submission is None:
+        if undo:
+            raise UserError("--undo needs the SUBMISSION to unselect; run without --undo to list yours")
+        for line in history_lines(my_submissions(server, token)):
+            typer.echo(line)
+        return
+    status = choose_final(server, token, submission.strip(), final=not undo)
+    typer.echo(f"submission {status['id']} ({status['method']!r}): "
+               + ("chosen as one of your final submissions" if status["final"] else "not a final submission"))
 
 
 def register(app: typer.Typer) -> None:
+    from dsr_bench.challenge import host_commands  # noqa: F401  (adds the host's further commands to the group)
+
     app.add_typer(challenge_app, name="challenge")
     app.command("serve")(serve)
     app.command("submit")(submit)

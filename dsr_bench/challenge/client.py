@@ -1,8 +1,13 @@
-"""`dsr-bench submit`: pack a predictions directory, upload it to a challenge server, follow it to its score.
+"""The participant's side: `dsr-bench submit` (pack a predictions directory, upload it to a challenge server,
+follow it to its score), `dsr-bench challenge final` (list the team's submissions, choose the final ones) and
+`dsr-bench challenge download` (the inputs).
 
 The archive is an uncompressed tar of the directory's `*.h5` files and meta.json, flat (the prediction files are
 compressed already), written to a temporary file and streamed from it. The client then polls the submission's
-status until it is scored, refused (each problem printed as `dsr-bench evaluate` prints it) or failed.
+status until it is scored, refused (each problem printed as `dsr-bench evaluate` prints it) or failed. Every
+network error (unreachable, a timeout) is one line (`UserError`). Timeouts: 30 s to connect; a read may wait
+`READ_TIMEOUT` s (the server checks a whole archive before it answers an upload; a large input file may stall on a
+busy server) before the command stops.
 """
 
 from __future__ import annotations
@@ -16,7 +21,23 @@ from pathlib import Path
 
 from dsr_bench.errors import UserError
 
-FINISHED = ("scored", "refused", "failed")
+FINISHED = ("scored", "refused", "failed", "cancelled")
+#: seconds a read (an answer, or the next bytes of a download) may take before the command stops with one line
+READ_TIMEOUT = 600.0
+
+
+def _timeout():
+    """The participant commands' timeouts: 30 s to connect, `READ_TIMEOUT` to read or write."""
+    import httpx
+
+    return httpx.Timeout(READ_TIMEOUT, connect=30.0)
+
+
+def _network_error(server: str, what: str, exc: Exception) -> UserError:
+    """One line for a network error while doing `what`."""
+    reason = " ".join(str(exc).split())[:200]
+    return UserError(f"--server {server}: {what} failed ({type(exc).__name__}{': ' + reason if reason else ''}); "
+                     "check the URL and that the server runs, then try again")
 
 
 def pack(pred_dir: Path, out: Path) -> list[str]:
@@ -67,14 +88,13 @@ def submit(pred_dir: Path, server: str, token: str, method: str, echo: Callable[
         size = archive.stat().st_size
         echo(f"uploading {len(names)} files ({size / 1e6:.1f} MB) to {server} as {method!r}")
         try:
-            with httpx.Client(timeout=httpx.Timeout(60.0, connect=10.0)) as client:
+            with httpx.Client(timeout=_timeout()) as client:
                 response = client.post(f"{server}/api/submissions", params={"method": method},
                                        headers={"Authorization": f"Bearer {token}", "Content-Length": str(size),
                                                 "Content-Type": "application/x-tar"},
                                        content=_chunks(archive))
         except httpx.HTTPError as exc:
-            raise UserError(f"--server {server}: cannot upload ({type(exc).__name__}: {exc}); check the URL and "
-                            "that the server runs") from None
+            raise _network_error(server, "the upload", exc) from None
     if response.status_code != 202:
         raise UserError(f"upload refused ({response.status_code}): {_detail(response)}")
     sid = response.json()["id"]
@@ -123,38 +143,87 @@ def describe(status: dict, pred_dir: Path) -> list[str]:
 
 def download_inputs(server: str, out: Path, echo: Callable[[str], None]) -> Path:
     """Download the challenge's inputs into the new directory `out`, each file checked against its digest, and
-    write splits/challenge.txt; built in a temporary directory renamed when complete (`atomic_directory`)."""
-    import hashlib
-
+    write splits/challenge.txt; built in a temporary directory renamed when complete (`atomic_directory`): a
+    network error or a timeout is one line and keeps nothing."""
     import httpx
 
     from dsr_bench.atomic import atomic_directory
-    from dsr_bench.challenge.layout import FILE_PATTERN, INPUTS_SPLIT
+    from dsr_bench.challenge.layout import INPUTS_SPLIT
 
     if out.exists():
         raise UserError(f"{out} exists; give a new directory to download the inputs into")
     server = server.rstrip("/")
     out.parent.mkdir(parents=True, exist_ok=True)
-    with atomic_directory(out) as tmp, httpx.Client(timeout=60.0) as client:
-        index = client.get(f"{server}/api/inputs")
-        if index.status_code != 200:
-            raise UserError(f"--server {server}: no inputs ({index.status_code}: {_detail(index)})")
-        files = index.json()["files"]
-        for name, digest in sorted(files.items()):
-            if not FILE_PATTERN.fullmatch(name):
-                raise UserError(f"--server {server} lists an input named {name[:80]!r}; refusing it")
-            h = hashlib.sha256()
-            with client.stream("GET", f"{server}/api/inputs/{name}") as reply, open(tmp / name, "wb") as f:
-                if reply.status_code != 200:
-                    raise UserError(f"--server {server}: {name}: {reply.status_code}")
-                for chunk in reply.iter_bytes(1 << 20):
-                    h.update(chunk)
-                    f.write(chunk)
-            if h.hexdigest() != digest:
-                raise UserError(f"{name}: its digest differs from the server's list; download again")
-            echo(f"{name}: ok")
+    with atomic_directory(out) as tmp, httpx.Client(timeout=_timeout()) as client:
+        try:
+            files = _download_files(client, server, tmp, echo)
+        except httpx.HTTPError as exc:  # a timeout, a reset: nothing is kept (the temporary directory is removed)
+            raise _network_error(server, "the download", exc) from None
         (tmp / "splits").mkdir()
         names = sorted(n[:-3] for n in files if n.endswith(".h5"))
         (tmp / "splits" / f"{INPUTS_SPLIT}.txt").write_text("".join(f"{n}\n" for n in names))
         (tmp / "digests.json").write_text(json.dumps(files, indent=1, sort_keys=True) + "\n")
     return out
+
+
+def _download_files(client, server: str, into: Path, echo: Callable[[str], None]) -> dict[str, str]:
+    """Download every input file the server lists into `into`, each checked against its digest; returns the list."""
+    import hashlib
+
+    from dsr_bench.challenge.layout import FILE_PATTERN
+
+    index = client.get(f"{server}/api/inputs")
+    if index.status_code != 200:
+        raise UserError(f"--server {server}: no inputs ({index.status_code}: {_detail(index)})")
+    files = index.json()["files"]
+    for name, digest in sorted(files.items()):
+        if not FILE_PATTERN.fullmatch(name):
+            raise UserError(f"--server {server} lists an input named {name[:80]!r}; refusing it")
+        h = hashlib.sha256()
+        with client.stream("GET", f"{server}/api/inputs/{name}") as reply, open(into / name, "wb") as f:
+            if reply.status_code != 200:
+                raise UserError(f"--server {server}: {name}: {reply.status_code}")
+            for chunk in reply.iter_bytes(1 << 20):
+                h.update(chunk)
+                f.write(chunk)
+        if h.hexdigest() != digest:
+            raise UserError(f"{name}: its digest differs from the server's list; download again")
+        echo(f"{name}: ok")
+    return files
+
+
+def _api(server: str, token: str, method: str, path: str, **kwargs) -> dict:
+    """A JSON request to the server's API with the team's token; UserError (one line) for a network error or a
+    refusal (the server's one line)."""
+    import httpx
+
+    server = server.rstrip("/")
+    try:
+        with httpx.Client(timeout=_timeout()) as client:
+            reply = client.request(method, f"{server}{path}", headers={"Authorization": f"Bearer {token}"}, **kwargs)
+    except httpx.HTTPError as exc:
+        raise _network_error(server, f"{method} {path}", exc) from None
+    if reply.status_code != 200:
+        raise UserError(f"refused ({reply.status_code}): {_detail(reply)}")
+    return reply.json()
+
+
+def my_submissions(server: str, token: str) -> dict:
+    """The team's history as the server gives it: {"team": name, "submissions": [status, ...]}, newest first."""
+    return _api(server, token, "GET", "/api/me/submissions")
+
+
+def choose_final(server: str, token: str, sid: str, final: bool = True) -> dict:
+    """Mark (or, with `final` False, unmark) submission `sid` as one of the team's final ones; its status."""
+    return _api(server, token, "POST", f"/api/submissions/{sid}/final", json={"final": final})
+
+
+def history_lines(history: dict) -> list[str]:
+    """The team's submissions, one line each: id, time, state, method, the public part's scores, final."""
+    lines = [f"team {history['team']!r}: {len(history['submissions'])} submissions, newest first"]
+    for sub in history["submissions"]:
+        scores = sub.get("scores", {}).get("public", {}).get("metrics", {})
+        values = ", ".join(f"{k} {v:.4g}" for k, v in sorted(scores.items()) if isinstance(v, (int, float)))
+        lines.append(f"{sub['id']}  {sub['created']}  {sub['state']:<8}  {sub['method']!r}"
+                     + (f"  public: {values}" if values else "") + ("  FINAL" if sub.get("final") else ""))
+    return lines

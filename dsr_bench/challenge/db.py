@@ -4,22 +4,25 @@ SQLite by default (one file, WAL journal, FULL sync: a commit is on disk when it
 (`postgresql+psycopg://...`). The schema is made and upgraded by the Alembic migrations beside this module
 (`migrate`, run by `dsr-bench serve` and every host command at start). Times are naive UTC.
 Scores hold aggregates only: the metrics and breakdowns of a whole part (public, private), never a sequence's or
-a step's value.
+a step's value. `team_transaction` serialises the writes that count a team's rows (its quota, its final choices).
 """
 
 from __future__ import annotations
 
 import datetime as dt
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 from sqlalchemy import (BigInteger, Boolean, DateTime, Float, ForeignKey, Integer, String, Text, UniqueConstraint,
                         create_engine, event, false)
 from sqlalchemy.engine import Engine
-from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column, sessionmaker
+from sqlalchemy.orm import DeclarativeBase, Mapped, Session, mapped_column, sessionmaker
 
 MIGRATIONS = Path(__file__).resolve().parent / "migrations"
-#: a submission's states: queued -> running -> scored | refused (its predictions' problems) | failed (the server's)
-STATES = ("queued", "running", "scored", "refused", "failed")
+#: a submission's states: queued -> running -> scored | refused (its predictions' problems) | failed (the server's) |
+#: cancelled (by the host: `challenge cancel`)
+STATES = ("queued", "running", "scored", "refused", "failed", "cancelled")
 
 
 def utcnow() -> dt.datetime:
@@ -70,6 +73,8 @@ class Submission(Base):
     final: Mapped[bool] = mapped_column(Boolean, default=False)
     rescore: Mapped[bool] = mapped_column(Boolean, default=False)  # the host asked for it to be scored again
     track: Mapped[str | None] = mapped_column(String(8), nullable=True)  # "3D" or "2D", once scored
+    #: hidden by the host (`challenge hide`): none of its scores is current, so no table shows it
+    hidden: Mapped[bool] = mapped_column(Boolean, default=False, server_default=false())
 
 
 class Score(Base):
@@ -84,6 +89,17 @@ class Score(Base):
     rank_value: Mapped[float | None] = mapped_column(Float, nullable=True)
     toolkit_version: Mapped[str] = mapped_column(String(32))
     scored_at: Mapped[dt.datetime] = mapped_column(DateTime, default=utcnow)
+
+
+class Identity(Base):
+    """The challenge this database belongs to (`binding`): one row, whose `challenge_id` is also in the challenge
+    directory's challenge.json; a directory is served only with the database of its id."""
+
+    __tablename__ = "challenge_identity"
+    slot: Mapped[int] = mapped_column(Integer, primary_key=True)  # always 1: a second row cannot be inserted
+    challenge_id: Mapped[str] = mapped_column(String(32), unique=True)
+    bound_at: Mapped[dt.datetime] = mapped_column(DateTime, default=utcnow)
+    directory: Mapped[str] = mapped_column(Text)  # the directory's path when bound (shown in messages only)
 
 
 def _sqlite_pragmas(dbapi_connection, _record) -> None:
@@ -129,3 +145,28 @@ def open_database(url: str) -> tuple[Engine, sessionmaker]:
         raise UserError(f"database {engine.url.render_as_string(hide_password=True)}: cannot be opened "
                         f"({' '.join(str(exc.orig).split())[:200]}); check --db") from None
     return engine, sessionmaker(engine, expire_on_commit=False)
+
+
+@contextmanager
+def team_transaction(session_factory: sessionmaker, team_id: int) -> Iterator[tuple[Session, Team | None]]:
+    """A write transaction holding team `team_id`'s lock from its first statement to its commit: (session, the team
+    or None). Requests of one team that count its rows and then write (the daily quota, the final choices) run one
+    after the other. SQLite: `BEGIN IMMEDIATE`, the database's write lock taken before the count (pysqlite would
+    begin a transaction only at the first write, after the count: twenty uploads at once were all counted before
+    any was stored); PostgreSQL: the team's row locked `FOR UPDATE` (each later statement of the transaction sees
+    what the previous holder committed). Committed when the block ends, rolled back when it raises."""
+    from sqlalchemy import select
+
+    with session_factory() as session:
+        connection = session.connection()
+        if connection.dialect.name == "sqlite":
+            connection.exec_driver_sql("BEGIN IMMEDIATE")
+            team = session.get(Team, team_id)
+        else:
+            team = session.scalar(select(Team).where(Team.id == team_id).with_for_update())
+        try:
+            yield session, team
+        except BaseException:
+            session.rollback()
+            raise
+        session.commit()

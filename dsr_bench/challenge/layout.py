@@ -35,7 +35,6 @@ SET_NAME_PATTERN = re.compile(r"[a-z][a-z0-9]{0,7}")
 #: the split name of the exported inputs (participants see neither part's membership)
 INPUTS_SPLIT = "challenge"
 #: team and method names: shown on pages (escaped anyway) and used in no path
-NAME_PATTERN = re.compile(r"[^\x00-\x1f\x7f]{1,64}")
 #: names of files a submission or the inputs may hold: flat, no separators, no leading dot
 FILE_PATTERN = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.-]{0,127}")
 DEFAULTS: dict[str, Any] = {
@@ -172,11 +171,3 @@ def write_secret_seed(layout: Layout, seed: int) -> None:
         f.write(f"{seed}\n")
         f.flush()
         os.fsync(f.fileno())
-
-
-def check_name(value: str, what: str) -> str:
-    """`value` stripped when it is a usable team or method name (1-64 printable characters), else a UserError."""
-    value = value.strip()
-    if not NAME_PATTERN.fullmatch(value):
-        raise UserError(f"{what} {value[:80]!r} is not 1-64 printable characters; choose another")
-    return value

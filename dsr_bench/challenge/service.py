@@ -1,6 +1,7 @@
-"""What the commands and the routes do to the database: teams, phases, quotas, submissions, the leaderboard.
+"""What the commands and the routes do to the database: teams, phases, submissions, final choices, the leaderboard.
 
-The leaderboard is built from each submission's current scores (the newest run, `worker.finish`): the public
+The rules these apply (names, phases and the end, the quota, final choices) are `rules`' functions, each in one
+place. The leaderboard is built from each submission's current scores (the newest run, `worker.finish`): the public
 part's aggregates while the challenge runs, and, once the host reveals them (`challenge reveal`), the private
 part's, ranking each team by the best of the submissions it selected as final (its newest scored one when it
 selected none), by the challenge's ranking metric of the track.
@@ -14,25 +15,26 @@ import math
 from pathlib import Path
 from typing import Any
 
-from sqlalchemy import func, select
+from sqlalchemy import select
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session, sessionmaker
 
-from dsr_bench.challenge import auth
-from dsr_bench.challenge.db import Phase, Score, Submission, Team, utcnow
-from dsr_bench.challenge.layout import check_name
+from dsr_bench.challenge import auth, rules
+from dsr_bench.challenge.db import Phase, Score, Submission, Team, team_transaction, utcnow
 from dsr_bench.errors import UserError
 #: each track's columns and those where lower is better: the local leaderboard's (dsr_bench.leaderboard.table)
 from dsr_bench.leaderboard.table import LOWER_IS_BETTER, TRACKS as COLUMNS
 
 
 def add_team(session_factory: sessionmaker, name: str) -> str:
-    """Add team `name`; returns its token (shown once: only its argon2 hash is stored)."""
-    name = check_name(name, "team name")
+    """Add team `name` (normalised, and refused when it reads like a team's name: `rules.check_team_name`); returns
+    its token (shown once: only its argon2 hash is stored)."""
     key, token = auth.new_token()
+    token_hash = auth.hash_token(token)
     try:
         with session_factory.begin() as session:
-            session.add(Team(name=name, key=key, token_hash=auth.hash_token(token), created_at=utcnow()))
+            name = rules.check_team_name(session, name)
+            session.add(Team(name=name, key=key, token_hash=token_hash, created_at=utcnow()))
     except IntegrityError:
         raise UserError(f"team {name!r} exists; choose another name (or revoke it and add a new team)") from None
     return token
@@ -70,7 +72,7 @@ def parse_time(text: str, option: str) -> dt.datetime:
 
 def add_phase(session_factory: sessionmaker, name: str, starts: dt.datetime, ends: dt.datetime) -> None:
     """Add a phase accepting submissions from `starts` to `ends` (naive UTC); phases may not overlap."""
-    name = check_name(name, "phase name")
+    name = rules.check_name(name, "phase name")
     if ends <= starts:
         raise UserError(f"phase {name!r} ends ({ends}) before it starts ({starts}); give --end after --start")
     with session_factory.begin() as session:
@@ -81,34 +83,6 @@ def add_phase(session_factory: sessionmaker, name: str, starts: dt.datetime, end
                 raise UserError(f"phase {name!r} overlaps phase {other.name!r} ({other.starts_at} to {other.ends_at})"
                                 "; give dates outside it")
         session.add(Phase(name=name, starts_at=starts, ends_at=ends))
-
-
-def phases(session: Session) -> list[Phase]:
-    """Every phase, by start."""
-    return list(session.scalars(select(Phase).order_by(Phase.starts_at)))
-
-
-def open_phase(session: Session, now: dt.datetime) -> tuple[str | None, str | None]:
-    """(the phase open at `now` or None, why submissions are closed or None). No phase defined: always open."""
-    defined = phases(session)
-    if not defined:
-        return None, None
-    for phase in defined:
-        if phase.starts_at <= now < phase.ends_at:
-            return phase.name, None
-    upcoming = [p for p in defined if p.starts_at > now]
-    if not upcoming:
-        return None, "submissions are closed: the challenge's last phase has ended"
-    opens = upcoming[0].starts_at.strftime("%Y-%m-%d %H:%M")
-    return None, f"submissions are closed; the next phase, {upcoming[0].name}, opens {opens} UTC"
-
-
-def used_today(session: Session, team_id: int, now: dt.datetime) -> int:
-    """The team's submissions since the start of `now`'s UTC day (every state but failed: a server fault is not
-    counted against a team)."""
-    day = now.replace(hour=0, minute=0, second=0, microsecond=0)
-    return session.scalar(select(func.count()).select_from(Submission).where(
-        Submission.team_id == team_id, Submission.created_at >= day, Submission.state != "failed")) or 0
 
 
 def submission_view(session: Session, sub: Submission, reveal: bool) -> dict[str, Any]:
@@ -178,7 +152,7 @@ def leaderboard(session: Session, config: dict) -> dict[str, Any]:
     out: dict[str, Any] = {"rank_by": config["rank_by"], "tracks": public_rows(session, config),
                            "private_revealed": reveal,
                            "phases": [{"name": p.name, "start": f"{p.starts_at:%Y-%m-%dT%H:%M:%SZ}",
-                                       "end": f"{p.ends_at:%Y-%m-%dT%H:%M:%SZ}"} for p in phases(session)]}
+                                       "end": f"{p.ends_at:%Y-%m-%dT%H:%M:%SZ}"} for p in rules.phases(session)]}
     if reveal:
         out["final"] = final_ranking(session, config)
     out["hidden_sets"] = {}
@@ -223,21 +197,21 @@ def final_ranking(session: Session, config: dict, part: str = "private") -> dict
     return out
 
 
-def select_final(session_factory: sessionmaker, team: Team, sid: str, final: bool, max_final: int) -> None:
-    """Mark (or unmark) a scored submission of `team` as one of its final ones, at most `max_final`."""
-    with session_factory.begin() as session:
-        sub = session.get(Submission, sid)
-        if sub is None or sub.team_id != team.id:
-            raise UserError(f"no submission {sid[:40]!r} of team {team.name!r}")
-        if final and sub.state != "scored":
-            raise UserError(f"submission {sid} is {sub.state}, not scored: only a scored submission can be final")
-        if final and not sub.final:
-            chosen = session.scalar(select(func.count()).select_from(Submission).where(
-                Submission.team_id == team.id, Submission.final.is_(True))) or 0
-            if chosen >= max_final:
-                raise UserError(f"team {team.name!r} has selected {chosen} final submissions, the most allowed; "
-                                "unselect one first")
-        sub.final = final
+def select_final(session_factory: sessionmaker, team: Team, sid: str, final: bool, config: dict) -> None:
+    """Mark (or unmark) a scored submission of `team` as one of its final ones (`rules.check_final`: at most
+    `max_final`, until the end), counted and written under the team's lock (`db.team_transaction`)."""
+    with team_transaction(session_factory, team.id) as (session, locked):
+        if locked is None or locked.revoked_at is not None:
+            raise rules.Refused("invalid or revoked token", 401)
+        rules.check_final(session, locked, sid, final, config, utcnow()).final = final
+
+
+def team_history(session: Session, team: Team, reveal: bool) -> list[dict[str, Any]]:
+    """Every submission of `team`, newest first, as `submission_view` shows it (the private part's scores only when
+    revealed)."""
+    subs = session.scalars(select(Submission).where(Submission.team_id == team.id)
+                           .order_by(Submission.created_at.desc()))
+    return [submission_view(session, s, reveal) for s in subs]
 
 
 def reference_rows(leaderboard: str | Path, split: str) -> tuple[str | None, dict[str, list[dict[str, Any]]]]:
