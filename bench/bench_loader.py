@@ -1,7 +1,13 @@
 """Benchmark: training samples per second read from disk by the PyTorch dataset, with N workers.
 
     python bench/bench_loader.py --data DIR [--split S] [--window 10] [--workers 0 1 2] [--batch 4]
-        [--collate default compact] [--device cuda]
+        [--collate default compact] [--device cuda] [--target 136]
+
+Windows are the training's (non-overlapping: stride = window). With no worker the rate is also given per second of
+the process's CPU time, which other jobs on the machine do not lower: what one core delivers. With --target R (the
+sample-steps per second the GPU trains at: 128-144 on an H100 for the full-grid models, docs/models.md), each line
+also says how many loading processes at that rate would feed it (without a worker: at the per-CPU-second rate):
+whether `dsr-bench train --workers N` keeps the GPU busy.
 
 Without --data, a small synthetic dataset is written to a temporary directory first. `--collate`
 compares batching by torch's default_collate with `collate_compact` (what `dsr-bench train` uses:
@@ -27,6 +33,7 @@ def main() -> None:
     parser.add_argument("--batches", type=int, default=20)
     parser.add_argument("--collate", nargs="+", default=["default", "compact"], choices=["default", "compact"])
     parser.add_argument("--device", default="cpu")
+    parser.add_argument("--target", type=float, help="Sample-steps/s to feed: the workers it takes at each rate.")
     args = parser.parse_args()
 
     import torch
@@ -49,7 +56,9 @@ def main() -> None:
 def run(data, args, torch, SequenceWindowDataset) -> None:
     from dsr_bench.models.data import batch_to_device, collate_compact
 
-    ds = SequenceWindowDataset(data, args.split, window=args.window)
+    import math
+
+    ds = SequenceWindowDataset(data, args.split, window=args.window, stride=args.window)
     device = torch.device(args.device)
     print(f"dataset {data}: {len(ds)} windows of {args.window} pushes; batch {args.batch}; device {device}")
     for collate in args.collate:
@@ -59,7 +68,7 @@ def run(data, args, torch, SequenceWindowDataset) -> None:
                 collate_fn=collate_compact if collate == "compact" else None, pin_memory=device.type == "cuda")
             it = iter(loader)
             next(it)  # warm-up: worker start and first file opens
-            start, n, sent = time.perf_counter(), 0, 0
+            start, cpu, n, sent = time.perf_counter(), time.process_time(), 0, 0
             for _ in range(args.batches):
                 try:
                     batch = next(it)
@@ -72,9 +81,16 @@ def run(data, args, torch, SequenceWindowDataset) -> None:
                     batch_to_device(batch, device)
             if device.type == "cuda":
                 torch.cuda.synchronize()
-            dt = time.perf_counter() - start
-            print(f"collate {collate:8s} workers {workers}: {n / dt:8.1f} sample-steps/s "
-                  f"({dt / args.batches * 1e3:.1f} ms per batch, {sent / args.batches / 2**20:.1f} MiB per batch)")
+            dt, cpu = time.perf_counter() - start, time.process_time() - cpu
+            rate = n / dt
+            # sample-steps/s of one loading process; with no worker, per second of its CPU time too, which other
+            # processes on the machine do not lower: what one core of a quiet machine delivers
+            each = rate / max(workers, 1) if workers else n / cpu
+            need = ("" if args.target is None
+                    else f"; {math.ceil(args.target / each)} such processes feed {args.target:g}/s")
+            per_core = f", {n / cpu:.1f} per CPU-second" if not workers else ""
+            print(f"collate {collate:8s} workers {workers}: {rate:8.1f} sample-steps/s{per_core} ("
+                  f"{dt / args.batches * 1e3:.1f} ms per batch, {sent / args.batches / 2**20:.1f} MiB per batch{need})")
 
 
 if __name__ == "__main__":

@@ -1,47 +1,48 @@
-"""Advance the full-grid reference models' training on one GPU for a fixed budget of minutes, from the weights
-committed to the repository, and write the new weights, the training curve and a held-out evaluation.
+"""Short runs of the full-grid models on a lent GPU: `dsr-bench train --stage curriculum` with a budget, from the
+weights committed in the repository (weights/gpu-track/), for two models in one call, with a curve and a held-out score
+to keep beside them. The training is that command's, nothing else (`models.training.curriculum.train_curriculum`):
+this script adds the compact files a device call can bring back and the install step.
 
     python scripts/train_gpu.py --data TRAIN_DIR --eval-data HELDOUT_DIR --out OUT [--models dsr single]
         [--minutes 5] [--eval-minutes 1.5] [--eval-sequences N] [--device cuda] [--workers N] [--bf16 | --no-bf16]
     python scripts/train_gpu.py --install OUT    # OUT's weights and curve replace the committed ones
     python scripts/train_gpu.py --runs           # how many runs the committed weights have had
 
-A run, for each model of --models in turn (the training time, --minutes less --eval-minutes, shared equally):
-1. reads the committed weights, dsr_bench/models/weights/gpu-track/<model>.pt (--committed DIR): a weights
-   file of role "checkpoint" (format v2, `models.training.checkpoints`) in fp16, with its stage, data
-   position, step, learning-rate schedule and RNG states, and `progress` (steps and sample-steps of every
-   run so far, one record per run). Adam's moments are not kept (they would triple the file): each run
-   restarts them from zero, bias-corrected. None committed: a new run from the first stage.
-2. trains with the one training path, `dsr-bench train`'s (`trainer.train`): `--resume` of that file (its
-   stage goes on where it stopped: same epoch, batch, step counter and learning rate); a stage whose epochs
-   are done hands its weights to the next stage of the curriculum (`schedules.CURRICULUM`: cube-single,
-   cube-multi, shapenet-multi, each on --data) with `--init`; the time budget ends a stage with a
-   resumable checkpoint and precise BatchNorm (--bn-recalibration). bf16 autocast and channels-last on a GPU.
-   An epoch is the paper's, 40,000 sample-steps (--epoch-samples: the official scripts' 4000 sequences of 10
-   pushes), drawn from the few sequences that travel in repeated shuffled passes: the stages and learning
-   rates keep the paper's length in sample-steps (about 2.8M in all), whatever data a run carries. Each run
-   should carry sequences no earlier run saw (below: a base seed of the run's number).
-3. writes OUT/<model>.pt: the last checkpoint, fp16, without Adam's moments, `progress` extended by this
-   run; `dsr-bench predict --checkpoint OUT/<model>.pt` reads it like any weights file.
-Then OUT/curve.json and OUT/curve.png (per batch: loss, its motion and mask terms, learning rate, the run,
-the stage, against the global step and the cumulative sample-steps: the committed curve,
-docs/evidence/gpu-track/curve.json, continued), OUT/evaluation.json (each model and the static yardstick
-predicted on --eval-data's split with `predict_split` and scored by `evaluate`, as `dsr-bench predict` and
-`dsr-bench evaluate` do; --eval-sequences N: its first N, scored as a partial split) and OUT/summary.json
-(per model: steps and sample-steps of this run and in total, the stage reached; the headline metrics, the
-paired differences to static and DSR-Net - SingleStep; wall time, device, torch version, the exact command).
-Work files (the trainer's run directories with fp32 last.pt, predictions) go to --work (a temporary
-directory unless given); OUT holds 4 files + one per model (a device call brings back 8 files at most: with
-a log beside them, 3 models).
+With a GPU of your own and the authors' data sizes, run `dsr-bench train --stage curriculum` itself (docs/models.md,
+"Training on one GPU"): no budget, the data on local disk, resumable by running it again.
 
---install OUT checks OUT/<model>.pt (a gpu-track checkpoint of that model, fp16, whose runs continue the
-committed file's) and replaces the committed file in place (atomically: one file per model, never a new
-one), and writes OUT's curve to docs/evidence/gpu-track/ and its summary as run-NNN.json there. Then commit
-those paths.
+A run, for each model of --models in turn (the training time, --minutes less --eval-minutes, shared equally):
+1. reads the committed weights, weights/gpu-track/<model>.pt (--committed DIR): a weights file of role "checkpoint"
+   (format v2, `models.training.checkpoints`) in fp16, with its stage, data position, step, learning-rate
+   schedule and RNG states, and `progress` (steps and sample-steps of every run so far, one record per run).
+   Adam's moments are not kept (they would triple the file): each run restarts them from zero, bias-corrected.
+   None committed: a new run from the first stage.
+2. trains with `dsr-bench train --stage curriculum --resume <that file> --max-minutes M` (its stage goes on where it
+   stopped: same epoch, batch, step counter and learning rate; a stage whose epochs are done hands its weights to
+   the next stage of the curriculum, on --data; the budget ends a stage with a resumable checkpoint and precise
+   BatchNorm). bf16 autocast and channels-last on a GPU. An epoch is the paper's, 40,000 sample-steps
+   (--epoch-samples), drawn from the few sequences that travel in repeated shuffled passes: the stages and learning
+   rates keep the paper's length in sample-steps (about 2.8M in all), whatever data a run carries. Each run should
+   carry sequences no earlier run saw (below: a base seed of the run's number).
+3. writes OUT/<model>.pt: the last checkpoint, fp16, without Adam's moments, `progress` extended by this run;
+   `dsr-bench predict --checkpoint OUT/<model>.pt` reads it like any weights file.
+Then OUT/curve.json and OUT/curve.png (per batch: loss, its motion and mask terms, learning rate, the run, the
+stage, against the global step and the cumulative sample-steps: the committed curve, docs/evidence/gpu-track/curve.json,
+continued), OUT/evaluation.json (each model and the static yardstick predicted on --eval-data's split and scored,
+`tracks.evaluate_heldout`, as `dsr-bench predict` and `dsr-bench evaluate` do; --eval-sequences N: its first N,
+scored as a partial split) and OUT/summary.json (per model: steps and sample-steps of this run and in total, the
+stage reached; the headline metrics, the paired differences to static and DSR-Net - SingleStep; wall time, device,
+torch version, the exact command). Work files (the curriculum's run directories with fp32 last.pt, predictions)
+go to --work (a temporary directory unless given); OUT holds 4 files + one per model (a device call brings back 8
+files at most: with a log beside them, 3 models).
+
+--install OUT checks OUT/<model>.pt (a gpu-track checkpoint of that model, fp16, whose runs continue the committed
+file's) and replaces the committed file in place (atomically: one file per model, never a new one), and writes OUT's
+curve to docs/evidence/gpu-track/ and its summary as run-NNN.json there. Then commit those paths.
 
 With a lent GPU (a session's device tool: the repository root is the working directory, $OUT comes back).
 The data travels with the working tree (64 MiB = 67.1 MB in all, tracked files and committed weights included:
-about 32 MB of tree and 11.7 MB per DSR-Net-sized model; a slim full-grid sequence is about 2.9 MB), so
+about 32 MB of tree and 11.8 MB per DSR-Net-sized model; a slim full-grid sequence is about 1.9 MB), so
 prepare a few slim sequences first, here (.gpu is ignored by git, not by the device tool's carry), and check
 that the total stays under the limit:
 
@@ -54,10 +55,10 @@ that the total stays under the limit:
     du -cb $(git ls-files --cached --others --exclude-standard) .gpu | tail -1
 
 Each run trains on sequences no earlier run saw: the training objects (procedural), base seed 900000 + the
-run's number, a seed no split uses (a split's sequences come from its own base seed). A slimmed sequence is
-about 1.9 MB: the tree with the two committed models is 58.4 MB, which leaves room for the test sequence and
-about 3 training ones (-n 3; run 0 carried 14 while nothing was committed).
-The held-out sequence is procedural-novel-test's seq_0000 (base seed 50000, novel objects).
+run's number, a seed no split uses (a split's sequences come from its own base seed). The tree with the two
+committed models is about 58 MB, which leaves room for the test sequence and about 3 training ones (-n 3; run 0
+carried 14 while nothing was committed). The held-out sequence is procedural-novel-test's seq_0000 (base seed 50000,
+novel objects).
 
 then one device call, carry [".gpu"], timeout_s 420 (the 5-minute budget of the defaults, its overheads, and
 room left in a 15-minute lease to run it again; it trains dsr and single, the defaults):
@@ -65,8 +66,8 @@ room left in a 15-minute lease to run it again; it trains dsr and single, the de
     PYTHONPATH=. python3 -u scripts/train_gpu.py --data .gpu/train --eval-data .gpu/test --out $OUT 2>&1 | tee $OUT/log
 
 and here `python scripts/train_gpu.py --install FILES_AT` with the folder the files came back to, then
-commit dsr_bench/models/weights/gpu-track/ and docs/evidence/gpu-track/. On the CPU, at toy size (what
-tests/test_gpu_training.py runs): --device cpu --max-steps 2 --batch-size 1 --workers 0.
+commit weights/gpu-track/ and docs/evidence/gpu-track/. On the CPU, at toy size (what tests/test_gpu_training.py
+runs): --device cpu --max-steps 2 --batch-size 1 --workers 0.
 """
 
 from __future__ import annotations
@@ -88,7 +89,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))  # run from anywhere, the toolkit installed or not
 
 from dsr_bench.models.training.schedules import PAPER_EPOCH_SAMPLES  # noqa: E402
-COMMITTED = ROOT / "dsr_bench" / "models" / "weights" / "gpu-track"
+#: the weights the lent-GPU runs continue (committed in the repository, not in the package: weights/gpu-track/README.md)
+COMMITTED = ROOT / "weights" / "gpu-track"
 EVIDENCE = ROOT / "docs" / "evidence" / "gpu-track"
 CURVE_FORMAT = "dsr-bench-training-curve"
 #: the headline metrics compared (lower is better for the motions, higher for the IoUs)
@@ -128,22 +130,6 @@ def read_committed(path: Path, model: str):
     return read_weights(path, kind=registry.VOXEL, model=model, role="checkpoint")
 
 
-def next_stage(model: str, stage: dict | None, epoch: int, epochs: int | None = None) -> tuple[str | None, bool]:
-    """(stage to train, whether to resume the committed position in it) for a model whose committed file is at
-    `epoch` of `stage` (its saved stage dict; None: nothing committed). A stage whose epochs (`epochs` where
-    given, as --epochs replaces a resumed stage's, else its own) are done hands on to the next stage of the
-    curriculum (not resumed: started from those weights); (None, False) once the curriculum's last stage is done."""
-    from dsr_bench.models.training.schedules import CURRICULUM
-
-    curriculum = CURRICULUM[model]
-    if stage is None:
-        return curriculum[0], False
-    if epoch < (int(stage["epochs"]) if epochs is None else epochs):
-        return str(stage["name"]), True
-    following = curriculum.index(stage["name"]) + 1 if stage["name"] in curriculum else len(curriculum)
-    return (curriculum[following], False) if following < len(curriculum) else (None, False)
-
-
 def compact_checkpoint(last: Path, dest: Path, progress: dict) -> Path:
     """Write the trainer's checkpoint `last` as the committed form at `dest` (atomically): the weights in fp16,
     the optimiser without its moments (its parameter groups only: the learning rate and betas resume), the
@@ -160,22 +146,13 @@ def compact_checkpoint(last: Path, dest: Path, progress: dict) -> Path:
 
 
 # --- training -----------------------------------------------------------------------------------------------------
-def _metrics(run_dir: Path) -> list[dict]:
-    """The per-batch records of a trainer's run directory (metrics.jsonl lines with a loss)."""
-    path = run_dir / "metrics.jsonl"
-    if not path.is_file():
-        return []
-    return [r for r in (json.loads(line) for line in path.read_text().splitlines() if line.strip()) if "loss" in r]
-
-
 def train_model(model: str, args: argparse.Namespace, deadline: float, work: Path, report=print) -> ModelRun:
-    """Train `model` until `deadline` (time.monotonic()) or --max-steps batches, stage after stage from its
-    committed file (`next_stage`); returns what was done (the trainer's last checkpoint in `last`)."""
+    """Train `model` until `deadline` (time.monotonic()) or --max-steps batches: `dsr-bench train --stage curriculum`
+    from its committed file (`train_curriculum`); returns what was done (the curriculum's last checkpoint in `last`)."""
     from dsr_bench.dataset.manifest import file_sha256
     from dsr_bench.errors import UserError
-    from dsr_bench.models.training.config import TrainConfig
-    from dsr_bench.models.training.schedules import SINGLE_STEP_MODELS, STAGES
-    from dsr_bench.models.training.trainer import train
+    from dsr_bench.models.training.config import CURRICULUM, TrainConfig
+    from dsr_bench.models.training.curriculum import train_curriculum
 
     committed = args.committed / f"{model}.pt"
     weights = read_committed(committed, model)
@@ -184,54 +161,28 @@ def train_model(model: str, args: argparse.Namespace, deadline: float, work: Pat
     resumed = None if weights is None else {"file": committed.name, "sha256": file_sha256(committed),
                                             "steps": progress["steps"], "sample_steps": progress["sample_steps"]}
     done = ModelRun(model, resumed, progress, len(progress["runs"]))
-    stage, resume = next_stage(model, None if weights is None else weights["stage"],
-                               0 if weights is None else int(weights["epoch"]), args.epochs)
-    source: Path | None = None if weights is None else committed
-    steps_left = args.max_steps
-    while stage is not None:
-        seconds = deadline - time.monotonic()
-        if (steps_left is not None and steps_left < 1) or (steps_left is None and seconds < args.min_stage_seconds):
-            break
-        run_dir = work / f"{model}-run{done.run_index}-{len(done.stages)}-{stage}"
-        if run_dir.exists():
-            raise UserError(f"--work {work}: {run_dir.name} is there from an earlier run; give an empty --work")
-        before = 0 if not resume or weights is None else int(weights["step"])
-        config = TrainConfig(model_name=model, stage_name=stage, data=args.data, out=run_dir, split=args.split,
-                             resume=source if resume else None, init=None if resume else source,
-                             epochs=args.epochs, batch_size=None if resume else args.batch_size,
-                             epoch_samples=None if resume else args.epoch_samples or None,
-                             window=args.window if not resume and model not in SINGLE_STEP_MODELS
-                             and STAGES[stage].window > 1 else None,
-                             max_steps=None if steps_left is None else before + steps_left,
-                             max_seconds=max(seconds, 1e-3), device=args.device, bf16=args.bf16,
-                             channels_last=args.channels_last, workers=args.workers, seed=args.seed,
-                             bn_recalibration=args.bn_recalibration, progress=False)
-        report(f"{model}: {'resuming' if resume else 'starting'} stage {stage} at its step {before} "
-               f"({'from ' + source.name if source else 'new weights'}), {seconds:.0f} s left")
-        started = time.monotonic()
-        last = train(config)
-        done.seconds += time.monotonic() - started
-        records = _metrics(run_dir)
-        for record in records:
+    out = work / f"{model}-run{done.run_index}"
+    if out.exists():
+        raise UserError(f"--work {work}: {out.name} is there from an earlier run; give an empty --work")
+    config = TrainConfig(model_name=model, stage_name=CURRICULUM, data=args.data, out=out, split=args.split,
+                         resume=None if weights is None else committed, epochs=args.epochs,
+                         batch_size=args.batch_size, epoch_samples=args.epoch_samples or None, window=args.window,
+                         max_steps=args.max_steps, max_seconds=max(deadline - time.monotonic(), 1e-3),
+                         device=args.device, bf16=args.bf16, channels_last=args.channels_last, workers=args.workers,
+                         seed=args.seed, bn_recalibration=args.bn_recalibration, progress=False)
+    started = time.monotonic()
+    curriculum = train_curriculum(config, report, min_stage_seconds=args.min_stage_seconds)
+    done.seconds = time.monotonic() - started
+    for stage in curriculum.stages:
+        for record in stage.batches:
             progress["steps"] += 1
             progress["sample_steps"] += int(record["samples"])
             done.points.append({"step": progress["steps"], "sample_steps": progress["sample_steps"],
                                 "loss": record["loss"], "motion": record["motion_loss"], "mask": record["mask_loss"],
-                                "lr": record["lr"], "run": done.run_index, "stage": stage})
-        saved = read_committed(last, model)
-        assert saved is not None  # train() wrote it
-        done.stages.append({"stage": stage, "resumed": resume, "steps": [before, int(saved["step"])],
-                            "epoch": int(saved["epoch"]), "epochs": int(saved["stage"]["epochs"]),
-                            "sample_steps": sum(int(r["samples"]) for r in records)})
-        report(f"{model}: stage {stage} at step {saved['step']}, epoch {saved['epoch']}/{saved['stage']['epochs']}, "
-               f"{len(records)} batches in {time.monotonic() - started:.0f} s")
-        if steps_left is not None:
-            steps_left -= len(records)
-        done.last, source, weights = last, last, saved
-        stage, resume = next_stage(model, saved["stage"], int(saved["epoch"]), args.epochs)
-        if stage is not None and resume:  # the budget ended the stage: the next run goes on with it
-            break
-    if stage is None:
+                                "lr": record["lr"], "run": done.run_index, "stage": stage.stage})
+        done.stages.append(stage.summary())
+    done.last = curriculum.last if curriculum.stages else None
+    if curriculum.next_stage is None:
         done.note = "the curriculum's last stage is done"
     return done
 
@@ -328,31 +279,18 @@ def _finite(value: Any) -> Any:
 
 def evaluate_models(models: dict[str, Path | None], args: argparse.Namespace, work: Path, report=print) -> dict:
     """Predict --eval-data's split (its first --eval-sequences) with each model (its weights file; None: a reference
-    predictor) and score it (`scoring.evaluate`, partial when a subset); {model: results}."""
-    from dsr_bench.dataset.manifest import read_split
-    from dsr_bench.errors import UserError
-    from dsr_bench.models.predictors import load_predictor, predict_split
-    from dsr_bench.scoring.evaluate import evaluate
-    from dsr_bench.scoring.predictions import record_source
+    predictor) and score it (`tracks.evaluate_heldout`, partial when a subset); {model: results}."""
+    from dsr_bench.models.training.tracks import evaluate_heldout
 
-    split, names = read_split(args.eval_data, args.eval_split)
-    subset = names[: args.eval_sequences] if args.eval_sequences else names
     results = {}
     for model, checkpoint in models.items():
         started = time.monotonic()
-        pred = work / "predictions" / model
-        predictor = load_predictor(model, checkpoint, args.device if checkpoint is not None else "cpu")
-        predict_split(predictor, args.eval_data, subset, pred)
-        record_source(pred, args.eval_data, split)
-        evaluation = evaluate(pred, args.eval_data, split, allow_partial=len(subset) < len(names),
-                              workers=args.eval_workers)
-        if evaluation.results is None:
-            raise UserError(f"evaluating {model} on {args.eval_data}: "
-                            + "; ".join(f"{f}: {p}" for f, p in evaluation.problems[:3]))
-        results[model] = evaluation.results
-        shown = ", ".join(f"{m} {evaluation.results['metrics'][m]:.4f}" for m in METRICS
-                          if m in evaluation.results["metrics"])
-        report(f"evaluated {model} on {len(subset)} sequences of {split}: {shown} ({time.monotonic() - started:.0f} s)")
+        results[model] = evaluate_heldout(model, checkpoint, args.eval_data, args.eval_split,
+                                          work / "predictions" / model, args.device, args.eval_sequences,
+                                          args.eval_workers)
+        shown = ", ".join(f"{m} {results[model]['metrics'][m]:.4f}" for m in METRICS if m in results[model]["metrics"])
+        report(f"evaluated {model} on {results[model]['coverage']['scored']} sequences of {results[model]['split']}: "
+               f"{shown} ({time.monotonic() - started:.0f} s)")
     return results
 
 

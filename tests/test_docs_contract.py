@@ -1,6 +1,6 @@
 """The documented contract matches the code: the DATASHEET schema table lists every field as the schema defines it;
 the README opens with its two commands, its links resolve (its other commands and its PyTorch example run in
-tests/test_readme_commands.py)."""
+tests/test_readme_commands.py); docs/models.md's `dsr-bench train` commands are ones their tracks take."""
 
 import re
 from pathlib import Path
@@ -61,3 +61,36 @@ def test_python_m_dsr_bench_is_the_documented_command_line():
     assert "`python -m dsr_bench`" in (ROOT / "README.md").read_text()
     out = subprocess.run([sys.executable, "-m", "dsr_bench", "--version"], capture_output=True, text=True)
     assert out.returncode == 0 and out.stdout.strip() == __version__
+
+
+def _bash_commands(path: Path, program: str) -> list[str]:
+    """The `program` commands of a Markdown file's bash blocks: continuation lines joined, comments dropped."""
+    import shlex
+
+    commands = []
+    for block in re.findall(r"^ *```bash\n(.*?)^ *```", path.read_text(), re.M | re.S):
+        for line in block.replace("\\\n", " ").splitlines():
+            words = shlex.split(line, comments=True)
+            if words[:1] == [program]:
+                commands.append(" ".join(words))
+    return commands
+
+
+def test_the_documented_train_commands_are_accepted_by_their_tracks(monkeypatch):
+    """Every `dsr-bench train` command of docs/models.md (the one-GPU curriculum, the lent-GPU budget, the CPU and 2D
+    tracks) parses, and its track reads every option it gives; the recipes are stubbed (nothing trains)."""
+    import dsr_bench.cli.train as train_cli
+    from dsr_bench.cli import main
+    from dsr_bench.models.training.tracks import Track
+
+    ran = []
+    monkeypatch.setattr(Track, "train", lambda self, model, options, report: ran.append((model, self.name)) or Path())
+    monkeypatch.setattr(train_cli, "_check_heldout", lambda *args: None)
+    monkeypatch.setattr(train_cli, "_evaluate", lambda *args: None)
+    commands = [c for c in _bash_commands(ROOT / "docs" / "models.md", "dsr-bench") if c.startswith("dsr-bench train ")
+                and "..." not in c]
+    assert any("--stage curriculum" in c and "--stage-data shapenet-multi=" in c for c in commands)
+    assert any("--stage curriculum" in c and "--max-minutes" in c for c in commands)
+    for command in commands:
+        assert main(command.split()[1:]) == 0, command
+    assert {track for _, track in ran} == {"full", "cpu"} and len(ran) == len(commands)

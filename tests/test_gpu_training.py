@@ -1,4 +1,5 @@
-"""scripts/train_gpu.py at toy size on the CPU, end to end: two runs of the full-grid DSR-Net (batch 1, 2 batches
+"""scripts/train_gpu.py (`dsr-bench train --stage curriculum` with a budget, from the weights committed in
+weights/gpu-track/) at toy size on the CPU, end to end: two runs of the full-grid DSR-Net (batch 1, 2 batches
 each, on 2 two-push sequences), each resuming from the weights the previous one installed, with the held-out
 evaluation, the curve and the summary; the committed file replaced in place, fp16."""
 
@@ -149,14 +150,29 @@ def test_a_stage_whose_epochs_are_done_hands_its_weights_to_the_next(script, tmp
     assert curve["stage"] == ["cube-single"] * 4 + ["cube-multi"] and curve["sample_steps"] == [1, 2, 3, 4, 6]
 
 
-def test_a_finished_stage_hands_on_to_the_next(script):
-    assert script.next_stage("dsr", None, 0) == ("cube-single", False)
-    assert script.next_stage("dsr", {"name": "cube-single", "epochs": 30}, 7) == ("cube-single", True)
-    assert script.next_stage("dsr", {"name": "cube-single", "epochs": 30}, 30) == ("cube-multi", False)
-    assert script.next_stage("single", {"name": "cube-multi", "epochs": 20}, 20) == ("shapenet-multi", False)
-    assert script.next_stage("dsr", {"name": "shapenet-multi", "epochs": 20}, 20) == (None, False)
-    assert script.next_stage("dsr", {"name": "shapenet-multi", "epochs": 20}, 20, epochs=40) == ("shapenet-multi", True)
-    assert script.next_stage("dsr", {"name": "cube-single", "epochs": 30}, 10, epochs=10) == ("cube-multi", False)
+def test_a_finished_stage_hands_on_to_the_next():
+    from dsr_bench.models.training.curriculum import next_stage
+
+    assert next_stage("dsr", None, 0) == ("cube-single", False)
+    assert next_stage("dsr", {"name": "cube-single", "epochs": 30}, 7) == ("cube-single", True)
+    assert next_stage("dsr", {"name": "cube-single", "epochs": 30}, 30) == ("cube-multi", False)
+    assert next_stage("single", {"name": "cube-multi", "epochs": 20}, 20) == ("shapenet-multi", False)
+    assert next_stage("dsr", {"name": "shapenet-multi", "epochs": 20}, 20) == (None, False)
+    assert next_stage("dsr", {"name": "shapenet-multi", "epochs": 20}, 20, epochs=40) == ("shapenet-multi", True)
+    assert next_stage("dsr", {"name": "cube-single", "epochs": 30}, 10, epochs=10) == ("cube-multi", False)
+
+
+def test_the_committed_weights_live_beside_the_package():
+    """The warm-up weights of the lent-GPU runs are in weights/gpu-track/ (with a README saying what they are), where
+    the script finds them, and not in the package (nor in its package data)."""
+    root = SCRIPT.parents[1]
+    assert _script().COMMITTED == root / "weights" / "gpu-track"
+    assert sorted(p.name for p in (root / "weights" / "gpu-track").iterdir()) == ["README.md", "dsr.pt", "single.pt"]
+    assert not (root / "dsr_bench" / "models" / "weights" / "gpu-track").exists()
+    assert "gpu-track" not in (root / "pyproject.toml").read_text()
+    for model in ("dsr", "single"):
+        weights = read_weights(root / "weights" / "gpu-track" / f"{model}.pt", role="checkpoint")
+        assert weights.model_type == model and _fp16(weights) and weights["progress"]["runs"]
 
 
 def test_bad_input_is_one_line_before_any_work(script, data, tmp_path, capsys):

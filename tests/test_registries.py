@@ -3,7 +3,9 @@ their names (help texts, error messages, the lists other modules keep) is derive
 reachable everywhere without another edit."""
 
 import re
+import sys
 import textwrap
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from types import MappingProxyType
 
@@ -162,13 +164,15 @@ def test_object_set_names_are_the_objects_table(capsys, monkeypatch):
 
 def test_docs_adding_a_model_works_as_written(monkeypatch):
     """docs/models.md, 'Adding a model': its entry is a model of ModelConfig whose network runs a step and warps its
-    history, load_predictor asks for its checkpoint, and --weights refuses it (no released weights)."""
+    history, load_predictor asks for its checkpoint, and --weights refuses it (no released weights); the kind it
+    shows is the 2D track's, as registry.py writes it."""
     torch = pytest.importorskip("torch")
     from dsr_bench.models.config import ModelConfig
     from dsr_bench.models.dsr_net import DSRNet
     from dsr_bench.models.predictors import load_predictor
 
-    [block] = _doc_blocks("docs/models.md", "Adding a model")
+    block, kind = _doc_blocks("docs/models.md", "Adding a model")
+    assert eval(kind.strip().rstrip(","), vars(registry)) == registry.KINDS[registry.IMAGE]
     entry = eval(block.strip().rstrip(","), vars(registry))
     _with_models(monkeypatch, entry)
     config = ModelConfig.for_model(entry.name, grid=(32, 32, 16), voxel_factor=4, width=4)
@@ -185,6 +189,91 @@ def test_docs_adding_a_model_works_as_written(monkeypatch):
     with pytest.raises(UserError, match=rf"^--weights is for the authors' released models {released}, not --model "
                                         rf"{entry.name}$"):
         load_predictor(entry.name, weights=Path("3dflow.pth"))
+
+
+@dataclass(frozen=True)
+class ToyConfig:
+    """A kind of model of its own for the test below: a configuration class as a kind needs one."""
+
+    name: str = "toy"
+    value: float = 0.5
+
+    @classmethod
+    def for_model(cls, name: str, **fields) -> "ToyConfig":
+        return cls(name=name, **fields)
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, data: dict) -> "ToyConfig":
+        return cls(**data)
+
+
+def toy_network(config: ToyConfig):
+    """Its network: one weight."""
+    import torch
+
+    net = torch.nn.Linear(1, 1, bias=False)
+    torch.nn.init.constant_(net.weight, config.value)
+    return net
+
+
+class ToyPredictor:
+    """Predicts nothing: enough to be loaded."""
+
+    def __init__(self, name: str, net):
+        self.name, self.net, self.num_slots = name, net, None
+
+
+def toy_loader(entry: registry.ModelEntry, *, checkpoint=None, device="cpu", **options) -> ToyPredictor:
+    """Its loader: the weights file read through the one weights format, the network from the type saved in it."""
+    from dsr_bench.models.training.checkpoints import read_weights
+
+    return ToyPredictor(entry.name, read_weights(checkpoint, kind="toy", model=entry.name).network(device))
+
+
+def toy_train(model: str, options: dict, report) -> Path:
+    """Its one recipe: the network at the --lr given, written in the one weights format."""
+    from dsr_bench.models.training.checkpoints import save_weights
+
+    config = ToyConfig.for_model(model, value=options["lr"])
+    return save_weights(options["out"], config, toy_network(config).state_dict(), "weights")
+
+
+def test_a_new_kind_is_one_object(monkeypatch, tmp_path, capsys):
+    """docs/models.md, 'Adding a model': a kind of model is one ModelKind of registry.KINDS, owning its config,
+    network, loader and training recipes. With it and an entry of that kind (and no other edit), `dsr-bench train`
+    runs its recipe and refuses what the recipe does not read, the type saved with the weights resolves its config
+    and network, and load_predictor runs its loader."""
+    torch = pytest.importorskip("torch")
+    from dsr_bench.models.predictors import load_predictor
+    from dsr_bench.models.training.checkpoints import model_types, read_weights
+    from dsr_bench.models.training.tracks import Track
+
+    here = __name__
+    monkeypatch.setattr(registry, "KINDS", MappingProxyType({**registry.KINDS, "toy": registry.ModelKind(
+        "toy", loader=f"{here}:toy_loader", config=f"{here}:ToyConfig", network=f"{here}:toy_network", files="toy",
+        tracks={"cpu": f"{here}:TOY_TRACK"})}))
+    monkeypatch.setattr(sys.modules[here], "TOY_TRACK", Track("cpu", "the toy track", (), f"{here}:toy_train"),
+                        raising=False)
+    _with_models(monkeypatch, registry.ModelEntry("toy1", "toy", "Toy: one weight"))
+    assert "toy1" in model_types() and registry.trainable() == ("voxel", "image", "toy")
+    out = tmp_path / "toy1.pt"
+    assert main(["train", "--model", "toy1", "--track", "cpu", "--data", str(tmp_path), "--out", str(out),
+                 "--lr", "0.25"]) == 0
+    assert capsys.readouterr().out.strip() == f"weights: {out}"
+    weights = read_weights(out)
+    assert (weights.kind, weights.config) == ("toy", ToyConfig("toy1", 0.25))
+    assert torch.equal(weights.network().weight, torch.full((1, 1), 0.25))
+    predictor = load_predictor("toy1", out)
+    assert isinstance(predictor, ToyPredictor) and predictor.net.weight.item() == 0.25
+    for extra, message in ((["--track", "full"], "--track 'full': choose cpu"),
+                           (["--track", "cpu", "--bf16"], "--bf16 is not an option of the toy track; drop it")):
+        assert main(["train", "--model", "toy1", "--data", ".", "--out", "x.pt", *extra]) == 2
+        assert capsys.readouterr().err.strip() == f"error: {message}"
+    with pytest.raises(UserError, match="not a toy weights file; train one with `dsr-bench train --model toy1`"):
+        read_weights(ROOT / "dsr_bench/models/weights/cpu-track/dsr.pt", kind="toy")
 
 
 def _epe_by_hand(data: Path, names) -> float:

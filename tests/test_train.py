@@ -211,3 +211,101 @@ def test_train_config_checks_its_own_values(tmp_path, field, value, message):
     TrainConfig(**base)  # the defaults are valid
     with pytest.raises(UserError, match=message):
         TrainConfig(**{**base, field: value})
+
+
+def _curriculum(data, other, out, *extra):
+    """`dsr-bench train --stage curriculum` at toy size: every stage one epoch of 2 sample-steps at batch 1 (cube-single
+    2 batches, the multi-step stages one window of 2), shapenet-multi on its own data."""
+    return main(["train", "--model", "dsr", "--stage", "curriculum", "--data", str(data), "--stage-data",
+                 f"shapenet-multi={other}", "--out", str(out), "--epochs", "1", "--epoch-samples", "2", "--window", "2",
+                 "--batch-size", "1", "--workers", "0", "--bn-recalibration", "1", "--quiet", *extra])
+
+
+@pytest.mark.slow
+def test_the_curriculum_runs_its_stages_in_turn_and_resumes_as_if_uninterrupted(data, tmp_path, capsys):
+    """The paper's three stages in one command, each in OUT/STAGE from the weights the one before finished with,
+    shapenet-multi on its --stage-data; interrupted (--max-steps 1, mid cube-single) and run again, it ends with the
+    weights of the uninterrupted run, bit for bit; run once more, it trains nothing; --eval-data scores the result."""
+    other = write_synthetic_dataset(tmp_path / "shapenet-like", num_sequences=1, num_steps=2, num_objects=3,
+                                    split="shapenet")
+    straight, interrupted = tmp_path / "straight", tmp_path / "interrupted"
+    assert _curriculum(data, other, straight, "--eval-data", str(data)) == 0
+    out = capsys.readouterr().out
+    assert f"checkpoint: {straight / 'shapenet-multi' / 'last.pt'}" in out and "held-out train (2 sequences)" in out
+    stages = ("cube-single", "cube-multi", "shapenet-multi")
+    saved = {stage: torch.load(straight / stage / "last.pt", weights_only=True) for stage in stages}
+    assert [(saved[s]["stage"]["name"], saved[s]["epoch"], saved[s]["step"]) for s in stages] == [
+        ("cube-single", 1, 2), ("cube-multi", 1, 1), ("shapenet-multi", 1, 1)]
+    assert [saved[s]["stage"]["window"] for s in stages] == [1, 2, 2]
+    assert [saved[s]["data"]["dir"] for s in stages] == ["data", "data", "shapenet-like"]  # each stage's own data
+    config = json.loads((straight / "cube-multi" / "config.json").read_text())
+    assert config["init"].endswith("cube-single/last.pt") and config["resume"] is None  # handed on, not resumed
+    log = [json.loads(line) for line in (straight / "cube-multi" / "metrics.jsonl").read_text().splitlines()]
+    assert [r["lr"] for r in log if "loss" in r] == [5e-4]  # the fine-tuning table
+    results = json.loads((straight / "evaluation.json").read_text())
+    assert results["meta"]["name"] == "dsr" and results["coverage"]["scored"] == 2
+    assert (straight / "predictions" / "meta.json").is_file()
+
+    assert _curriculum(data, other, interrupted, "--max-steps", "1") == 0
+    first = torch.load(interrupted / "cube-single" / "last.pt", weights_only=True)
+    assert (first["epoch"], first["step"]) == (0, 1) and not (interrupted / "cube-multi").exists()
+    assert _curriculum(data, other, interrupted) == 0  # the same command again: goes on from OUT
+    resumed = json.loads((interrupted / "cube-single" / "config.json").read_text())["resume"]
+    assert resumed.endswith("cube-single/last.pt")
+    last = torch.load(interrupted / "shapenet-multi" / "last.pt", weights_only=True)
+    for key, value in saved["shapenet-multi"]["model"].items():
+        assert torch.equal(value, last["model"][key]), key
+    capsys.readouterr()
+    assert _curriculum(data, other, interrupted) == 0  # done: nothing trained, the final checkpoint named
+    assert capsys.readouterr().out.strip() == f"checkpoint: {interrupted / 'shapenet-multi' / 'last.pt'}"
+    assert len((interrupted / "shapenet-multi" / "metrics.jsonl").read_text().splitlines()) == 3  # batch, recal., epoch
+
+
+@pytest.mark.parametrize("extra, message", [
+    (["--single-batches", "5"], "--single-batches is not an option of the full track; drop it"),
+    (["--same-windows"], "--same-windows is not an option of the full track; drop it"),
+    (["--track", "cpu", "--bf16"], "--bf16 is not an option of the CPU track; drop it"),
+    (["--track", "cpu", "--max-minutes", "3"], "--max-minutes is not an option of the CPU track; drop it"),
+    (["--track", "cpu", "--device", "cuda"], "--device cuda: the CPU track trains on the CPU; drop --device"),
+    (["--model", "se3net", "--bn-recalibration", "0"], "--bn-recalibration is not an option of the 2D track's models "
+     "(single-step, one stage); drop it"),
+    (["--model", "2dflow", "--track", "cpu", "--resume", "x.pt"], "--resume is not an option of the 2D track's "
+     "models (single-step, one stage); drop it"),
+    (["--stage", "nope"], "--stage 'nope': choose one of cube-single, cube-multi, shapenet-multi or curriculum"),
+    (["--stage", "cube-single", "--stage-data", "cube-multi=x"], "--stage-data gives the data of the curriculum's "
+     "stages (--stage curriculum); a single stage trains on --data"),
+    (["--stage", "curriculum", "--stage-data", "warmup=x"], "--stage-data 'warmup=x': give STAGE=DIR, STAGE one of "
+     "cube-single, cube-multi, shapenet-multi"),
+    (["--stage", "curriculum", "--resume", "missing.pt"], "checkpoint not found: missing.pt"),
+    (["--stage", "cube-single", "--eval-data", "missing"], "missing"),
+])
+def test_each_track_refuses_what_it_does_not_read_before_any_work(data, tmp_path, capsys, monkeypatch, extra,
+                                                                  message):
+    monkeypatch.chdir(tmp_path)
+    assert main(["train", "--data", str(data), "--out", "out", *extra]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("error: ") and message in err and len(err.splitlines()) == 1
+    assert not (tmp_path / "out").exists()
+
+
+def test_an_option_at_its_default_is_no_option_given(tmp_path, capsys):
+    """`--device cpu` on the CPU track and `--multi-batches 300` on the full track are what those tracks do anyway:
+    not refused (the run then stops at its data, which is missing here)."""
+    for extra in (["--track", "cpu", "--device", "cpu"], ["--stage", "cube-single", "--multi-batches", "300"]):
+        assert main(["train", "--data", str(tmp_path / "none"), "--out", str(tmp_path / "w.pt"), *extra]) == 2
+        err = capsys.readouterr().err
+        assert "not found" in err and "--device" not in err and "--multi-batches" not in err
+
+
+def test_the_help_groups_the_options_by_track(capsys, monkeypatch):
+    monkeypatch.setenv("COLUMNS", "400")
+    assert main(["train", "--help"]) == 0
+    text = capsys.readouterr().out
+    for panel in ("Every track", "Held-out evaluation (every track)", "The full track (--track full, the default)",
+                  "Budget and checkpoints", "Device (the full track; --device also the 2D track)",
+                  "The CPU track (--track cpu)"):
+        assert panel in text, panel
+    lines = {line.split()[1]: line for line in text.splitlines() if line.startswith("│ ") and "--" in line[:30]}
+    assert "Tracks: full, cpu." in lines["--init"] and "Tracks: cpu, 2D." in lines["--single-batches"]
+    assert "Tracks: full, 2D." in lines["--device"] and "Tracks: full." in lines["--max-minutes"]
+    assert "Tracks:" not in lines["--lr"]  # every track reads it

@@ -39,8 +39,8 @@ class ImageModelConfig:
     pose_consistency: float = 0.1
 
     def __post_init__(self):
-        if self.name not in IMAGE_MODEL_NAMES:
-            raise ValueError(f"image model {self.name!r}: choose one of {', '.join(IMAGE_MODEL_NAMES)}")
+        if self.name not in registry.names(registry.IMAGE):
+            raise ValueError(f"image model {self.name!r}: choose one of {', '.join(registry.names(registry.IMAGE))}")
         if self.image_factor not in (1, 2):
             raise ValueError(f"image_factor {self.image_factor}: 1 (240 x 320) or 2 (120 x 160)")
         if self.num_slots < 2 or self.width < 2 or self.hidden < 8 or self.pose_consistency < 0:
@@ -50,6 +50,11 @@ class ImageModelConfig:
     def image_shape(self) -> tuple[int, int]:
         """(height, width) of the network's input."""
         return IMAGE_SHAPE[0] // self.image_factor, IMAGE_SHAPE[1] // self.image_factor
+
+    @classmethod
+    def for_model(cls, name: str, **overrides) -> ImageModelConfig:
+        """The configuration of a named 2D-track model (its registry entry; overrides: any other field)."""
+        return cls(name=name, **overrides)
 
     def as_dict(self) -> dict:
         return asdict(self)

@@ -11,7 +11,6 @@ import torch
 from dsr_bench.dataset.sequence import SequenceReader
 from dsr_bench.errors import UserError
 from dsr_bench.models import registry
-from dsr_bench.models.image_config import IMAGE_MODEL_DESCRIPTIONS
 from dsr_bench.models.training.checkpoints import read_weights, torch_device
 
 
@@ -29,7 +28,7 @@ class ImagePredictor:
         self.num_slots = None if config.name == "2dflow" else config.num_slots - 1  # 2DFlow has no masks
         height, width = config.image_shape
         factor = "" if config.image_factor == 1 else f" (CPU track: {height} x {width} input)"
-        self.description = IMAGE_MODEL_DESCRIPTIONS[config.name] + factor
+        self.description = registry.MODELS[config.name].description + factor
         #: the image the network sees (height, width), recorded in the predictions' meta.json
         self.image = config.image_shape
 
@@ -67,9 +66,15 @@ class ImagePredictor:
         return {"motion_2d": np.concatenate(chunks)}
 
 
-def load_image_predictor(model: str, checkpoint: Path, device: str = "cpu") -> ImagePredictor:
-    """A predictor from a `dsr-bench train --model 2dflow|se3net|se3posenet` weights file (any version of the
-    one weights format, `training.checkpoints`)."""
+def load_image(entry: registry.ModelEntry, *, checkpoint: Path | None = None, device: str = "cpu",
+               **options) -> ImagePredictor:
+    """The image kind's loader (`registry.KINDS`, called by `predictors.load_predictor`): a 2D-track model from a
+    `dsr-bench train --model 2dflow|se3net|se3posenet` weights file (any version of the one weights format,
+    `training.checkpoints`), by default the shipped CPU-track weights."""
+    from dsr_bench.models.predictors import weights_file
+
+    path, source = weights_file(entry, checkpoint)
     dev = torch_device(device)
-    weights = read_weights(Path(checkpoint), dev, kind=registry.IMAGE, model=model)
-    return ImagePredictor(weights.network(dev), dev)
+    predictor = ImagePredictor(read_weights(path, dev, kind=registry.IMAGE, model=entry.name).network(dev), dev)
+    predictor.weights = source
+    return predictor

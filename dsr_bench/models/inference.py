@@ -5,6 +5,9 @@ A predictor runs one sequence at a time, or `bn_batch` independent sequences of 
 consecutive sequences of the split with BatchNorm normalising over the batch at every step, so one
 sequence's predictions depend on the other 11 (`load_official_predictor`, OFFICIAL_BN_BATCH).
 
+`load_voxel` is the voxel kind's loader (`registry.KINDS`) behind `predictors.load_predictor`, the one loader of
+predictors (imported here too, where it used to live).
+
 `dsr-bench predict` runs the shipped CPU-track networks on a CPU under `same_bits_on_any_cpu`, so that their
 predictions are the same bytes on every x86-64 CPU with AVX2 (docs/models.md, "Predictions across CPUs").
 """
@@ -27,6 +30,7 @@ from dsr_bench.models import registry
 from dsr_bench.models.config import ModelConfig
 from dsr_bench.models.dsr_net import DSRNet, batchnorm_statistics
 from dsr_bench.models.labels import slot_labels
+from dsr_bench.models.predictors import load_predictor  # noqa: F401  (the one loader, also found here)
 from dsr_bench.models.training.checkpoints import read_weights, torch_device
 from dsr_bench.models.warp import FLOOR, OFFICIAL, check_kernel
 
@@ -287,15 +291,29 @@ class ModelPredictor:
         return [{"mask": mask, "motion": motion} for mask, motion in zip(masks, motions)]
 
 
-def load_predictor(model: str, checkpoint: Path, device: str = "cpu", official_bn: bool = False,
-                   bf16: bool = False, warp: str = FLOOR, fast: bool | None = None) -> ModelPredictor:
-    """A predictor from a dsr-bench weights file of a 3D-track model (any role and version of the one weights
-    format, `training.checkpoints`: a run's last.pt, a CPU-track weights file, the shipped weights). Our models
-    warp with `warp.FLOOR`, the kernel they were trained with; `warp` overrides it. fast: `ModelPredictor`'s."""
+def load_voxel(entry: registry.ModelEntry, *, checkpoint: Path | None = None, device: str = "cpu",
+               weights: Path | None = None, official_bn: bool | None = None, warp: str | None = None,
+               bn_batch: int | None = None) -> ModelPredictor:
+    """The voxel kind's loader (`registry.KINDS`, called by `predictors.load_predictor`): a 3D-track model from the
+    authors' `weights` (their warp kernel and test protocol unless told otherwise, `load_official_predictor`), or
+    from a dsr-bench weights file of any role and version of the one format (`training.checkpoints`: a run's
+    last.pt, a CPU-track weights file), by default the shipped CPU-track weights: our warp kernel (`warp.FLOOR`, the
+    one our models were trained with; `warp` overrides it), BatchNorm's running statistics unless `official_bn`."""
+    from dsr_bench.models.predictors import weights_file
+
+    if checkpoint is not None and weights is not None:
+        raise UserError("pass either --checkpoint (a dsr-bench checkpoint) or --weights (the authors' file), not both")
+    if weights is not None:
+        return load_official_predictor(entry.name, Path(weights), device, True if official_bn is None else official_bn,
+                                       warp=OFFICIAL if warp is None else warp,
+                                       bn_batch=OFFICIAL_BN_BATCH if bn_batch is None else bn_batch)
+    path, source = weights_file(entry, checkpoint)
     dev = torch_device(device)
-    net = cast(DSRNet, read_weights(Path(checkpoint), dev, kind=registry.VOXEL, model=model).network(dev))  # VOXEL
-    net.set_warp_kernel(check_kernel(warp))
-    return ModelPredictor(net, dev, official_bn, bf16, fast=fast)
+    net = cast(DSRNet, read_weights(path, dev, kind=registry.VOXEL, model=entry.name).network(dev))
+    net.set_warp_kernel(check_kernel(FLOOR if warp is None else warp))
+    predictor = ModelPredictor(net, dev, bool(official_bn), False)
+    predictor.weights = {**source, "batchnorm": batchnorm_words(bool(official_bn)), "warp": warp_words(net)}
+    return predictor
 
 
 def load_official_predictor(model: str, weights: Path, device: str = "cpu", official_bn: bool = True,

@@ -4,8 +4,9 @@ Reference predictors need no training: `oracle` (ground truth as predictions: Io
 error 0 by construction), `static` (predicting no motion; masks = connected components of the
 current observation's TSDF surface band, largest first; zero 2D flow) and `push` (the yardstick of
 a naive action-conditioned guess: the same masks, and every voxel of them moved along the push by
-PUSH_YARDSTICK_DISTANCE; in 2D every pixel that sees something above the table). The learned
-models come from `dsr_bench.models.inference`.
+PUSH_YARDSTICK_DISTANCE; in 2D every pixel that sees something above the table). `load_predictor` is the one
+loader of predictors: it calls the loader of the model's kind (`registry.KINDS`: `load_reference` here, the 3D
+track's `inference.load_voxel`, the 2D track's `image_inference.load_image`).
 """
 
 from __future__ import annotations
@@ -125,15 +126,16 @@ def shipped_weights(model: str) -> Path | None:
 def load_predictor(model: str, checkpoint: Path | None = None, device: str = "cpu", weights: Path | None = None,
                    official_bn: bool | None = None, warp: str | None = None, bn_batch: int | None = None,
                    fast: bool | None = None) -> Predictor:
-    """The predictor `model` (an entry of `dsr_bench.models.registry`, whose kind chooses the loader): a learned
-    model needs a dsr-bench `checkpoint` or the authors' released `weights` (dsr.pth ... 3dflow.pth). official_bn:
-    BatchNorm with batch statistics (the official code's way) or running statistics (eval); None: batch statistics
-    for the authors' weights, eval mode for a dsr-bench checkpoint. warp: the history warp's kernel
-    (`warp.WARP_KERNELS`); None: the authors' ("official") for their weights, ours ("floor") for a dsr-bench
-    checkpoint. bn_batch: sequences normalised together with the authors' weights; None: their test protocol's
-    12 (`inference.OFFICIAL_BN_BATCH`). fast: a 3D-track model's steps through `models.fast.FastDSRNet` (equal up
-    to rounding); None: where `inference.fast_by_default` says (on a CPU, fp32, BatchNorm's running statistics,
-    the full 128 x 128 x 48 grid), which `dsr-bench predict` relies on."""
+    """The predictor `model` (an entry of `dsr_bench.models.registry`, whose kind's loader makes it: the one loader
+    of predictors, `dsr-bench predict`'s): a learned model needs a dsr-bench `checkpoint` or the authors' released
+    `weights` (dsr.pth ... 3dflow.pth), or the shipped CPU-track weights are read. official_bn: BatchNorm with batch
+    statistics (the official code's way) or running statistics (eval); None: batch statistics for the authors'
+    weights, eval mode for a dsr-bench checkpoint. warp: the history warp's kernel (`warp.WARP_KERNELS`); None: the
+    authors' ("official") for their weights, ours ("floor") for a dsr-bench checkpoint. bn_batch: sequences
+    normalised together with the authors' weights; None: their test protocol's 12 (`inference.OFFICIAL_BN_BATCH`).
+    fast: a 3D-track model's steps through `models.fast.FastDSRNet` (equal up to rounding); None: where
+    `inference.fast_by_default` says (on a CPU, fp32, BatchNorm's running statistics, the full 128 x 128 x 48 grid),
+    which `dsr-bench predict` relies on."""
     entry = registry.model_entry(model)
     if weights is not None and not entry.released:
         raise UserError(f"--weights is for the authors' released models ({', '.join(registry.released())}), "
@@ -153,74 +155,34 @@ def load_predictor(model: str, checkpoint: Path | None = None, device: str = "cp
         raise UserError(f"--bn-batch {bn_batch}: sequences per batch must be at least 1 (12: the authors' protocol)")
     if fast and entry.kind != registry.VOXEL:
         raise UserError(f"fast inference is for the 3D track's learned models, not --model {model}")
-    predictor = _LOADERS[entry.kind](entry, checkpoint, device, weights, official_bn, warp, bn_batch)
+    load = registry.resolve(entry.model_kind.loader)
+    predictor = load(entry, checkpoint=checkpoint, device=device, weights=weights, official_bn=official_bn, warp=warp,
+                     bn_batch=bn_batch)
     if fast is not None and entry.kind == registry.VOXEL:
-        predictor.set_fast(fast)  # type: ignore[attr-defined]  # (a ModelPredictor)
+        predictor.set_fast(fast)  # (a ModelPredictor)
     return predictor
 
 
-def _load_reference(entry: registry.ModelEntry, checkpoint: Path | None, device: str, weights: Path | None,
-                    official_bn: bool | None, warp: str | None, bn_batch: int | None) -> Predictor:
-    """A reference predictor (no weights; a --checkpoint is not read)."""
+def load_reference(entry: registry.ModelEntry, **options) -> Predictor:
+    """A reference kind's loader: its predictor (no weights; a --checkpoint is not read)."""
     return entry.make_predictor()
 
 
-def _load_voxel(entry: registry.ModelEntry, checkpoint: Path | None, device: str, weights: Path | None,
-                official_bn: bool | None, warp: str | None, bn_batch: int | None) -> Predictor:
-    """A 3D-track model from the authors' `weights` (their warp kernel and test protocol unless told otherwise),
-    a dsr-bench `checkpoint`, or the shipped CPU-track weights (our warp kernel, running statistics)."""
-    model = entry.name
-    if checkpoint is not None and weights is not None:
-        raise UserError("pass either --checkpoint (a dsr-bench checkpoint) or --weights (the authors' file), not both")
-    from dsr_bench.models.warp import FLOOR, OFFICIAL
-
-    if weights is not None:
-        from dsr_bench.models.inference import OFFICIAL_BN_BATCH, load_official_predictor
-
-        return load_official_predictor(model, Path(weights), device, True if official_bn is None else official_bn,
-                                       warp=OFFICIAL if warp is None else warp,
-                                       bn_batch=OFFICIAL_BN_BATCH if bn_batch is None else bn_batch)
-    shipped = checkpoint is None
-    if checkpoint is None:
-        checkpoint = shipped_weights(model)
-        if checkpoint is None:
-            raise UserError(f"--model {model} needs --checkpoint CKPT (train one with `dsr-bench train`) "
-                            f"or --weights FILE (the authors' {model}.pth)")
-    if not Path(checkpoint).is_file():
-        raise UserError(f"checkpoint not found: {checkpoint}")
+def weights_file(entry: registry.ModelEntry, checkpoint: Path | None) -> tuple[Path, dict[str, str]]:
+    """The weights file a learned model's loader reads (`checkpoint`, else the shipped CPU-track file) and where it
+    came from (source, file, sha256: the predictions' meta.json); a UserError naming the fix where there is none."""
     from dsr_bench.dataset.manifest import file_sha256
-    from dsr_bench.models.inference import batchnorm_words, warp_words
-    from dsr_bench.models.inference import load_predictor as load_learned
 
-    predictor = load_learned(model, Path(checkpoint), device, bool(official_bn), warp=FLOOR if warp is None else warp)
-    predictor.weights = {"source": "dsr-bench, shipped CPU-track weights" if shipped else "dsr-bench",
-                         "file": Path(checkpoint).name,
-                         "sha256": file_sha256(checkpoint),
-                         "batchnorm": batchnorm_words(bool(official_bn)), "warp": warp_words(predictor.model)}
-    return predictor
-
-
-def _load_image(entry: registry.ModelEntry, checkpoint: Path | None, device: str, weights: Path | None,
-                official_bn: bool | None, warp: str | None, bn_batch: int | None) -> Predictor:
-    """A 2D-track predictor from `checkpoint`, or from the shipped CPU-track weights."""
-    from dsr_bench.dataset.manifest import file_sha256
-    from dsr_bench.models.image_inference import load_image_predictor
-
-    model = entry.name
     shipped = checkpoint is None
-    checkpoint = shipped_weights(model) if checkpoint is None else Path(checkpoint)
-    if checkpoint is None:
-        raise UserError(f"--model {model} needs --checkpoint CKPT (train one with `dsr-bench train --model {model}`)")
-    if not checkpoint.is_file():
-        raise UserError(f"checkpoint not found: {checkpoint}")
-    predictor = load_image_predictor(model, checkpoint, device)
-    predictor.weights = {"source": "dsr-bench, shipped CPU-track weights" if shipped else "dsr-bench",
-                         "file": checkpoint.name, "sha256": file_sha256(checkpoint)}
-    return predictor
-
-
-#: how each kind of model is loaded (`registry.KINDS`)
-_LOADERS = {registry.REFERENCE: _load_reference, registry.VOXEL: _load_voxel, registry.IMAGE: _load_image}
+    path = shipped_weights(entry.name) if checkpoint is None else Path(checkpoint)
+    if path is None:
+        released = f" or --weights FILE (the authors' {entry.name}.pth)" if entry.released else ""
+        raise UserError(f"--model {entry.name} needs --checkpoint CKPT (train one with `dsr-bench train"
+                        f"{'' if entry.released else ' --model ' + entry.name}`){released}")
+    if not path.is_file():
+        raise UserError(f"checkpoint not found: {path}")
+    return path, {"source": "dsr-bench, shipped CPU-track weights" if shipped else "dsr-bench", "file": path.name,
+                  "sha256": file_sha256(path)}
 
 
 def predict_split(predictor: Predictor, data_dir: str | Path, names: list[str], out: str | Path,

@@ -1,17 +1,20 @@
-"""The model registry: every model that `dsr-bench predict` and `dsr-bench train` know, one entry each.
+"""The model registry: every model that `dsr-bench predict` and `dsr-bench train` know, one entry each, and the kinds
+of model, one object each.
 
-An entry's kind says how the model is made, loaded and trained; everything else follows from the table:
-- "reference": a predictor that needs no training (`predictor`: "module:Class", made with no arguments);
+A kind (`KINDS`, a `ModelKind`) owns everything its models share: the configuration class, the network, the loader
+behind `dsr-bench predict` and the recipes of `dsr-bench train` (one per track, `models.training.tracks`), each
+named "module:attribute" and imported on use. There are three:
+- "reference": a predictor that needs no training (the entry's `predictor`: "module:Class", made with no arguments);
 - "voxel": the 3D track's DSR-Net family, one network (`models.dsr_net`) whose `ModelConfig` switches are the
-  entry's `variant`; loaded from a dsr-bench checkpoint, the shipped CPU-track weights or the authors' released
-  .pth (`--weights`), trained with `dsr-bench train` (full or CPU track);
-- "image": the 2D track's models (`models.image_nets`, `ImageModelConfig`), 2D-only predictions, trained with
-  `dsr-bench train` (one stage).
+  entry's `variant`; loaded from a dsr-bench weights file, the shipped CPU-track weights or the authors' released
+  .pth (`--weights`), trained on the full track (the paper's curriculum) or the CPU track;
+- "image": the 2D track's models (`models.image_nets`, `ImageModelConfig`), 2D-only predictions, one stage.
 
-The name is what a checkpoint's saved config records (`ModelConfig.name`, `ImageModelConfig.name`): reading
-weights back, the name resolves the entry, and with it the config class and the network. The order of the table
-is the order every list of names shows (`--help`, error messages). Adding a model: docs/models.md, "Adding a
-model". Pure Python: the CLI builds its help from this table without importing numpy or torch.
+The name is what a weights file records (`model_type`, the configuration's `name`): reading weights back, the name
+resolves the entry, the entry its kind, and the kind the configuration class, the network and the loader (as
+LeRobot's config registry resolves a policy from the type saved with it). The order of the table is the order every
+list of names shows (`--help`, error messages). Adding a model or a kind: docs/models.md, "Adding a model". Pure
+Python: the CLI builds its help from these tables without importing numpy or torch.
 """
 
 from __future__ import annotations
@@ -19,11 +22,84 @@ from __future__ import annotations
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from types import MappingProxyType
+from typing import Any
 
 from dsr_bench.errors import UserError
 
 REFERENCE, VOXEL, IMAGE = "reference", "voxel", "image"
-KINDS = (REFERENCE, VOXEL, IMAGE)
+
+
+def resolve(spec: str) -> Any:
+    """The object "module:attribute" names (imported on use)."""
+    from importlib import import_module
+
+    module, _, attr = spec.partition(":")
+    return getattr(import_module(module), attr)
+
+
+@dataclass(frozen=True)
+class ModelKind:
+    """One kind of model and everything its models share, each part named "module:attribute" (`resolve`):
+
+    - `config`: its configuration class: `for_model(name, **fields)` (the entry's defaults), `from_dict`, `as_dict`,
+      and a `name` field, the model's (what a weights file records as its model type);
+    - `network`: the torch module built from that configuration;
+    - `loader`: the predictor of `dsr-bench predict` (`predictors.load_predictor` calls it with the entry and the
+      command's options);
+    - `tracks`: the recipes of `dsr-bench train`, one per `--track` (`models.training.tracks.Track`), in the order
+      `--track`'s choices show them; none: a kind that is not trained (reference predictors);
+    - `files`: what messages call its weights files ("3D-track weights file").
+    """
+
+    name: str
+    loader: str
+    config: str = ""
+    network: str = ""
+    tracks: Mapping[str, str] = field(default_factory=dict)
+    files: str = ""
+
+    def __post_init__(self):
+        if bool(self.config) != bool(self.network) or (self.tracks and not self.config):
+            raise ValueError(f"kind {self.name!r}: a trained kind names its config and network, both or neither")
+        object.__setattr__(self, "tracks", MappingProxyType(dict(self.tracks)))
+
+    @property
+    def trainable(self) -> bool:
+        """Whether `dsr-bench train` trains its models (it has tracks)."""
+        return bool(self.tracks)
+
+    def config_class(self) -> Any:
+        """Its configuration class (imported on use)."""
+        return resolve(self.config)
+
+    def network_class(self) -> Any:
+        """Its network class (imported on use)."""
+        return resolve(self.network)
+
+    def track(self, name: str) -> Any:
+        """Its recipe of `dsr-bench train --track name` (a `tracks.Track`); a UserError naming its tracks otherwise."""
+        if name not in self.tracks:
+            raise UserError(f"--track {name!r}: choose {' or '.join(self.tracks)}")
+        return resolve(self.tracks[name])
+
+    def train_command(self) -> str:
+        """How a user makes a weights file of this kind, for messages."""
+        return f"`dsr-bench train --model {'|'.join(names(self.name))}`"
+
+
+_TRACKS = "dsr_bench.models.training.tracks"
+
+#: The kinds of model: everything a model of each kind needs beside its entry in MODELS (docs/models.md, "Adding a
+#: model"). A new kind is one object here; its models are entries of MODELS of that kind.
+KINDS: Mapping[str, ModelKind] = MappingProxyType({kind.name: kind for kind in (
+    ModelKind(REFERENCE, loader="dsr_bench.models.predictors:load_reference"),
+    ModelKind(VOXEL, loader="dsr_bench.models.inference:load_voxel", config="dsr_bench.models.config:ModelConfig",
+              network="dsr_bench.models.dsr_net:DSRNet", files="3D-track",
+              tracks={"full": f"{_TRACKS}:VOXEL_FULL", "cpu": f"{_TRACKS}:VOXEL_CPU"}),
+    ModelKind(IMAGE, loader="dsr_bench.models.image_inference:load_image",
+              config="dsr_bench.models.image_config:ImageModelConfig", network="dsr_bench.models.image_nets:ImageNet",
+              files="2D-track", tracks={"full": f"{_TRACKS}:IMAGE_FULL", "cpu": f"{_TRACKS}:IMAGE_CPU"}),
+)})
 
 
 @dataclass(frozen=True)
@@ -51,12 +127,14 @@ class ModelEntry:
             raise ValueError(f"model {self.name!r}: the authors released weights of voxel models only")
         object.__setattr__(self, "variant", MappingProxyType(dict(self.variant)))
 
+    @property
+    def model_kind(self) -> ModelKind:
+        """Its kind's object (`KINDS`): config class, network, loader and training recipes."""
+        return KINDS[self.kind]
+
     def make_predictor(self):
         """A reference model's predictor (its class imported on use)."""
-        from importlib import import_module
-
-        module, _, attr = self.predictor.partition(":")
-        return getattr(import_module(module), attr)()
+        return resolve(self.predictor)()
 
 
 _PREDICTORS = "dsr_bench.models.predictors"
@@ -85,6 +163,11 @@ MODELS: Mapping[str, ModelEntry] = MappingProxyType({entry.name: entry for entry
 def released() -> tuple[str, ...]:
     """The models whose weights the authors released (`predict --weights`), in the table's order."""
     return tuple(name for name, entry in MODELS.items() if entry.released)
+
+
+def trainable() -> tuple[str, ...]:
+    """The kinds `dsr-bench train` trains (those with tracks), in the table's order."""
+    return tuple(name for name, kind in KINDS.items() if kind.trainable)
 
 
 def names(*kinds: str) -> tuple[str, ...]:

@@ -6,7 +6,7 @@ One weights format (`WEIGHTS_FORMAT`, version `WEIGHTS_VERSION`): a plain dict, 
 
 - `format`, `version`; `model_type`: the model's name (dsr, single, nowarp, gtwarp, 3dflow, 2dflow,
   se3net, se3posenet), whose entry in `dsr_bench.models.registry` resolves its kind, hence its
-  configuration and network class (`KINDS`: the type saved with the weights chooses the class);
+  configuration and network class (`registry.KINDS`: the type saved with the weights chooses the class);
   `model_config` (that configuration as a dict); `model` (the state dict; fp16 for the CPU-sized
   tracks' finished weights);
 - `role`: "checkpoint" (a `dsr-bench train` run that resumes exactly: + optimizer, scheduler, stage,
@@ -46,7 +46,7 @@ if TYPE_CHECKING:
     from dsr_bench.models.dsr_net import DSRNet
     from dsr_bench.models.image_nets import ImageNet
 
-__all__ = ["KINDS", "ROLES", "WEIGHTS_FORMAT", "WEIGHTS_VERSION", "Weights", "data_provenance", "git_hash",
+__all__ = ["ROLES", "WEIGHTS_FORMAT", "WEIGHTS_VERSION", "Weights", "data_provenance", "git_hash",
            "half", "read_weights", "rng_state", "save_checkpoint", "save_weights", "set_rng_state", "torch_device",
            "trained_split_checksum", "unwrap"]
 
@@ -55,12 +55,6 @@ WEIGHTS_VERSION = 2
 ROLES = ("checkpoint", "weights", "stage1")
 #: what a checkpoint that --resume continues holds beside the weights
 CHECKPOINT_SECTIONS = ("optimizer", "scheduler", "stage", "epoch", "batch_index", "step", "rng")
-#: each trainable kind of model (`registry`): its network ("module:Class"), its configuration class, what
-#: messages call its files, and the command that trains one
-KINDS = {registry.VOXEL: ("dsr_bench.models.dsr_net:DSRNet", "dsr_bench.models.config:ModelConfig", "3D-track",
-                          f"`dsr-bench train --model {'|'.join(registry.names(registry.VOXEL))}`"),
-         registry.IMAGE: ("dsr_bench.models.image_nets:ImageNet", "dsr_bench.models.image_config:ImageModelConfig",
-                          "2D-track", f"`dsr-bench train --model {'|'.join(registry.names(registry.IMAGE))}`")}
 #: version 1: each training path's own format name -> (kind, role)
 LEGACY_FORMATS = {"dsr-bench-checkpoint": (registry.VOXEL, "checkpoint"),
                   "dsr-bench-cpu-weights": (registry.VOXEL, "weights"),
@@ -70,15 +64,7 @@ LEGACY_FORMATS = {"dsr-bench-checkpoint": (registry.VOXEL, "checkpoint"),
 
 def model_types() -> tuple[str, ...]:
     """The model types a weights file may record: the registry's trainable models."""
-    return registry.names(*KINDS)
-
-
-def _attr(spec: str):
-    """The object "module:name" names."""
-    import importlib
-
-    module, _, name = spec.partition(":")
-    return getattr(importlib.import_module(module), name)
+    return registry.names(*registry.trainable())
 
 
 def torch_device(device: str) -> torch.device:
@@ -191,7 +177,7 @@ class Weights:
     kind: str
     role: str
     version: int
-    config: Any  # ModelConfig | ImageModelConfig: the class `KINDS` names for `kind`, chosen when the file is read
+    config: Any  # ModelConfig | ImageModelConfig: its kind's configuration class (`registry.KINDS`), chosen on reading
 
     def __getitem__(self, key: str):
         return self.payload[key]
@@ -215,7 +201,7 @@ class Weights:
     def network(self, device="cpu") -> torch.nn.Module:
         """The network its model type names (`DSRNet`, `ImageNet`), built from its configuration, the
         weights loaded, on `device`, in eval mode."""
-        net = _attr(KINDS[self.kind][0])(self.config)
+        net = registry.KINDS[self.kind].network_class()(self.config)
         self.load_into(net)
         return net.to(device).eval()
 
@@ -271,13 +257,14 @@ def read_weights(path: Path, map_location="cpu", *, kind: str | None = None, mod
         raise _fail(path, f"not a loadable dsr-bench checkpoint ({type(exc).__name__}: {first[:200]})") from None
     model_type, file_kind, file_role, version = _header(path, payload)
     if kind is not None and file_kind != kind:
-        raise _fail(path, f"not a {KINDS[kind][2]} weights file; train one with {KINDS[kind][3]}")
+        wanted = registry.KINDS[kind]
+        raise _fail(path, f"not a {wanted.files} weights file; train one with {wanted.train_command()}")
     if not all(isinstance(k, str) and isinstance(v, torch.Tensor) for k, v in payload["model"].items()):
         raise _fail(path, "not a dsr-bench checkpoint (its model is not a state dict of tensors)")
     if any(v.is_floating_point() and not bool(torch.isfinite(v).all()) for v in payload["model"].values()):
         raise _fail(path, "its weights hold NaN or infinite values")
     try:
-        config = _attr(KINDS[file_kind][1]).from_dict(payload["model_config"])
+        config = registry.KINDS[file_kind].config_class().from_dict(payload["model_config"])
     except (TypeError, ValueError, KeyError) as exc:
         raise _fail(path, f"unusable model_config ({exc})") from None
     model_type = model_type or config.name

@@ -9,6 +9,9 @@ from pathlib import Path
 
 from dsr_bench.errors import UserError
 
+#: the `--stage` that runs a model's whole curriculum (`training.curriculum`), each stage a run of its own
+CURRICULUM = "curriculum"
+
 
 @dataclass(frozen=True)
 class TrainConfig:
@@ -20,9 +23,11 @@ class TrainConfig:
 
     #: the reference model: dsr | single | nowarp | gtwarp | 3dflow
     model_name: str
-    #: the curriculum stage: cube-single | cube-multi | shapenet-multi (any data set)
+    #: the curriculum stage: cube-single | cube-multi | shapenet-multi (any data set), or "curriculum": all of the
+    #: model's stages in turn (`training.curriculum`)
     stage_name: str
-    #: dataset directory (sequence files, manifest, split lists)
+    #: dataset directory (sequence files, manifest, split lists); the curriculum's: every stage's but those of
+    #: `stage_data`
     data: Path
     #: run directory: last.pt, config.json, metrics.jsonl, tensorboard/
     out: Path
@@ -79,6 +84,8 @@ class TrainConfig:
     log_every: int = 10
     #: show a progress bar (rank 0)
     progress: bool = True
+    #: the curriculum's data of some of its stages, ((stage, directory), ...), instead of `data`
+    stage_data: tuple[tuple[str, Path], ...] = ()
 
     def __post_init__(self):
         for name in ("data", "out", "init", "resume"):
@@ -101,3 +108,14 @@ class TrainConfig:
             raise UserError(f"log_every {self.log_every}: must be at least 1")
         if self.resume is not None and self.init is not None:
             raise UserError("--resume continues a run with its own weights; drop --init")
+        if self.stage_data:
+            from dsr_bench.models.training.schedules import STAGES
+
+            if self.stage_name != CURRICULUM:
+                raise UserError(f"--stage-data gives the data of the curriculum's stages (--stage {CURRICULUM}); "
+                                "a single stage trains on --data")
+            stages = [stage for stage, _ in self.stage_data]
+            for stage in stages:
+                if stage not in STAGES or stages.count(stage) > 1:
+                    raise UserError(f"--stage-data {stage}=...: give each of {', '.join(STAGES)} at most once")
+            object.__setattr__(self, "stage_data", tuple((stage, Path(d)) for stage, d in self.stage_data))

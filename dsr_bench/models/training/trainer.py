@@ -367,8 +367,10 @@ def train(config: TrainConfig) -> Path:
         for epoch in range(run.start_epoch, run.stage.epochs):
             first = run.start_batch if epoch == run.start_epoch else 0
             if _train_epoch(run, log, budget, epoch, first):
-                return run.latest
+                break
             _end_epoch(run, log, epoch)
+        if run.distributed:  # every process returns once rank 0 has saved (a curriculum's next stage reads it)
+            torch.distributed.barrier()
         return run.latest
     finally:
         if log is not None:
