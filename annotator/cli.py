@@ -138,7 +138,8 @@ def _display_error(exc: Exception) -> bool:
 
 def import_capture(
     src: Path = typer.Argument(..., help="Folder of <camera>_color_<N>.png / <camera>_depth_<N>.png (cameras front, "
-                                         "back) with rig.json, or of RealSense recordings front.bag / back.bag with "
+                                         "back) with rig.json, or of RealSense recordings front / back (.bag: "
+                                         "librealsense up to 2.57; .db3: 2.58 on; or a ROS2 bag directory) with "
                                          "rig.json and steps.json (docs/annotator.md, 'Real captures in')."),
     out: Optional[Path] = typer.Option(None, "--out", "-o", help="Capture directory to write (e.g. "
                                        "captures/seq_0000); required unless --inspect."),
@@ -146,19 +147,21 @@ def import_capture(
                                        "extrinsics or ChArUco board, objects (default SRC/rig.json)."),
     pushes: Optional[Path] = typer.Option(None, "--pushes", help="The robot's push log, start [x, y] m and direction "
                                           "per push, table frame (default SRC/pushes.json)."),
-    steps: Optional[Path] = typer.Option(None, "--steps", help="Bags only: the time (s, the frames' header stamps) of "
-                                         "every step, JSON \"step_times\": one time per step (default "
-                                         "SRC/steps.json)."),
-    max_gap_ms: Optional[float] = typer.Option(None, "--max-gap-ms", help="Bags only: largest gap (ms) from a step "
-                                               "time to its colour frame and from it to its depth frame (default 50)."),
+    steps: Optional[Path] = typer.Option(None, "--steps", help="Recordings only: the time (s, the frames' timestamps, "
+                                         "librealsense's frame clock) of every step, JSON \"step_times\": one time "
+                                         "per step (default SRC/steps.json)."),
+    max_gap_ms: Optional[float] = typer.Option(None, "--max-gap-ms", help="Recordings only: largest gap (ms) from a "
+                                               "step time to its colour frame and from it to its depth frame (default "
+                                               "50)."),
     name: Optional[str] = typer.Option(None, "--name", help="Capture name (default the rig file's, else OUT's name)."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace OUT if it exists."),
-    inspect: bool = typer.Option(False, "--inspect", help="Only report what the recording holds (streams, frame "
-                                 "counts and gaps, intrinsics, distortion, depth units, board detections per camera, "
-                                 "step times, pushes) and what the import would refuse; convert and write nothing."),
+    inspect: bool = typer.Option(False, "--inspect", help="Only report what the recording holds (format and "
+                                 "writer, streams, frame counts and gaps, intrinsics, distortion, depth units, board "
+                                 "detections per camera, step times, pushes) and what the import would refuse; convert "
+                                 "and write nothing."),
 ) -> None:
-    """Import a real rig's colour and depth (PNGs, or RealSense .bag recordings: depth registered to colour) as a
-    capture: undistort, calibrate to the table (ChArUco board or given extrinsics), map the logged pushes to
+    """Import a real rig's colour and depth (PNGs, or RealSense .bag / .db3 recordings: depth registered to colour)
+    as a capture: undistort, calibrate to the table (ChArUco board or given extrinsics), map the logged pushes to
     benchmark actions."""
     from annotator.importer import import_capture as run_import
     from dsr_bench.errors import UserError
@@ -194,7 +197,80 @@ def import_capture(
     typer.echo(f"wrote {path}")
 
 
+def capture(
+    out: Path = typer.Option(..., "--out", "-o", help="New folder for the session: front.<db3|bag>, back.<db3|bag> "
+                             "(librealsense's recordings), steps.json, pushes.json, rig.json; import it with "
+                             "`dsr-bench import-capture OUT --out captures/NAME`."),
+    front: Optional[str] = typer.Option(None, "--front", help="Serial number of the front camera (the view models "
+                                        "see; `rs-enumerate-devices -s` lists them)."),
+    back: Optional[str] = typer.Option(None, "--back", help="Serial number of the back camera (optional)."),
+    color: str = typer.Option("1280x720@30", "--color", help="Colour mode WIDTHxHEIGHT@FPS (default 1280x720@30: the "
+                              "D415 modes of the paper's rig)."),
+    depth: str = typer.Option("1280x720@30", "--depth", help="Depth mode WIDTHxHEIGHT@FPS (default 1280x720@30, the "
+                              "D415's full depth resolution)."),
+    sync: bool = typer.Option(True, "--sync/--no-sync", help="Hardware-sync the cameras (front master, back slave; "
+                              "the sync cable) where both support it; skipped with a note where not."),
+    robot_file: Optional[Path] = typer.Option(None, "--robot-file", help="A new or empty file the robot's script "
+                                              "appends one event a line to: board, step (step 0), {\"event\": "
+                                              "\"step\", \"push\": {...}} (a push done), done."),
+    steps: Optional[int] = typer.Option(None, "--steps", help="End after this many pushes (N + 1 steps)."),
+    rig: Optional[Path] = typer.Option(None, "--rig", help="The rig file (board, objects) to copy into OUT with its "
+                                       "meshes (default: a template to complete before importing)."),
+    settle_ms: float = typer.Option(0.0, "--settle-ms", help="A step's frame is the first colour frame at least this "
+                                    "many ms after its mark (default 0)."),
+    timeout_frames: int = typer.Option(30, "--timeout-frames", help="A stream is dropped after this many frame "
+                                       "periods without a frame, or a frame-number jump of more (default 30: 1 s at "
+                                       "30 fps)."),
+    uncompressed: bool = typer.Option(False, "--uncompressed", help="Record without librealsense's compression."),
+    from_recordings: Optional[str] = typer.Option(None, "--from-recordings", help="front=PATH[,back=PATH]: "
+                                                  "librealsense recordings, played back, stand in for the cameras "
+                                                  "(tests, dry runs); --front/--back then optional, checked against "
+                                                  "their serials."),
+) -> None:
+    """Record a session of the real rig for import-capture: two RealSense cameras by serial number, colour and depth
+    recorded by librealsense, hardware-synced where they can be, and the robot's step marks and pushes (steps.json,
+    pushes.json, written as the recording goes). Ends on Ctrl-C / SIGTERM, after --steps pushes, or when the robot
+    writes done."""
+    import signal
+
+    from annotator.record import CaptureSession, parse_recordings
+    from dsr_bench.errors import UserError
+
+    session = CaptureSession.open(out, front=front, back=back, color=color, depth=depth, sync=sync, rig=rig,
+                                  from_recordings=parse_recordings(from_recordings) if from_recordings else None,
+                                  steps=steps, settle_ms=settle_ms, timeout_frames=timeout_frames,
+                                  compress=not uncompressed, robot_file=robot_file, on_event=typer.echo)
+    previous = {}
+    for number in (signal.SIGINT, signal.SIGTERM):
+        try:
+            previous[number] = signal.signal(number, lambda n, _: session.stop(f"{signal.Signals(n).name}"))
+        except ValueError:  # not the main thread: the caller stops the session
+            pass
+    cams = ", ".join(f"{n} ({c.device.describe()}: colour {c.modes['color']}, depth {c.modes['depth']})"
+                     for n, c in session.cameras.items())
+    ends = " or ".join(["Ctrl-C"] + ([f"{steps} pushes"] if steps else []) + (["`done` in the robot file"]
+                                                                             if robot_file else []))
+    typer.echo(f"recording {cams} into {out}; {session.notes[0]}; ends on {ends}", err=False)
+    try:
+        summary = session.wait()
+    except UserError:
+        for line in session.summary().lines:
+            typer.echo(line)
+        raise
+    finally:
+        for number, handler in previous.items():
+            signal.signal(number, handler)
+    for line in summary.lines:
+        typer.echo(line)
+    if summary.importable:
+        typer.echo(f"next: dsr-bench import-capture {out} --out captures/{out.name}")
+    else:
+        typer.echo(f"{out} holds {summary.steps} step(s): not importable (import-capture needs 2 steps or more)")
+
+
 def register(app: typer.Typer) -> None:
-    """Add `annotate` and `import-capture` to the `dsr-bench` CLI (the `dsr_bench.commands` entry point)."""
+    """Add `annotate`, `capture` and `import-capture` to the `dsr-bench` CLI (the `dsr_bench.commands` entry
+    point)."""
     app.command("annotate")(annotate)
+    app.command("capture")(capture)
     app.command("import-capture")(import_capture)

@@ -19,9 +19,9 @@ written, and the capture is written atomically (`write_capture`). The output is 
 every input before it is used (`annotator.inputs`): JSON values of the right type and range, PNG sizes from their
 headers, PNGs whole (chunk CRCs, IEND), paths that stay inside SRC, capture and object names that are plain names.
 
-A folder of RealSense `.bag` recordings instead (front.bag, back.bag) is the other form (`annotator.realsense`):
-`import_capture` dispatches on the folder's content; what both forms share (the rig file, the board calibration,
-undistortion) is `annotator.rig`.
+A folder of RealSense recordings instead (front.bag or front.db3, back.bag or back.db3) is the other form
+(`annotator.realsense`): `import_capture` dispatches on the folder's content; what both forms share (the rig file,
+the board calibration, undistortion) is `annotator.rig`.
 """
 
 from __future__ import annotations
@@ -254,11 +254,13 @@ def import_capture(src: str | Path, out: str | Path, *, rig: str | Path | None =
     check_out(out, overwrite)
     if name is not None:  # both forms: the name becomes part of output paths and identities
         plain_name(name, "the capture name", "--name")
-    has_bags = any(src.glob("*.bag"))
+    from annotator.realsense import recordings_in
+
+    has_bags = bool(recordings_in(src))  # .bag, .db3, ROS2 bag directories
     has_pngs = any(IMAGE_PATTERN.match(p.name) for p in src.iterdir())
     if has_bags and has_pngs:
-        raise UserError(f"{src}: holds both .bag recordings and <camera>_color_<N>.png images; keep one form per "
-                        "folder")
+        raise UserError(f"{src}: holds both RealSense recordings (.bag, .db3) and <camera>_color_<N>.png images; keep "
+                        "one form per folder")
     if has_bags:
         from annotator.realsense import DEFAULT_MAX_GAP_MS, import_bags
 

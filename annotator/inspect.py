@@ -1,12 +1,15 @@
 """`dsr-bench import-capture SRC --inspect`: what a recording holds, before anything is converted (issue 32 part 5).
 
-For a folder of RealSense bags (front.bag, back.bag): per bag its colour and depth streams (topic, size, frame count,
-frame rate, gaps between frames and skipped frame numbers), each stream's intrinsics and distortion model, the depth
-units, the depth -> colour transform, how much of the first depth frame is measured, and the ChArUco board's
-detection in the frame the import would calibrate from; then the steps file's times and how far each is from its
-frames. For a folder of step PNGs: the rig file's cameras (size, intrinsics, distortion, depth scale, extrinsics or
-board), per camera the step images found (numbers, gaps in the numbering, missing colour or depth, sizes and types
-from the PNG headers), the first depth image's coverage and the board's detection; the push log's count.
+For a folder of RealSense recordings (front.bag / front.db3, back.bag / back.db3): per recording what it is
+(container, librealsense's file version, the writer it points to, the device and its sensors, the frames' clock),
+its colour and depth streams (topic, size, frame count, frame rate, gaps between frames and skipped frame numbers),
+each stream's intrinsics and distortion model, the depth units, the depth -> colour transform, how much of the first
+depth frame is measured, and the ChArUco board's detection in the frame the import would calibrate from; then the
+steps file's times and how far each is from its frames. For a folder of step PNGs: the rig file's cameras (size,
+intrinsics, distortion, depth scale, extrinsics or board), per camera the step images found (numbers, gaps in the
+numbering, missing colour or depth, sizes and types from the PNG headers), the first depth image's coverage and the
+board's detection; the step numbers against the push log ("between", as the import checks them); the push log's
+count.
 
 Nothing is written. What the import would refuse is collected as problems (each one line naming the file and the
 fix) instead of stopping at the first: `inspect` returns the report's lines and the problems.
@@ -106,24 +109,26 @@ def _board(report: Report, spec: dict, where: str, image: np.ndarray, intrinsics
 
 def inspect_source(src: str | Path, rig: str | Path | None = None, pushes: str | Path | None = None,
                    steps: str | Path | None = None, max_gap_ms: float | None = None) -> Report:
-    """Inspect SRC, a folder of RealSense bags or of step PNGs (module docstring), converting nothing. A folder that
-    is neither (or both) is a UserError; anything else wrong is a problem in the report."""
+    """Inspect SRC, a folder of RealSense recordings or of step PNGs (module docstring), converting nothing. A folder
+    that is neither (or both) is a UserError; anything else wrong is a problem in the report."""
     from annotator.importer import IMAGE_PATTERN
+    from annotator.realsense import recordings_in
 
     src = Path(src)
     if not src.is_dir():
         raise UserError(f"{src}: no such folder; give the folder of <camera>_color_<N>.png / _depth_<N>.png images or "
-                        "of front.bag / back.bag recordings")
-    has_bags = any(src.glob("*.bag"))
+                        "of front.bag / back.bag (.db3) recordings")
+    has_bags = bool(recordings_in(src))
     has_pngs = any(IMAGE_PATTERN.match(p.name) for p in src.iterdir())
     if has_bags and has_pngs:
-        raise UserError(f"{src}: holds both .bag recordings and <camera>_color_<N>.png images; keep one form per "
-                        "folder")
+        raise UserError(f"{src}: holds both RealSense recordings (.bag, .db3) and <camera>_color_<N>.png images; keep "
+                        "one form per folder")
     if has_bags:
         return _inspect_bags(src, rig, pushes, steps, max_gap_ms)
     if not has_pngs:
-        raise UserError(f"{src}: holds no .bag recordings and no <camera>_color_<N>.png / _depth_<N>.png images; give "
-                        "the folder of a recording (docs/annotator.md, 'Real captures in')")
+        raise UserError(f"{src}: holds no RealSense recordings (<camera>.bag, <camera>.db3 or a ROS2 bag directory) "
+                        "and no <camera>_color_<N>.png / _depth_<N>.png images; give the folder of a recording "
+                        "(docs/annotator.md, 'Real captures in')")
     if steps is not None or max_gap_ms is not None:
         raise UserError(f"{src}: --steps and --max-gap-ms pick frames of .bag recordings; this folder holds none "
                         "(step PNGs are numbered by their names)")
@@ -150,27 +155,30 @@ def _rig(report: Report, src: Path, rig) -> tuple[Path | None, dict]:
 
 def _inspect_bags(src: Path, rig, pushes, steps, max_gap_ms) -> Report:
     from annotator.bag import open_recording, read_frame
-    from annotator.realsense import DEFAULT_MAX_GAP_MS, STEPS_FILE, find_bags, load_frames, pick_frames, read_step_times
+    from annotator.realsense import (DEFAULT_MAX_GAP_MS, STEPS_FILE, find_recordings, load_frames, pick_frames,
+                                     read_step_times, recordings_in)
     from annotator.rig import default_file
 
     report = Report()
-    report.add(f"{src}: RealSense recordings (.bag)")
+    report.add(f"{src}: RealSense recordings")
     bags = {}
     try:
-        bags = find_bags(src)
+        bags = find_recordings(src)
     except UserError as exc:
         report.problem(str(exc))
-        bags = {p.stem: p for p in sorted(src.glob("*.bag"))}
+        bags = {p.name if p.is_dir() else p.stem: p for p in recordings_in(src)}
     rig_path, spec = _rig(report, src, rig)
     recordings = {}
     for name, path in bags.items():
-        report.add(f"{path.name} ({name} camera, {path.stat().st_size / 1e6:.1f} MB):")
+        size = sum(p.stat().st_size for p in path.rglob("*") if p.is_file()) if path.is_dir() else path.stat().st_size
+        report.add(f"{path.name} ({name} camera, {size / 1e6:.1f} MB):")
         try:
             rec = open_recording(path, name)
         except UserError as exc:
             report.problem(str(exc))
             continue
         recordings[name] = rec
+        _about(report, rec)
         for kind, stream in (("colour", rec.color), ("depth", rec.depth)):
             info = stream.info
             timing = frame_timing(stream.stamps, stream.seqs)
@@ -227,6 +235,44 @@ def _inspect_bags(src: Path, rig, pushes, steps, max_gap_ms) -> Report:
             report.add(f"{name}:")
             _board(report, spec, str(rig_path), frames.color, rec.color.info.intrinsics, label)
     return report
+
+
+def _about(report: Report, rec) -> None:
+    """What a recording is (`annotator.bag.Recording.about`): container and writer, device, sensors, clock."""
+    about = rec.about
+    version = about.get("file_version")
+    report.add(f"  format: {about.get('container')}, librealsense file version "
+               f"{'unknown (no /file_version)' if version is None else version}: written by {about.get('writer')}")
+    sensors = about.get("sensors") or {}
+    report.add(f"  device: {about.get('device') or 'unnamed'} (serial {about.get('serial') or '?'}, firmware "
+               f"{about.get('firmware') or '?'}); sensors: depth {sensors.get('depth', '?')!r}, colour "
+               f"{sensors.get('colour', '?')!r}")
+    clock = f"frame timestamps, domain {about.get('timestamp_domain') or 'not recorded'}"
+    if about.get("header_stamps") == "from the recording's start":
+        clock += (f"; header stamps count from the recording's start, at frame timestamp "
+                  f"{about.get('recording_start', 0.0):.3f} s (step times: frame timestamps)")
+    report.add(f"  clock: {clock}")
+
+
+def _step_numbers(report: Report, src: Path, pushes, numbers: list[int], found: dict) -> None:
+    """The step numbers as the import checks them: without "between" in the push log they run without a gap, with it
+    each push lies between its two numbers (`annotator.importer.check_step_numbers`)."""
+    from annotator.importer import check_step_numbers, logged_between
+    from annotator.rig import PUSHES_FILE, default_file
+    from dsr_bench.constants import MODEL_CAMERA
+
+    front = found.get((MODEL_CAMERA, "color"), {})
+    if len(numbers) < 2 or any(n not in front for n in numbers):
+        return  # missing images are reported per camera
+    try:
+        log = default_file(src, pushes, PUSHES_FILE, "the push log")
+    except UserError:
+        return  # `_pushes` reports it
+    try:
+        check_step_numbers(src, numbers, {(MODEL_CAMERA, "color", n): p for n, p in front.items()},
+                           logged_between(log), log)
+    except UserError as exc:
+        report.problem(str(exc))
 
 
 def _pushes(report: Report, src: Path, pushes, count: int) -> None:
@@ -328,5 +374,6 @@ def _inspect_pngs(src: Path, rig, pushes) -> Report:
                 except UserError as exc:
                     report.problem(str(exc))
     report.add(f"steps: {len(numbers)} step numbers ({len(numbers) - 1} pushes)" if numbers else "steps: none")
+    _step_numbers(report, src, pushes, numbers, found)
     _pushes(report, src, pushes, len(numbers) - 1)
     return report

@@ -12,7 +12,10 @@ The file (`--pushes pushes.json`), table frame, metres:
                 {"start": [x, y], "angle_deg": 45, "length": 0.12}]}  or an angle (degrees, from +x towards +y)
 
 `length` (m, optional, default PUSH_LENGTH) places the logged end point (`pushes_world`), which the annotator uses to
-tell which objects the pusher passed.
+tell which objects the pusher passed. `between` [N, M] (optional, for every push or for none) gives the step numbers
+of the images before and after the push, as in their file names: with it the numbers may have gaps (frame numbers),
+and the importer checks push i against the i-th and (i + 1)-th numbers (`annotator.importer.logged_between`,
+`check_step_numbers`; docs/annotator.md, "Pushes").
 """
 
 from __future__ import annotations

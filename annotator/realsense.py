@@ -1,19 +1,24 @@
-"""`dsr-bench import-capture` of RealSense `.bag` recordings (docs/annotator.md, "Real captures in", "RealSense
+"""`dsr-bench import-capture` of RealSense recordings (docs/annotator.md, "Real captures in", "RealSense
 recordings").
 
 The folder:
 
-    SRC/front.bag, SRC/back.bag  one librealsense recording per camera (realsense-viewer, rs-record, rs2::recorder:
-                                 ROS1 bag v2.0, read with `rosbags`, no librealsense needed); the stem names the camera
-    SRC/steps.json               {"step_times": [t0, ..., tT]}: per step the time (s, the frames' header-stamp clock)
-                                 at which the rig saw step N; or {"step_times": {"front": [...], "back": [...]}} per
-                                 camera; optional "board_time" (the same forms): when the board lay alone on the table
-    SRC/rig.json                 objects, board and/or per-camera "extrinsics" (intrinsics and depth scale: the bags)
+    SRC/front.bag, SRC/back.bag  one librealsense recording per camera (realsense-viewer, rs-record, rs2::recorder),
+    (or .db3, or a directory)    the name naming the camera: `<camera>.bag` (ROS1, librealsense up to 2.57),
+                                 `<camera>.db3` (ROS2 SQLite, 2.58 on) or `<camera>/` (a ROS2 bag directory with
+                                 metadata.yaml); read with `rosbags` and sqlite3 (`annotator.bag`), no librealsense
+    SRC/steps.json               {"step_times": [t0, ..., tT]}: per step the time (s, on the frames' timestamp clock:
+                                 librealsense's frame timestamp, the ROS1 header stamp, a ROS2 frame's metadata
+                                 timestamp) at which the rig saw step N; or {"step_times": {"front": [...], "back":
+                                 [...]}} per camera; optional "board_time" (the same forms): when the board lay alone
+                                 on the table
+    SRC/rig.json                 objects, board and/or per-camera "extrinsics" (intrinsics, depth scale: recordings)
     SRC/pushes.json              the robot's push log (annotator.pushes)
 
-Per step the colour frame whose header stamp is nearest the step time is taken, and the depth frame nearest that
-colour frame; either further than `max_gap` (default DEFAULT_MAX_GAP_MS) is refused. Reading the bags, undistorting
-colour and registering depth to it is `annotator.bag`'s; the rig file and the board calibration `annotator.rig`'s.
+Per step the colour frame whose timestamp is nearest the step time is taken, and the depth frame nearest that
+colour frame; either further than `max_gap` (default DEFAULT_MAX_GAP_MS) is refused. Reading the recordings is
+`annotator.bag`'s, undistorting colour and registering depth to it `annotator.registration`'s; the rig file and the
+board calibration `annotator.rig`'s.
 """
 
 from __future__ import annotations
@@ -25,9 +30,11 @@ from pathlib import Path
 
 import numpy as np
 
-from annotator.bag import HINT, Recording, align_depth, open_recording, read_frame
+from annotator.bag import HINT, Recording, open_recording, read_frame
 from annotator.inputs import finite, is_number, numbers, resolved_inside
-from annotator.rig import PUSHES_FILE, calibrate_cameras, check_out, default_file, load_rig, read_objects, undistort
+from annotator.registration import align_depth
+from annotator.rig import (PUSHES_FILE, calibrate_cameras, capture_name, check_out, default_file, load_rig,
+                          read_objects, undistort)
 from dsr_bench.constants import CAMERAS
 from dsr_bench.dataset.capture import parse_camera, write_capture
 from dsr_bench.errors import UserError
@@ -35,7 +42,9 @@ from dsr_bench.errors import UserError
 #: A step's colour frame must lie this close (ms) to the step time, and its depth frame this close to the colour.
 DEFAULT_MAX_GAP_MS: float = 50.0
 STEPS_FILE = "steps.json"
-BAG_SUFFIX = ".bag"
+#: A camera's recording in SRC: `<camera>.bag`, `<camera>.db3`, or a directory `<camera>/` holding ROS2_METADATA.
+RECORDING_SUFFIXES = (".bag", ".db3")
+ROS2_METADATA = "metadata.yaml"
 
 
 def _times(path: Path, key: str, value, names: list[str], count: int | None) -> dict[str, np.ndarray]:
@@ -68,14 +77,14 @@ def read_step_times(path: Path, names: list[str]) -> tuple[dict[str, np.ndarray]
     """Per camera the step times (T + 1,) s and the board time (1,) s or None, from a steps file (module
     docstring); UserError naming the file and the fix."""
     if not path.is_file():
-        raise UserError(f"--steps {path}: no such file; write the time (s, the bags' header stamps) of every step as "
+        raise UserError(f"--steps {path}: no such file; write the time (s, the frames' timestamps) of every step as "
                         '{"step_times": [t0, t1, ...]} (' + HINT + ")")
     try:
         data = json.loads(path.read_text())
     except (json.JSONDecodeError, UnicodeDecodeError, RecursionError) as exc:
         raise UserError(f"--steps {path}: unreadable JSON ({exc}); fix the file") from None
     if not isinstance(data, dict) or "step_times" not in data:
-        raise UserError(f'--steps {path}: expected {{"step_times": [t0, t1, ...]}} (s, the bags\' header stamps; or '
+        raise UserError(f'--steps {path}: expected {{"step_times": [t0, t1, ...]}} (s, the frames\' timestamps; or '
                         '{"front": [...], "back": [...]}) and optionally "board_time"')
     steps = _times(path, "step_times", data["step_times"], names, None)
     if len({len(t) for t in steps.values()}) > 1:
@@ -110,7 +119,7 @@ def pick_frames(recording: Recording, times: np.ndarray, max_gap_s: float, where
         raise UserError(f"{where}: {what(i)} time {times[i]:.3f} s has no {recording.name} colour frame within "
                         f"{max_gap_s * 1000:g} ms (nearest {c_st[color[i]]:.3f} s, {gap[i] * 1000:.0f} ms away; its "
                         f"colour frames span {c_st[0]:.3f}..{c_st[-1]:.3f} s in {recording.path.name}): give times on "
-                        "the frames' header-stamp clock, or raise --max-gap-ms")
+                        "the frames' timestamp clock, or raise --max-gap-ms")
     depth = _nearest(d_st, c_st[color])
     dgap = np.abs(d_st[depth] - c_st[color])
     for i in np.nonzero(dgap > max_gap_s)[0].tolist():
@@ -129,7 +138,7 @@ def pick_frames(recording: Recording, times: np.ndarray, max_gap_s: float, where
 @dataclass
 class Frames:
     """A step's images of one camera: undistorted colour (H, W, 3) uint8 RGB, registered depth (H, W) m, and where
-    they came from (header stamps s, seqs)."""
+    they came from (frame timestamps s, frame numbers)."""
 
     color: np.ndarray
     depth: np.ndarray
@@ -137,8 +146,8 @@ class Frames:
 
 
 def load_frames(recording: Recording, color_index: int, depth_index: int) -> Frames:
-    """The colour frame undistorted (`annotator.bag.undistortion_maps`, bilinear) and the depth frame registered to it
-    (`align_depth`)."""
+    """The colour frame undistorted (`annotator.registration.undistortion_maps`, bilinear) and the depth frame
+    registered to it (`align_depth`)."""
     color = read_frame(recording, "colour", color_index)
     if recording.color_maps is not None:
         color = undistort(color, recording.color_maps, nearest=False)
@@ -153,31 +162,46 @@ def load_frames(recording: Recording, color_index: int, depth_index: int) -> Fra
     return Frames(color, depth, source)
 
 
-def find_bags(src: Path) -> dict[str, Path]:
-    """SRC's `<camera>.bag` files by camera name, the names checked as the PNG form's: `front` required, `back`
-    optional, nothing else."""
-    bags = {p.stem: resolved_inside(src, p, "recording", src) for p in sorted(src.glob("*" + BAG_SUFFIX))}
-    bad = [n for n in bags if n not in CAMERAS]  # the benchmark's cameras (the PNG form's rig cameras too)
-    if bad or "front" not in bags:
-        listed = ", ".join(p.name for p in bags.values())
-        raise UserError(f"{src}: the bags ({listed}) must be front.bag (the view models see; required) and back.bag: "
-                        f"rename {', '.join(bags[n].name for n in bad) or 'one of them to front.bag'} (the file's stem "
-                        "names the camera)")
-    return {n: bags[n] for n in CAMERAS if n in bags}
+def recordings_in(src: Path) -> list[Path]:
+    """SRC's RealSense recordings: `*.bag` and `*.db3` files and ROS2 bag directories (holding metadata.yaml)."""
+    return sorted(p for p in src.iterdir() if p.is_dir() and (p / ROS2_METADATA).is_file()
+                  or p.suffix in RECORDING_SUFFIXES and not p.is_dir())
+
+
+def find_recordings(src: Path) -> dict[str, Path]:
+    """SRC's recordings by camera name (a file's stem, a directory's name), the names checked as the PNG form's:
+    `front` required, `back` optional, nothing else, one recording per camera."""
+    found: dict[str, list[Path]] = {}
+    for path in recordings_in(src):
+        found.setdefault(path.name if path.is_dir() else path.stem, []).append(path)
+    twice = {n: ps for n, ps in found.items() if len(ps) > 1}
+    if twice:
+        name, paths = next(iter(twice.items()))
+        raise UserError(f"{src}: {' and '.join(p.name for p in paths)} both record camera {name!r}; keep one "
+                        "recording per camera")
+    recordings = {n: resolved_inside(src, ps[0], "recording", src) for n, ps in found.items()}
+    bad = [n for n in recordings if n not in CAMERAS]  # the benchmark's cameras (the PNG form's rig cameras too)
+    if bad or "front" not in recordings:
+        listed = ", ".join(p.name for p in recordings.values())
+        raise UserError(f"{src}: the recordings ({listed}) must be front.bag (or front.db3, or a ROS2 bag directory "
+                        f"front/: the view models see; required) and back.bag: rename "
+                        f"{', '.join(recordings[n].name for n in bad) or 'one of them to front.bag'} (the name names "
+                        "the camera)")
+    return {n: recordings[n] for n in CAMERAS if n in recordings}
 
 
 def import_bags(src: str | Path, out: str | Path, *, rig: str | Path | None = None, pushes: str | Path | None = None,
                 steps: str | Path | None = None, max_gap_ms: float = DEFAULT_MAX_GAP_MS, name: str | None = None,
                 overwrite: bool = False) -> tuple[Path, dict]:
-    """Import SRC's RealSense bags (module docstring) into the capture directory `out`; returns (out, calibration
-    report). Everything is read and checked first (one-line UserErrors), then written at once."""
+    """Import SRC's RealSense recordings (module docstring) into the capture directory `out`; returns (out,
+    calibration report). Everything is read and checked first (one-line UserErrors), then written at once."""
     from annotator.pushes import read_pushes
 
     src, out = Path(src), Path(out)
     check_out(out, overwrite)
     if not (math.isfinite(max_gap_ms) and max_gap_ms > 0):
         raise UserError(f"--max-gap-ms {max_gap_ms} must be a positive number of milliseconds")
-    bags = find_bags(src)
+    bags = find_recordings(src)
     names = list(bags)
     rig_path, spec = load_rig(src, rig)
     rig_cameras = spec.get("cameras", {}) or {}
@@ -197,6 +221,7 @@ def import_bags(src: str | Path, out: str | Path, *, rig: str | Path | None = No
         raise UserError(f"{rig_path}: board \"images\" are PNGs of the folder form; with bags give \"board_time\" (s) "
                         "in the steps file (the board alone on the table), or let the first step's frames be used")
     objects = read_objects(rig_path, src, spec.get("objects"))
+    title = capture_name(name, spec, rig_path, out)
     steps_path = default_file(src, steps, STEPS_FILE, "the steps file")
     step_times, board_times = read_step_times(steps_path, names)
     count = len(step_times["front"])
@@ -235,10 +260,12 @@ def import_bags(src: str | Path, out: str | Path, *, rig: str | Path | None = No
                for n, r in recordings.items()}
     source = {"kind": "real", "importer": "annotator.realsense", "format": "realsense-bag", "src": str(src),
               "rig": spec, "bags": {n: str(p) for n, p in bags.items()}, "streams": streams,
+              "recordings": {n: r.about for n, r in recordings.items()},
+              "clock": "frame timestamps (s): librealsense's frame clock; ROS1 header stamps, ROS2 frame metadata",
               "step_times": {n: t.tolist() for n, t in step_times.items()}, "max_gap_ms": max_gap_ms,
               "frames": [{n: f[n].source for n in names} for f in frames], "calibration": report,
               "policy": "recorded"}
-    written = write_capture(out, name=name or str(spec.get("name") or out.name), cameras=cameras,
+    written = write_capture(out, name=title, cameras=cameras,
                             colors=[{n: f[n].color for n in names} for f in frames],
                             depths=[{n: f[n].depth for n in names} for f in frames], actions=actions,
                             pushes_world=pushes_world, objects=objects, source=source, overwrite=overwrite)

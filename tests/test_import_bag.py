@@ -1,6 +1,7 @@
 """Real captures in from RealSense `.bag` recordings (issue 18): `dsr-bench import-capture` of a folder of
-front.bag / back.bag (ROS1 bags as librealsense's recorder writes them), depth registered to colour, frames picked
-per step by time, and every one-line error on the way.
+front.bag / back.bag (ROS1 bags laid out as librealsense's recorder writes them, and which librealsense plays back:
+tests/test_realsense_recordings.py; recordings librealsense itself wrote are tested there), depth registered to
+colour, frames picked per step by time, and every one-line error on the way.
 
 Fixture: the simulated capture of tests/test_import_capture.py (seed 1, 3 objects, 2 pushes) recorded as a D435
 would: per camera a 720 x 1280 colour stream (the PNG tests' true camera: fy = 1.04 fx, off-centre principal point,
@@ -79,7 +80,7 @@ def _store():
     from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
     store = get_typestore(Stores.ROS1_NOETIC)
-    store.register(get_types_from_msg("string encoding\nuint32 fps\nbool is_recommended",
+    store.register(get_types_from_msg("uint32 fps\nstring encoding\nbool is_recommended",  # librealsense's order
                                       "realsense_msgs/msg/StreamInfo"))
     return store
 
@@ -119,9 +120,14 @@ def _image(store, stamp: float, seq: int, array: np.ndarray, encoding: str):
 def write_bag(path: Path, *, color: list, depth: list, color_k: np.ndarray, depth_k: np.ndarray, color_model: str,
               color_coeffs, depth_to_color: np.ndarray, reference: str = "depth", depth_units: float = 0.001,
               omit: tuple[str, ...] = ()) -> None:
-    """A librealsense-style recording (D435 layout: depth on sensor_0, colour on sensor_1) of `color` [(stamp s, seq,
-    (H, W, 3) uint8 RGB)] and `depth` [(stamp s, seq, (h, w) uint16)]; the stream extrinsics in group 0 relative to
-    the `reference` stream; topics containing any of `omit` are left out."""
+    """A recording laid out as librealsense 2.55 writes one (D435: depth on sensor_0 "Stereo Module", colour on
+    sensor_1 "RGB Camera"; file version 4; each image message followed by the 4 undeclared bytes of its depth units;
+    the device, sensor and stream info librealsense's playback needs) of `color` [(stamp s, seq, (H, W, 3) uint8
+    RGB)] and `depth` [(stamp s, seq, (h, w) uint16)]; the stream extrinsics in group 0 relative to the `reference`
+    stream; topics containing any of `omit` are left out. librealsense plays it back
+    (tests/test_realsense_recordings.py)."""
+    import struct
+
     from rosbags.rosbag1 import Writer
 
     store = _store()
@@ -130,17 +136,23 @@ def write_bag(path: Path, *, color: list, depth: list, color_k: np.ndarray, dept
     to_color = depth_to_color if reference == "depth" else np.eye(4)
     ch, cw = color[0][2].shape[:2]
     dh, dw = depth[0][2].shape
+    key_value = t["diagnostic_msgs/msg/KeyValue"]
     static = [
-        ("/file_version", "std_msgs/msg/UInt32", t["std_msgs/msg/UInt32"](data=3)),
+        ("/file_version", "std_msgs/msg/UInt32", t["std_msgs/msg/UInt32"](data=4)),
+        ("/device_0/info", "diagnostic_msgs/msg/KeyValue", key_value(key="Name", value="Intel RealSense D435")),
+        ("/device_0/sensor_0/info", "diagnostic_msgs/msg/KeyValue", key_value(key="Name", value="Stereo Module")),
+        ("/device_0/sensor_1/info", "diagnostic_msgs/msg/KeyValue", key_value(key="Name", value="RGB Camera")),
         ("/device_0/sensor_0/Depth_0/info", "realsense_msgs/msg/StreamInfo",
          t["realsense_msgs/msg/StreamInfo"](encoding="mono16", fps=30, is_recommended=True)),
+        ("/device_0/sensor_1/Color_0/info", "realsense_msgs/msg/StreamInfo",
+         t["realsense_msgs/msg/StreamInfo"](encoding="rgb8", fps=30, is_recommended=True)),
         ("/device_0/sensor_0/Depth_0/info/camera_info", "sensor_msgs/msg/CameraInfo",
          _camera_info(store, depth_k, (dh, dw), "Brown Conrady", np.zeros(5))),
         ("/device_0/sensor_1/Color_0/info/camera_info", "sensor_msgs/msg/CameraInfo",
          _camera_info(store, color_k, (ch, cw), color_model, color_coeffs)),
-        ("/device_0/sensor_0/option/Depth Units/value", "std_msgs/msg/Float32",
+        ("/device_0/sensor_0/option/Depth_Units/value", "std_msgs/msg/Float32",
          t["std_msgs/msg/Float32"](data=depth_units)),
-        ("/device_0/sensor_0/option/Emitter Enabled/value", "std_msgs/msg/Float32",
+        ("/device_0/sensor_0/option/Emitter_Enabled/value", "std_msgs/msg/Float32",
          t["std_msgs/msg/Float32"](data=1.0)),
         ("/device_0/sensor_0/Depth_0/tf/0", "geometry_msgs/msg/Transform", _transform(store, to_depth)),
         ("/device_0/sensor_1/Color_0/tf/0", "geometry_msgs/msg/Transform", _transform(store, to_color)),
@@ -152,21 +164,21 @@ def write_bag(path: Path, *, color: list, depth: list, color_k: np.ndarray, dept
     with Writer(path) as writer:
         connections = {}
 
-        def write(topic: str, msgtype: str, message, log_ns: int) -> None:
+        def write(topic: str, msgtype: str, message, log_ns: int, extra: bytes = b"") -> None:
             if any(o in topic for o in omit):
                 return
             if topic not in connections:
                 connections[topic] = writer.add_connection(topic, msgtype, typestore=store)
-            writer.write(connections[topic], log_ns, store.serialize_ros1(message, msgtype))
+            writer.write(connections[topic], log_ns, bytes(store.serialize_ros1(message, msgtype)) + extra)
 
         for topic, msgtype, message in static:
             write(topic, msgtype, message, 1)
         for stamp, topic, message in frames:
-            write(topic, "sensor_msgs/msg/Image", message, int(round((stamp - start) * 1e9)))
-            if "Depth" in topic:
-                write("/device_0/sensor_0/Depth_0/image/metadata", "diagnostic_msgs/msg/KeyValue",
-                      t["diagnostic_msgs/msg/KeyValue"](key="frame_counter", value=str(message.header.seq)),
-                      int(round((stamp - start) * 1e9)))
+            log_ns, units = int(round((stamp - start) * 1e9)), depth_units if "Depth" in topic else 0.0
+            write(topic, "sensor_msgs/msg/Image", message, log_ns, struct.pack("<f", units))
+            for key, value in (("timestamp_domain", "Global Time"), ("frame_counter", str(message.header.seq))):
+                write(topic.replace("/data", "/metadata"), "diagnostic_msgs/msg/KeyValue",
+                      key_value(key=key, value=value), log_ns)
 
 
 def _events(name: str) -> list[tuple[float, int]]:
@@ -244,7 +256,8 @@ def test_align_depth_registers_a_tilted_plane_without_holes():
     """A plane seen by an 480 x 848 depth camera registered to a 720 x 1280 colour camera 15 mm and 0.7 degrees
     away: the colour camera's z of the plane at every covered pixel (no holes: each depth pixel's footprint is
     splatted), the nearer surface where two overlap."""
-    from annotator.bag import Recording, Stream, StreamInfo, align_depth
+    from annotator.bag import Recording, Stream, StreamInfo
+    from annotator.registration import align_depth
 
     color_k = _true_camera("front").intrinsics
     depth_cam = _depth_camera("front", Camera("front", *SHAPE, color_k, np.eye(4)))
@@ -279,7 +292,7 @@ def test_align_depth_registers_a_tilted_plane_without_holes():
 
 
 def test_distortion_models_round_trip_and_inverse_brown_matches_opencv():
-    from annotator.bag import StreamInfo, _raw_of_ideal, ideal_rays, undistortion_maps
+    from annotator.registration import StreamInfo, _raw_of_ideal, ideal_rays, undistortion_maps
 
     k = _true_camera("front").intrinsics
     h, w = 72, 128
@@ -448,7 +461,7 @@ def _with_rig(folder: Path, edit) -> Path:
 
 
 def _no_depth_units(tmp, src):
-    return _tiny(tmp, src, omit=("Depth Units",))
+    return _tiny(tmp, src, omit=("Depth_Units",))
 
 
 def _no_color_info(tmp, src):
@@ -501,22 +514,24 @@ def _mixed_forms(tmp, src):
 
 
 @pytest.mark.parametrize("make, expected", [
-    (_no_depth_units, "front.bag: no topic /device_0/sensor_0/option/Depth Units/value (the depth sensor's Depth "
-                      "Units option, metres per depth unit); record"),
+    (_no_depth_units, "front.bag: no topic /device_0/sensor_0/option/Depth_Units/value (the depth sensor's Depth "
+                      "Units option, metres per depth unit; '/device_0/sensor_0/option/Depth Units/value' in older "
+                      "recordings); record"),
     (_no_color_info, "front.bag: no topic /device_0/sensor_1/Color_0/info/camera_info (the colour stream's "
-                     "intrinsics)"),
+                     "intrinsics; /device_0/sensor_1/Color_0/camera_info in a ROS2 recording)"),
     (_ftheta, "front.bag: the colour stream (/device_0/sensor_1/Color_0/info/camera_info) has distortion model "
               "'Ftheta', which this importer cannot undistort"),
     (_far_step, "steps.json: step 2 time 1716985213.000 s has no front colour frame within 50 ms (nearest "
                 "1716985208.000 s, 5000 ms away"),
     (_late_depth, "the front colour frame of step 0 (1716985202.000 s) has no depth frame within 50 ms (nearest 200 "
                   "ms away in front.bag)"),
-    (_left_bag, "the bags (front.bag, left.bag) must be front.bag (the view models see; required) and back.bag: "
-                "rename left.bag"),
+    (_left_bag, "the recordings (front.bag, left.bag) must be front.bag (or front.db3, or a ROS2 bag directory "
+                "front/: the view models see; required) and back.bag: rename left.bag"),
     (_turned_away, "rig.json camera 'front': the grid's table corner (0.756, -0.256, 0) m projects to pixel"),
     (_intrinsics_in_rig, "camera 'front' gives fx, but with bags the intrinsics, distortion and depth scale come from "
                          "front.bag"),
-    (_mixed_forms, "holds both .bag recordings and <camera>_color_<N>.png images; keep one form per folder"),
+    (_mixed_forms, "holds both RealSense recordings (.bag, .db3) and <camera>_color_<N>.png images; keep one form "
+                   "per folder"),
 ])
 def test_bag_errors_are_one_line_naming_the_input_and_the_fix(bags, tmp_path, capsys, make, expected):
     from dsr_bench.cli import main
@@ -538,7 +553,7 @@ def test_bag_options_are_documented_and_png_folders_refuse_them(tmp_path, capsys
     assert "--steps" in out and "--max-gap-ms" in out
     docs = (Path(__file__).parents[1] / "docs" / "annotator.md").read_text()
     assert "dsr-bench import-capture SRC --out CAPTURE [--steps STEPS.json] [--max-gap-ms MS]" in docs
-    for topic in ("/device_0/sensor_<d>/option/Depth Units/value", "Color_0/info/camera_info", "Depth_0/tf/<g>"):
+    for topic in ("/device_0/sensor_<d>/option/Depth_Units/value", "Color_0/info/camera_info", "Depth_0/tf/<g>"):
         assert topic in docs
     (tmp_path / "src").mkdir()
     assert main(["import-capture", str(tmp_path / "src"), "--out", str(tmp_path / "o"), "--max-gap-ms", "20"]) == 2

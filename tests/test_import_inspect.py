@@ -1,7 +1,8 @@
 """`dsr-bench import-capture SRC --inspect` (issue 32 part 5): what a recording holds, reported before anything is
 converted, on the project's own test recordings: the PNG rig of tests/test_import_capture.py and the RealSense bags
-of tests/test_import_bag.py (written by the project's own helper: no file librealsense wrote has been read here).
-Every problem the import would refuse is reported, not only the first, and nothing is written.
+of tests/test_import_bag.py (laid out as librealsense writes them; recordings librealsense itself wrote are inspected
+in tests/test_realsense_recordings.py). Every problem the import would refuse is reported, not only the first, and
+nothing is written.
 """
 
 from __future__ import annotations
@@ -91,6 +92,27 @@ def test_inspect_lists_every_problem_not_only_the_first(rig, tmp_path, capsys):
     assert "depth: 2 images" in captured.out  # the rest is still reported
 
 
+def test_inspect_checks_the_step_numbers_against_the_push_log_as_the_import_does(rig, tmp_path, capsys):
+    """A dropped step (the numbers jump from 18 to 20) is a problem, named as the import names it; with each push's
+    "between" in the log the same numbers are frame numbers, and fine (issue 42)."""
+    from dsr_bench.cli import main
+
+    copy = tmp_path / "src"
+    shutil.copytree(rig[0], copy)
+    last = FIRST_STEP + 2
+    for image in copy.glob(f"*_{last:06d}.png"):
+        image.rename(image.with_name(image.name.replace(f"{last:06d}", f"{last + 1:06d}")))
+    assert main(["import-capture", str(copy), "--inspect"]) == 2
+    out = capsys.readouterr().out
+    assert f"PROBLEM: {copy}: step {last} missing (the image numbers jump from {last - 1} to {last + 1}" in out
+    log = json.loads((copy / "pushes.json").read_text())
+    for push, between in zip(log["pushes"], [[FIRST_STEP, FIRST_STEP + 1], [FIRST_STEP + 1, last + 1]]):
+        push["between"] = between
+    (copy / "pushes.json").write_text(json.dumps(log))
+    assert main(["import-capture", str(copy), "--inspect"]) == 0
+    assert "PROBLEM" not in capsys.readouterr().out
+
+
 def test_inspect_without_out_and_import_without_out(rig, tmp_path, capsys):
     from dsr_bench.cli import main
 
@@ -156,12 +178,12 @@ def test_inspect_of_broken_bags_names_each_problem(bags, tmp_path, capsys):
 
     from dsr_bench.cli import main
 
-    folder = _tiny(tmp_path / "src", bags[0], omit=("Depth Units",))  # the front bag lacks its depth units
+    folder = _tiny(tmp_path / "src", bags[0], omit=("Depth_Units",))  # the front bag lacks its depth units
     (folder / "steps.json").write_text(json.dumps({"step_times": [*STEP_TIMES[:2], STEP_TIMES[2] + 5.0]}))
     assert main(["import-capture", str(folder), "--inspect"]) == 2
     captured = capsys.readouterr()
     problems = [line for line in captured.out.splitlines() if "PROBLEM" in line]
-    assert any("front.bag: no topic" in p and "Depth Units" in p for p in problems)
+    assert any("front.bag: no topic" in p and "Depth_Units" in p for p in problems)
     assert any("step 2 time" in p and "has no back colour frame within 50 ms" in p for p in problems)
     assert "back.bag (back camera" in captured.out and "depth units 0.001 m per unit" in captured.out  # reported
     assert len(captured.err.strip().splitlines()) == 1
