@@ -17,8 +17,9 @@ import numpy as np
 
 from dsr_bench.geometry import pose_to_matrix
 
-#: "wrong object" when more than this fraction of the cloud points a pose explains (within align.INLIER_DISTANCE
-#: of its surface) lie as close to another object's posed surface: the fit sits on that object's points ...
+#: "wrong object" when more than this fraction of the cloud points a pose explains (within the session's
+#: limits.inlier_distance of its surface) lie as close to another object's posed surface: the fit sits on that
+#: object's points ...
 SHARED_POINTS_FRACTION = 0.5
 #: ... counted only with at least this many explained points.
 MIN_EXPLAINED_POINTS = 30
@@ -168,12 +169,12 @@ def wrong_object(session, obj: int, other_shapes: bool = True) -> str | None:
     samples = s.samples(obj)
     crop = s._crop(step, m, samples)
     own = align.posed_samples(samples, m)[0]
-    d, _ = cKDTree(own).query(crop, distance_upper_bound=align.INLIER_DISTANCE) if len(crop) else (np.zeros(0), None)
+    d, _ = cKDTree(own).query(crop, distance_upper_bound=s.limits.inlier_distance) if len(crop) else (np.zeros(0), None)
     explained = crop[np.isfinite(d)]
     if len(explained) >= MIN_EXPLAINED_POINTS:
         for k, other in s._others(obj, step):
             theirs = align.posed_samples(s.samples(k), pose_to_matrix(other))[0]
-            dk, _ = cKDTree(theirs).query(explained, distance_upper_bound=align.INLIER_DISTANCE)
+            dk, _ = cKDTree(theirs).query(explained, distance_upper_bound=s.limits.inlier_distance)
             shared = float(np.isfinite(dk).mean())
             if shared > SHARED_POINTS_FRACTION:
                 return f"wrong object? {shared:.0%} of its points are those of {describe(s, k)}, placed there"
@@ -185,7 +186,7 @@ def wrong_object(session, obj: int, other_shapes: bool = True) -> str | None:
     if not other_shapes or score.accepted:
         return None
     blob = crop[np.linalg.norm(crop - (m[:3, :3] @ samples.centre + m[:3, 3]), axis=1) <= samples.radius]
-    if len(blob) < align.MIN_CORRESPONDENCES:
+    if len(blob) < s.limits.min_correspondences:
         return None
     best = None
     for k in range(s.num_objects):
@@ -213,9 +214,9 @@ def _chromaticity(rgb) -> np.ndarray | None:
 
 def _coloured_like(session, obj: int, step: int, transform: np.ndarray) -> tuple[int, int] | None:
     """(another object k, surface samples seen) when the colours the cameras saw on object `obj`'s surface at
-    `transform` (4, 4) (`align.sample_colours`, median chromaticity of at least COLOUR_MIN_SAMPLES samples) are
-    farther than COLOUR_DISTANCE from its own identity colour and at most half as far from object k's; None
-    otherwise, or when the objects' identities carry no colour (a simulated capture's do)."""
+    `transform` (4, 4) (`align.sample_colours`, median chromaticity of at least the session's limits'
+    colour_min_samples samples) are farther than colour_distance from its own identity colour and at most half as
+    far from object k's; None otherwise, or when the objects' identities carry no colour (a simulated capture's do)."""
     from annotator import align
 
     s = session
@@ -224,14 +225,14 @@ def _coloured_like(session, obj: int, step: int, transform: np.ndarray) -> tuple
     if own[obj] is None or all(c is None for k, c in enumerate(own) if k != obj):
         return None
     colours = align.sample_colours(*align.posed_samples(s.samples(obj), transform), s._views(step))
-    seen = np.all(np.isfinite(colours), axis=1) & (np.nan_to_num(colours).mean(1) > align.COLOUR_MIN_BRIGHTNESS)
-    if seen.sum() < align.COLOUR_MIN_SAMPLES:
+    seen = np.all(np.isfinite(colours), axis=1) & (np.nan_to_num(colours).mean(1) > s.limits.colour_min_brightness)
+    if seen.sum() < s.limits.colour_min_samples:
         return None
     observed = np.median(colours[seen] / colours[seen].sum(1, keepdims=True), axis=0)
     mine = float(np.abs(observed - own[obj]).sum())
     others = [(float(np.abs(observed - c).sum()), k) for k, c in enumerate(own) if k != obj and c is not None]
     best, k = min(others)
-    return (k, int(seen.sum())) if mine > align.COLOUR_DISTANCE and best <= mine / 2 else None
+    return (k, int(seen.sum())) if mine > s.limits.colour_distance and best <= mine / 2 else None
 
 
 def _fit_elsewhere(session, k: int, obj: int, step: int, blob: np.ndarray):
@@ -242,7 +243,7 @@ def _fit_elsewhere(session, k: int, obj: int, step: int, blob: np.ndarray):
     from scipy.spatial import cKDTree
 
     from annotator import align
-    from annotator.session import _best_starts, _rank
+    from annotator.carry import _best_starts, _rank
 
     s = session
     samples = s.samples(k)
@@ -264,7 +265,7 @@ def _fit_elsewhere(session, k: int, obj: int, step: int, blob: np.ndarray):
     others = [(i, p) for i, p in s._others(k, step) if i != obj]
     views, checks = s._context(k, step, others, colours=False)
     near = align.crop_cloud(s.cloud(step)[0], blob.mean(0), samples.radius + 0.05)
-    if len(near) < align.MIN_CORRESPONDENCES:
+    if len(near) < s.limits.min_correspondences:
         return None
     tree = cKDTree(near)
     best = None

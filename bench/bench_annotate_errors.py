@@ -1,6 +1,7 @@
 """How often the annotator flags a wrong pose, and how often it flags a right one (issue 32, part 1).
 
     python bench/bench_annotate_errors.py --captures captures/bench-errors -n 2 --steps 5 --seed 3 [--json out.json]
+        [--set slide_gain=0.02 ...]
 
 Generates the captures first where missing (`dsr-bench generate-captures`: realistic sensor noise and calibration
 error), takes their true poses as the annotation (every one confirmed: the colour check compares a pose with the
@@ -26,8 +27,11 @@ the other objects at their poses of the kind, is not accepted: coverage, RMSE, a
 the refinement, `annotator.align.fit_score`). The error of a pose is its translation (mm) and its rotation up to a
 continuous symmetry (deg) from the truth (`bench_annotate.pose_errors`); every kind is reported per size bucket of
 that error. False alarms: the true
-poses (as annotated) flagged under the captures' sensor noise. The cost of scoring a true pose (every check runs)
-is timed, and the refinement's and the colour check's shares apart. Figures only, never asserted.
+poses (as annotated) flagged under the captures' sensor noise. Every verdict carries its reason and its named checks
+(`annotator.checks.Check`: name, value, threshold, pass or fail; in --json), so that thresholds can be judged from the
+values; `--set NAME=VALUE` holds the poses to other thresholds (`annotator.thresholds.Thresholds`: tune on the seeds
+kept for it, never on those reported as unseen). The cost of scoring a true pose (every check runs) is timed, and the
+refinement's and the colour check's shares apart. Figures only, never asserted.
 """
 
 from __future__ import annotations
@@ -136,28 +140,30 @@ def check_costs(session, t: int, k: int, truth_t: np.ndarray) -> dict[str, float
     views, checks = session._context(k, t, others)
     crop = session._crop(t, transform, samples)
     start = time.perf_counter()
-    align.refinement(samples, transform, crop, views)
+    align.refinement(samples, transform, crop, views, limits=session.limits)
     refine = time.perf_counter() - start
     start = time.perf_counter()
     if checks["reference_colours"] is not None:
-        align.colour_mismatch(align.sample_colours(*align.posed_samples(samples, transform), views),
-                              checks["reference_colours"])
+        align.colour_check(*align.posed_samples(samples, transform), views, checks["reference_colours"],
+                           session.limits)
     colour = time.perf_counter() - start
     return {"fit_s": fit, "refine_s": refine, "colour_s": colour}
 
 
-def flagged(session, t: int, poses: dict[int, np.ndarray], truth_t: np.ndarray) -> tuple[bool, str]:
+def flagged(session, t: int, poses: dict[int, np.ndarray], truth_t: np.ndarray) -> tuple[bool, str, list[dict]]:
     """(whether any object given a pose in `poses` (the others at their true poses) would be shown for a check,
-    why): the reasons of the scores that were not accepted, or, when every one was, what each accepted score's
-    checks measured ("accepted: object 1: rmse ..."), so that a miss says what let it through. Never empty."""
+    why, the checks): the reasons of the scores that were not accepted, or, when every one was, what each accepted
+    score's checks measured ("accepted: object 1: rmse ..."), so that a miss says what let it through (never
+    empty); the checks of every score, each `Check.as_dict` with its object (numbered from 1)."""
     scene = {i: truth_t[i] for i in range(len(truth_t))} | poses
-    refused, accepted = [], []
+    refused, accepted, checks = [], [], []
     for i, pose in poses.items():
         score = session._fit(i, t, pose, [(o, p) for o, p in scene.items() if o != i])
         (accepted if score.accepted else refused).append(f"object {i + 1}: {score.reason}")
+        checks += [{"object": i + 1, **c.as_dict()} for c in score.checks]
     if refused:
-        return True, "; ".join(refused)
-    return False, "accepted: " + "; ".join(accepted)
+        return True, "; ".join(refused), checks
+    return False, "accepted: " + "; ".join(accepted), checks
 
 
 def shape_difference_mm(infos: list, a: int, b: int) -> float:
@@ -172,13 +178,16 @@ def bucket(err: dict) -> int:
     return max(b for b in BUCKETS if size >= b)
 
 
-def run_capture(path: Path, work: Path, rng: np.random.Generator, steps: list[int] | None = None
-                ) -> tuple[list[dict], list[dict]]:
+def run_capture(path: Path, work: Path, rng: np.random.Generator, steps: list[int] | None = None,
+                limits=None) -> tuple[list[dict], list[dict]]:
     """(injected errors, correct poses) of one capture (at `steps`, default every step), each a dict with its kind,
-    error, whether flagged and why (`flagged`: never an empty reason)."""
+    error, whether flagged, why (`flagged`: never an empty reason) and its checks; `limits`: the thresholds
+    (`annotator.thresholds.Thresholds`, default today's)."""
     from annotator.session import Session
 
     session = Session.open(path, work)
+    if limits is not None:
+        session.limits = limits
     truth = session.capture.truth_poses()
     # the annotation: every true pose confirmed (the colour check compares each pose with the object's colours at
     # the nearest other confirmed step, `Session._reference_colours`)
@@ -188,9 +197,9 @@ def run_capture(path: Path, work: Path, rng: np.random.Generator, steps: list[in
     wrong, right = [], []
     for t in (range(len(truth)) if steps is None else steps):
         for k in range(session.num_objects):
-            flag, why = flagged(session, t, {k: truth[t, k]}, truth[t])
+            flag, why, checks = flagged(session, t, {k: truth[t, k]}, truth[t])
             right.append({"capture": path.name, "step": t, "object": k, "flagged": flag, "reason": why,
-                          **check_costs(session, t, k, truth[t])})
+                          "checks": checks, **check_costs(session, t, k, truth[t])})
             for kind, size, poses in injections(session, truth, infos, t, k, rng):
                 err = pose_errors(poses[k], truth[t, k], infos[k])
                 if err["off_p90_mm"] < TWIN_SURFACE_MM and len(poses) == 1:
@@ -202,12 +211,12 @@ def run_capture(path: Path, work: Path, rng: np.random.Generator, steps: list[in
                     err["shape_difference_mm"] = shape_mm
                     if shape_mm < TWIN_SURFACE_MM:
                         kind = "swap_same_shape"  # two objects of one shape: only their appearance tells them apart
-                flag, why = flagged(session, t, poses, truth[t])
+                flag, why, checks = flagged(session, t, poses, truth[t])
                 wrong.append({"capture": path.name, "step": t, "object": k, "kind": kind, "injected": size,
                               "translation_mm": err["translation_mm"], "rotation_deg": err["rotation_deg"],
                               "surface_p90_mm": err["off_p90_mm"],
                               "shape_difference_mm": err.get("shape_difference_mm"),
-                              "bucket": bucket(err), "flagged": flag, "reason": why})
+                              "bucket": bucket(err), "flagged": flag, "reason": why, "checks": checks})
     session.close()
     return wrong, right
 
@@ -265,30 +274,48 @@ def parse_args() -> argparse.Namespace:
     parser.add_argument("--noise", default="realistic")
     parser.add_argument("--seed", type=int, default=3, help="captures' base seed; also seeds the injected errors")
     parser.add_argument("--json", type=Path, default=None, help="also write the figures as JSON here")
+    parser.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
+                        help="hold the poses to another threshold (a field of annotator.thresholds.Thresholds; a "
+                             "tuple as 0.01,0.02); repeatable")
     return parser.parse_args()
+
+
+def thresholds(settings: list[str]):
+    """The thresholds with the --set NAME=VALUE settings applied (`Thresholds.replaced`)."""
+    from annotator.thresholds import THRESHOLDS
+
+    pairs = dict(s.split("=", 1) for s in settings if "=" in s)
+    if len(pairs) != len(settings):
+        raise SystemExit(f"--set takes NAME=VALUE, got {settings}")
+    try:
+        return THRESHOLDS.replaced(pairs)
+    except ValueError as exc:
+        raise SystemExit(f"--set: {exc}") from None
 
 
 def main() -> None:
     args = parse_args()
+    limits = thresholds(args.set)
     paths = ensure_captures(args)
     start = time.perf_counter()
     wrong, right = [], []
     with tempfile.TemporaryDirectory(prefix="bench_annotate_errors_") as tmp:
         for i, path in enumerate(paths):
-            w, r = run_capture(path, Path(tmp) / path.name, np.random.default_rng([args.seed, i]))
+            w, r = run_capture(path, Path(tmp) / path.name, np.random.default_rng([args.seed, i]), limits=limits)
             wrong += w
             right += r
             print(f"{path.name}: {len(w)} injected errors, {len(r)} true poses ({time.perf_counter() - start:.0f} s)",
                   file=sys.stderr)
     print(f"bench_annotate_errors: {len(paths)} captures x {args.steps} pushes ({args.objects}, "
-          f"{args.objects_per_scene} objects, noise {args.noise}, seed {args.seed}); "
+          f"{args.objects_per_scene} objects, noise {args.noise}, seed {args.seed}"
+          f"{'; thresholds set: ' + ', '.join(args.set) if args.set else ''}); "
           f"{time.perf_counter() - start:.0f} s of scoring")
     out = report(wrong, right)
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         tmp_json = args.json.with_name(args.json.name + ".tmp")
         tmp_json.write_text(json.dumps({"args": {k: str(v) for k, v in vars(args).items()}, **out,
-                                        "errors": wrong}, indent=1))
+                                        "errors": wrong, "true_poses": right}, indent=1))
         tmp_json.replace(args.json)
         print(f"wrote {args.json}")
 

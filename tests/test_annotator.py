@@ -17,6 +17,7 @@ import shutil
 import numpy as np
 import pytest
 
+from annotator.thresholds import THRESHOLDS
 from dsr_bench.constants import VOXEL_SIZE
 from dsr_bench.errors import UserError
 from dsr_bench.geometry import matrix_to_pose, pose_to_matrix
@@ -173,13 +174,17 @@ def test_icp_rejects_jumps_and_keeps_the_start(capture_dir, truth):
     start[:3, 3] += shift
     result = session._icp(0, 0, start, max_translation=0.004)
     assert not result.applied and not result.score.accepted
-    assert "jump" in result.score.reason and result.translation > 0.004
+    jump = result.score.check("icp_jump_translation")[0]
+    assert not jump.passed and jump.value == result.translation > jump.threshold == 0.004
+    assert result.score.reason == jump.reason  # the refusal is the reason the window shows
     np.testing.assert_array_equal(result.transform, start)
     # far from its points: nothing to match; the pose stays, the score says why
     far = pose_to_matrix(truth[0, 0])
     far[:3, 3] += [0.0, 0.0, 0.2]
     far_result = align.icp(session.samples(0), session._crop(0, far, session.samples(0)), far, session._views(0))
-    assert not far_result.applied and "cloud points" in far_result.score.reason
+    refusal = far_result.score.failed()[-1]
+    assert not far_result.applied and refusal.name in ("icp_cloud", "icp_correspondences")
+    assert refusal.value < refusal.threshold == THRESHOLDS.min_correspondences
 
 
 def test_fit_score_drops_when_the_mesh_is_off(capture_dir, truth):
@@ -258,14 +263,20 @@ def test_physical_checks_refuse_impossible_poses_with_their_reason(capture_dir, 
             score = session._fit(i, t, truth[t, i], [(k, truth[t, k]) for k in range(n) if k != i])
             assert score.accepted, (t, i, score.reason)
     others = [(k, truth[0, k]) for k in range(1, n)]
-    cases = {"sinks 15 mm into the table": [0.0, 0.0, -0.015], "floats 15 mm above the table": [0.0, 0.0, 0.015],
-             "the cameras see through": [0.0, 0.08, 0.0],
-             "interpenetrates object 3 (box_2)": [*(truth[0, 2, :2] - truth[0, 0, :2] + [0.0, 0.03]), 0.0]}
-    for reason, shift in cases.items():
+    cases = {"sinks": [0.0, 0.0, -0.015], "floats": [0.0, 0.0, 0.015], "free_space": [0.0, 0.08, 0.0],
+             "interpenetration": [*(truth[0, 2, :2] - truth[0, 0, :2] + [0.0, 0.03]), 0.0]}
+    for name, shift in cases.items():
         pose = truth[0, 0].copy()
         pose[:3] += shift
         score = session._fit(0, 0, pose, others)
-        assert not score.accepted and reason in score.reason, (reason, score.reason)
+        failed = [c for c in score.failed() if c.name == name]
+        assert not score.accepted and failed, (name, score.reason)
+        assert all(c.applies and c.value > c.threshold for c in failed), failed
+        if name in ("sinks", "floats"):
+            assert len(failed) == 1 and abs(failed[0].value - 0.015) < 0.002
+            assert failed[0].threshold == THRESHOLDS.table_tolerance
+        if name == "interpenetration":  # moved into box 2 (and, on the way, can 1)
+            assert "object 3 (box_2)" in [c.about for c in failed]
     sunk = pose_to_matrix(truth[0, 0])
     sunk[2, 3] -= 0.015
     samples = session.samples(0)
@@ -292,7 +303,7 @@ def test_next_to_check_shows_a_snapped_pose_that_a_later_change_makes_interpenet
 def test_a_pose_that_leaves_the_cloud_around_it_unexplained_is_refused(capture_dir, truth):
     """Box 2 turned 20 degrees about the vertical still fits its cloud (coverage 65%), but leaves 11% of the cloud
     around it explained by no object: refused once every other object has a pose, not while one has none yet."""
-    from annotator.align import UNEXPLAINED_FRACTION, rotvec_to_matrix
+    from annotator.align import rotvec_to_matrix
     from annotator.session import Session
 
     session = Session.open(capture_dir, capture_dir.parent / "work_explain")
@@ -300,10 +311,12 @@ def test_a_pose_that_leaves_the_cloud_around_it_unexplained_is_refused(capture_d
     m[:3, :3] = rotvec_to_matrix(np.array([0.0, 0.0, np.deg2rad(20.0)])) @ m[:3, :3]
     others = [(0, truth[0, 0]), (1, truth[0, 1])]
     score = session._fit(2, 0, matrix_to_pose(m), others)
-    assert not score.accepted and "of the cloud around it is explained by no object" in score.reason, score.reason
-    assert float(score.reason.split("% of the cloud")[0].split()[-1]) / 100 > UNEXPLAINED_FRACTION
-    assert "explained" not in session._fit(2, 0, matrix_to_pose(m), others[:1]).reason
-    assert session._fit(2, 0, truth[0, 2], others).accepted
+    assert [c.name for c in score.failed()] == ["unexplained"], score.reason
+    unexplained = score.check("unexplained")[0]
+    assert unexplained.value > unexplained.threshold == THRESHOLDS.unexplained_fraction and unexplained.applies
+    assert session._fit(2, 0, matrix_to_pose(m), others[:1]).check("unexplained") == []  # not all placed: not run
+    true = session._fit(2, 0, truth[0, 2], others)
+    assert true.accepted and true.check("unexplained")[0].value <= THRESHOLDS.unexplained_fraction
 
 
 def test_a_carried_pose_that_interpenetrates_another_object_is_not_snapped(capture_dir, truth, tmp_path):
@@ -317,7 +330,9 @@ def test_a_carried_pose_that_interpenetrates_another_object_is_not_snapped(captu
     inside[:2] = truth[1, 1, :2]
     others = [(0, inside), (2, truth[1, 2])]
     pose, status, score, _ = session._carry(1, 0, 1, truth[1, 1], others=others)
-    assert status == "initialised" and "interpenetrates object 1 (box_0)" in score.reason, (status, score.reason)
+    inside = [c for c in score.failed() if c.name == "interpenetration"]
+    assert status == "initialised" and [c.about for c in inside] == ["object 1 (box_0)"], (status, score.reason)
+    assert inside[0].value > THRESHOLDS.penetration_tolerance
     good = session._carry(1, 0, 1, truth[1, 1], others=[(0, truth[1, 0]), (2, truth[1, 2])])
     assert good[1] == "snapped", good[2].reason
 
@@ -426,10 +441,10 @@ def test_autosave_and_resume_after_a_kill(capture_dir, truth, tmp_path):
 def test_journal_round_trip_and_compaction(capture_dir, truth, tmp_path, monkeypatch):
     """Every change is one journal record; resume (state.json + journal) equals the in-memory state, before and
     after the journal is folded into state.json."""
-    from annotator import session as session_mod
+    from annotator import session_core
     from annotator.session import JOURNAL_FILE, STATE_FILE, Session, read_saved
 
-    monkeypatch.setattr(session_mod, "COMPACT_RECORDS", 7)
+    monkeypatch.setattr(session_core, "COMPACT_RECORDS", 7)
     work = tmp_path / "work"
     session = Session.open(capture_dir, work)
     snapshot = (work / STATE_FILE).read_bytes()
@@ -559,7 +574,6 @@ def test_go_to_carries_forward_and_snaps_only_moved_objects(capture_dir, truth, 
 def test_search_over_the_unexplained_cloud_finds_an_object_far_from_the_push(capture_dir, truth, tmp_path):
     """An object that went farther than the search along the push reaches (a can that rolled on across it) is found
     over the cloud that no other object explains: here the can's pose 15 cm across the push from where it is."""
-    from annotator.align import MAX_JUMP_TRANSLATION
     from annotator.session import SEARCH_LATERAL, Session
 
     session = Session.open(capture_dir, tmp_path / "work")
@@ -569,7 +583,7 @@ def test_search_over_the_unexplained_cloud_finds_an_object_far_from_the_push(cap
     side = np.array([a[1] - b[1], b[0] - a[0]]) / np.linalg.norm(b - a)
     start = true.copy()
     start[:2, 3] += 0.15 * side
-    assert 0.15 > max(SEARCH_LATERAL) + MAX_JUMP_TRANSLATION  # beyond the search along the push
+    assert 0.15 > max(SEARCH_LATERAL) + THRESHOLDS.max_jump_translation  # beyond the search along the push
     others = [(k, truth[step, k]) for k in range(session.num_objects) if k != obj]
     found = session._search_landed(obj, step, start, others)
     assert found is not None and found.applied and found.score.accepted, found and found.score.reason
@@ -581,10 +595,11 @@ def test_search_over_the_unexplained_cloud_finds_an_object_far_from_the_push(cap
 def test_the_two_pass_screen_picks_the_starts_of_one_full_pass(capture_dir, truth, tmp_path, monkeypatch):
     """The searches screen their start poses in two passes (a third of the samples for every start, all of them for
     the best SCREEN_KEEP_FRACTION): the ICP starts are those one full pass picks, for less of the screen's work."""
-    import annotator.session as sess
+    import annotator.carry as sess
     from annotator import align
+    from annotator.session import Session
 
-    session = sess.Session.open(capture_dir, tmp_path / "work")
+    session = Session.open(capture_dir, tmp_path / "work")
     step, obj = session.num_steps, 1
     start = pose_to_matrix(truth[step, obj])
     start[:2, 3] += [0.0, 0.15]

@@ -216,6 +216,7 @@ def test_residual_colours_are_red_where_a_misplaced_object_really_is(capture_dir
     from scipy.spatial import cKDTree
 
     from annotator import align
+    from annotator.thresholds import THRESHOLDS
 
     session = Session.open(capture_dir, tmp_path / "work")
     for obj in range(session.num_objects):
@@ -239,26 +240,34 @@ def test_residual_colours_are_red_where_a_misplaced_object_really_is(capture_dir
              < 0.001) & (points[:, 2] > 0.01)
     assert np.mean(colours[other][:, 2] > 0.5) > 0.9
     near_mesh = cKDTree(posed).query(points)[0] < 2 * images.RESIDUAL_SCALE
-    table = (points[:, 2] <= align.TABLE_MARGIN) | ((points[:, 2] <= images.RESIDUAL_FLOOR) & ~near_mesh)
+    table = (points[:, 2] <= THRESHOLDS.table_margin) | ((points[:, 2] <= images.RESIDUAL_FLOOR) & ~near_mesh)
     assert table.sum() > 1000 and np.all(np.ptp(colours[table], axis=1) < 1e-9)
     session.close()
 
 
 def test_every_fit_verdict_has_a_reason(capture_dir, tmp_path):
     """The annotation-error benchmark's verdicts, flagged or not, all say why (a miss names what let it
-    through); a FitScore given no reason gets one."""
+    through) and carry their named checks: flagged exactly when a check failed, each check with its reason, and an
+    accepted true pose checked all the way to the refinement; a FitScore given no reason gets one."""
     sys.path.insert(0, str(Path(__file__).parents[1] / "bench"))
     import bench_annotate_errors as bench
 
     from annotator.align import FitScore
+    from annotator.checks import CHECKS
 
     wrong, right = bench.run_capture(Path(capture_dir), tmp_path / "work", np.random.default_rng(0), steps=[1])
     assert len(wrong) > 30 and len(right) == 3
     for verdict in wrong + right:
         assert verdict["reason"].strip(), verdict
         assert verdict["reason"].startswith("accepted: ") != verdict["flagged"], verdict
-    accepted = [v["reason"] for v in right if not v["flagged"]]
-    assert accepted and all("a snap would move it" in r and "within limits" in r for r in accepted)
+        checks = verdict["checks"]
+        assert checks and all(c["name"] in CHECKS and c["reason"].strip() for c in checks), verdict
+        assert verdict["flagged"] == (not all(c["passed"] for c in checks)), verdict
+    for verdict in right:
+        if not verdict["flagged"]:
+            names = [c["name"] for c in verdict["checks"]]
+            assert {"coverage", "rmse", "sinks", "unexplained", "snap_move", "snap_turn"} <= set(names), names
+    assert any(not v["flagged"] for v in right)
     assert FitScore(0.001, 0.9, 0.5, True, "").reason and FitScore(0.001, 0.9, 0.5, False, " ").reason
 
 

@@ -48,7 +48,10 @@ def test_a_snap_that_fits_worse_is_rejected_and_changes_nothing(capture_dir, tru
     snaps = session.action_counts["snap"]
 
     result = session.snap(0)
-    assert not result.kept and not result.accepted and "fits worse than the start" in result.reason
+    worse = result.check("snap_quality")
+    assert not result.kept and not result.accepted and len(worse) == 1 and not worse[0].passed
+    assert worse[0].value <= worse[0].threshold == session.score(0).quality()  # the result's quality, the start's
+    assert result.reason == worse[0].reason
     np.testing.assert_array_equal(session.poses()[0], pose)
     assert session.status()[0] == status and session.stored_score(0) == score
     assert [op.as_json() for op in session.state.undo_stack] == undo and session.redo_depth == redo
@@ -100,7 +103,7 @@ def _error_mm(session, truth, step: int, obj: int) -> float:
 def carried_off(capture_dir, truth, tmp_path):
     """A session whose box 2 was 3 mm off (across the cameras' view, so a snap moves it back) at step 0 when steps
     1..3 were visited: the carried pose at step 1 is off too (by more than 2.5 mm). 3 mm: under the score's
-    refinement threshold (align.REFINE_TRANSLATION), so carrying forward keeps the offset (4 mm it would snap)."""
+    refinement threshold (THRESHOLDS.refine_translation), so carrying forward keeps the offset (4 mm it would snap)."""
     from annotator.session import Session
 
     session = Session.open(capture_dir, tmp_path / "work")

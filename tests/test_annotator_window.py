@@ -453,13 +453,14 @@ def test_the_shown_cloud_covers_every_object_and_follows_the_state(session):
 
     from annotator import align
     from annotator.session import DISPLAY_TABLE_VOXEL, DISPLAY_VOXEL, voxel_subset
+    from annotator.thresholds import THRESHOLDS
 
     points, colors, _ = session.cloud()
     index = session.shown()
     assert len(index) < len(points) and np.all(np.diff(index) > 0)  # a subset, each point once, in cloud order
-    assert np.array_equal(voxel_subset(points, DISPLAY_VOXEL, DISPLAY_TABLE_VOXEL, align.TABLE_MARGIN), index)
+    assert np.array_equal(voxel_subset(points, DISPLAY_VOXEL, DISPLAY_TABLE_VOXEL, THRESHOLDS.table_margin), index)
     # every point the cameras measured has a drawn point within its cube's diagonal: no surface left out
-    high = points[:, 2] > align.TABLE_MARGIN
+    high = points[:, 2] > THRESHOLDS.table_margin
     for part, voxel in ((high, DISPLAY_VOXEL), (~high, DISPLAY_TABLE_VOXEL)):
         d, _ = cKDTree(points[index][part[index]]).query(points[part])
         assert d.max() <= voxel * np.sqrt(3) + 1e-9
