@@ -6,7 +6,7 @@ and split, pinned for the test as the real one is; each command is one of:
 - run: runs as written, in the README's order, and succeeds;
 - window: opens the viewer or the annotation window (stubbed here, there is no display), on what it names;
 - needs: reads what the quickstart does not make (your ShapeNet copy, the authors' release, a training split,
-  the planning tasks): exits 2 with one line naming it and how to get it;
+  the planning tasks, a rig's RealSense cameras): exits 2 with one line naming it and how to get it;
 - long: simulates for minutes or runs on a cluster: its arguments are parsed as the command line parses them.
 
 A README command missing from COMMANDS (or one here no longer in the README) fails the test, so each new one is
@@ -62,6 +62,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
         ("needs", "`dsr-bench generate-plan-tasks --tasks plan-novel-test --out data/plan-novel-test`"),
     "dsr-bench generate-captures --out captures -n 5": ("long", "simulates 5 captures"),
     "dsr-bench annotate seq_0000 --captures captures": ("window", "captures/seq_0000"),
+    "dsr-bench capture --front 819612070593 --back 819612071104 --robot-file robot.log --out runs/run_07":
+        ("needs", "RealSense camera"),
     # Generating data: on a cluster
     "dsr-bench generate --split procedural-train --out /shared/dsr/procedural-train --ray auto": ("long", "Ray"),
     "dsr-bench generate --split procedural-train --out /shared/dsr/procedural-train --slurm --slurm-tasks 64 "
