@@ -106,7 +106,6 @@ def export_sequence(session, out: str | Path, allow_unchecked: bool = False) -> 
     from dsr_bench.constants import GRID_SHAPE, IMAGE_SHAPE
     from dsr_bench.dataset.schema import sequence_header
     from dsr_bench.geometry.groundtruth import rigid_scene_flow_2d, rigid_scene_flow_3d
-    from dsr_bench.dataset.digests import digest_attrs
     from dsr_bench.geometry.tsdf import ProjectiveTSDF
     from annotator.state import STATE_VERSION
 
@@ -182,7 +181,6 @@ def export_sequence(session, out: str | Path, allow_unchecked: bool = False) -> 
         tsdf_image_shape=[full.height, full.width], annotation=annotation,
         mesh_frames="capture mesh frames; poses map object frame -> world (table) frame",
     )
-    attrs.update(digest_attrs(arrays, identities))
     meshes = {i: capture.mesh(i) for i in range(n)}
     return _write_checked(out, arrays, attrs, meshes, capture.name, allow_unchecked)
 

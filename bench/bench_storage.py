@@ -1,7 +1,7 @@
 """Benchmark: bytes on disk per step, array by array, and seconds to read a step, for a dataset's files as
 they are and re-stored in this toolkit's current layout (`dsr_bench.dataset.storage`).
 
-    python bench/bench_storage.py DATA_DIR [--num-sequences 8] [--repeats 3]
+    python bench/bench_storage.py DATA_DIR [--num-sequences 8] [--repeats 3] [--official-dir SRC]
 
 For each of the first N sequences: every dataset's stored bytes (what `h5py` reports for its chunks) per
 step, then the file re-written with `write_sequence` (today's layout: tiled grids, a camera's points derived
@@ -11,6 +11,10 @@ is timed on each side with `storage.read_step` for the arrays `dsr-bench evaluat
 the TSDF and the amodal mask), alternated, medians. The table says where the bytes go; the side-by-side
 figure against the authors' generator is `bench/bench_generate_official.py --official-repo PATH`, which
 measures both generators' files in one run.
+
+For sequences imported from the official release (`dsr-bench import-official SRC DATA_DIR`), `--official-dir SRC`
+also sums the release's own step files of the same sequences (each file's `official_files`): the same content in
+their layout and in ours, bytes per step.
 """
 
 from __future__ import annotations
@@ -59,6 +63,24 @@ def restore(src: Path, dst: Path) -> None:
     write_sequence(dst, arrays, attrs, meshes, extras)
 
 
+def official_bytes(src: Path, paths: list[Path]) -> int:
+    """Bytes of the release's step files (in `src`) that sequences imported from it (`paths`) were made from."""
+    import json
+
+    total = 0
+    for path in paths:
+        with h5py.File(path, "r") as f:
+            files = f.attrs.get("official_files")
+        if files is None:
+            sys.exit(f"error: {path.name} was not imported from the official release (no official_files); drop "
+                     "--official-dir")
+        for name in json.loads(files) if isinstance(files, str) else list(files):
+            if not (src / name).is_file():
+                sys.exit(f"error: --official-dir {src}: {name} (of {path.name}) not found")
+            total += (src / name).stat().st_size
+    return total
+
+
 def same_bits(a: Path, b: Path) -> list[str]:
     """Arrays (stored or derived, and the meshes) whose bytes differ between two sequence files (empty: identical)."""
     from dsr_bench.dataset.sequence import SequenceReader
@@ -97,6 +119,8 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("data", type=Path, help="a dataset directory (seq_*.h5)")
     parser.add_argument("--num-sequences", type=int, default=8, help="sequences measured (default 8)")
     parser.add_argument("--repeats", type=int, default=3, help="read timings per side, alternated (default 3)")
+    parser.add_argument("--official-dir", type=Path, metavar="SRC",
+                        help="the release directory DATA_DIR was imported from: compare with its own files")
     args = parser.parse_args(argv)
     paths = sorted(args.data.glob("seq_*.h5"))[: args.num_sequences]
     if not paths:
@@ -127,17 +151,22 @@ def main(argv: list[str] | None = None) -> dict:
         for name in sorted(before, key=lambda n: -before[n]):
             if before[name] / steps >= 500:  # 0.5 kB a step and more
                 print(f"{name:32s} {before[name] / steps / 1e3:18.1f} {after.get(name, 0) / steps / 1e3:23.1f}"
-                      + ("  (derived from depth on reading)" if name not in after else ""))
+                      + ("  (derived on reading)" if name not in after else ""))
         files_before = sum(p.stat().st_size for p in paths) / steps / 1e6
         files_after = sum(p.stat().st_size for p in restored) / steps / 1e6
         print(f"{'whole files, MB/step':32s} {files_before:18.3f} {files_after:23.3f}")
+        official = None
+        if args.official_dir is not None:
+            official = official_bytes(args.official_dir, paths) / steps / 1e6
+            print(f"the release's own files of these sequences: {official:.3f} MB/step; ours / theirs: "
+                  f"{files_before / official:.2f} as stored, {files_after / official:.2f} in the current layout")
         timings: dict[str, list[float]] = {"as stored": [], "current layout": []}
         for _ in range(args.repeats):
             timings["as stored"].append(read_seconds(paths))
             timings["current layout"].append(read_seconds(restored))
         for side, values in timings.items():
             print(f"read {'+'.join(EVALUATED)}, {side}: {statistics.median(values) * 1e3:.1f} ms per step")
-        return {"mb_per_step": {"as stored": files_before, "current layout": files_after},
+        return {"mb_per_step": {"as stored": files_before, "current layout": files_after, "official": official},
                 "bytes": {"as stored": before, "current layout": after},
                 "read_seconds_per_step": {k: statistics.median(v) for k, v in timings.items()}}
     finally:

@@ -6,14 +6,14 @@ from __future__ import annotations
 
 from collections.abc import Callable, Iterable, Iterator
 
+from dsr_bench.memory import keep_freed_memory
+
 
 def as_finished(function, jobs: list, workers: int, mp_context=None) -> Iterator[tuple[int, object]]:
     """(position, `function(jobs[position])`) for every job, in the order they finish: in `workers` processes when
     more than one (and more than one job), else here, one after the other. An exception of a job is raised here."""
     if workers > 1 and len(jobs) > 1:
         from concurrent.futures import ProcessPoolExecutor, as_completed
-
-        from dsr_bench.memory import keep_freed_memory
 
         with ProcessPoolExecutor(min(workers, len(jobs)), mp_context=mp_context, initializer=keep_freed_memory) as pool:
             index = {pool.submit(function, job): i for i, job in enumerate(jobs)}

@@ -147,11 +147,8 @@ def synthetic_arrays(num_steps: int = 3, num_objects: int = 2, seed: int = 0):
 
 def write_synthetic_sequence(path: str | Path, num_steps: int = 3, num_objects: int = 2, seed: int = 0) -> Path:
     """Write a synthetic box sequence to `path` (an .h5 file) and return the path."""
-    from dsr_bench.dataset.digests import digest_attrs
-
     arrays, attrs, meshes = synthetic_arrays(num_steps, num_objects, seed)
     attrs["sequence"] = Path(path).stem
-    attrs.update(digest_attrs(arrays, attrs["objects"]))
     return write_sequence(path, arrays, attrs, meshes)
 
 

@@ -24,6 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
+from dsr_bench.atomic import clean_temporaries
 from dsr_bench.constants import CAMERAS
 from dsr_bench.dataset.capture import CaptureCamera, write_capture
 from dsr_bench.errors import UserError
@@ -342,7 +343,6 @@ def prepare_captures(plan: CapturePlan) -> CaptureJobs:
     """Check everything (arguments, --out, meshes, existing captures) before any simulation. An existing capture
     made with the same arguments is skipped; one made with other arguments is refused unless `plan.overwrite`
     (`generators.run.needs_writing`). Removes the temporaries of abandoned writers in --out."""
-    from dsr_bench.atomic import clean_temporaries
     from dsr_bench.dataset.splits import sequence_name, sequence_seed
     from generators.objects import get_object_set
     from generators.run import check_scene_arguments, needs_writing
@@ -368,22 +368,47 @@ def prepare_captures(plan: CapturePlan) -> CaptureJobs:
 
 
 def generate_captures(plan: CapturePlan, jobs: CaptureJobs, started: Callable[[str], None] | None = None,
-                      finished: Callable[[str], None] | None = None) -> list[Path]:
-    """Write the captures `jobs.todo` (from `prepare_captures`) in order, each atomically; `started(name)` /
-    `finished(name)` are called around each. A scene that cannot be set up is a UserError naming the fix."""
-    from generators.episode import SceneRejected
+                      finished: Callable[[str], None] | None = None, workers: int = 1) -> list[Path]:
+    """Write the captures `jobs.todo` (from `prepare_captures`), each atomically, in `workers` processes (one:
+    here, in order; a capture is a function of its seed alone, so the files are the same either way);
+    `started(name)` / `finished(name)` are called around each (with workers, `started` as it is handed out). A
+    scene that cannot be set up is a UserError naming the fix."""
+    from dsr_bench.parallel import as_finished
 
-    written = []
-    for name, seed in jobs.todo:
+    names = [name for name, _ in jobs.todo]
+    if workers <= 1 or len(jobs.todo) <= 1:
+        written = []
+        for name, seed in jobs.todo:
+            if started:
+                started(name)
+            written.append(_write_capture(plan, jobs.object_set, (name, seed)))
+            if finished:
+                finished(name)
+        return written
+    from functools import partial
+
+    for name in names:
         if started:
             started(name)
-        try:
-            written.append(generate_capture(Path(plan.out) / name, name=name, seed=seed, objects=plan.objects,
-                                            steps=plan.steps, objects_per_scene=plan.objects_per_scene,
-                                            noise=plan.noise, object_root=plan.object_root,
-                                            object_set=jobs.object_set, overwrite=True))
-        except SceneRejected as exc:
-            raise UserError(f"{exc}; try another --seed or fewer --objects-per-scene") from None
+    done: list[object] = [None] * len(names)
+    for position, path in as_finished(partial(_write_capture, plan, None), jobs.todo, workers):
+        done[position] = path
         if finished:
-            finished(name)
-    return written
+            finished(names[position])
+    return [p for p in done if isinstance(p, Path)]
+
+
+def _write_capture(plan: CapturePlan, object_set, job: tuple[str, int]) -> Path:
+    """One capture of `plan` (name, seed); `object_set` None: loaded here (a worker process)."""
+    from generators.episode import SceneRejected
+    from generators.objects import get_object_set
+
+    name, seed = job
+    if object_set is None:
+        object_set = get_object_set(plan.objects, plan.object_root)
+    try:
+        return generate_capture(Path(plan.out) / name, name=name, seed=seed, objects=plan.objects, steps=plan.steps,
+                                objects_per_scene=plan.objects_per_scene, noise=plan.noise,
+                                object_root=plan.object_root, object_set=object_set, overwrite=True)
+    except SceneRejected as exc:
+        raise UserError(f"{name}: {exc}; try another --seed or fewer --objects-per-scene") from None

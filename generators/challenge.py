@@ -11,6 +11,9 @@ from typing import Optional
 
 import typer
 
+from dsr_bench.challenge.layout import HIDDEN_SPLIT, Layout, write_secret_seed
+from dsr_bench.errors import UserError
+
 
 def create(
     root: Path = typer.Argument(..., help="New challenge directory (made 0700; the secret seed never leaves it)."),
@@ -31,9 +34,7 @@ def create(
     from rich.progress import Progress
 
     from dsr_bench.challenge.host import export_inputs, finish_hidden_set
-    from dsr_bench.challenge.layout import HIDDEN_SPLIT, Layout, write_secret_seed
     from dsr_bench.dataset.splits import get_split
-    from dsr_bench.errors import UserError
     from generators.run import finalize_dataset, generate_dataset, plan_from_arguments, prepare_run
 
     spec = get_split(split)

@@ -12,6 +12,8 @@ import typer
 from dsr_bench.engine_options import (RayAddress, Slurm, SlurmLocal, SlurmLogs, SlurmPartition, SlurmTasks,
                                          SlurmTime)
 from dsr_bench.constants import CAMERAS, MODEL_CAMERA, PLAN_MARGIN
+from dsr_bench.engines import engine_from_options, slurm_options_given
+from dsr_bench.errors import UserError
 from dsr_bench.planning.tasks import TASK_SETS
 from generators.objects import OBJECT_SET_NAMES
 
@@ -55,8 +57,6 @@ def generate(
                                TimeRemainingColumn)
     from rich.table import Table
 
-    from dsr_bench.engines import engine_from_options, slurm_options_given
-    from dsr_bench.errors import UserError
     from generators.run import finalize_dataset, generate_dataset, plan_from_arguments, prepare_run, summarize
 
     console = Console(stderr=True)
@@ -118,6 +118,8 @@ def generate_captures(
                                                            "missing pixels, calibration error) or none."),
     object_root: Optional[Path] = typer.Option(None, "--object-root", help="Mesh root for shapenet / ycb."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace captures that already exist."),
+    workers: int = typer.Option(1, "--workers", "-w", help="Parallel worker processes (the captures are the same "
+                                                          "with any number)."),
 ) -> None:
     """Simulate pushing sequences and write them as captures: colour + 16-bit depth PNGs of the front and back
     cameras, a calibration with small errors, actions, object meshes, and the true poses kept aside in truth.json."""
@@ -134,7 +136,7 @@ def generate_captures(
                   TextColumn("{task.description}"), TimeElapsedColumn(), console=console) as bar:
         task = bar.add_task("", total=num, completed=len(jobs.skipped))
         run(plan, jobs, started=lambda name: bar.update(task, description=name),
-            finished=lambda name: bar.update(task, advance=1))
+            finished=lambda name: bar.update(task, advance=1), workers=max(1, workers))
     console.print(f"{out}: {len(jobs.todo)} captures written, {len(jobs.skipped)} already present "
                   f"({objects}, {steps} pushes, {objects_per_scene} objects, noise {noise})")
 
@@ -151,7 +153,6 @@ def generate_plan_tasks(
     """Simulate planning tasks (start scene + 3 heuristic pushes -> target) and write them with tasks.json."""
     from rich.progress import Progress
 
-    from dsr_bench.errors import UserError
     from dsr_bench.planning.tasks import get_task_set, pinned_checksums
     from generators.planning import generate_tasks
 
@@ -217,7 +218,6 @@ def plan(
 
 def _size(tasks: str) -> int | None:
     """The number of tasks in a task directory (None if it cannot be read: `plan_tasks` says why)."""
-    from dsr_bench.errors import UserError
     from dsr_bench.planning.tasks import resolve_tasks
 
     try:

@@ -120,8 +120,11 @@ def drop_poses(rng: np.random.Generator, specs) -> np.ndarray:
     return poses
 
 
-def generate_episode(config: EpisodeConfig, object_set, seed: int, name: str) -> Episode:
-    """Simulate and observe one sequence from its seed; raise SceneRejected if no scene works."""
+def generate_episode(config: EpisodeConfig, object_set, seed: int, name: str,
+                     generator_args: dict | None = None) -> Episode:
+    """Simulate and observe one sequence from its seed; raise SceneRejected if no scene works. `generator_args`:
+    the attribute recording what made the sequence (default `config.as_attrs()`; a run adds its seed, index and
+    split: `generators.run.RunPlan.generator_args`)."""
     import time
 
     from generators.physics import PushWorld, import_pybullet
@@ -185,8 +188,8 @@ def generate_episode(config: EpisodeConfig, object_set, seed: int, name: str) ->
         meshes = {i: spec.mesh() for i, spec in enumerate(specs)} if config.objects not in ("shapenet", "ycb") else {}
         attrs = sequence_header(
             sequence=name, seed=int(seed), num_steps=config.steps, num_objects=len(specs), object_set=config.objects,
-            policy=config.policy, generator_args=config.as_attrs(), source="simulation",
-            objects=[spec.identity() for spec in specs], cameras=renderer.cameras,
+            policy=config.policy, generator_args=config.as_attrs() if generator_args is None else generator_args,
+            source="simulation", objects=[spec.identity() for spec in specs], cameras=renderer.cameras,
             versions={"pybullet_version": int(import_pybullet().getAPIVersion())},
             tsdf_image_shape=list(TSDF_IMAGE_SHAPE), scene_attempts=attempt,
             mesh_frames="object frame origin at the centre of mass; poses map object frame -> world",

@@ -20,7 +20,10 @@ from types import SimpleNamespace
 
 import numpy as np
 
+from dsr_bench import __version__
+from dsr_bench.atomic import check_writable, write_text
 from dsr_bench.errors import UserError
+from dsr_bench.parallel import run_in_order
 
 
 # --- tasks ---------------------------------------------------------------------------------------------
@@ -39,7 +42,6 @@ def make_task(object_set, seed: int, name: str, pushes: int, objects: str, objec
               policy: str = "heuristic") -> tuple[dict[str, np.ndarray], dict]:
     """A task's arrays and attributes (`dsr_bench.planning.tasks`) from a seed: the scene and pushes of
     `generate_episode`, its first state the start and its last the target."""
-    from dsr_bench import __version__
     from generators.episode import EpisodeConfig, generate_episode
 
     recording = _Recording(object_set)
@@ -83,9 +85,7 @@ def generate_tasks(task_set: str, out: Path, workers: int = 1, num_tasks: int | 
     """Write the tasks of a named set into `out` (task_0000.h5, ...; existing complete tasks of the same seed are
     kept) and its manifest (tasks.json); return the manifest. `num_tasks`: only the first ones (a prefix)."""
     from dsr_bench.dataset.splits import sequence_seed
-    from dsr_bench.parallel import run_in_order
     from dsr_bench.planning.tasks import build_manifest, get_task_set, read_task, task_name, write_manifest
-    from dsr_bench.atomic import check_writable
 
     spec = get_task_set(task_set)
     count = spec.num_tasks if num_tasks is None else num_tasks
@@ -316,13 +316,10 @@ def plan_tasks(model: str, tasks: str, out: Path, candidates: int, workers: int 
     TSDF shows ("observed", `dsr_bench.planning.observed`)."""
     import json
 
-    from dsr_bench.atomic import write_text
-    from dsr_bench.parallel import run_in_order
     from dsr_bench.planning.planners import make_planner, planner_members
     from dsr_bench.planning.protocol import DEFAULT_BATCH
     from dsr_bench.planning.results import build_results
     from dsr_bench.planning.verify import verify_tasks
-    from dsr_bench.atomic import check_writable
 
     planner_members(model, checkpoint)  # a one-line error for a name that is not a planner, before anything runs
     if candidates < 1:

@@ -26,7 +26,7 @@ import numpy as np
 
 from dsr_bench.constants import CAMERAS, MAX_OBJECTS_PER_SCENE, MODEL_CAMERA
 from dsr_bench.dataset.splits import sequence_name, sequence_seed
-from dsr_bench.atomic import check_writable
+from dsr_bench.atomic import check_writable, clean_temporaries, write_text
 from dsr_bench.engines import Engine, LocalEngine
 from dsr_bench.errors import UserError
 from generators.episode import EpisodeConfig
@@ -207,8 +207,6 @@ def recorded_sequence_arguments(path: Path) -> dict:
 
 def _clean_partials(out: Path) -> None:
     """Remove the temporaries of abandoned writers (killed runs); keep live writers' (other shards)."""
-    from dsr_bench.atomic import clean_temporaries
-
     clean_temporaries(out, "seq_*.h5")
     if (out / "splits").is_dir():
         clean_temporaries(out / "splits", "*.txt")
@@ -227,15 +225,13 @@ def _init_worker(objects: str, object_root: str | None) -> None:
 
 
 def _generate_one(plan: RunPlan, index: int) -> SequenceResult:
-    from dsr_bench.dataset.digests import digest_attrs
     from dsr_bench.dataset.sequence import write_sequence
     from generators.episode import generate_episode
 
     start = time.perf_counter()
     name = sequence_name(index)
-    episode = generate_episode(plan.config, _WORKER["set"], sequence_seed(plan.seed, index), name)
-    episode.attrs["generator_args"] = plan.generator_args(index)
-    episode.attrs.update(digest_attrs(episode.arrays, episode.attrs["objects"]))
+    episode = generate_episode(plan.config, _WORKER["set"], sequence_seed(plan.seed, index), name,
+                               generator_args=plan.generator_args(index))
     path = write_sequence(plan.out / f"{name}.h5", episode.arrays, episode.attrs, episode.meshes)
     return SequenceResult(name, time.perf_counter() - start, path.stat().st_size, episode.scene_attempts,
                           episode.timings)
@@ -307,7 +303,6 @@ def generate_dataset(plan: RunPlan, todo: list[int], progress: Callable[[Sequenc
 
 def finalize_dataset(plan: RunPlan) -> dict | None:
     """Write splits/<split>.txt and manifest.json once every sequence of the run exists; else None."""
-    from dsr_bench.atomic import write_text
     from dsr_bench.dataset.manifest import build_manifest, write_manifest
 
     names = [sequence_name(i) for i in range(plan.num_sequences)]

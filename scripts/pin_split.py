@@ -54,9 +54,10 @@ def main() -> None:
 
 def add_scored(pin: dict | None, data: Path, names: list[str], split: str) -> dict:
     """`pin` with each sequence's scored digests added, once the files are shown to be the pinned ones."""
-    from dsr_bench.dataset.digests import GROUND_TRUTH_KEY, OBSERVATIONS_KEY, file_digests
+    from dsr_bench.dataset.digests import GROUND_TRUTH_KEY, OBSERVATIONS_KEY
     from dsr_bench.dataset.manifest import load_manifest
     from dsr_bench.dataset.scored import file_scored_digests
+    from dsr_bench.dataset.sequence import file_digests
 
     if pin is None:
         raise SystemExit(f"{split} is not pinned yet: pin it without --scored-only")

@@ -22,6 +22,7 @@ import h5py
 import numpy as np
 
 from dsr_bench.atomic import atomic_path, check_writable, write_bytes
+from dsr_bench.dataset.derived import DERIVED_FROM_ATTR
 from dsr_bench.dataset.sequence import DERIVED_ATTR, SequenceReader
 from dsr_bench.dataset.storage import write_array
 from dsr_bench.models.data import TRAINING_FIELDS
@@ -31,12 +32,13 @@ KEEP = TRAINING_FIELDS + ("object_poses", "visible_fraction")
 
 
 def slim_file(src: Path, dst: Path, level: int = 9) -> None:
-    """Write `dst`: `src`'s attributes (but the derived arrays' list: no camera is kept) and its arrays in KEEP."""
+    """Write `dst`: `src`'s attributes (but the derived arrays' lists: no camera and no official/ array is kept)
+    and its arrays in KEEP."""
     with SequenceReader(src) as seq:
         arrays = {name: (np.ascontiguousarray(seq.read(name)), dict(seq.dataset(name).attrs))
                   for name in KEEP if name in seq}
     with h5py.File(src, "r") as f:  # the attributes as stored (JSON strings stay the same strings)
-        attrs = {key: value for key, value in f.attrs.items() if key != DERIVED_ATTR}
+        attrs = {key: value for key, value in f.attrs.items() if key not in (DERIVED_ATTR, DERIVED_FROM_ATTR)}
     with atomic_path(dst) as tmp, h5py.File(tmp, "w", track_order=True) as f:
         f.attrs.update(attrs)
         for name, (array, array_attrs) in arrays.items():

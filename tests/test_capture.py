@@ -200,6 +200,18 @@ def test_same_seed_gives_identical_bytes(tmp_path):
     assert a["steps/000/front_depth.png"] != c["steps/000/front_depth.png"]
 
 
+def test_workers_write_the_same_captures_as_one_process(captures, tmp_path):
+    """`generate-captures --workers 2` of two captures: the first is the one-process capture, byte for byte."""
+    assert main(["generate-captures", "--out", str(tmp_path), *ARGS[:-1], "2", "--workers", "2"]) == 0
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["seq_0000", "seq_0001"]
+    one = captures["realistic"]
+    files = sorted(p.relative_to(one) for p in one.rglob("*") if p.is_file())
+    assert len(files) > 8 and files == sorted(p.relative_to(tmp_path / "seq_0000")
+                                              for p in (tmp_path / "seq_0000").rglob("*") if p.is_file())
+    assert all((one / f).read_bytes() == (tmp_path / "seq_0000" / f).read_bytes() for f in files)
+    assert (tmp_path / "seq_0001" / "truth.json").read_bytes() != (one / "truth.json").read_bytes()
+
+
 def test_command_skips_existing_and_refuses_other_arguments(captures, capsys):
     out = captures["realistic"].parent
     before = (captures["realistic"] / "steps/000/front_depth.png").stat().st_mtime_ns

@@ -42,8 +42,9 @@ def _stopped_on_a_job(url: str, root, worker, rescored: list[str]) -> str | None
         if held[0] in _held_by(url, worker.pid):
             return held[0]
         os.kill(worker.pid, signal.SIGCONT)
-    states = rows(url, "SELECT id, state FROM submissions ORDER BY created_at")
-    if all(state in ("scored", "refused", "failed") for _, state in states):
+    states = rows(url, "SELECT id, state, rescore FROM submissions ORDER BY created_at")
+    # every job finished and none marked for a re-score (one marked stays "scored" until a worker takes it)
+    if all(state in ("scored", "refused", "failed") and not again for _, state, again in states):
         assert main(["challenge", "rescore", str(root), states[-1][0], "--db", url]) == 0
         rescored.append(states[-1][0])
     return None

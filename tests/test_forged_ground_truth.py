@@ -91,7 +91,7 @@ def test_one_edited_value_unpins_the_results(clean, pinned, capsys, tmp_path, ar
 def test_zeroed_flow_with_rewritten_attributes_and_manifest_is_caught(clean, pinned, capsys, tmp_path):
     """A careful forger rewrites the files' digest attributes and the manifest after zeroing every flow: the static
     model would score 0; the manifest's checksum now differs from the pin, and the recomputed digests too."""
-    from dsr_bench.dataset.digests import file_digests
+    from dsr_bench.dataset.sequence import file_digests
 
     for path in sorted(pinned.glob("seq_*.h5")):
         _edit(path, "scene_flow_3d", lambda v: v.fill(0))

@@ -15,22 +15,36 @@ def _part(module: str) -> str | None:
     return parts[1] if len(parts) > 1 and parts[0] == "dsr_bench" else None
 
 
-def import_graph() -> dict[str, set[str]]:
-    """{part: the other parts it imports}, over every module of dsr_bench."""
+def _dataset_module(module: str) -> str | None:
+    """The module of the dataset package a module is (dsr_bench.dataset.scored -> scored), None for any other."""
+    parts = module.split(".")
+    return parts[2] if len(parts) > 2 and parts[:2] == ["dsr_bench", "dataset"] else None
+
+
+def _imported(path: Path) -> list[str]:
+    """Every module of dsr_bench a file imports, at its top or inside a function (`from dsr_bench import name`:
+    dsr_bench.name, and `from package import module`: package.module)."""
+    targets = []
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.ImportFrom) and node.module and node.module.split(".")[0] == "dsr_bench":
+            package = ROOT / Path(*node.module.split("."))
+            targets += [f"{node.module}.{a.name}" if node.module == "dsr_bench" or (package / f"{a.name}.py").is_file()
+                        or (package / a.name / "__init__.py").is_file() else node.module for a in node.names]
+        elif isinstance(node, ast.Import):
+            targets += [a.name for a in node.names]
+    return targets
+
+
+def import_graph(part=_part, root: str = "dsr_bench") -> dict[str, set[str]]:
+    """{part: the other parts it imports}, over every module under `root` (a folder of the repository); `part`
+    names what a module belongs to (None: not counted)."""
     edges: dict[str, set[str]] = defaultdict(set)
-    for path in (ROOT / "dsr_bench").rglob("*.py"):
-        me = _part(".".join(path.relative_to(ROOT).with_suffix("").parts))
-        for node in ast.walk(ast.parse(path.read_text())):
-            if isinstance(node, ast.ImportFrom) and node.module and node.module.split(".")[0] == "dsr_bench":
-                targets = [node.module] if node.module != "dsr_bench" else [f"dsr_bench.{a.name}" for a in node.names]
-            elif isinstance(node, ast.Import):
-                targets = [a.name for a in node.names]
-            else:
-                continue
-            for target in targets:
-                other = _part(target)
-                if other is not None and me is not None and other != me and other != "__version__":
-                    edges[me].add(other)
+    for path in (ROOT / root).rglob("*.py"):
+        me = part(".".join(path.relative_to(ROOT).with_suffix("").parts))
+        for target in _imported(path):
+            other = part(target)
+            if other is not None and me is not None and other != me and other != "__version__":
+                edges[me].add(other)
     return edges
 
 
@@ -75,6 +89,26 @@ def test_the_library_parts_import_each_other_without_a_cycle():
     below = set().union(*(edges[p] for p in edges if p not in top))
     assert not set(top) & below  # sit on top: nothing of the library below them imports them
     assert "challenge" not in edges.get("leaderboard", set())  # the server uses the leaderboard, not the reverse
+
+
+def test_the_dataset_packages_modules_import_each_other_without_a_cycle():
+    """Inside the dataset package too: the storage layer knows nothing of scoring (`nonzero_rows` and
+    `le_contiguous` live in `arraybytes`, below both), and the digests read no file (`sequence` reads a file's)."""
+    edges = import_graph(_dataset_module, "dsr_bench/dataset")
+    assert {"digests", "sequence", "storage", "scored"} <= set(edges)  # the graph was read
+    assert cycles(edges) == []
+    assert edges["storage"] == {"arraybytes"} and "scored" not in edges["sequence"]
+
+
+def test_the_library_imports_its_own_modules_never_the_public_facade():
+    """`dsr_bench/__init__` re-exports the public API for users; a module of dsr_bench, generators or annotator
+    imports from the module a name lives in (`from dsr_bench import __version__` aside), so that the graph above is
+    the real one and importing the package stays light."""
+    facade = [f"{path.relative_to(ROOT)}: {target}" for folder in ("dsr_bench", "generators", "annotator")
+              for path in (ROOT / folder).rglob("*.py") for target in _imported(path)
+              if target.startswith("dsr_bench.") and target.count(".") == 1
+              and target.split(".")[1] in __import__("dsr_bench").__all__ and target != "dsr_bench.__version__"]
+    assert facade == []
 
 
 def test_the_cycle_finder_finds_a_cycle():

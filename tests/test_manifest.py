@@ -7,7 +7,8 @@ import h5py
 import numpy as np
 import pytest
 
-from dsr_bench.dataset.digests import array_digest, digest_attrs, file_digests, group_digests
+from dsr_bench.dataset.digests import array_digest, digest_attrs, group_digests
+from dsr_bench.dataset.sequence import file_digests
 from dsr_bench.errors import UserError
 from dsr_bench.dataset.manifest import (
     build_manifest,

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from dsr_bench.dataset.digests import digest_attrs, fingerprint, within_tolerance
+from dsr_bench.dataset.digests import fingerprint, within_tolerance
 from dsr_bench.dataset.manifest import build_manifest, load_manifest, write_manifest
 from dsr_bench.dataset.pins import build_pin, compare_with_pin, summarize
 from dsr_bench.dataset.sequence import SequenceReader, write_sequence
@@ -71,14 +71,13 @@ def test_same_bits_on_an_emulated_avx2_cpu(reference, tmp_path):
 
 # --- pins: rendering noise is not a changed benchmark --------------------------------------------------
 def _rewrite(path: Path, change) -> None:
-    """Rewrite a sequence with `change(arrays)` applied and its digests recomputed, as a generator that
-    produced those arrays would have written it."""
+    """Rewrite a sequence with `change(arrays)` applied (`write_sequence` recomputes its digests), as a generator
+    that produced those arrays would have written it."""
     with SequenceReader(path) as seq:
         arrays = {n: seq.read(n) for n in seq.array_names()}  # stored and derived (points)
         attrs = {k: v for k, v in seq.attrs.items() if k not in ("format", "schema_version")}
         meshes = {i: seq.mesh(i) for i in range(seq.num_objects) if seq.mesh(i) is not None}
     change(arrays)
-    attrs.update(digest_attrs(arrays, attrs["objects"]))
     write_sequence(path, arrays, attrs, meshes)
 
 
@@ -104,7 +103,7 @@ def _compare(data: Path, pin: dict):
     digests = {s["name"]: s for s in manifest["sequences"]}
 
     def prints(name):
-        from dsr_bench.dataset.digests import file_fingerprints
+        from dsr_bench.dataset.sequence import file_fingerprints
         return file_fingerprints(data / f"{name}.h5")[0]
 
     return compare_with_pin(pin, digests, prints)

@@ -48,6 +48,29 @@ def test_round_trip_shapes_dtypes_and_values(synthetic):
         assert seq.attrs["schema_version"] == SCHEMA_VERSION and seq.attrs["axis_order"] == "y,x,z"
 
 
+def test_the_writer_computes_the_digests_the_callers_used_to(tmp_path):
+    """`write_sequence` writes `digest_attrs` of the arrays and extras it is given, after the caller's attributes,
+    where each caller used to add them: a file written without digests is the same bytes as one written with them
+    computed beforehand (the way before), and digests that describe other arrays are replaced."""
+    from dsr_bench.dataset.digests import digest_attrs
+    from dsr_bench.dataset.sequence import file_digests
+
+    arrays, attrs, meshes = synthetic_arrays(2, 2, 4)
+    extras = {"official/extra": np.arange(6, dtype=np.float32).reshape(2, 3)}  # an import's: digested too
+    expected = digest_attrs({**arrays, **extras}, attrs["objects"])
+    written = write_sequence(tmp_path / "now.h5", arrays, attrs, meshes, extras)
+    before = write_sequence(tmp_path / "before.h5", arrays, {**attrs, **expected}, meshes, extras)
+    stale = write_sequence(tmp_path / "stale.h5", arrays, {**attrs, **digest_attrs({"tsdf": arrays["tsdf"]}, [])},
+                           meshes, extras)
+    assert "content_sha256" not in attrs  # the caller's attributes are left as they were
+    assert written.read_bytes() == before.read_bytes() == stale.read_bytes()
+    with SequenceReader(written) as seq:
+        assert list(seq.attrs) == ["format", "schema_version", *attrs, *expected]  # (the points are stored)
+        assert {key: seq.attrs[key] for key in expected} == expected
+    recomputed = file_digests(written)
+    assert {key: recomputed[key] for key in expected} == expected
+
+
 def test_refuses_bad_shapes_and_leaves_nothing(tmp_path):
     arrays, attrs, meshes = synthetic_arrays(2, 2, 1)
     arrays["mask_3d"] = arrays["mask_3d"][:, :64].astype(np.int64)
@@ -209,8 +232,8 @@ def test_points_that_follow_from_depth_are_derived_not_stored_and_read_back_bit_
     """A camera's points equal to `derive_points` of its depth (as the generator's are) are left out of the file and
     listed in derived_arrays; the reader derives exactly them (step, range, whole), says they exist, validates them
     and digests them like stored ones (so pins are unchanged). Points that differ by one bit are stored as given."""
-    from dsr_bench.dataset.digests import digest_attrs, file_digests
-    from dsr_bench.dataset.sequence import DERIVED_ATTR, derive_points
+    from dsr_bench.dataset.digests import digest_attrs
+    from dsr_bench.dataset.sequence import DERIVED_ATTR, derive_points, file_digests
     from dsr_bench.dataset.validate import validate_sequence
     from dsr_bench.geometry import make_camera
 
@@ -220,7 +243,7 @@ def test_points_that_follow_from_depth_are_derived_not_stored_and_read_back_bit_
     points = derive_points(arrays["cameras/front/depth"], camera)
     assert np.isnan(points).any() and np.isfinite(points).any()
     arrays["cameras/front/points"] = points
-    attrs.update(digest_attrs(arrays, attrs["objects"]))
+    written = digest_attrs(arrays, attrs["objects"])  # the digests of every array, the derived ones too
     write_sequence(tmp_path / "derived.h5", arrays, attrs, meshes)
     with h5py.File(tmp_path / "derived.h5", "r") as f:
         assert "cameras/front/points" not in f and DERIVED_ATTR in f.attrs
@@ -233,8 +256,8 @@ def test_points_that_follow_from_depth_are_derived_not_stored_and_read_back_bit_
                               points[1:3].view(np.uint32))
         assert DERIVED_ATTR not in seq.attrs
     digests = file_digests(tmp_path / "derived.h5")
-    assert digests["observations_sha256"] == attrs["observations_sha256"]
-    assert digests["ground_truth_sha256"] == attrs["ground_truth_sha256"]
+    assert digests["observations_sha256"] == written["observations_sha256"]
+    assert digests["ground_truth_sha256"] == written["ground_truth_sha256"]
     assert validate_sequence(tmp_path / "derived.h5") == []
 
     nudged = points.copy()
@@ -264,3 +287,62 @@ def test_a_file_of_schema_2_is_read_and_a_bad_derived_list_is_refused(tmp_path, 
             f.attrs[DERIVED_ATTR] = json.dumps(listed)
         with pytest.raises(SequenceFormatError, match="cannot be derived"):
             SequenceReader(old)
+
+
+def _bits(a) -> bytes:
+    return np.ascontiguousarray(a).tobytes()
+
+
+def test_an_import_stores_the_releases_arrays_once_and_reads_their_casts_back_bit_for_bit(tmp_path):
+    """An import's float32 points and 2D flow are its `official/` float64 arrays cast (the points' last observation
+    from the depth): the file stores the originals once (byte-shuffled, deflate level 6) and lists the casts in
+    derived_from; the reader casts them again, every step, range and whole array bit for bit, and the file's
+    digests are the arrays'. The same file with the casts stored (an import of an earlier version) reads the same,
+    and one listing a cast whose source is missing is refused in one line."""
+    import shutil
+
+    from test_official import write_official_fixture
+
+    from dsr_bench.cli import main
+    from dsr_bench.dataset.derived import DERIVED_FROM_ATTR
+    from dsr_bench.dataset.digests import digest_attrs
+    from dsr_bench.dataset.official import convert_sequence, find_official_sequences
+    from dsr_bench.dataset.sequence import file_digests
+    from dsr_bench.dataset.storage import OFFICIAL_LEVEL
+
+    src, dst = tmp_path / "release", tmp_path / "data"
+    src.mkdir()
+    write_official_fixture(src, ids=("3",))
+    assert main(["import-official", str(src), str(dst)]) == 0
+    arrays, extras, attrs = convert_sequence(find_official_sequences(src)["3"])
+    casts = {"cameras/front/points": "official/pts_small", "cameras/front/scene_flow_2d": "official/scene_flow_2d"}
+    path = dst / "seq_0003.h5"
+    with h5py.File(path, "r") as f:
+        assert json.loads(f.attrs[DERIVED_FROM_ATTR]) == casts
+        assert not {f"cameras/front/{k}" for k in f["cameras/front"]} & set(casts)  # not stored
+        for name in ("official/pts_small", "official/depth_image"):
+            assert f[name].shuffle and f[name].compression_opts == OFFICIAL_LEVEL
+    with SequenceReader(path) as seq:
+        assert set(casts) <= seq.derived and seq.derived_from == casts
+        for name, array in {**arrays, **extras}.items():
+            assert seq.shape_and_dtype(name) == (array.shape, array.dtype), name
+            assert _bits(seq.read(name)) == _bits(array), name
+            if array.ndim > 1:
+                for index in (0, -1, slice(1, None), slice(0, 2)):
+                    assert _bits(seq.read(name, index)) == _bits(array[index]), (name, index)
+    written = digest_attrs({**arrays, **extras}, attrs["objects"])
+    assert file_digests(path)["content_sha256"] == written["content_sha256"]
+
+    earlier = tmp_path / "earlier.h5"  # the casts stored, no derived_from: how earlier versions wrote imports
+    shutil.copy(path, earlier)
+    with h5py.File(earlier, "r+") as f:
+        for name in casts:
+            f.create_dataset(name, data=arrays[name])
+        del f.attrs[DERIVED_FROM_ATTR]
+    with SequenceReader(earlier) as seq:
+        assert not seq.derived_from and all(_bits(seq.read(n)) == _bits(arrays[n]) for n in casts)
+    with h5py.File(path, "r+") as f:
+        del f["official/scene_flow_2d"]
+    with pytest.raises(SequenceFormatError, match="derived_from lists") as err:
+        SequenceReader(path)
+    assert "\n" not in str(err.value)

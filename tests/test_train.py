@@ -306,6 +306,7 @@ def test_the_help_groups_the_options_by_track(capsys, monkeypatch):
                   "The CPU track (--track cpu)"):
         assert panel in text, panel
     lines = {line.split()[1]: line for line in text.splitlines() if line.startswith("│ ") and "--" in line[:30]}
-    assert "Tracks: full, cpu." in lines["--init"] and "Tracks: cpu, 2D." in lines["--single-batches"]
-    assert "Tracks: full, 2D." in lines["--device"] and "Tracks: full." in lines["--max-minutes"]
+    assert "Tracks: full, cpu, fine-tuning." in lines["--init"] and "Tracks: cpu, 2D." in lines["--single-batches"]
+    assert "Tracks: full, 2D, fine-tuning." in lines["--device"] and "Tracks: full." in lines["--max-minutes"]
     assert "Tracks:" not in lines["--lr"]  # every track reads it
+    assert "Fine-tuning on a real split" in text and "Tracks: fine-tuning." in lines["--finetune"]

@@ -75,10 +75,10 @@ def _draw_parts(names: list[str], public_fraction: float) -> dict[str, list[str]
 
 
 def _annotated_files(source: Path) -> list[Path]:
-    """The annotated sequence files of `source` (each a file of `dsr-bench annotate --export` that passes
-    `validate`), or a UserError naming the first that is not."""
-    from dsr_bench.dataset.sequence import SequenceReader
-    from dsr_bench.dataset.validate import validate_sequence
+    """The annotated sequence files of `source` (each a file of `dsr-bench annotate --export` that a real split takes:
+    complete, not flagged, passing `validate`; `dsr_bench.dataset.real_build.export_problem`), or a UserError naming
+    the first that is not."""
+    from dsr_bench.dataset.real_build import export_problem
 
     if not source.is_dir():
         raise UserError(f"{source} is not a directory; give the folder of the annotator's exports "
@@ -88,18 +88,11 @@ def _annotated_files(source: Path) -> list[Path]:
         raise UserError(f"{source} holds {len(files)} sequence file(s) (.h5); a hidden set needs at least 2 (a "
                         "public and a private part): export more annotated captures into it")
     for path in files:
-        try:
-            with SequenceReader(path) as seq:
-                origin = seq.attrs.get("source")
-        except Exception as exc:  # not HDF5, or not a sequence file
-            raise UserError(f"{path}: not a sequence file ({type(exc).__name__}); give a folder of annotated "
-                            "exports only") from None
-        if origin != "annotated":
-            raise UserError(f"{path}: not an annotated export (its source is {origin!r}, not 'annotated'); give a "
-                            "folder of `dsr-bench annotate --export` files only")
-        problems = validate_sequence(path)
-        if problems:
-            raise UserError(f"{path}: fails `dsr-bench validate` ({problems[0]}); export it again")
+        # the real track's own test (`dsr-bench real-split`): an annotated export, complete, none of its poses
+        # flagged, passing validate; so the challenge hides what a real split's table would score, and nothing else
+        problem = export_problem(path)
+        if problem:
+            raise UserError(f"{path}: {problem}")
     return files
 
 

@@ -14,6 +14,7 @@ import sys
 
 import typer
 
+from dsr_bench import __version__
 from dsr_bench.errors import UserError, one_line
 
 app = typer.Typer(
@@ -27,8 +28,9 @@ app = typer.Typer(
 #: The library's command modules under dsr_bench.cli, each with a `register(app)` function.
 _COMMAND_MODULES: tuple[str, ...] = ("data", "scoring", "view", "train")
 #: The order of the commands in `dsr-bench --help` (others follow in the order they were registered).
-COMMAND_ORDER: tuple[str, ...] = ("generate", "validate", "info", "manifest", "import-official", "predict", "evaluate",
-                                  "view", "train", "generate-plan-tasks", "plan", "generate-captures", "annotate")
+COMMAND_ORDER: tuple[str, ...] = ("generate", "validate", "info", "manifest", "import-official", "real-split",
+                                  "predict", "evaluate", "view", "train", "generate-plan-tasks", "plan",
+                                  "generate-captures", "annotate")
 ENTRY_POINT_GROUP = "dsr_bench.commands"
 
 
@@ -66,8 +68,6 @@ _register_commands()
 
 def _print_version(value: bool) -> None:
     if value:
-        from dsr_bench import __version__
-
         typer.echo(__version__)
         raise typer.Exit()
 

@@ -1,4 +1,4 @@
-"""Dataset commands: `validate`, `info`, `manifest`, `import-official`."""
+"""Dataset commands: `validate`, `info`, `manifest`, `import-official`, `real-split`."""
 
 from __future__ import annotations
 
@@ -6,6 +6,8 @@ from pathlib import Path
 from typing import Optional
 
 import typer
+
+from dsr_bench.atomic import check_writable
 
 
 def validate(
@@ -23,7 +25,7 @@ def validate(
     from rich.console import Console
     from rich.table import Table
 
-    from dsr_bench.progress import progress_bar
+    from dsr_bench.progress import progress_bar  # looked up on each call: tests replace the bar
     from dsr_bench.dataset.validate import summary_line, validate_dataset
 
     console = Console()
@@ -42,7 +44,14 @@ def validate(
         from dsr_bench.dataset.manifest import load_manifest
         from dsr_bench.dataset.pins import pin_matches
 
+        from dsr_bench.dataset.real import pin_lines, read_real_split
+
+        real = read_real_split(data_dir)
+        own = set(real["parts"].values()) if real else set()
         for line in pin_matches(load_manifest(data_dir)):  # unwrapped, to copy
+            if line.split(":")[0].removeprefix("split ") not in own:  # a real split's part: its own pins say below
+                typer.echo(line)
+        for line in pin_lines(data_dir):
             typer.echo(line)
         return
     table = Table(title=f"{len(problems)} problems in {data_dir}")
@@ -130,6 +139,11 @@ def info(
     table.add_row("toolkit versions", counts(s.get("toolkit_version", "?") for s in seqs)
                   + f" (manifest written by {manifest.get('toolkit_version')})")
     table.add_row("schema version", str(manifest.get("schema_version")))
+    from dsr_bench.dataset.real import info_rows, read_real_split
+
+    real = read_real_split(data_dir)
+    for label, text in info_rows(real) if real else ():
+        table.add_row(label, text)
     console.print(table)
     for name, split in sorted(manifest.get("splits", {}).items()):  # unwrapped, to copy
         typer.echo(f"split {name}: {split['sequences']} sequences, checksum {split['content_sha256']}")
@@ -159,7 +173,6 @@ def import_official_command(
     """Convert the authors' release into our format, losslessly (see docs/format.md)."""
     from rich.progress import Progress
 
-    from dsr_bench.atomic import check_writable
     from dsr_bench.dataset.official import find_official_sequences, import_official, read_official_split
 
     check_writable(dst, "DST")
@@ -170,7 +183,45 @@ def import_official_command(
     typer.echo(f"imported {len(names)} sequences into {dst}; check them with `dsr-bench validate {dst}`")
 
 
+def real_split(
+    exports: Path = typer.Argument(..., help="Folder of the annotator's exports (`dsr-bench annotate CAPTURE --export "
+                                             "FOLDER/NAME.h5`), one .h5 per annotated capture."),
+    out: Path = typer.Option(..., "--out", "-o", help="The real split's directory (new): seq_*.h5, splits/, "
+                                                      "manifest.json, real_split.json."),
+    fine_tune: Optional[int] = typer.Option(None, "--fine-tune", help="Sequences to fine-tune on (default: a third "
+                                            "of the exports, the paper's 50 of 150; with --test only: the rest)."),
+    test: Optional[int] = typer.Option(None, "--test", help="Sequences held out and scored (default: the rest; the "
+                                       "paper's 100)."),
+    seed: int = typer.Option(0, "--seed", help="Seed of the draw of the two parts."),
+    name: str = typer.Option("real", "--name", help="The split's name: its parts are the splits NAME-finetune and "
+                                                    "NAME-test."),
+    workers: int = typer.Option(1, "--workers", "-w", help="Parallel worker processes checking the exports."),
+) -> None:
+    """Make a real split from annotated captures: fine-tune and test parts drawn with --seed, the manifest, and
+    real_split.json (the split's own pins, which `validate` and `evaluate` check, and each sequence's provenance).
+    An export whose annotation is incomplete or flagged, or that fails `validate`, is refused by name."""
+    from rich.progress import Progress
+
+    from dsr_bench.dataset.real_build import build_real_split
+
+    check_writable(out)
+    with Progress(transient=True) as bar:
+        task = bar.add_task("checking exports", total=None)
+        record = build_real_split(exports, out, finetune=fine_tune, test=test, seed=seed, name=name,
+                                  workers=max(1, workers), progress=lambda i, n: bar.update(task, completed=i, total=n))
+    parts = record["parts"]
+    for part, split in parts.items():
+        pin = record["pins"][split]
+        typer.echo(f"split {split}: {len(pin['sequences'])} sequences ({part}), checksum {pin['checksum']}")
+    if record["unused"]:
+        typer.echo(f"left out: {len(record['unused'])} exports ({', '.join(u['export'] for u in record['unused'][:4])}"
+                   f"{' ...' if len(record['unused']) > 4 else ''})")
+    typer.echo(f"wrote {out} (pinned by {out / 'real_split.json'}); next: `dsr-bench validate {out}`, then fine-tune "
+               f"with `dsr-bench train --finetune --init WEIGHTS --data {out}` and score on --split {parts['test']}")
+
+
 def register(app: typer.Typer) -> None:
+    app.command("real-split")(real_split)
     app.command("validate")(validate)
     app.command("info")(info)
     app.command("manifest")(manifest)

@@ -8,8 +8,11 @@ from typing import Optional
 
 import typer
 
+from dsr_bench.atomic import check_writable, write_text
 from dsr_bench.engine_options import (RayAddress, Slurm, SlurmLocal, SlurmLogs, SlurmPartition, SlurmTasks,
                                          SlurmTime)
+from dsr_bench.engines import engine_from_options, slurm_options_given
+from dsr_bench.memory import keep_freed_memory
 from dsr_bench.models import registry
 
 #: The kernels `dsr-bench predict` runs the shipped CPU-track networks with on a CPU: set in the environment before
@@ -48,7 +51,6 @@ def predict(
     kernels on one thread: their predictions are the same bytes on every x86-64 CPU with AVX2 (docs/models.md)."""
     from rich.progress import Progress
 
-    from dsr_bench.atomic import check_writable
     from dsr_bench.dataset.manifest import read_split
     from dsr_bench.models.predictors import load_predictor, predict_split
     from dsr_bench.scoring.predictions import record_source
@@ -157,10 +159,7 @@ def evaluate(
     A progress bar (per sequence) shows on stderr when it is a terminal."""
     from rich.console import Console
 
-    from dsr_bench.atomic import check_writable, write_text
-    from dsr_bench.engines import engine_from_options, slurm_options_given
-    from dsr_bench.memory import keep_freed_memory
-    from dsr_bench.progress import progress_bar
+    from dsr_bench.progress import progress_bar  # looked up on each call: tests replace the bar
     from dsr_bench.scoring.evaluate import evaluate as run, require_predictions_dir
     from dsr_bench.scoring.plots import steps_plot_path
     from dsr_bench.scoring.predictions import infer_source
@@ -192,6 +191,7 @@ def evaluate(
                       else "fix the problems above, or score what is valid with --allow-partial"))
         raise typer.Exit(1)
     _print_results(evaluation.results)
+    typer.echo(_printable(pins_line(evaluation.results, data)), err=True)
     if out is not None:
         out.parent.mkdir(parents=True, exist_ok=True)
         write_text(out, json.dumps(evaluation.results, indent=1, sort_keys=True) + "\n")
@@ -210,6 +210,23 @@ def evaluate(
     if evaluation.problems:
         console.print(f"[yellow]partial[/yellow]: scored {evaluation.results['coverage']['scored']} of "
                       f"{evaluation.results['coverage']['expected']} sequences")
+
+
+def pins_line(results: dict, data: Path) -> str:
+    """What the scored ground truth was verified against: the toolkit's pins of a named split, a real split's own
+    pins (`dsr-bench real-split`), or nothing (an unpinned dataset: its results cannot join the leaderboard)."""
+    real, split = results.get("real_split"), results["split"]
+    if real is not None:
+        where = Path(data) / real["pins"]
+        if results["pinned"]:
+            return (f"pinned to its own real-split pins ({where}: the real split {real['name']!r}, "
+                    f"{real['part']} part, checksum {str(real['checksum'])[:12]}...), not the toolkit's "
+                    "split_pins.json")
+        return f"not pinned: {split} differs from its own real-split pins ({where}; see the warnings above)"
+    if results["pinned"]:
+        return f"pinned to the toolkit's pins of {split} (split_pins.json), its ground truth verified while scoring"
+    return (f"not pinned: {split} is neither one of the toolkit's pinned splits as pinned nor a real split "
+            "(`dsr-bench real-split`); its results cannot join the leaderboard")
 
 
 @leaderboard_app.command("build")

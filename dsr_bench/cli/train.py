@@ -1,4 +1,5 @@
-"""`dsr-bench train`: a reference model by one recipe of its kind (`models.training.tracks`; torchrun-compatible).
+"""`dsr-bench train`: a reference model by one recipe of its kind (`models.training.tracks`; torchrun-compatible), or
+its weights fine-tuned on a real split (`--finetune`, `models.training.finetune`).
 
 The options are grouped by the tracks that read them (`--help` shows the groups, and after each option the tracks
 that take it, from the recipes' tables); each recipe refuses in one line an option it does not read
@@ -21,6 +22,7 @@ FULL = "The full track (--track full, the default): the paper's stages on the 12
 BUDGET = "Budget and checkpoints (the full track; a lent GPU's short runs are the same command with a budget)"
 DEVICE = "Device (the full track; --device also the 2D track)"
 CPU = "The CPU track (--track cpu): both of its stages on 32 x 32 x 16"
+FINETUNE = "Fine-tuning on a real split (--finetune; the CPU track's and the 2D track's models)"
 
 
 def _name_the_tracks(command) -> None:
@@ -68,6 +70,11 @@ def train(
         ".predictions for .pt).")),
     eval_split: Optional[str] = typer.Option(None, "--eval-split", rich_help_panel=HELDOUT, help=(
         "The held-out split (default: --eval-data's only one).")),
+    finetune: bool = typer.Option(False, "--finetune", rich_help_panel=FINETUNE, help=(
+        "Fine-tune --init (weights trained in simulation) on --data, a real split (`dsr-bench real-split`; default "
+        "split: its fine-tune part): --epochs passes (default 20) at --lr (default 1e-4) halved after every 3, "
+        "then precise BatchNorm (voxel models); writes --out, the weights of NAME-ft. Resumable: the same command "
+        "goes on from OUT's .partial.pt.")),
     stage: Optional[str] = typer.Option(None, "--stage", rich_help_panel=FULL, help=(
         "cube-single | cube-multi | shapenet-multi (any data set), or curriculum: the three in turn, "
         "each in OUT/STAGE, resumable by running the command again.")),
@@ -77,12 +84,13 @@ def train(
     init: Optional[Path] = typer.Option(None, "--init", rich_help_panel=FULL, help=(
         "Start from this checkpoint's weights (the next stage; --track cpu: another run's "
         ".stage1.pt, stage 1 skipped, or a finished run's weights file of this model: --multi-batches "
-        "more of stage 2, continuing it).")),
+        "more of stage 2, continuing it; --finetune: the weights to fine-tune).")),
     resume: Optional[Path] = typer.Option(None, "--resume", rich_help_panel=FULL, help=(
         "Resume a run exactly (optimizer, schedule, RNG, data); --stage curriculum: go on from this "
         "checkpoint's stage where OUT holds none later.")),
     epochs: Optional[int] = typer.Option(None, "--epochs", rich_help_panel=FULL, help=(
-        "Override the stage's epochs (the curriculum: every stage's).")),
+        "Override the stage's epochs (the curriculum: every stage's; --finetune: passes over the fine-tune part, "
+        "default 20).")),
     epoch_samples: Optional[int] = typer.Option(None, "--epoch-samples", rich_help_panel=FULL, help=(
         "Sample-steps per epoch, drawn from the data in repeated shuffled passes (default: one "
         "pass; the paper's: 40000).")),
@@ -104,7 +112,7 @@ def train(
         "Deterministic algorithms and warp.")),
     max_steps: Optional[int] = typer.Option(None, "--max-steps", rich_help_panel=BUDGET, help=(
         "Stop after this many windows (batches) of the stage (the curriculum: of this command, over "
-        "its stages), with a resumable checkpoint.")),
+        "its stages; --finetune: of this command), with a resumable checkpoint.")),
     max_minutes: Optional[float] = typer.Option(None, "--max-minutes", rich_help_panel=BUDGET, help=(
         "Stop after this much training time (the curriculum: this command's, over its stages), with "
         "a resumable checkpoint.")),
@@ -138,16 +146,30 @@ def train(
     given = {name: value for name, value in options.items() if name in typed and value != defaults.get(name)}
     entry = registry.model_entry(model, *registry.trainable())
     recipe = entry.model_kind.track(track)
+    if finetune:
+        recipe = recipe.finetuning()
     recipe.check(given)
     rank0 = os.environ.get("RANK", "0") == "0"
     if eval_data is not None:
+        eval_split = eval_split or _real_test_part(eval_data)
         _check_heldout(eval_data, eval_split, out, recipe.result)
     report = (lambda line: None) if quiet or not rank0 else (lambda line: typer.echo(line, err=True))
     path = recipe.train(model, options, report)
     if rank0:
+        if path.name.endswith(".partial.pt"):  # --finetune stopped by --max-steps: nothing finished to evaluate
+            typer.echo(f"resumable checkpoint: {path} (run the same command again to go on)")
+            return
         typer.echo(f"{recipe.result}: {path}")
         if eval_data is not None:
             _evaluate(model, path, eval_data, eval_split, out, recipe.result, device)
+
+
+def _real_test_part(data: Path) -> str | None:
+    """A real split's held-out test part (what --eval-data scores by default), None for another dataset."""
+    from dsr_bench.dataset.real import read_real_split
+
+    real = read_real_split(data) if data.is_dir() else None
+    return None if real is None else real["parts"]["test"]
 
 
 def _heldout_paths(out: Path, result: str) -> tuple[Path, Path]:

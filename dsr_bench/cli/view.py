@@ -7,6 +7,8 @@ from typing import Optional
 
 import typer
 
+from dsr_bench.errors import UserError
+
 
 def view(
     sequence: str = typer.Argument(..., help="A sequence name within --data (seq_0042; seq_42 or 42 mean it "
@@ -23,8 +25,7 @@ def view(
 ) -> None:
     """Open a sequence in the rerun viewer: cameras, TSDF, amodal voxels, meshes, push, flow, predictions.
     With --predictions and no --data, the dataset is the one the predictions' meta.json names."""
-    from dsr_bench.display import no_display
-    from dsr_bench.errors import UserError
+    from dsr_bench.display import no_display  # looked up on each call: tests stand in for a display
     from dsr_bench.dataset.manifest import resolve_sequence
 
     if save is not None and web:

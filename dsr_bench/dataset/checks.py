@@ -17,7 +17,8 @@ from collections.abc import Callable
 import numpy as np
 
 from dsr_bench.constants import FLOW_COMPONENTS, GRID_BOUNDS, GRID_SHAPE, NUM_DIRECTIONS, TSDF_TRUNCATION, VOXEL_SIZE
-from dsr_bench.geometry import rotation_angle
+from dsr_bench.geometry import rotation_angle, transform_points, voxel_points
+from dsr_bench.geometry.groundtruth import rigid_scene_flow_3d
 
 #: Largest allowed difference (voxels) between stored flow and the rigid motion of the stored poses
 #: (our own data; also the numerical slack added to the official release's allowance).
@@ -111,8 +112,6 @@ def _range_checks(seq, ok: set[str]) -> dict[str, Callable[[], list[str]]]:
 def _check_flow(seq) -> list[str]:
     """Stored flow against the rigid motion of the stored poses, and zero off objects; official imports
     by the release's own (rounded) definition, `_check_official_flow`."""
-    from dsr_bench.geometry.groundtruth import rigid_scene_flow_3d
-
     if seq.attrs.get("source") == "official-import":
         return _check_official_flow(seq)
     problems: list[str] = []
@@ -216,8 +215,6 @@ def rounding_excess(indices_yxz: np.ndarray, flow_yxz: np.ndarray, motion: np.nd
 def _grid_point_motion(indices_yxz: np.ndarray, motion: np.ndarray) -> np.ndarray:
     """Rigid motion (M, 3) in voxels (dy, dx, dz) of the official grid points (bound_min + i * voxel
     size) of voxel indices (M, 3) in (iy, ix, iz)."""
-    from dsr_bench.geometry import transform_points
-
     points = GRID_BOUNDS[:, 0] + indices_yxz[:, [1, 0, 2]].astype(np.float64) * VOXEL_SIZE
     return ((transform_points(motion, points) - points) / VOXEL_SIZE)[:, [1, 0, 2]]
 
@@ -355,8 +352,6 @@ def _check_mask_warp(seq) -> list[str]:
 
 def _check_tsdf_sign(seq, camera: str = "front") -> list[str]:
     """Voxels with tsdf < 0 must lie behind the depth image's surface, within the truncation."""
-    from dsr_bench.geometry import voxel_points
-
     problems = []
     cam = seq.camera(camera)
     centres = voxel_points()

@@ -14,6 +14,9 @@ group's digest is the SHA-256 of its arrays' "name:digest" lines in sorted order
 adds the canonical JSON of the object list); the content digest is the SHA-256 of the two group
 digests. A fingerprint (`fingerprint`) adds a few statistics of an array, so that a difference can
 be described ("by how much") without the reference data.
+
+`dsr_bench.dataset.sequence.write_sequence` writes `digest_attrs` into every file; `file_digests` and
+`file_fingerprints` there recompute them from a file (this module reads no file).
 """
 
 from __future__ import annotations
@@ -23,9 +26,11 @@ import json
 import math
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
+
+from dsr_bench.dataset.arraybytes import le_contiguous
+from dsr_bench.dataset.schema import FIELDS, GROUND_TRUTH
 
 GROUND_TRUTH_KEY, OBSERVATIONS_KEY = "ground_truth_sha256", "observations_sha256"
 #: Observation arrays whose digest differs from the pin still count as reproduced when their counts
@@ -39,16 +44,8 @@ MEAN_TOLERANCE = 1e-5
 
 def is_ground_truth(name: str) -> bool:
     """Whether an HDF5 dataset path of a sequence belongs to the ground-truth group."""
-    from dsr_bench.dataset.schema import FIELDS, GROUND_TRUTH
-
     field = FIELDS.get(name.rsplit("/", 1)[-1] if name.startswith("cameras/") else name)
     return field is not None and field.group == GROUND_TRUTH
-
-
-def le_contiguous(a: np.ndarray) -> np.ndarray:
-    """`a` as a C-contiguous little-endian array (no copy where it is one already)."""
-    a = np.asarray(a)
-    return np.ascontiguousarray(a.astype(a.dtype.newbyteorder("<"), copy=False))
 
 
 def _raw(a: np.ndarray):
@@ -206,33 +203,7 @@ def within_tolerance(actual: Fingerprint, pinned: Fingerprint) -> bool:
         (actual.mean, pinned.mean), (actual.mean_abs, pinned.mean_abs), (actual.mean_weighted, pinned.mean_weighted)))
 
 
-# --- files -------------------------------------------------------------------------------------------
-def file_fingerprints(path: str | Path) -> tuple[dict[str, Fingerprint], list[dict]]:
-    """Fingerprints of every array of a sequence file but `meshes/` (streamed one step at a time,
-    memory of one step of the largest array), and its object list."""
-    from dsr_bench.dataset.sequence import SequenceReader
-
-    with SequenceReader(path) as seq:
-        out = {}
-        for name in seq.array_names():  # stored and derived (a camera's points)
-            shape, dtype = seq.shape_and_dtype(name)
-            acc = FingerprintAccumulator(name, dtype, shape)
-            if len(shape) == 0 or shape[0] == 0:
-                acc.update(np.asarray(seq.read(name)))
-            else:
-                for i in range(shape[0]):
-                    acc.update(np.asarray(seq.read(name, i))[None])
-            out[name] = acc.result()
-        return out, list(seq.objects)
-
-
-def file_digests(path: str | Path) -> dict:
-    """`digest_attrs` of a sequence file recomputed from its arrays, with the fingerprints as well."""
-    prints, objects = file_fingerprints(path)
-    per_array = {name: fp.sha256 for name, fp in prints.items()}
-    return {"array_sha256": per_array, **group_digests(per_array, objects), "fingerprints": prints}
-
-
+# --- splits ------------------------------------------------------------------------------------------
 def split_checksum(sequences: Iterable[tuple[str, str]]) -> str:
     """SHA-256 over `name:ground_truth_sha256\\n` of a split's sequences, sorted by name."""
     h = hashlib.sha256()

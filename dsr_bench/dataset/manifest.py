@@ -16,9 +16,11 @@ from pathlib import Path
 
 import numpy as np
 
+from dsr_bench import __version__
 from dsr_bench.atomic import write_text
 from dsr_bench.constants import READABLE_SCHEMA_VERSIONS, SCHEMA_VERSION
 from dsr_bench.dataset.digests import GROUND_TRUTH_KEY, OBSERVATIONS_KEY, split_checksum
+from dsr_bench.dataset.splits import SPLITS
 from dsr_bench.errors import UserError
 
 MANIFEST_NAME = "manifest.json"
@@ -106,8 +108,6 @@ def build_manifest(data_dir: str | Path) -> dict:
     Reads each file's root attributes (not its arrays) and hashes its bytes. Raises UserError for an
     unreadable file or a split naming a sequence with no file.
     """
-    from dsr_bench import __version__
-
     data_dir = Path(data_dir)
     if not data_dir.is_dir():
         raise missing_dataset(data_dir)
@@ -272,8 +272,6 @@ def match_sequence_name(name: str, held: Iterable[str], what: str = "sequence") 
 def missing_dataset(data_dir: str | Path) -> UserError:
     """The error of a dataset directory that does not exist: the command that makes it when its name is a named
     split's (data/cpu-train), and the datasets beside it."""
-    from dsr_bench.dataset.splits import SPLITS
-
     data_dir = Path(data_dir)
     make = (f"; make it with `dsr-bench generate --split {data_dir.name} --out {data_dir}`" if data_dir.name in SPLITS
             else "")

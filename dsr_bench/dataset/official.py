@@ -19,9 +19,14 @@ from pathlib import Path
 import h5py
 import numpy as np
 
+from dsr_bench.atomic import clean_temporaries, write_text
 from dsr_bench.constants import GRID_SHAPE, PUSH_HEIGHT, PUSH_LENGTH
+from dsr_bench.dataset.manifest import build_manifest, write_manifest
 from dsr_bench.dataset.schema import sequence_header
+from dsr_bench.dataset.sequence import write_sequence
 from dsr_bench.errors import UserError
+from dsr_bench.geometry import direction_vector, make_camera, pixel_to_world
+from dsr_bench.geometry.tsdf import integrate_tsdf
 
 #: name -> (shape, dtype) of each per-step dataset of the official release.
 OFFICIAL_STEP = {
@@ -189,9 +194,6 @@ def convert_sequence(seq: OfficialSequence) -> tuple[dict, dict, dict]:
     outside 0..255, or 3D flow values that float32 cannot represent (the release's flow is
     integer-valued voxels).
     """
-    from dsr_bench.geometry import direction_vector, make_camera, pixel_to_world
-    from dsr_bench.geometry.tsdf import integrate_tsdf
-
     T = seq.num_steps
     steps = [seq.read_step(t) for t in range(T)]
     last = steps[-1]
@@ -331,12 +333,8 @@ def official_arrays(reader, step: int) -> dict[str, np.ndarray]:
 
 
 def _import_one(args: tuple[OfficialSequence, str]) -> str:
-    from dsr_bench.dataset.digests import digest_attrs
-    from dsr_bench.dataset.sequence import write_sequence
-
     seq, dst = args
     arrays, extras, attrs = convert_sequence(seq)
-    attrs.update(digest_attrs({**arrays, **extras}, attrs["objects"]))
     write_sequence(Path(dst) / f"{attrs['sequence']}.h5", arrays, attrs, extras=extras)
     return attrs["sequence"]
 
@@ -361,9 +359,6 @@ def import_official(src: str | Path, dst: str | Path, split: str | None = None, 
     Resumable: files in DST that are complete imports of the same sequences are kept; a DST that
     holds files of another origin is refused. `progress(name)` is called after each sequence.
     """
-    from dsr_bench.atomic import clean_temporaries, write_text
-    from dsr_bench.dataset.manifest import build_manifest, write_manifest
-
     if workers < 1:
         raise UserError(f"--workers {workers}: must be at least 1")
     sequences = find_official_sequences(src)

@@ -16,9 +16,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from dsr_bench.dataset.digests import (
-    GROUND_TRUTH_KEY, OBSERVATIONS_KEY, Fingerprint, describe_difference, file_digests, is_ground_truth,
-    split_checksum, within_tolerance,
+    GROUND_TRUTH_KEY, OBSERVATIONS_KEY, Fingerprint, describe_difference, is_ground_truth, split_checksum,
+    within_tolerance,
 )
+from dsr_bench.dataset.manifest import split_digest
+from dsr_bench.dataset.scored import differing_fields, file_scored_digests
+from dsr_bench.dataset.sequence import file_digests
+from dsr_bench.dataset.splits import SPLITS
 
 
 def build_pin(data_dir: str | Path, names: list[str], manifest: Mapping, split: str,
@@ -26,9 +30,6 @@ def build_pin(data_dir: str | Path, names: list[str], manifest: Mapping, split: 
     """The pin of split `split` of a dataset: its sequences `names` are read (every array, one step at a
     time) and must match the manifest's digests (SystemExit naming the sequence otherwise); each sequence's
     `scored` digests (`dsr_bench.dataset.scored`) are what `evaluate` recomputes while it scores."""
-    from dsr_bench.dataset.manifest import split_digest
-    from dsr_bench.dataset.scored import file_scored_digests
-
     listed = {s["name"]: s for s in manifest["sequences"]}
     found = {}
     for name in names:
@@ -112,11 +113,12 @@ def compare_with_pin(pin: Mapping, digests: Mapping[str, Mapping],
     return out
 
 
-def summarize(split: str, comparison: PinComparison, limit: int = 3) -> list[tuple[str, str]]:
+def summarize(split: str, comparison: PinComparison, limit: int = 3, fix: str | None = None) -> list[tuple[str, str]]:
     """(where, message) lines of a comparison for `validate`: problems first, then notes (prefixed
-    'note:'), each naming the sequences and arrays (at most `limit` sequences spelled out)."""
+    'note:'), each naming the sequences and arrays (at most `limit` sequences spelled out). `fix`: what to do
+    about a difference (default: regenerate the named split; a real split's says to rebuild it)."""
     lines: list[tuple[str, str]] = []
-    fix = f"regenerate it with `dsr-bench generate --split {split}` on this toolkit version"
+    fix = fix or f"regenerate it with `dsr-bench generate --split {split}` on this toolkit version"
     if comparison.missing:
         lines.append((f"splits/{split}.txt", f"lacks {len(comparison.missing)} pinned sequences "
                       f"(e.g. {', '.join(comparison.missing[:limit])}); {fix}"))
@@ -140,7 +142,7 @@ def pin_matches(manifest: Mapping, pins: Mapping[str, Mapping] | None = None) ->
     """One line per split of a dataset's manifest saying which of this toolkit's pinned splits (`pins`, default
     `dsr_bench.dataset.splits.pinned_digests()`) has its ground-truth checksum, or that none has; for `validate`
     once the manifest's checksums are verified against the arrays."""
-    from dsr_bench.dataset.splits import pinned_digests
+    from dsr_bench.dataset.splits import pinned_digests  # looked up on each call: tests stand in their own pins
 
     pins = pinned_digests() if pins is None else pins
     splits = manifest.get("splits") or {}
@@ -168,8 +170,7 @@ def verify_scored(split: str, names: list[str], recomputed: Mapping[str, Mapping
     """Whether what `evaluate` scored is the pinned split: `names` (the split's list in the dataset) are the pinned
     sequences and every scored sequence's recomputed `scored` digests (`recomputed`, {name: {field: digest}})
     equal the pin's. Returns (verified, warning lines); a split this toolkit does not pin is (False, [])."""
-    from dsr_bench.dataset.scored import differing_fields
-    from dsr_bench.dataset.splits import SPLITS, pinned_digests
+    from dsr_bench.dataset.splits import pinned_digests  # looked up on each call: tests stand in their own pins
 
     spec = SPLITS.get(split)
     if spec is None or spec.expected_digest is None:

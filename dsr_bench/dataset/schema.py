@@ -106,8 +106,8 @@ def sequence_header(*, sequence: str, seed: int, num_steps: int, num_objects: in
     """The root attributes of a sequence file, in the order they are written: `REQUIRED_ATTRS` (but `format` and
     `schema_version`, which `write_sequence` adds), the toolkit version and the grid's constants filled in, the
     versions of other tools that made it (`versions`, e.g. pybullet_version) right after toolkit_version, then
-    `extra` (a producer's own attributes) in the order given. `cameras`: name -> `dsr_bench.geometry.Camera`
-    (stored as `Camera.as_attrs`)."""
+    `extra` (a producer's own attributes) in the order given; `write_sequence` adds the digests after them.
+    `cameras`: name -> `dsr_bench.geometry.Camera` (stored as `Camera.as_attrs`)."""
     clash = sorted(set(extra) & set(REQUIRED_ATTRS) | set(versions or {}) & set(REQUIRED_ATTRS))
     if clash:
         raise ValueError(f"sequence_header: {clash} are required attributes, passed by their own arguments")

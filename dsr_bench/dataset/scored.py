@@ -28,12 +28,12 @@ import hashlib
 import json
 from collections.abc import Mapping
 from pathlib import Path
-from typing import cast
 
 import numpy as np
 
 from dsr_bench.constants import TSDF_SURFACE_LOW
-from dsr_bench.dataset.digests import le_contiguous
+from dsr_bench.dataset.arraybytes import le_contiguous, nonzero_rows
+from dsr_bench.dataset.sequence import SequenceReader
 
 #: what a pin's `scored` entry holds, in this order
 SCORED_FIELDS = ("objects", "mask_3d", "tsdf", "scene_flow_3d", "visible_fraction", "mask_2d", "scene_flow_2d")
@@ -49,14 +49,6 @@ def _bytes(a: np.ndarray):
 def _dtype(a: np.ndarray) -> str:
     """The little-endian dtype string of an array's values, as hashed (`'<f4'`, `'|u1'`)."""
     return np.asarray(a).dtype.newbyteorder("<").str
-
-
-def nonzero_rows(rows: np.ndarray) -> np.ndarray:
-    """Which rows of a C-contiguous 2-D array hold any non-zero byte (-0.0 counts), as bool."""
-    raw = np.ascontiguousarray(rows).view(np.uint8).reshape(rows.shape[0], -1)
-    width = raw.shape[1]
-    word = 8 if width % 8 == 0 else 4 if width % 4 == 0 else 1
-    return cast(np.ndarray, raw.view({8: np.uint64, 4: np.uint32, 1: np.uint8}[word]).any(axis=1))  # 2-D: an array
 
 
 def surface_band(tsdf_values: np.ndarray) -> np.ndarray:
@@ -128,8 +120,6 @@ class ScoredDigests:
 def file_scored_digests(path: str | Path) -> dict[str, str]:
     """The `scored` digests of a sequence file, read plainly (every field the file can feed: the 2D ones only
     where it has the front camera's mask and 2D flow, `visible_fraction` where present)."""
-    from dsr_bench.dataset.sequence import SequenceReader
-
     d = ScoredDigests()
     with SequenceReader(path) as seq:
         steps = seq.num_steps

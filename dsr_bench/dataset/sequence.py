@@ -1,8 +1,9 @@
 """Writing and reading sequence files (one HDF5 file per sequence, see `dsr_bench.dataset.schema`).
 
 Files are written to a temporary name in the same directory and renamed into place, so a reader
-never sees a partial file under its final name. Reading validates the format marker and schema
-version before anything else.
+never sees a partial file under its final name; the writer computes the file's digests
+(`dsr_bench.dataset.digests`) from the arrays it writes, and `file_digests` recomputes them from a file.
+Reading validates the format marker and schema version before anything else.
 """
 
 from __future__ import annotations
@@ -17,6 +18,8 @@ import numpy as np
 
 from dsr_bench.atomic import atomic_path
 from dsr_bench.constants import FORMAT_NAME, READABLE_SCHEMA_VERSIONS, SCHEMA_VERSION
+from dsr_bench.dataset.derived import DERIVED_FROM_ATTR, SOURCES, derivable_from, derive_steps, derived_shape
+from dsr_bench.dataset.digests import Fingerprint, FingerprintAccumulator, digest_attrs, group_digests
 from dsr_bench.dataset.schema import FIELDS, REQUIRED_ATTRS, check_array, dataset_path, resolve_shape
 from dsr_bench.dataset.storage import GZIP1, read_steps, write_array
 from dsr_bench.errors import UserError
@@ -71,6 +74,17 @@ def _derivable_points(arrays: Mapping[str, np.ndarray], cameras: Mapping[str, di
     return names
 
 
+def _derivable_from_official(arrays: Mapping[str, np.ndarray], extras: Mapping[str, np.ndarray],
+                             cameras: Mapping[str, dict], from_depth: list[str]) -> dict[str, str]:
+    """The arrays of an import that are its `official/` arrays cast (`dsr_bench.dataset.derived`), bit for bit."""
+    if not any(name.startswith("official/") for name in extras):
+        return {}
+    depth, spec = arrays.get("cameras/front/depth"), cameras.get("front")
+    last_points = None if depth is None or spec is None else \
+        (lambda: derive_points(np.asarray(depth)[-1], Camera.from_attrs("front", spec)))
+    return derivable_from({k: v for k, v in arrays.items() if k not in from_depth}, extras, last_points)
+
+
 def _encode_attr(value: Any) -> Any:
     if isinstance(value, (dict, list, tuple)) and not (
         isinstance(value, (list, tuple)) and value and all(isinstance(v, (int, float)) for v in value)
@@ -91,12 +105,16 @@ def write_sequence(
     meshes: Mapping[int, tuple[np.ndarray, np.ndarray]] | None = None,
     extras: Mapping[str, np.ndarray] | None = None,
 ) -> Path:
-    """Validate and atomically write one sequence file.
+    """Validate and atomically write one sequence file; returns its path.
 
     arrays: HDF5 path -> array (camera fields as 'cameras/<name>/<field>'); attrs: root attributes
     (dicts and lists of objects are stored as JSON strings); meshes: object index -> (vertices (V,3)
     float, faces (F,3) int) in the object's mesh frame, metres, stored under meshes/<index>/;
     extras: datasets outside the schema, written as given (e.g. `official/...` of an import).
+
+    The digest attributes (`dsr_bench.dataset.digests.digest_attrs` of the arrays and extras, and of
+    `attrs["objects"]`) are computed here and written after `attrs`: callers pass none (any in `attrs` are
+    replaced). Raises SequenceFormatError (every problem in one line) for an array or attribute the schema refuses.
     """
     path = Path(path)
     num_steps, num_objects = int(attrs["num_steps"]), int(attrs["num_objects"])
@@ -122,8 +140,11 @@ def write_sequence(
         problems += [f"missing dataset {n!r}" for n in names if field.required and n not in arrays]
     if problems:
         raise SequenceFormatError(f"refusing to write {path.name}: " + "; ".join(problems))
+    # the caller's attributes in their order, then the digests (replacing any given: a file's are its arrays')
+    attrs = {**attrs, **digest_attrs({**arrays, **(extras or {})}, attrs["objects"])}
 
     derived = _derivable_points(arrays, cameras)  # left out: the reader derives them from depth
+    derived_from = _derivable_from_official(arrays, extras or {}, cameras, derived)  # an import's casts, left out
     path.parent.mkdir(parents=True, exist_ok=True)
     with atomic_path(path) as tmp:  # temporary + lock, renamed when complete (dsr_bench.atomic)
         with h5py.File(tmp, "w", track_order=True) as f:
@@ -133,7 +154,9 @@ def write_sequence(
                 f.attrs[key] = _encode_attr(value)
             if derived:
                 f.attrs[DERIVED_ATTR] = json.dumps(derived)
-            for name in sorted(set(arrays) - set(derived)):
+            if derived_from:
+                f.attrs[DERIVED_FROM_ATTR] = json.dumps(derived_from, sort_keys=True)
+            for name in sorted(set(arrays) - set(derived) - set(derived_from)):
                 array = np.ascontiguousarray(arrays[name])
                 field = field_for(name)
                 ds = _create_dataset(f, name, array)
@@ -198,6 +221,15 @@ class SequenceReader:
             self._file.close()
             raise SequenceFormatError(f"{self.path}: {DERIVED_ATTR} lists {sorted(unknown)}, which cannot be derived "
                                       "(only a camera's points, from its stored depth); regenerate the file")
+        #: an import's arrays left out as casts of its `official/` arrays (`dsr_bench.dataset.derived`): name -> source
+        self.derived_from: dict[str, str] = dict(self.attrs.pop(DERIVED_FROM_ATTR, {}))
+        unknown = [n for n, src in self.derived_from.items() if SOURCES.get(n) != src or src not in self._file
+                   or n in self._file or (n.endswith("/points") and "cameras/front/depth" not in self._file)]
+        if unknown:
+            self._file.close()
+            raise SequenceFormatError(f"{self.path}: {DERIVED_FROM_ATTR} lists {sorted(unknown)}, which cannot be "
+                                      "derived from what the file stores; import it again")
+        self.derived = self.derived | frozenset(self.derived_from)
 
     # context manager -----------------------------------------------------------------------------
     def __enter__(self) -> SequenceReader:
@@ -216,12 +248,14 @@ class SequenceReader:
     def dataset(self, name: str) -> h5py.Dataset:
         """The raw h5py dataset of a stored array (for slicing without loading); `read` also derives the others."""
         if name not in self._file:
-            derived = f" (derived from depth: read it with .read({name!r}))" if name in self.derived else ""
+            derived = f" (derived on reading: read it with .read({name!r}))" if name in self.derived else ""
             raise KeyError(f"{self.path.name}: no dataset {name!r}{derived}")
         return self._file[name]
 
     def shape_and_dtype(self, name: str) -> tuple[tuple[int, ...], np.dtype]:
         """The shape and dtype of an array, stored or derived, without reading it."""
+        if name in self.derived_from:
+            return derived_shape(name, tuple(self.dataset(self.derived_from[name]).shape)), np.dtype(np.float32)
         if name in self.derived:
             depth = self.dataset(f"cameras/{name.split('/')[1]}/depth")
             return tuple(depth.shape) + (3,), np.dtype(np.float32)
@@ -237,7 +271,9 @@ class SequenceReader:
 
     def read(self, name: str, index: int | slice | None = None) -> np.ndarray:
         """Read an array, or one step / a range of steps of it along the first axis. Arrays the file leaves out
-        (`derived`: a camera's points) are derived from what it stores (`derive_points`)."""
+        (`derived`: a camera's points) are derived from what it stores (`derive_points`, `derived_from`)."""
+        if name in self.derived_from:
+            return self._read_derived_from(name, index)
         if name in self.derived:
             camera = name.split("/")[1]
             return derive_points(self.read(f"cameras/{camera}/depth", index), self.camera(camera))
@@ -252,6 +288,29 @@ class SequenceReader:
             return read_steps(ds, start, max(start, stop))
         return ds[index]
 
+    def _read_derived_from(self, name: str, index: int | slice | None) -> np.ndarray:
+        """An array the file derives from one of its `official/` arrays (`dsr_bench.dataset.derived`)."""
+        source = self.dataset(self.derived_from[name])
+        steps = derived_shape(name, tuple(source.shape))[0]
+        if isinstance(index, (int, np.integer)) and -steps <= index < steps:
+            start, stop = int(index) % steps, int(index) % steps + 1
+        elif isinstance(index, slice) and index.step in (None, 1):
+            start, stop, _ = index.indices(steps)
+            stop = max(start, stop)
+        else:
+            start, stop = 0, steps
+        if stop == start:
+            shape = derived_shape(name, tuple(source.shape))
+            return np.zeros((0,) + shape[1:], np.float32)
+        out = derive_steps(name, lambda a, b: read_steps(source, a, b), source.shape[0],
+                           lambda: derive_points(self.read("cameras/front/depth", steps - 1), self.camera("front")),
+                           start, stop)
+        if isinstance(index, (int, np.integer)) and -steps <= index < steps:
+            return out[0]
+        if index is None or (isinstance(index, slice) and index.step in (None, 1)):
+            return out
+        return out[index]
+
     def camera(self, name: str = "front"):
         """The `dsr_bench.geometry.Camera` of a stored camera."""
         return Camera.from_attrs(name, self.cameras[name])
@@ -262,3 +321,29 @@ class SequenceReader:
         if key not in self._file:
             return None
         return self._file[key]["vertices"][()], self._file[key]["faces"][()]
+
+
+# --- digests of a file -------------------------------------------------------------------------------
+def file_fingerprints(path: str | Path) -> tuple[dict[str, Fingerprint], list[dict]]:
+    """Fingerprints (`dsr_bench.dataset.digests.Fingerprint`) of every array of a sequence file but `meshes/`
+    (streamed one step at a time, memory of one step of the largest array), and its object list."""
+    with SequenceReader(path) as seq:
+        out = {}
+        for name in seq.array_names():  # stored and derived (a camera's points)
+            shape, dtype = seq.shape_and_dtype(name)
+            acc = FingerprintAccumulator(name, dtype, shape)
+            if len(shape) == 0 or shape[0] == 0:
+                acc.update(np.asarray(seq.read(name)))
+            else:
+                for i in range(shape[0]):
+                    acc.update(np.asarray(seq.read(name, i))[None])
+            out[name] = acc.result()
+        return out, list(seq.objects)
+
+
+def file_digests(path: str | Path) -> dict:
+    """`dsr_bench.dataset.digests.digest_attrs` of a sequence file recomputed from its arrays, with the
+    fingerprints as well (`fingerprints`: {name: Fingerprint})."""
+    prints, objects = file_fingerprints(path)
+    per_array = {name: fp.sha256 for name, fp in prints.items()}
+    return {"array_sha256": per_array, **group_digests(per_array, objects), "fingerprints": prints}

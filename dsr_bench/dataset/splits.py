@@ -70,6 +70,8 @@ SPLITS: dict[str, Split] = {
         # is the same file), scored on the benchmark's full grid like every other entry.
         Split("cpu-train", "procedural", 400, 40_000, "train",
               "CPU track training set: the first 400 sequences of procedural-train"),
+        Split("cpu-train-4k", "procedural", 4000, 40_000, "train",
+              "CPU track training set at the paper's size: the first 4,000 sequences of procedural-train"),
         Split("cpu-novel-test", "procedural-novel", 100, 50_000, "test",
               "CPU track test set: the first 100 sequences of procedural-novel-test (novel objects)"),
     )

@@ -4,7 +4,8 @@ Checks the manifest against the files (missing, extra, checksums, split files an
 file against the schema (format, version, attributes, shapes, dtypes), its values and ground truth
 (`dsr_bench.dataset.checks`: value ranges and, unless disabled, flow recomputed from poses and amodal
 masks, flow zero off objects, amodal masks at t + 1 against the masks at t moved by the flow, the TSDF's
-sign against the front depth image) and content digests, and a named split against its pin. A damaged
+sign against the front depth image) and content digests, a named split against its pin, and a real split
+(`dsr_bench.dataset.real`) against its own pins. A damaged
 file is a problem, never a crash.
 """
 
@@ -14,6 +15,14 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
+from dsr_bench.dataset.digests import GROUND_TRUTH_KEY, OBSERVATIONS_KEY
+from dsr_bench.dataset.manifest import MANIFEST_NAME, file_sha256, load_manifest, missing_dataset, split_digest
+from dsr_bench.dataset.pins import compare_with_pin, summarize
+from dsr_bench.dataset.real import real_split_problems
+from dsr_bench.dataset.schema import FIELDS, REQUIRED_ATTRS, SEQUENCE_SCHEMA, check_array, dataset_path, resolve_shape
+from dsr_bench.dataset.sequence import SequenceFormatError, SequenceReader, file_digests, file_fingerprints
+from dsr_bench.errors import UserError
+from dsr_bench.parallel import run_in_order
 from dsr_bench.dataset.checks import (  # noqa: F401 - the per-sequence checks, importable from here as before
     FLOW_TOLERANCE, MASK_WARP_IOU, MIN_WARP_VOXELS, TSDF_SIGN_AGREEMENT, action_problems, content_problems,
     OFFICIAL_POSE_DRIFT, mask_warp_iou, rotation_angle, rounding_excess,
@@ -32,8 +41,6 @@ class Problem:
 
 def schema_markdown_table() -> str:
     """The sequence schema (`dsr_bench.dataset.schema.SEQUENCE_SCHEMA`) as a markdown table for docs/format.md."""
-    from dsr_bench.dataset.schema import SEQUENCE_SCHEMA
-
     rows = ["| dataset | shape | dtype | units | required | group | meaning |", "|---|---|---|---|---|---|---|"]
     for f in SEQUENCE_SCHEMA:
         name = f"cameras/<cam>/{f.name}" if f.camera else f.name
@@ -46,8 +53,6 @@ def schema_markdown_table() -> str:
 # --- one sequence file ---------------------------------------------------------------------------------
 def _open(path: str | Path):
     """(reader, None) or (None, the problem) for a sequence file."""
-    from dsr_bench.dataset.sequence import SequenceFormatError, SequenceReader
-
     try:
         return SequenceReader(path), None
     except SequenceFormatError as exc:
@@ -62,8 +67,6 @@ def schema_problems(seq) -> tuple[list[str], set[str]]:
     """Structural problems of an open sequence (missing datasets, shapes, dtypes) and the names of
     the datasets that passed. Shared by `validate` and the viewer."""
     from types import SimpleNamespace
-
-    from dsr_bench.dataset.schema import FIELDS, check_array, dataset_path, resolve_shape
 
     problems: list[str] = []
     ok: set[str] = set()
@@ -102,9 +105,6 @@ def _check_sequence(path: str | Path, check_gt: bool = True, expected: dict | No
     arrays (`dsr_bench.dataset.digests`): the file's own (naming the arrays changed since writing) and `expected`
     (the manifest's entry).
     """
-    from dsr_bench.dataset.digests import GROUND_TRUTH_KEY, OBSERVATIONS_KEY, file_digests
-    from dsr_bench.dataset.schema import REQUIRED_ATTRS
-
     seq, problem = _open(path)
     if seq is None:
         return [problem], None
@@ -145,8 +145,6 @@ def validate_file(path: str | Path, check_gt: bool = True) -> tuple[list[str], d
     with `check_gt` the ground truth against the poses and masks and the file's own digests against its arrays).
     What it is: {"steps", "objects", "source"} read from the file (empty when it cannot be opened). A manifest's
     digests and the split pins need a dataset directory: a single file is checked against neither."""
-    from dsr_bench.errors import UserError
-
     path = Path(path)
     if not path.is_file():
         raise UserError(f"{path}: no such file; give a sequence file (.h5) or a dataset directory")
@@ -178,9 +176,6 @@ def _validate_one(args: tuple[str, bool, dict | None]) -> tuple[str, list[str], 
 # --- the dataset -------------------------------------------------------------------------------------
 def _check_manifest(data_dir: Path, manifest: dict, files: dict[str, Path]) -> tuple[list[Problem], dict[str, dict]]:
     """Manifest against the files and split files; returns (problems, manifest entries by name)."""
-    from dsr_bench.errors import UserError
-    from dsr_bench.dataset.manifest import file_sha256, split_digest
-
     problems: list[Problem] = []
     listed = {s["name"]: s for s in manifest["sequences"]}
     for name in sorted(set(listed) - set(files)):
@@ -223,9 +218,7 @@ def _check_pinned(data_dir: Path, manifest: dict, fingerprints: dict[str, dict])
     """A named benchmark split must reproduce the toolkit's pin: its ground truth bit for bit, its
     observations within the stated tolerance (`dsr_bench.dataset.pins`); differences name the sequences and
     arrays, and say by how much. fingerprints: those already computed, by sequence name."""
-    from dsr_bench.dataset.digests import file_fingerprints
-    from dsr_bench.dataset.pins import compare_with_pin, summarize
-    from dsr_bench.dataset.splits import pinned_digests
+    from dsr_bench.dataset.splits import pinned_digests  # looked up on each call: tests stand in their own pins
 
     listed = {s["name"]: s for s in manifest["sequences"]}
     problems = []
@@ -246,17 +239,26 @@ def _check_pinned(data_dir: Path, manifest: dict, fingerprints: dict[str, dict])
     return problems
 
 
+def _check_real_pins(data_dir: Path, manifest: dict, fingerprints: dict[str, dict]) -> list[Problem]:
+    """A real split (`dsr_bench.dataset.real`) must reproduce its own pins, as a named split reproduces the toolkit's;
+    nothing for another directory. fingerprints: those already computed, by sequence name."""
+    listed = {s["name"]: s for s in manifest["sequences"]}
+
+    def prints(name: str) -> dict:
+        if fingerprints.get(name) is None:
+            fingerprints[name] = file_fingerprints(data_dir / listed[name]["file"])[0]
+        return fingerprints[name]
+
+    return [Problem(where, message, note=message.startswith("note:"))
+            for where, message in real_split_problems(data_dir, manifest, prints)]
+
+
 def validate_dataset(data_dir: str | Path, check_gt: bool = True, workers: int = 1,
                      progress: Callable[[int, int], None] | None = None) -> tuple[list[Problem], int]:
     """(every problem found, number of sequence files checked) for a dataset directory. `progress(done, total)`:
     called once per sequence file checked, as each finishes."""
-    from dsr_bench.errors import UserError
-    from dsr_bench.dataset.manifest import MANIFEST_NAME, load_manifest
-
     data_dir = Path(data_dir)
     if not data_dir.is_dir():
-        from dsr_bench.dataset.manifest import missing_dataset
-
         raise missing_dataset(data_dir)
     if workers < 1:
         raise UserError(f"--workers {workers}: must be at least 1")
@@ -277,8 +279,6 @@ def validate_dataset(data_dir: str | Path, check_gt: bool = True, workers: int =
     import multiprocessing as mp
     from concurrent.futures.process import BrokenProcessPool
 
-    from dsr_bench.parallel import run_in_order
-
     try:
         results = run_in_order(_validate_one, jobs, workers, progress, mp_context=mp.get_context("spawn"))
     except BrokenProcessPool:
@@ -290,6 +290,7 @@ def validate_dataset(data_dir: str | Path, check_gt: bool = True, workers: int =
         fingerprints[name] = prints
     if manifest is not None:
         problems += _check_pinned(data_dir, manifest, fingerprints)
+        problems += _check_real_pins(data_dir, manifest, fingerprints)
     if not files:
         others = sorted(p.name for p in data_dir.glob("*.h5"))
         hint = (f" ({len(others)} other .h5 file{'s' if len(others) != 1 else ''}: {', '.join(others[:3])}"

@@ -11,12 +11,12 @@ import json
 import os
 from pathlib import Path
 
-from dsr_bench.atomic import write_text
+from dsr_bench.atomic import check_writable, write_text
 from dsr_bench.errors import UserError
 from dsr_bench.leaderboard.entries import (PLAN_RESULTS_FORMAT, RESULTS_FORMAT, UnreadableJSON, check_entry,
                                            entry_identity, entry_name, first_difference, read_json, show)
 from dsr_bench.leaderboard.names import confusable_with, name_problem
-from dsr_bench.leaderboard.provenance import claim_problem, reference_of
+from dsr_bench.leaderboard.provenance import check_reference_predictions, claim_problem, reference_of
 
 
 def add_entry(results_path: str | Path, root: str | Path = "leaderboard", label: str | None = None,
@@ -65,12 +65,10 @@ def _check_provenance(path: Path, entry: dict, made_from: Path, data) -> None:
     provenance: its predictions those `dsr-bench predict --model NAME` writes (`made_from`: the predictions
     directory; `data`: the dataset they were scored on). A planning reference row's plans were replayed and its
     planner is the model that made them (`planning.verify.recompute_results`)."""
-    from dsr_bench.leaderboard import provenance
-
     planning = entry.get("format") == PLAN_RESULTS_FORMAT
     reference = reference_of(entry, planning)[0]
     if reference and not planning:
-        provenance.check_reference_predictions(path, entry, made_from, Path(data), entry["split"], reference)
+        check_reference_predictions(path, entry, made_from, Path(data), entry["split"], reference)
 
 
 def _check_method_name(path: Path, method, folder: Path, planning: bool) -> None:
@@ -97,7 +95,6 @@ def _recompute_predictions(path: Path, submitted: dict, predictions, data, root:
                            workers: int) -> tuple[dict, Path]:
     """(the results of `evaluate` on the predictions, on the file's split: pinned and complete, else UserError; the
     dataset they were scored on)."""
-    from dsr_bench.atomic import check_writable
     from dsr_bench.scoring.evaluate import evaluate
     from dsr_bench.scoring.predictions import infer_source
 
@@ -131,7 +128,6 @@ def _recompute_predictions(path: Path, submitted: dict, predictions, data, root:
 def _recompute_plans(path: Path, plans, tasks, root: Path, workers: int) -> dict:
     """The planning results recomputed from the plan files, each replayed in `workers` processes (0: one per core),
     and the verified tasks: pinned and complete, else UserError."""
-    from dsr_bench.atomic import check_writable
     from dsr_bench.planning.verify import recompute_results
 
     if plans is None:

@@ -71,6 +71,8 @@ def _kind(results: dict) -> str:
 
     expected = SPLITS[results["split"]].expected_digest if results["split"] in SPLITS else None
     checksum = results.get("split_checksum", "")
+    if "real_split" in results:  # a lab's real split: one table per split and checksum (its own pins)
+        return f"{REAL_KIND}, checksum {checksum[:12]}"
     # an entry scored on an earlier pin of its split stays visible, in its own table, unranked against the rest
     return "reproduced" if checksum == expected else f"reproduced on an earlier version of the split, {checksum[:12]}"
 
@@ -220,6 +222,33 @@ def _difference_tables(table, track: str, cols: list[str]) -> tuple[list[str], s
     return md, "".join(page)
 
 
+#: the kind of a real split's tables (`dsr_bench.dataset.real`), followed by the split's checksum
+REAL_KIND = "real split"
+
+
+def _finetune_tables(table, cols: list[str]) -> tuple[list[str], str]:
+    """Markdown and HTML of a real split's fine-tuning effect: every fine-tuned row (`NAME-ft`, the name a model
+    fine-tuned by `dsr-bench train --finetune` predicts under) against its zero-shot row (`NAME`), sequence by
+    sequence, mean and standard error."""
+    rows = {str(r["method"]): r for _, r in table.iterrows()}
+    pairs = [(rows[m], rows[m[:-3]]) for m in sorted(rows) if m.endswith("-ft") and m[:-3] in rows]
+    cols = [c for c in cols if any(len(unit_values(ft[SEQ], c)) >= 2 for ft, _ in pairs)]
+    if not pairs or not cols:
+        return [], ""
+    header = ["model", *[f"{COLUMN_TITLES[c]}: ft - zero-shot" for c in cols], "sequences"]
+    title = ("Fine-tuning on the real split's fine-tune part (ft - zero-shot, sequence by sequence; mean \u00b1 "
+             "standard error over the sequences both scored):")
+    md, html_rows = [title, "", md_row(header), "|" + "---|" * len(header)], []
+    for ft, zero in pairs:
+        diffs = [paired_difference(unit_values(ft[SEQ], c), unit_values(zero[SEQ], c)) for c in cols]
+        n = max((d.n for d in diffs), default=0)
+        md.append(md_row([markdown_cell(zero["method"]), *[_difference(d, c) for d, c in zip(diffs, cols)], str(n)]))
+        html_rows.append([(html.escape(str(zero["method"])), None, ""),
+                          *[(html.escape(_difference(d, c)), "" if d.n < 2 else repr(d.mean), "")
+                            for d, c in zip(diffs, cols)], (str(n), str(n), "")])
+    return md + [""], f"<p class=note>{html.escape(title)}</p>" + html_table(header, html_rows, "diff")
+
+
 def _version_line(split: str, kind: str, table) -> str:
     """Which version of the split a table's rows were scored on, and by which toolkit versions."""
     from dsr_bench.dataset.splits import SPLITS
@@ -228,6 +257,12 @@ def _version_line(split: str, kind: str, table) -> str:
         return ""
     checksums = sorted({c for c in table["checksum"] if c})
     toolkits = ", ".join(sorted({t for t in table["toolkit"] if t})) or "?"
+    if kind.startswith(REAL_KIND):
+        return (f"The real track: every row was scored on the held-out test part of the real split {split[:-5]!r} "
+                f"(annotated captures, `dsr-bench real-split`; checksum {', '.join(checksums)}, verified against the "
+                f"split's own pins, not the toolkit's; toolkit {toolkits}). A row NAME is the model trained in "
+                "simulation and scored directly (zero-shot); NAME-ft the same model fine-tuned on the split's "
+                "fine-tune part (`dsr-bench train --finetune`). Real splits of another checksum are other tables.")
     what = "task set" if split not in SPLITS or kind.startswith("task set") else "split"
     if kind == "reproduced":
         return (f"Every row was scored on this {what}'s pinned version (checksum {', '.join(checksums)}; toolkit "
@@ -283,6 +318,9 @@ def build(root: str | Path = "leaderboard", warn: Callable[[str], None] | None =
         md += rendered.markdown
         md.append("")
         diff_md, diff_html = _difference_tables(table, track, cols) if not paper and not inline else ([], "")
+        if kind.startswith(REAL_KIND):
+            ft_md, ft_html = _finetune_tables(table, cols)
+            diff_md, diff_html = diff_md + ft_md, diff_html + ft_html
         md += diff_md
         plot = _table_plot(root, entries, split, kind, track) if track != "planning" else \
             _planning_plot(root, table, split, kind)
@@ -341,7 +379,7 @@ def _table_plot(root: Path, entries: list[dict], split: str, kind: str, track: s
     from dsr_bench.scoring.plots import MISSING_MATPLOTLIB, leaderboard_series, matplotlib_missing, \
         write_leaderboard_plot
 
-    if not kind.startswith("reproduced"):
+    if not kind.startswith(("reproduced", REAL_KIND)):
         return None
     panels = leaderboard_series([e for e in entries if e["split"] == split and e["kind"] == kind], track)
     if not panels:

@@ -10,7 +10,8 @@ as `dsr_bench.scoring.evaluate.aggregate` computes it, and the mean of per_seque
 likewise; a 3D result holds the four 3D metrics: one cut to motion_2d shows in its per-step, per-sequence values or
 breakdowns), the split (a named split with a pin; `pinned` true exactly when split_checksum is that pin, then the
 split's size and sequence names; another split's pin under its name is a relabelled result; an entry of an earlier
-pin stays, shown apart) and, where present, `predictions_sha256` against `predictions_checksum`. Planning results
+pin stays, shown apart; or a real split's test part pinned to its own pins, `real_split`) and, where present,
+`predictions_sha256` against `predictions_checksum`. Planning results
 (`dsr-bench plan`) are checked by `dsr_bench.planning.verify.check_results`, and must be pinned and complete. Both:
 the method's name can be shown (`names.name_problem`) and reads as a reference row's only where it is that row by
 provenance (`provenance.reference_of`).
@@ -33,7 +34,10 @@ import json
 import math
 import re
 
+from dsr_bench import __version__
 from dsr_bench.jsonfile import UnreadableJSON, read_json  # noqa: F401 - read here and by the board
+from dsr_bench.leaderboard.names import name_problem
+from dsr_bench.leaderboard.provenance import reference_of
 from dsr_bench.scoring.evaluate import _mean as aggregate_mean, checksum_of, expected_scored_checksum
 from dsr_bench.scoring.metrics import METRICS, OBJECT_IOUS, metric_keys
 
@@ -135,9 +139,6 @@ def check_entry(results) -> list[str]:
 def _check_name(results: dict, planning: bool) -> list[str]:
     """A method's name that cannot be shown, or that reads as a reference row's without its provenance
     (`provenance.reference_of`)."""
-    from dsr_bench.leaderboard.names import name_problem
-    from dsr_bench.leaderboard.provenance import reference_of
-
     method = results.get("method")
     if not isinstance(method, str):
         return []
@@ -332,10 +333,11 @@ def _check_coverage(r: dict) -> list[str]:
 
 def _check_split(r: dict) -> list[str]:
     """The split: named, pinned in this toolkit, `pinned` consistent with its pin, the split's size and names."""
-    from dsr_bench import __version__
     from dsr_bench.dataset.splits import SPLITS, pinned_digests
 
     split, checksum, pinned = r.get("split"), r.get("split_checksum"), r.get("pinned")
+    if "real_split" in r:
+        return _check_real_split(r)
     if not isinstance(split, str) or split not in SPLITS:
         return [f"split {show(split)} is not one of the benchmark's named splits"]
     spec = SPLITS[split]
@@ -369,6 +371,37 @@ def _check_split(r: dict) -> list[str]:
         if want is not None and r["ground_truth_sha256"] != want:
             p.append(f"ground_truth_sha256 is not that of the pinned {split}'s ground truth (the scored digests "
                      "this toolkit pins)")
+    return p
+
+
+def _check_real_split(r: dict) -> list[str]:
+    """A real split's entry (`dsr_bench.dataset.real`): scored on the test part of a real split, pinned to its own
+    pins (`pinned` true: `evaluate` verified the ground truth against them), its record consistent with the results
+    (the split's name, checksum and size). What the pins are worth is the split's checksum: rows of real splits of
+    the same name but another checksum are other tables."""
+    from dsr_bench.dataset.real import part_split
+    from dsr_bench.dataset.splits import SPLITS
+
+    real, split = r["real_split"], r.get("split")
+    if not isinstance(real, dict) or not all(isinstance(real.get(k), str) for k in ("name", "part", "checksum")) \
+            or not isinstance(real.get("sequences"), int):
+        return ["real_split is not {name, part, pins, checksum, sequences}; produce the results with `dsr-bench "
+                "evaluate` on a real split"]
+    if real["part"] != "test":
+        return [f"scored on the real split's {real['part']} part ({show(split)}); the leaderboard ranks its held-out "
+                f"test part ({part_split(real['name'], 'test')})"]
+    if split in SPLITS or split != part_split(real["name"], "test"):
+        return [f"split {show(split)} is not the test part of the real split {show(real['name'])}"]
+    p = []
+    if r.get("pinned") is not True:
+        p.append(f"pinned is {show(r.get('pinned'))}: the ground truth was not verified against the real split's own "
+                 "pins (`dsr-bench validate` the split, or rebuild it)")
+    if r.get("split_checksum") != real["checksum"]:
+        p.append("split_checksum is not the checksum of the real split's pins")
+    coverage = r["coverage"] if isinstance(r.get("coverage"), dict) else {}
+    if coverage.get("expected") != real["sequences"]:
+        p.append(f"coverage expects {show(coverage.get('expected'))} sequences but the real split's test part has "
+                 f"{real['sequences']}")
     return p
 
 

@@ -8,7 +8,7 @@ hyphens, variation selectors, Hangul fillers), letters of other scripts that loo
 UTS #39), case folded, runs of whitespace one space. `skeleton(name)`: its letters and digits alone (spaces and
 punctuation dropped): two names with one skeleton are confusable. `reference_claim(name)`: the reference row a name
 reads as (`REFERENCE_NAMES`), by its skeleton or by the key the tables and figures style a method by
-(`dsr_bench.scoring.plots.method_key`: "Static (mine)", "static-cpu" and "No motion" read as static).
+(`dsr_bench.scoring.styles.method_key`: "Static (mine)", "static-cpu" and "No motion" read as static).
 `name_problem(name)`: why a name cannot be shown at all (bidi controls, which reorder what is shown; no letter or
 digit), or None.
 """
@@ -18,7 +18,7 @@ from __future__ import annotations
 import unicodedata
 from collections.abc import Iterable
 
-from dsr_bench.scoring.plots import method_key
+from dsr_bench.scoring.styles import method_key
 
 #: every reference row's name, in both tracks: the predictions' yardsticks (`dsr-bench predict --model static`,
 #: push, oracle) and the planning track's (random, and no push: the tasks' start states)

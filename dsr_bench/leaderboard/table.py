@@ -21,7 +21,7 @@ from typing import Any
 from dsr_bench.leaderboard.entries import markdown_cell
 from dsr_bench.leaderboard.names import fold
 from dsr_bench.scoring.metrics import METRICS, TRACKS as METRIC_TRACKS, metric_keys
-from dsr_bench.scoring.plots import is_reference_method
+from dsr_bench.scoring.styles import is_reference_method
 from dsr_bench.scoring.spread import Spread, paired_difference, spread, unit_values
 
 #: each track's columns: its headline metrics (`dsr_bench.scoring.metrics.METRICS`), titled and ranked as they say

@@ -11,7 +11,7 @@ import torch
 from dsr_bench.dataset.sequence import SequenceReader
 from dsr_bench.errors import UserError
 from dsr_bench.models import registry
-from dsr_bench.models.training.checkpoints import read_weights, torch_device
+from dsr_bench.models.training.checkpoints import mark_finetuned, read_weights, torch_device
 
 
 class ImagePredictor:
@@ -75,6 +75,8 @@ def load_image(entry: registry.ModelEntry, *, checkpoint: Path | None = None, de
 
     path, source = weights_file(entry, checkpoint)
     dev = torch_device(device)
-    predictor = ImagePredictor(read_weights(path, dev, kind=registry.IMAGE, model=entry.name).network(dev), dev)
+    read = read_weights(path, dev, kind=registry.IMAGE, model=entry.name)
+    predictor = ImagePredictor(read.network(dev), dev)
     predictor.weights = source
+    mark_finetuned(predictor, read)  # NAME-ft: fine-tuned on a real split (`training.finetune`)
     return predictor

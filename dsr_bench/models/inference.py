@@ -31,7 +31,7 @@ from dsr_bench.models.config import ModelConfig
 from dsr_bench.models.dsr_net import DSRNet, batchnorm_statistics
 from dsr_bench.models.labels import slot_labels
 from dsr_bench.models.predictors import load_predictor  # noqa: F401  (the one loader, also found here)
-from dsr_bench.models.training.checkpoints import read_weights, torch_device
+from dsr_bench.models.training.checkpoints import mark_finetuned, read_weights, torch_device
 from dsr_bench.models.warp import FLOOR, OFFICIAL, check_kernel
 
 #: What each model is, in one line (predictions' meta.json, the leaderboard): `dsr_bench.models.registry`.
@@ -309,10 +309,12 @@ def load_voxel(entry: registry.ModelEntry, *, checkpoint: Path | None = None, de
                                        bn_batch=OFFICIAL_BN_BATCH if bn_batch is None else bn_batch)
     path, source = weights_file(entry, checkpoint)
     dev = torch_device(device)
-    net = cast(DSRNet, read_weights(path, dev, kind=registry.VOXEL, model=entry.name).network(dev))
+    read = read_weights(path, dev, kind=registry.VOXEL, model=entry.name)
+    net = cast(DSRNet, read.network(dev))
     net.set_warp_kernel(check_kernel(FLOOR if warp is None else warp))
     predictor = ModelPredictor(net, dev, bool(official_bn), False)
     predictor.weights = {**source, "batchnorm": batchnorm_words(bool(official_bn)), "warp": warp_words(net)}
+    mark_finetuned(predictor, read)  # NAME-ft: fine-tuned on a real split (`training.finetune`)
     return predictor
 
 

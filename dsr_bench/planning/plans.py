@@ -28,6 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
+from dsr_bench.atomic import atomic_path
 from dsr_bench.errors import UserError
 from dsr_bench.planning.runner import PlanRecord
 from dsr_bench.planning.tasks import Task
@@ -72,8 +73,6 @@ def _pad(rows: list[np.ndarray], width: int | None, fill) -> np.ndarray:
 def write_plan(path: str | Path, arrays: Mapping[str, np.ndarray], attrs: Mapping) -> Path:
     """Write a plan file atomically (`dsr_bench.atomic`)."""
     import h5py
-
-    from dsr_bench.atomic import atomic_path
 
     path = Path(path)
     with atomic_path(path) as tmp, h5py.File(tmp, "w") as f:

@@ -21,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
+from dsr_bench import __version__
 from dsr_bench.planning.cost import matched_iou, object_iou, occupancy_iou
 
 RESULTS_FORMAT = "dsr-bench-plan-results"
@@ -50,7 +51,6 @@ def build_results(per_task: Mapping[str, dict], planner: Mapping, manifest: Mapp
     """The results JSON of a planning run (`dsr-bench plan`): means over the tasks scored (in name order), per task
     values. `manifest`: {"task_set", "checksum"}, the checksum recomputed from the task files
     (`dsr_bench.planning.verify.verify_tasks`), never a tasks.json's; `pinned` is whether it is this toolkit's pin."""
-    from dsr_bench import __version__
     from dsr_bench.planning.tasks import pinned_checksums
 
     keys = ("iou", "iou_identity", "iou_occupancy", "start_iou", "start_iou_identity", "start_iou_occupancy")

@@ -32,6 +32,8 @@ from typing import Any
 
 import numpy as np
 
+from dsr_bench import __version__
+from dsr_bench.atomic import atomic_path, write_text
 from dsr_bench.constants import GRID_SHAPE, MAX_OBJECTS_PER_SCENE, NUM_DIRECTIONS
 from dsr_bench.dataset.digests import GROUND_TRUTH_KEY, OBSERVATIONS_KEY, array_digest, split_checksum
 from dsr_bench.errors import UserError
@@ -145,8 +147,6 @@ def write_task(path: str | Path, arrays: Mapping[str, np.ndarray], attrs: Mappin
     of identities); the digests are added here."""
     import h5py
 
-    from dsr_bench.atomic import atomic_path
-
     path = Path(path)
     objects = list(attrs["objects"])
     out = {**attrs, **task_digests(arrays, objects), "format": TASK_FORMAT, "version": TASK_VERSION}
@@ -250,7 +250,6 @@ def read_task(path: str | Path) -> Task:
 def build_manifest(task_dir: str | Path, task_set: str, names: list[str]) -> dict:
     """The manifest of a task directory: per task its file's SHA-256 and digests (read from the file, checked by
     `read_task`), and the set's checksum over the sorted (name, ground-truth digest) pairs."""
-    from dsr_bench import __version__
     from dsr_bench.dataset.manifest import file_sha256
 
     task_dir = Path(task_dir)
@@ -266,8 +265,6 @@ def build_manifest(task_dir: str | Path, task_set: str, names: list[str]) -> dic
 
 def write_manifest(task_dir: str | Path, manifest: Mapping) -> Path:
     """Write TASK_DIR/tasks.json atomically."""
-    from dsr_bench.atomic import write_text
-
     return write_text(Path(task_dir) / MANIFEST_NAME, json.dumps(manifest, indent=1, sort_keys=True) + "\n")
 
 
@@ -309,8 +306,6 @@ def pinned_tasks(task_set: str) -> dict[str, str] | None:
 
 def pin_task_set(manifest: Mapping) -> Path:
     """Record a task directory's checksum and per-task digests as the pin of its set (task_pins.json)."""
-    from dsr_bench.atomic import write_text
-
     pins: dict[str, Any] = (json.loads(PINS_FILE.read_text()) if PINS_FILE.is_file()
                             else {"format": "dsr-bench-task-pins", "version": 1, "task_sets": {}})
     pins["task_sets"][manifest["task_set"]] = {

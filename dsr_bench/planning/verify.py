@@ -40,6 +40,7 @@ import numpy as np
 from dsr_bench.constants import NUM_DIRECTIONS
 from dsr_bench.errors import UserError
 from dsr_bench.jsonfile import UnreadableJSON, read_json
+from dsr_bench.parallel import as_finished
 from dsr_bench.planning.planners import OraclePlanner, RandomPlanner
 from dsr_bench.planning.replay import Replay
 
@@ -251,7 +252,6 @@ def recompute_results(plans_dir: Path, tasks: str | Path | None = None, workers:
     is read only for the self-reported fields (module doc). UserError (one line): an unreadable file, a plan file
     that is not a plan of its task or not its replay, a plan missing from or extra to results.json's per_task,
     plans that are not a prefix of the tasks (what --num-tasks plans) or not of one run."""
-    from dsr_bench.parallel import as_finished
     from dsr_bench.planning.plans import read_plan_attrs
     from dsr_bench.planning.protocol import PLAN_STEPS
     from dsr_bench.planning.replay import load_simulator

@@ -7,7 +7,9 @@ filters, shapes, dtypes, `num_slots`, the attributes stating the sequence and la
 that lie on the observed surface only with y and x swapped) happen in the same streaming pass that scores, one
 sequence per worker at a time. Any problem means no score, unless `allow_partial`, which scores the valid
 sequences and states the coverage. A named split whose checksum differs from the toolkit's pin
-is scored with a warning (`pin_warning`) and `"pinned": false` in the results.
+is scored with a warning (`pin_warning`) and `"pinned": false` in the results. A real split (the annotated captures
+of `dsr-bench real-split`, `dsr_bench.dataset.real`) is verified against its own pins instead and its results say so
+(`real_split`: its name, part, pins file and checksum).
 A 2D-only submission (every file motion_2d alone, the 2D track) is scored on the front camera's 2D
 flow only (its results hold `motion_2d` alone); it needs data with `cameras/front/scene_flow_2d`,
 and a directory mixing it with 3D files is refused.
@@ -28,11 +30,13 @@ from typing import Any
 import h5py
 import numpy as np
 
+from dsr_bench import __version__
 from dsr_bench.dataset.manifest import file_sha256
 from dsr_bench.dataset.pins import verify_scored
+from dsr_bench.dataset.real import verify_real_scored
 from dsr_bench.dataset.scored import FRONT_FLOW_2D, FRONT_MASK, ScoredDigests
 from dsr_bench.errors import UserError
-from dsr_bench.engines import Engine
+from dsr_bench.engines import LOGS_NAME, Engine
 from dsr_bench.parallel import run_in_order
 from dsr_bench.scoring.metrics import (METRICS, OBJECT_IOUS, TRACKS, Sequence3D, Step2D, Step3D, compute_sequence,
                                        compute_step, metric_keys)
@@ -283,7 +287,6 @@ def extra_entries(pred_dir: Path, names: list[str]) -> list[tuple[str, str]]:
     """What a predictions directory holds besides its split's SEQUENCE.h5 files and meta.json, as (name, problem):
     strict, as a submission format is, so that nothing is silently left unscored. Allowed too: the folder
     `evaluate --slurm` keeps its logs in by default (`engines.LOGS_NAME`)."""
-    from dsr_bench.engines import LOGS_NAME
     from dsr_bench.scoring.predictions import META_NAME
 
     allowed = {f"{name}.h5" for name in names} | {META_NAME}
@@ -397,7 +400,6 @@ def evaluate(pred_dir: str | Path, data_dir: str | Path, split: str | None = Non
     """Check and score a predictions directory against a split of a dataset. `progress(done, total)`: called once
     per sequence scored, as each finishes (the sequences that pass the structural checks). `engine`
     (`dsr_bench.engines`: Ray, SLURM) scores the sequences instead of `workers` local processes."""
-    from dsr_bench import __version__
     from dsr_bench.dataset.manifest import load_manifest, read_split, split_digest
     from dsr_bench.scoring.predictions import read_meta
 
@@ -419,6 +421,9 @@ def evaluate(pred_dir: str | Path, data_dir: str | Path, split: str | None = Non
             scored[name] = values
     # the ground truth as scored, recomputed while reading, against the toolkit's pin (never the files' attributes)
     verified, verify_warnings = verify_scored(split, names, truth, data_dir)
+    real = None
+    if warning is None and not verified and not verify_warnings:  # not a toolkit split: a real split's own pins?
+        verified, verify_warnings, real = verify_real_scored(data_dir, split, names, truth, manifest)
     warnings = ([warning] if warning else verify_warnings) + _partial_2d_warning(scored)
     evaluation = Evaluation(problems=problems, warnings=warnings)
     if (problems and not allow_partial) or not scored:
@@ -440,6 +445,8 @@ def evaluate(pred_dir: str | Path, data_dir: str | Path, split: str | None = Non
         "coverage": {"scored": len(scored), "expected": len(names), "partial": len(scored) < len(names)},
         **scores,
     }
+    if real is not None:  # pinned (where verified) to the real split's own pins, not to the toolkit's
+        results["real_split"] = real
     evaluation.results = results
     evaluation.per_sequence_steps = {name: {k: v for k, v in values.items() if k in results["per_step"]}
                                      for name, values in sorted(scored.items())}

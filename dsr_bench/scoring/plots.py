@@ -15,7 +15,8 @@ track: `leaderboard_series`, `write_leaderboard_plot`): the rows step by step, a
 sequences with its 95% interval (from the entries' per-sequence values); and one per planning table
 (`write_planning_plot`): each planner's mean IoU with its interval, and its paired differences from not pushing
 and from random pushes. A method has one colour, line style and marker wherever it is drawn (`method_style`);
-an oracle that would squeeze the other rows' axis is named on the panel instead of drawn.
+an oracle that would squeeze the other rows' axis is named on the panel instead of drawn (the styles:
+`dsr_bench.scoring.styles`).
 
 Figures are drawn at the size they are shown (`FIGURE_WIDTH_PX` CSS pixels wide at most, fonts in points):
 SVG for the leaderboard's web page, PNG (at twice the pixels, for sharp display) where a markdown file embeds
@@ -26,14 +27,15 @@ writes through `dsr_bench.atomic`.
 
 from __future__ import annotations
 
-import hashlib
 import math
-import re
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 from dsr_bench.atomic import atomic_path
 from dsr_bench.scoring.spread import Spread, paired_difference, spread, step_bands
+from dsr_bench.scoring.styles import (  # noqa: F401 - METHOD_STYLES and method_key importable from here as before
+    METHOD_STYLES, is_oracle, is_reference_method, method_key, method_style,
+)
 
 #: `results.json` -> `results-steps.png`
 STEPS_PLOT_SUFFIX = "-steps.png"
@@ -66,63 +68,6 @@ FIGURE_WIDTH_PX = 860
 CSS_DPI = 96
 #: PNGs carry twice the pixels of their shown size: sharp on high-density screens
 PNG_SCALE = 2
-
-#: One colour, line style and marker per method, wherever it is drawn (3D, 2D, planning, evaluate's plot):
-#: keyed by `method_key`. Reference rows are dashed, dotted or dash-dotted; trained rows solid. "no push"
-#: (planning's do-nothing) shares static's look: both are "no motion".
-METHOD_STYLES: dict[str, tuple[str, str, str]] = {
-    "static": ("#4d4d4d", "--", "o"),
-    "nopush": ("#4d4d4d", "--", "o"),
-    "push": ("#8c564b", ":", "^"),
-    "oracle": ("#000000", "-.", "*"),
-    "random": ("#bcbd22", ":", "v"),
-    "dsr": ("#1f77b4", "-", "o"),
-    "single": ("#ff7f0e", "-", "s"),
-    "nowarp": ("#2ca02c", "-", "D"),
-    "gtwarp": ("#d62728", "-", "P"),
-    "3dflow": ("#9467bd", "-", "X"),
-    "2dflow": ("#e377c2", "-", "p"),
-    "se3net": ("#17becf", "-", "h"),
-    "se3posenet": ("#5254a3", "-", "d"),
-}
-#: colours for methods the map does not name, picked by a hash of the name (the same colour in every figure)
-OTHER_COLOURS = ("#393b79", "#637939", "#8c6d31", "#843c39", "#7b4173", "#3182bd", "#e6550d", "#31a354",
-                 "#756bb1", "#636363", "#9c9ede", "#cedb9c")
-_ALIASES = {"dsrnet": "dsr", "singlestep": "single", "nomotion": "static"}
-#: rows that are yardsticks, not methods being compared: drawn as references, never "best"
-REFERENCE_KEYS = ("static", "nopush", "push", "oracle", "random")
-
-
-def method_key(method: str) -> str:
-    """The key of a method in `METHOD_STYLES`: lower case, a parenthesised note, a "-cpu"/"-gpu" track suffix,
-    a " ft" (finetuned) suffix and punctuation dropped, paper names mapped ("DSR-Net" -> "dsr"); e.g.
-    "dsr-cpu", "DSR-Net" and "dsr-cpu (planning)" are all "dsr"."""
-    name = re.sub(r"\s*\([^)]*\)", "", str(method).lower()).strip()
-    name = re.sub(r"[-_ ](cpu|gpu)$", "", re.sub(r"\s+ft$", "", name))
-    name = re.sub(r"[^a-z0-9]", "", name)
-    return _ALIASES.get(name, name)
-
-
-def method_style(method: str) -> dict:
-    """Matplotlib keywords (color, linestyle, marker) of a method, the same in every figure."""
-    key = method_key(method)
-    if key in METHOD_STYLES:
-        colour, line, marker = METHOD_STYLES[key]
-    else:
-        digest = int(hashlib.sha256(key.encode()).hexdigest(), 16)
-        colour, line, marker = OTHER_COLOURS[digest % len(OTHER_COLOURS)], "-", "o"
-    return {"color": colour, "linestyle": line, "marker": marker}
-
-
-def is_reference_method(method: str) -> bool:
-    """Whether a row is a yardstick (static, push, oracle, random, no push) rather than a method compared."""
-    key = method_key(method)
-    return key in REFERENCE_KEYS or "oracle" in str(method).lower()
-
-
-def _is_oracle(method: str) -> bool:
-    return "oracle" in str(method).lower()
-
 
 #: why nothing is drawn when matplotlib (a dependency since 0.2) is missing from an environment installed before
 MISSING_MATPLOTLIB = "matplotlib is not installed: run `pip install -e .` (or `pip install matplotlib`)"
@@ -398,7 +343,7 @@ def _draw_steps(ax, panel: dict) -> dict:
     legend handles by row label."""
     iou = panel["ylabel"] == "IoU"
     methods = panel.get("methods") or {label: label for label in panel["lines"]}
-    others = [v for label, values in panel["lines"].items() if not _is_oracle(methods[label]) for v in values]
+    others = [v for label, values in panel["lines"].items() if not is_oracle(methods[label]) for v in values]
     _zero_based(ax, others, iou)
     low, high = ax.get_ylim()
     handles: dict = {}
@@ -407,7 +352,7 @@ def _draw_steps(ax, panel: dict) -> dict:
     for label, values in panel["lines"].items():
         style = method_style(methods[label])
         finite = _finite(values)
-        if _is_oracle(methods[label]) and finite and (max(finite) > high or min(finite) < low):
+        if is_oracle(methods[label]) and finite and (max(finite) > high or min(finite) < low):
             shown = f"{finite[0]:.3f}" if len(set(finite)) == 1 else f"{min(finite):.3g}-{max(finite):.3g}"
             notes.append(f"{label}: {shown} at every step (off this axis)")
             continue
@@ -432,7 +377,7 @@ def _draw_intervals(ax, panel: dict, order: list[str]) -> None:
     """Each row's mean over the sequences with its 95% interval, one row a line of the y axis (oracles named,
     not drawn: they would squeeze the others)."""
     methods = panel.get("methods") or {label: label for label in panel["lines"]}
-    rows = [label for label in order if label in panel["spread"] and not _is_oracle(methods[label])
+    rows = [label for label in order if label in panel["spread"] and not is_oracle(methods[label])
             and panel["spread"][label].n > 0]
     rows = sorted(rows, key=lambda r: is_reference_method(methods[r]))  # reference rows last
     for y, label in enumerate(rows):
@@ -446,7 +391,7 @@ def _draw_intervals(ax, panel: dict, order: list[str]) -> None:
     ax.invert_yaxis()
     ax.set_xlim(0, max([panel["spread"][r].high for r in rows if not math.isnan(panel["spread"][r].high)]
                        + [panel["spread"][r].mean for r in rows] + [0]) * 1.1 or 1.0)
-    oracles = [label for label in order if _is_oracle(methods.get(label, "")) and label in panel["spread"]]
+    oracles = [label for label in order if is_oracle(methods.get(label, "")) and label in panel["spread"]]
     if oracles:
         ax.annotate(f"not shown: {', '.join(oracles)}", xy=(0.99, 0.01), xycoords="axes fraction", ha="right",
                     va="bottom", fontsize=7, color="#555555")

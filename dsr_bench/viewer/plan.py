@@ -21,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
+from dsr_bench.atomic import atomic_path
 from dsr_bench.constants import PUSH_HEIGHT, PUSH_LENGTH, VOXEL_SIZE
 from dsr_bench.errors import UserError
 from dsr_bench.geometry import direction_vector, pixel_to_world, voxel_to_world
@@ -141,7 +142,6 @@ def view_plan(path: str | Path, save: str | Path | None = None, web: bool = Fals
               grpc_port: int | None = None) -> Path | str | None:
     """Open a plan file in the rerun viewer, or write a recording to `save` (.rrd, atomically), or serve the web
     viewer; returns as `dsr_bench.viewer.view` does."""
-    from dsr_bench.atomic import atomic_path
     from dsr_bench.planning.plans import read_plan
     from dsr_bench.viewer import _SERVING, APP_ID, import_rerun
 

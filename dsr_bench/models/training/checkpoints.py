@@ -47,7 +47,8 @@ if TYPE_CHECKING:
     from dsr_bench.models.image_nets import ImageNet
 
 __all__ = ["ROLES", "WEIGHTS_FORMAT", "WEIGHTS_VERSION", "Weights", "data_provenance", "git_hash",
-           "half", "read_weights", "rng_state", "save_checkpoint", "save_weights", "set_rng_state", "torch_device",
+           "half", "mark_finetuned", "read_weights", "rng_state", "save_checkpoint", "save_weights", "set_rng_state",
+           "torch_device",
            "trained_split_checksum", "unwrap"]
 
 WEIGHTS_FORMAT = "dsr-bench-weights"
@@ -204,6 +205,24 @@ class Weights:
         net = registry.KINDS[self.kind].network_class()(self.config)
         self.load_into(net)
         return net.to(device).eval()
+
+
+def mark_finetuned(predictor, weights: Weights) -> None:
+    """A predictor of fine-tuned weights (`training.finetune`: a `finetune` record) named `NAME-ft`, as the paper labels
+    its fine-tuned rows, its description and weights record saying on what; nothing for other weights."""
+    record = weights.get("finetune")
+    if not isinstance(record, dict):
+        return
+    data = record.get("data") or {}
+    real = record.get("real_split") or {}
+    on = (f"the fine-tune part of the real split {real.get('name')!r} (checksum {str(real.get('checksum'))[:12]})"
+          if real else f"the split {data.get('split')} of {data.get('dir')}")
+    predictor.name = f"{predictor.name}-ft"
+    predictor.description += f"; fine-tuned from {record.get('from')} on {on}"
+    predictor.weights = {**predictor.weights, "finetune": {
+        "from": record.get("from"), "from_sha256": record.get("from_sha256"), "split": data.get("split"),
+        "split_checksum": data.get("split_checksum"), "real_split": real or None, "epochs": record.get("epochs"),
+        "sample_steps": record.get("sample_steps")}}
 
 
 def _fail(path: Path, what: str) -> UserError:

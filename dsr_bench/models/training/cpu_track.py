@@ -114,19 +114,26 @@ def pooled_split(data_dir: Path, split: str | None, factor: int = coarse.CPU_TRA
 def draw_windows(data: dict[str, np.ndarray], batches: int, window: int, batch_size: int, seed: int,
                  grid: tuple[int, int, int]) -> Iterator[dict]:
     """`batches` window batches (B, L, ...) in the loaders' layout, each window a random sequence and start."""
-    from dsr_bench.models.data import action_map
-
     rng = np.random.default_rng(seed)
     count, steps = data["action"].shape[:2]
     for _ in range(batches):
         seqs = rng.integers(count, size=batch_size)
         starts = rng.integers(steps - window + 1, size=batch_size)
-        idx = (seqs[:, None], starts[:, None] + np.arange(window))
-        yield {"tsdf": torch.from_numpy(data["tsdf"][idx].astype(np.float32)),
-               "action": torch.stack([action_map(a, grid[:2]) for a in data["action"][idx].astype(np.int64)]),
-               "mask_3d": torch.from_numpy(data["mask"][idx]),
-               "scene_flow_3d": torch.from_numpy(data["flow"][idx].astype(np.float32)),
-               "sequence": [str(data["names"][s]) for s in seqs]}
+        yield window_batch(data, seqs, starts, window, grid)
+
+
+def window_batch(data: dict[str, np.ndarray], seqs: np.ndarray, starts: np.ndarray, window: int,
+                 grid: tuple[int, int, int]) -> dict:
+    """One batch (B, L, ...) in the loaders' layout: window b is sequence `seqs[b]`'s pushes `starts[b]` ..
+    `starts[b]` + `window` - 1 of a pooled split (`pooled_split`)."""
+    from dsr_bench.models.data import action_map
+
+    idx = (np.asarray(seqs)[:, None], np.asarray(starts)[:, None] + np.arange(window))
+    return {"tsdf": torch.from_numpy(data["tsdf"][idx].astype(np.float32)),
+            "action": torch.stack([action_map(a, grid[:2]) for a in data["action"][idx].astype(np.int64)]),
+            "mask_3d": torch.from_numpy(data["mask"][idx]),
+            "scene_flow_3d": torch.from_numpy(data["flow"][idx].astype(np.float32)),
+            "sequence": [str(data["names"][s]) for s in seqs]}
 
 
 # --- training -----------------------------------------------------------------------------------------

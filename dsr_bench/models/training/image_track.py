@@ -76,18 +76,24 @@ def image_split(data_dir: Path, split: str | None, factor: int, workers: int = 1
 def draw_steps(data: dict[str, np.ndarray], batches: int, batch_size: int, seed: int) -> Iterator[dict]:
     """`batches` batches of single steps, each a random sequence and push: points, valid, next_points,
     next_valid (B, 3|1, h, w), flow (B, 3, h, w) metres (x, y, z), mask (B, h, w) int64, action (B, 3) int64."""
-    from dsr_bench.models.image_data import point_tensors
-
     rng = np.random.default_rng(seed)
     count, steps = data["action"].shape[:2]
     for _ in range(batches):
         seqs, ts = rng.integers(count, size=batch_size), rng.integers(steps, size=batch_size)
-        points, valid = point_tensors(data["points"][seqs, ts])
-        next_points, next_valid = point_tensors(data["points"][seqs, ts + 1])
-        yield {"points": points, "valid": valid, "next_points": next_points, "next_valid": next_valid,
-               "flow": torch.from_numpy(data["flow"][seqs, ts].astype(np.float32)).movedim(-1, 1),
-               "mask": torch.from_numpy(data["mask"][seqs, ts].astype(np.int64)),
-               "action": torch.from_numpy(data["action"][seqs, ts].astype(np.int64))}
+        yield step_batch(data, seqs, ts)
+
+
+def step_batch(data: dict[str, np.ndarray], seqs: np.ndarray, ts: np.ndarray) -> dict:
+    """One batch of single steps (`draw_steps`' layout): step b is push `ts[b]` of sequence `seqs[b]` of a reduced
+    split (`image_split`)."""
+    from dsr_bench.models.image_data import point_tensors
+
+    points, valid = point_tensors(data["points"][seqs, ts])
+    next_points, next_valid = point_tensors(data["points"][seqs, ts + 1])
+    return {"points": points, "valid": valid, "next_points": next_points, "next_valid": next_valid,
+            "flow": torch.from_numpy(data["flow"][seqs, ts].astype(np.float32)).movedim(-1, 1),
+            "mask": torch.from_numpy(data["mask"][seqs, ts].astype(np.int64)),
+            "action": torch.from_numpy(data["action"][seqs, ts].astype(np.int64))}
 
 
 def flow_loss(flow: torch.Tensor, target: torch.Tensor, mask: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:

@@ -8,6 +8,10 @@ track is here, one `Track` each; the values themselves are checked by what the r
 - `VOXEL_CPU` (`--track cpu`): the CPU track's two-stage recipe on 32 x 32 x 16 (`cpu_track`); one weights file.
 - `IMAGE_FULL`, `IMAGE_CPU`: the 2D track's single-stage recipe on 240 x 320 or 120 x 160 images (`image_track`).
 
+`--finetune` swaps a track for its fine-tuning recipe (`Track.finetuning`: `VOXEL_CPU_FT`, `IMAGE_FT`,
+`training.finetune`): the paper's fine-tuning of weights trained in simulation on a real split's fine-tune part, with
+options of its own; the full track has none (its `--stage cube-multi --schedule paper` is the paper's rate).
+
 `evaluate_heldout` predicts a held-out split with a trained model and scores it (`--eval-data`, any track).
 """
 
@@ -22,8 +26,8 @@ from typing import Any
 from dsr_bench.errors import UserError
 from dsr_bench.models import registry
 
-__all__ = ["COMMON", "IMAGE_CPU", "IMAGE_FULL", "Track", "VOXEL_CPU", "VOXEL_FULL", "evaluate_heldout", "flag",
-           "tracks_taking"]
+__all__ = ["COMMON", "IMAGE_CPU", "IMAGE_FT", "IMAGE_FULL", "Track", "VOXEL_CPU", "VOXEL_CPU_FT", "VOXEL_FULL",
+           "evaluate_heldout", "flag", "tracks_taking"]
 
 #: the options every recipe reads (parameter names of `dsr-bench train`)
 COMMON = ("model", "track", "data", "out", "split", "batch_size", "lr", "seed", "workers", "quiet", "eval_data",
@@ -52,6 +56,8 @@ class Track:
     runner: str
     result: str = "weights"
     refusals: Mapping[str, str] = field(default_factory=dict)
+    #: the recipe `--finetune` runs instead ("module:attribute" of a Track; "": none, `refusals["finetune"]` says why)
+    finetune: str = ""
 
     def __post_init__(self):
         object.__setattr__(self, "refusals", MappingProxyType(dict(self.refusals)))
@@ -69,6 +75,13 @@ class Track:
                 message = self.refusals.get(name, "{flag} is not an option of {words}; drop it")
                 raise UserError(message.format(flag=flag(name), value=value, words=self.words))
 
+    def finetuning(self) -> Track:
+        """The recipe of `--finetune` on this track (a Track), or a one-line UserError saying why there is none."""
+        if not self.finetune:
+            message = self.refusals.get("finetune", "--finetune is not offered on {words}; drop it")
+            raise UserError(message.format(flag="--finetune", value=True, words=self.words))
+        return registry.resolve(self.finetune)
+
     def train(self, model: str, options: Mapping[str, Any], report: Report) -> Path:
         """Train `model` by this recipe with the command's `options` (every option by name); returns the file written
         (a run's last.pt, or the weights file)."""
@@ -84,6 +97,10 @@ def tracks_taking(option: str) -> list[str]:
             label = "2D" if kind.name == registry.IMAGE else name
             if track.takes(option) and label not in labels:
                 labels.append(label)
+    tuning = [registry.resolve(kind.track(name).finetune) for kind in registry.KINDS.values() for name in kind.tracks
+              if kind.track(name).finetune]
+    if any(track.takes(option) for track in tuning) and option not in COMMON:
+        labels.append("fine-tuning")
     return labels
 
 
@@ -138,7 +155,10 @@ VOXEL_FULL = Track(
      "max_steps", "max_minutes", "checkpoint_every", "grid_size", "bn_recalibration", "official_bn", "deterministic",
      "device", "bf16", "compile_model", "channels_last"),
     f"{__name__}:train_full", result="checkpoint",
-    refusals={"multi_lr": "--multi-lr is the CPU track's stage-2 rate (--track cpu); the full track's is --lr"})
+    refusals={"multi_lr": "--multi-lr is the CPU track's stage-2 rate (--track cpu); the full track's is --lr",
+              "finetune": "--finetune fine-tunes the CPU track's and the 2D track's weights (--track cpu); on the full "
+                          "track fine-tune a run's last.pt with --stage cube-multi --schedule paper --init RUN/last.pt "
+                          "--data REAL --split NAME-finetune (the paper's fine-tuning rate)"})
 
 
 # --- the CPU track ------------------------------------------------------------------------------------------------
@@ -164,7 +184,8 @@ VOXEL_CPU = Track(
     f"{__name__}:train_cpu_track",
     refusals={"stage": "--stage {value}: the CPU track's recipe runs both its stages; drop --stage",
               "epoch_samples": "--epoch-samples is an option of the full track (its recipe counts batches); drop it",
-              "device": "--device {value}: the CPU track trains on the CPU; drop --device"})
+              "device": "--device {value}: the CPU track trains on the CPU; drop --device"},
+    finetune=f"{__name__}:VOXEL_CPU_FT")
 
 
 # --- the 2D track -------------------------------------------------------------------------------------------------
@@ -185,8 +206,57 @@ def train_image_track(model: str, options: Mapping[str, Any], report: Report) ->
 
 
 _IMAGE_WORDS = "the 2D track's models (single-step, one stage)"
-IMAGE_FULL = Track("full", _IMAGE_WORDS, ("single_batches", "device"), f"{__name__}:train_image_track")
-IMAGE_CPU = Track("cpu", _IMAGE_WORDS, ("single_batches", "device"), f"{__name__}:train_image_track")
+IMAGE_FULL = Track("full", _IMAGE_WORDS, ("single_batches", "device"), f"{__name__}:train_image_track",
+                   finetune=f"{__name__}:IMAGE_FT")
+IMAGE_CPU = Track("cpu", _IMAGE_WORDS, ("single_batches", "device"), f"{__name__}:train_image_track",
+                  finetune=f"{__name__}:IMAGE_FT")
+
+
+# --- fine-tuning on a real split ----------------------------------------------------------------------------------
+def finetune_cpu_track(model: str, options: Mapping[str, Any], report: Report) -> Path:
+    """`--finetune --track cpu`: a CPU-track voxel model's weights (`--init`) fine-tuned on a real split
+    (`training.finetune`); the weights file written (with `--max-steps`, the partial checkpoint when stopped)."""
+    from dsr_bench.models.training.finetune import finetune_voxel, partial_path
+
+    o = _finetune_options(options)
+    written = finetune_voxel(model, o["init"], o["data"], o["split"], Path(o["out"]), epochs=o["epochs"], lr=o["lr"],
+                             batch_size=o["batch_size"], window=o["window"], bn_recalibration=o["bn_recalibration"],
+                             seed=o["seed"], max_steps=o["max_steps"], workers=max(1, o["workers"]), report=report)
+    return partial_path(Path(o["out"])) if written is None else written
+
+
+def finetune_image_track(model: str, options: Mapping[str, Any], report: Report) -> Path:
+    """`--finetune` of a 2D-track model's weights (`--init`) on a real split (`training.finetune`)."""
+    from dsr_bench.models.training.finetune import finetune_image, partial_path
+
+    o = _finetune_options(options)
+    written = finetune_image(model, o["init"], o["data"], o["split"], Path(o["out"]), epochs=o["epochs"], lr=o["lr"],
+                             batch_size=o["batch_size"], seed=o["seed"], device=o["device"], max_steps=o["max_steps"],
+                             workers=max(1, o["workers"]), report=report)
+    return partial_path(Path(o["out"])) if written is None else written
+
+
+def _finetune_options(options: Mapping[str, Any]) -> dict:
+    """The options of a fine-tuning run: --init required, --epochs the paper's 20 where not given."""
+    from dsr_bench.models.training.finetune import PAPER_EPOCHS
+
+    if options["init"] is None:
+        raise UserError("--finetune needs --init WEIGHTS: the weights trained in simulation to fine-tune (e.g. "
+                        "dsr_bench/models/weights/cpu-track/dsr.pt)")
+    return {**options, "epochs": PAPER_EPOCHS if options["epochs"] is None else options["epochs"]}
+
+
+_FT_REFUSALS = {"multi_batches": "--multi-batches is the CPU track's recipe; fine-tuning runs --epochs passes over the "
+                                 "fine-tune part; drop it",
+                "single_batches": "--single-batches is a recipe's from scratch; fine-tuning runs --epochs passes over "
+                                  "the fine-tune part; drop it"}
+#: `--finetune --track cpu`: the CPU track's voxel models
+VOXEL_CPU_FT = Track("cpu", "fine-tuning on the CPU track",
+                     ("finetune", "init", "epochs", "window", "bn_recalibration", "max_steps"),
+                     f"{__name__}:finetune_cpu_track", refusals=_FT_REFUSALS)
+#: `--finetune` of the 2D track's models (either track: the network's image is the weights')
+IMAGE_FT = Track("2D", "fine-tuning the 2D track's models", ("finetune", "init", "epochs", "max_steps", "device"),
+                 f"{__name__}:finetune_image_track", refusals=_FT_REFUSALS)
 
 
 # --- the held-out evaluation --------------------------------------------------------------------------------------
