@@ -23,14 +23,15 @@ from dataclasses import dataclass, field, fields
 
 import numpy as np
 
-from annotator.checks import (CHECKS, Check, colour_check, colour_mismatch, fit_checks,  # noqa: F401 - re-exported
-                              free_space_fraction, holds, lowest_point, penetration_depth, physical_checks,
-                              sample_colours, unexplained_check, unexplained_fraction, verdict_reason)
-from annotator.fitting import (SurfaceSamples, View, crop_cloud, icp_step, icp_subset, kabsch,  # noqa: F401
-                               near_depth, pose_delta, posed_samples, render_depth, rotvec_to_matrix, sample_surface,
-                               screen_quality, visible_samples)
-from annotator.moves import Refinement, refinement, refinement_checks, slide_check, slide_gain  # noqa: F401
-from annotator.thresholds import THRESHOLDS, Thresholds
+from dsr_bench.annotator.checks import (CHECKS, Check, colour_check, colour_mismatch,  # noqa: F401 - re-exported
+                                        fit_checks, free_space_fraction, holds, lowest_point, penetration_depth,
+                                        physical_checks, sample_colours, unexplained_check, unexplained_fraction,
+                                        verdict_reason)
+from dsr_bench.annotator.fitting import (SurfaceSamples, View, crop_cloud, icp_step, icp_subset,  # noqa: F401
+                                         kabsch, near_depth, pose_delta, posed_samples, render_depth,
+                                         rotvec_to_matrix, sample_surface, screen_quality, visible_samples)
+from dsr_bench.annotator.moves import Refinement, refinement, refinement_checks, slide_check, slide_gain  # noqa: F401
+from dsr_bench.annotator.thresholds import THRESHOLDS, Thresholds
 from dsr_bench.geometry import matrix_to_pose  # noqa: F401 - matrix_to_pose: used as align.matrix_to_pose
 
 

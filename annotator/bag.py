@@ -23,8 +23,8 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from annotator.inputs import MAX_IMAGE_SIDE, image_side
-from annotator.registration import SUPPORTED_MODELS, StreamInfo, ideal_rays, undistortion_maps
+from dsr_bench.annotator.inputs import MAX_IMAGE_SIDE, image_side
+from dsr_bench.annotator.registration import SUPPORTED_MODELS, StreamInfo, ideal_rays, undistortion_maps
 from dsr_bench.errors import UserError
 
 COLOR_ENCODINGS = {"rgb8": (3, False), "bgr8": (3, True), "rgba8": (4, False), "bgra8": (4, True)}
@@ -118,7 +118,7 @@ def _read_one(box, path: Path, topic: str, what: str):
 
 def _text(box, path: Path, topic: str, keys: tuple[str, ...], what: str) -> dict[str, str]:
     """A ROS2 text message ("key=value;...") of a static topic, checked to hold `keys`."""
-    from annotator.rosfile import key_values
+    from dsr_bench.annotator.rosfile import key_values
 
     _check_type(box, path, topic, (STRING,), what)
     text = str(_read_one(box, path, topic, what).data)
@@ -278,7 +278,7 @@ def _frames_ros1(box, path: Path, topic: str, what: str) -> dict:
 def _frames_ros2(box, path: Path, topic: str, prefix: str, what: str) -> dict:
     """Frame timestamps (s) and numbers of a ROS2 image topic from `<prefix>/image/metadata` (the message at the same
     time), message times (ns) and which message at its time each is."""
-    from annotator.rosfile import key_values
+    from dsr_bench.annotator.rosfile import key_values
 
     meta = prefix + "/image/metadata"
     if meta not in box.topics:
@@ -322,12 +322,12 @@ def _stream(box, path: Path, topic: str, prefix: str, payload: str, info: Stream
 def _about(box, path: Path, color: Stream, topics: dict, domain: str | None) -> dict:
     """What the file is: container, librealsense's file version, the writer it points to, the device and sensors,
     the timestamp domain and where the recording starts on the frame clock."""
-    from annotator.rosfile import key_values
+    from dsr_bench.annotator.rosfile import key_values
 
     def texts(topic: str) -> dict[str, str]:  # informational: a topic of another type is skipped
         if box.topics.get(topic) != (STRING if box.ros2 else "diagnostic_msgs/msg/KeyValue"):
             return {}
-        out = {}
+        out: dict[str, str] = {}
         for _, raw in box.messages(topic):
             msg = box.decode(topic, raw)
             out.update(key_values(msg.data) if box.ros2 else {str(msg.key): str(msg.value)})
@@ -362,7 +362,7 @@ def open_recording(path: Path, name: str) -> Recording:
     from rosbags.serde import SerdeError
     from rosbags.typesys import TypesysError
 
-    from annotator.rosfile import ContainerError, open_container
+    from dsr_bench.annotator.rosfile import ContainerError, open_container
 
     try:
         with open_container(path) as box:
@@ -478,7 +478,7 @@ def read_frame(recording: Recording, kind: str, index: int) -> np.ndarray:
     from rosbags.rosbag2 import ReaderError as Ros2Error
     from rosbags.serde import SerdeError
 
-    from annotator.rosfile import ContainerError, open_container
+    from dsr_bench.annotator.rosfile import ContainerError, open_container
 
     stream = recording.color if kind == "colour" else recording.depth
     t, seq = int(stream.log_times[index]), int(stream.seqs[index])

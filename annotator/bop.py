@@ -95,7 +95,7 @@ def model_info(vertices_mm: np.ndarray, faces: np.ndarray) -> tuple[dict, dict]:
     """BOP's models_info entry of a model whose origin is its bounding-box centre (vertices (V, 3) mm): diameter,
     min / size per axis and the symmetries found (`annotator.symmetry`); and what the symmetry search measured
     (largest surface distance per transform, mm) for dsr_bop.json."""
-    from annotator.symmetry import TOLERANCE_MM, find_symmetries
+    from dsr_bench.annotator.symmetry import TOLERANCE_MM, find_symmetries
 
     v = np.asarray(vertices_mm, dtype=np.float64)
     lo, hi = v.min(axis=0), v.max(axis=0)
@@ -191,7 +191,7 @@ def export_bop(session, out: str | Path, allow_unchecked: bool = False) -> Path:
     refused as by the DSR export (`annotator.export.check_exportable`). Returns `out`."""
     from PIL import Image
 
-    from annotator.export import check_exportable
+    from dsr_bench.annotator.export import check_exportable
     from dsr_bench.atomic import atomic_directory
     from dsr_bench.geometry import pose_to_matrix
 

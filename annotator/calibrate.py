@@ -84,7 +84,7 @@ def parse_board(where: str, spec) -> Board:
     missing = [k for k in ("squares", "square_length", "marker_length", "dictionary", "offset") if k not in spec]
     if missing:
         raise UserError(f"{where}: board lacks {', '.join(missing)}; give {hint}")
-    from annotator.inputs import finite, numbers
+    from dsr_bench.annotator.inputs import finite, numbers
 
     squares = spec["squares"]
     if not (isinstance(squares, list) and len(squares) == 2 and all(type(s) is int for s in squares)

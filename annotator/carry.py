@@ -12,9 +12,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from annotator import align
-from annotator.align import FitScore
-from annotator.scoring import Scoring
+from dsr_bench.annotator import align
+from dsr_bench.annotator.align import FitScore
+from dsr_bench.annotator.scoring import Scoring
 from dsr_bench.constants import RIG_PUSHER_RADIUS
 from dsr_bench.geometry import matrix_to_pose, pose_to_matrix
 

@@ -22,8 +22,8 @@ from typing import NamedTuple
 
 import numpy as np
 
-from annotator.fitting import SurfaceSamples, View, near_depth, pixels, posed_samples, visible_samples
-from annotator.thresholds import THRESHOLDS, Thresholds
+from dsr_bench.annotator.fitting import SurfaceSamples, View, near_depth, pixels, posed_samples, visible_samples
+from dsr_bench.annotator.thresholds import THRESHOLDS, Thresholds
 
 
 class CheckKind(NamedTuple):

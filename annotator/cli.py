@@ -53,12 +53,12 @@ def annotate(
                                               "out in, e.g. 1600x1000 (default: the display's)."),
 ) -> None:
     """Annotate object poses in a two-camera capture; without flags, open the annotation window."""
-    from annotator.session import Session
+    from dsr_bench.annotator.session import Session
     from dsr_bench.errors import UserError
 
     screen = None
     if window_size is not None:  # checked before any work
-        from annotator.layout import MIN_SCREEN, parse_window_size
+        from dsr_bench.annotator.layout import MIN_SCREEN, parse_window_size
 
         screen = parse_window_size(window_size)
         if screen[0] < MIN_SCREEN[0] or screen[1] < MIN_SCREEN[1]:
@@ -77,7 +77,7 @@ def annotate(
     for note in session.notes:  # e.g. a journal record a crash cut short, resumed without it
         typer.echo(f"annotate: {note}", err=True)
     if place is not None:
-        from annotator.placement import place_step0
+        from dsr_bench.annotator.placement import place_step0
 
         lines = place_step0(session, place)
         typer.echo(f"placed {len(lines)} objects at step 0 from {place}:")
@@ -102,7 +102,7 @@ def annotate(
         path = session.export(export, allow_unchecked=allow_unchecked)
         typer.echo(f"wrote {path}")
     if bop is not None:
-        from annotator.bop import export_bop
+        from dsr_bench.annotator.bop import export_bop
 
         path = export_bop(session, bop, allow_unchecked=allow_unchecked)
         typer.echo(f"wrote the BOP scenes to {path}")
@@ -113,7 +113,7 @@ def annotate(
     if no_display():
         raise UserError(NO_DISPLAY)
     try:
-        from annotator import window
+        from dsr_bench.annotator import window
     except ImportError as exc:
         raise UserError(f"the annotation window is unavailable ({exc}); use --status, --auto or --export") from None
     try:
@@ -163,11 +163,11 @@ def import_capture(
     """Import a real rig's colour and depth (PNGs, or RealSense .bag / .db3 recordings: depth registered to colour)
     as a capture: undistort, calibrate to the table (ChArUco board or given extrinsics), map the logged pushes to
     benchmark actions."""
-    from annotator.importer import import_capture as run_import
+    from dsr_bench.annotator.importer import import_capture as run_import
     from dsr_bench.errors import UserError
 
     if inspect:
-        from annotator.inspect import inspect_source
+        from dsr_bench.annotator.inspect import inspect_source
 
         if out is not None or name is not None or overwrite:
             raise UserError("--inspect converts nothing: drop --out, --name and --overwrite (or drop --inspect to "
@@ -233,7 +233,7 @@ def capture(
     writes done."""
     import signal
 
-    from annotator.record import CaptureSession, parse_recordings
+    from dsr_bench.annotator.record import CaptureSession, parse_recordings
     from dsr_bench.errors import UserError
 
     session = CaptureSession.open(out, front=front, back=back, color=color, depth=depth, sync=sync, rig=rig,

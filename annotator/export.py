@@ -107,7 +107,7 @@ def export_sequence(session, out: str | Path, allow_unchecked: bool = False) -> 
     from dsr_bench.dataset.schema import sequence_header
     from dsr_bench.geometry.groundtruth import rigid_scene_flow_2d, rigid_scene_flow_3d
     from dsr_bench.geometry.tsdf import ProjectiveTSDF
-    from annotator.state import STATE_VERSION
+    from dsr_bench.annotator.state import STATE_VERSION
 
     out = Path(out)
     if out.suffix != ".h5":

@@ -20,7 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from annotator.thresholds import THRESHOLDS, Thresholds
+from dsr_bench.annotator.thresholds import THRESHOLDS, Thresholds
 from dsr_bench.errors import UserError
 from dsr_bench.geometry import Camera, rotation_angle
 
@@ -153,7 +153,7 @@ def render_depth(camera: Camera, meshes: Sequence[tuple[np.ndarray, np.ndarray]]
 
     meshes: (vertices (V, 3) world m, faces (F, 3)) each; rasterised exactly (`dsr_bench.render.raster`), the part
     in front of the camera (`annotator.images.clip_near`)."""
-    from annotator.images import clip_near
+    from dsr_bench.annotator.images import clip_near
     from dsr_bench.geometry import rigid_inverse, transform_points
     from dsr_bench.render.raster import nearest, perspective_depth, rasterize
 

@@ -158,7 +158,7 @@ def wrong_object(session, obj: int, other_shapes: bool = True) -> str | None:
     """
     from scipy.spatial import cKDTree
 
-    from annotator import align
+    from dsr_bench.annotator import align
 
     s = session
     step = s.step
@@ -217,7 +217,7 @@ def _coloured_like(session, obj: int, step: int, transform: np.ndarray) -> tuple
     `transform` (4, 4) (`align.sample_colours`, median chromaticity of at least the session's limits'
     colour_min_samples samples) are farther than colour_distance from its own identity colour and at most half as
     far from object k's; None otherwise, or when the objects' identities carry no colour (a simulated capture's do)."""
-    from annotator import align
+    from dsr_bench.annotator import align
 
     s = session
     own = [_chromaticity(o.identity.get("color") if isinstance(o.identity, dict) else None)
@@ -242,8 +242,8 @@ def _fit_elsewhere(session, k: int, obj: int, step: int, blob: np.ndarray):
     when no ICP converged."""
     from scipy.spatial import cKDTree
 
-    from annotator import align
-    from annotator.carry import _best_starts, _rank
+    from dsr_bench.annotator import align
+    from dsr_bench.annotator.carry import _best_starts, _rank
 
     s = session
     samples = s.samples(k)

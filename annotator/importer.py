@@ -32,10 +32,10 @@ from pathlib import Path
 
 import numpy as np
 
-from annotator.inputs import (MAX_IMAGE_SIDE, finite, image_side, inside, json_text, numbers, plain_name, png_intact,
-                              png_shape, resolved_inside)
-from annotator.rig import (PUSHES_FILE, calibrate_cameras, capture_name, check_out, default_file, load_rig,
-                           read_objects, rig_error, undistort, undistort_maps)
+from dsr_bench.annotator.inputs import (MAX_IMAGE_SIDE, finite, image_side, inside, json_text, numbers, plain_name,
+                                        png_intact, png_shape, resolved_inside)
+from dsr_bench.annotator.rig import (PUSHES_FILE, calibrate_cameras, capture_name, check_out, default_file, load_rig,
+                                     read_objects, rig_error, undistort, undistort_maps)
 from dsr_bench.constants import CAMERAS, MODEL_CAMERA
 from dsr_bench.dataset.capture import CaptureCamera, parse_camera, write_capture
 from dsr_bench.errors import UserError
@@ -254,7 +254,7 @@ def import_capture(src: str | Path, out: str | Path, *, rig: str | Path | None =
     check_out(out, overwrite)
     if name is not None:  # both forms: the name becomes part of output paths and identities
         plain_name(name, "the capture name", "--name")
-    from annotator.realsense import recordings_in
+    from dsr_bench.annotator.realsense import recordings_in
 
     has_bags = bool(recordings_in(src))  # .bag, .db3, ROS2 bag directories
     has_pngs = any(IMAGE_PATTERN.match(p.name) for p in src.iterdir())
@@ -262,7 +262,7 @@ def import_capture(src: str | Path, out: str | Path, *, rig: str | Path | None =
         raise UserError(f"{src}: holds both RealSense recordings (.bag, .db3) and <camera>_color_<N>.png images; keep "
                         "one form per folder")
     if has_bags:
-        from annotator.realsense import DEFAULT_MAX_GAP_MS, import_bags
+        from dsr_bench.annotator.realsense import DEFAULT_MAX_GAP_MS, import_bags
 
         return import_bags(src, out, rig=rig, pushes=pushes, steps=steps, name=name, overwrite=overwrite,
                            max_gap_ms=DEFAULT_MAX_GAP_MS if max_gap_ms is None else max_gap_ms)
@@ -279,7 +279,7 @@ def import_png_folder(src: str | Path, out: str | Path, *, rig: str | Path | Non
 
     Everything is read and checked first (one-line UserErrors naming the input and the fix), then written at once.
     """
-    from annotator.pushes import read_pushes
+    from dsr_bench.annotator.pushes import read_pushes
 
     src, out = Path(src), Path(out)
     if not src.is_dir():

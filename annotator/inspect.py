@@ -87,7 +87,7 @@ def _board(report: Report, spec: dict, where: str, image: np.ndarray, intrinsics
     """The board's detection in one undistorted colour image: corners, reprojection, the camera's height."""
     import cv2
 
-    from annotator.calibrate import MIN_CORNERS, board_view, parse_board
+    from dsr_bench.annotator.calibrate import MIN_CORNERS, board_view, parse_board
 
     try:
         board = parse_board(where, spec["board"])
@@ -111,8 +111,8 @@ def inspect_source(src: str | Path, rig: str | Path | None = None, pushes: str |
                    steps: str | Path | None = None, max_gap_ms: float | None = None) -> Report:
     """Inspect SRC, a folder of RealSense recordings or of step PNGs (module docstring), converting nothing. A folder
     that is neither (or both) is a UserError; anything else wrong is a problem in the report."""
-    from annotator.importer import IMAGE_PATTERN
-    from annotator.realsense import recordings_in
+    from dsr_bench.annotator.importer import IMAGE_PATTERN
+    from dsr_bench.annotator.realsense import recordings_in
 
     src = Path(src)
     if not src.is_dir():
@@ -136,7 +136,7 @@ def inspect_source(src: str | Path, rig: str | Path | None = None, pushes: str |
 
 
 def _rig(report: Report, src: Path, rig) -> tuple[Path | None, dict]:
-    from annotator.rig import load_rig
+    from dsr_bench.annotator.rig import load_rig
 
     try:
         path, spec = load_rig(src, rig)
@@ -154,10 +154,10 @@ def _rig(report: Report, src: Path, rig) -> tuple[Path | None, dict]:
 
 
 def _inspect_bags(src: Path, rig, pushes, steps, max_gap_ms) -> Report:
-    from annotator.bag import open_recording, read_frame
-    from annotator.realsense import (DEFAULT_MAX_GAP_MS, STEPS_FILE, find_recordings, load_frames, pick_frames,
-                                     read_step_times, recordings_in)
-    from annotator.rig import default_file
+    from dsr_bench.annotator.bag import open_recording, read_frame
+    from dsr_bench.annotator.realsense import (DEFAULT_MAX_GAP_MS, STEPS_FILE, find_recordings, load_frames,
+                                               pick_frames, read_step_times, recordings_in)
+    from dsr_bench.annotator.rig import default_file
 
     report = Report()
     report.add(f"{src}: RealSense recordings")
@@ -257,8 +257,8 @@ def _about(report: Report, rec) -> None:
 def _step_numbers(report: Report, src: Path, pushes, numbers: list[int], found: dict) -> None:
     """The step numbers as the import checks them: without "between" in the push log they run without a gap, with it
     each push lies between its two numbers (`annotator.importer.check_step_numbers`)."""
-    from annotator.importer import check_step_numbers, logged_between
-    from annotator.rig import PUSHES_FILE, default_file
+    from dsr_bench.annotator.importer import check_step_numbers, logged_between
+    from dsr_bench.annotator.rig import PUSHES_FILE, default_file
     from dsr_bench.constants import MODEL_CAMERA
 
     front = found.get((MODEL_CAMERA, "color"), {})
@@ -277,8 +277,8 @@ def _step_numbers(report: Report, src: Path, pushes, numbers: list[int], found: 
 
 def _pushes(report: Report, src: Path, pushes, count: int) -> None:
     """The push log: how many pushes, and whether each maps to a benchmark action (`annotator.pushes`)."""
-    from annotator.pushes import read_pushes
-    from annotator.rig import PUSHES_FILE, default_file
+    from dsr_bench.annotator.pushes import read_pushes
+    from dsr_bench.annotator.rig import PUSHES_FILE, default_file
 
     try:
         path = default_file(src, pushes, PUSHES_FILE, "the push log")
@@ -289,9 +289,9 @@ def _pushes(report: Report, src: Path, pushes, count: int) -> None:
 
 
 def _inspect_pngs(src: Path, rig, pushes) -> Report:
-    from annotator.importer import CAMERA_NAMES, IMAGE_PATTERN, read_camera
-    from annotator.inputs import png_shape
-    from annotator.rig import undistort, undistort_maps
+    from dsr_bench.annotator.importer import CAMERA_NAMES, IMAGE_PATTERN, read_camera
+    from dsr_bench.annotator.inputs import png_shape
+    from dsr_bench.annotator.rig import undistort, undistort_maps
 
     report = Report()
     report.add(f"{src}: step PNGs")
@@ -349,7 +349,7 @@ def _inspect_pngs(src: Path, rig, pushes) -> Report:
                                "every camera needs colour and depth at every step")
         depth_files = found.get((name, "depth"), {})
         if camera is not None and depth_files:
-            from annotator.importer import read_image
+            from dsr_bench.annotator.importer import read_image
 
             first = depth_files[min(depth_files)]
             try:
@@ -364,7 +364,7 @@ def _inspect_pngs(src: Path, rig, pushes) -> Report:
             colors = found.get((name, "color"), {})
             path = src / given_image if isinstance(given_image, str) else (colors[min(colors)] if colors else None)
             if path is not None and path.is_file():
-                from annotator.importer import read_image
+                from dsr_bench.annotator.importer import read_image
 
                 try:
                     image = read_image(path, camera, "color")

@@ -36,7 +36,7 @@ import secrets
 from pathlib import Path
 from typing import NamedTuple
 
-from annotator.state import AnnotationState, StateError
+from dsr_bench.annotator.state import AnnotationState, StateError
 from dsr_bench.atomic import write_text
 from dsr_bench.errors import UserError
 

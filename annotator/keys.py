@@ -13,8 +13,8 @@ from typing import Any, Callable, NamedTuple, Sequence
 
 import numpy as np
 
-from annotator.align import FitScore
-from annotator.images import SELECTED_COLOR, muted_colors
+from dsr_bench.annotator.align import FitScore
+from dsr_bench.annotator.images import SELECTED_COLOR, muted_colors
 from dsr_bench.errors import UserError
 
 #: Nudge sizes: fine / coarse translation (m) and rotation (rad).
@@ -77,7 +77,7 @@ class Binding(NamedTuple):
 
 
 def _select(ctl: "Controller", obj: int) -> None:
-    from annotator.guide import describe
+    from dsr_bench.annotator.guide import describe
 
     if obj >= ctl.session.num_objects:
         ctl.view.message = f"no object {obj + 1}: this capture has {ctl.session.num_objects}"
@@ -129,7 +129,7 @@ def _snap(ctl: "Controller") -> None:
 def _warn_wrong_object(ctl: "Controller", other_shapes: bool) -> None:
     """Append "wrong object? ..." to the message when the selected object's pose lies on another object's points
     (`annotator.guide.wrong_object`; `other_shapes`: also try the unplaced objects' meshes on a poor fit)."""
-    from annotator.guide import wrong_object
+    from dsr_bench.annotator.guide import wrong_object
 
     found = wrong_object(ctl.session, ctl.session.selected, other_shapes=other_shapes)
     if found:
@@ -383,7 +383,7 @@ class Controller:
 
     def __init__(self, session, picker: Callable[..., np.ndarray] | None = None,
                  echo: Callable[[str], None] | None = None):
-        from annotator.guide import next_hint, opening_message
+        from dsr_bench.annotator.guide import next_hint, opening_message
 
         self.session = session
         self.view = ViewState(message=opening_message(session), hint=next_hint(session))
@@ -436,7 +436,7 @@ class Controller:
 
     def _update_hint(self) -> None:
         """The "next:" line after a key (`annotator.guide.next_hint`: statuses only, no fit)."""
-        from annotator.guide import next_hint, undo_hint
+        from dsr_bench.annotator.guide import next_hint, undo_hint
 
         try:
             self.view.hint = (undo_hint(self.session, self.session.selected) if self.view.warning

@@ -12,10 +12,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from annotator.checks import Check, lowest_point
-from annotator.fitting import (SurfaceSamples, View, icp_step, icp_subset, pose_delta, posed_samples, screen_quality,
-                               visible_samples)
-from annotator.thresholds import THRESHOLDS, Thresholds
+from dsr_bench.annotator.checks import Check, lowest_point
+from dsr_bench.annotator.fitting import (SurfaceSamples, View, icp_step, icp_subset, pose_delta, posed_samples,
+                                         screen_quality, visible_samples)
+from dsr_bench.annotator.thresholds import THRESHOLDS, Thresholds
 
 
 @dataclass

@@ -56,7 +56,7 @@ def fit_zoom(ctr, points: np.ndarray, margin: float = VIEW_MARGIN) -> float:
     """Set an open3d ViewControl's zoom to the closest (of steps of ZOOM_STEP from ZOOM_RANGE's start) at which
     every point (M, 3) m projects inside its view, `margin` of the view's width and height from the edges, and
     return it (the range's end when none fits)."""
-    from annotator.picking import project
+    from dsr_bench.annotator.picking import project
 
     zoom = ZOOM_RANGE[0]
     while zoom < ZOOM_RANGE[1]:

@@ -18,10 +18,10 @@ from typing import Sequence
 
 import numpy as np
 
-from annotator.images import (RESIDUAL_SCALE, SELECTED_COLOR, STATUS_COLORS, mask_boundary, mesh_preview,
-                               muted_colors, object_colors, residual_ramp, resize_image, scaled_camera,
-                               silhouette_masks)
-from annotator.keys import ViewState, format_score, key_help_lines, object_name
+from dsr_bench.annotator.images import (RESIDUAL_SCALE, SELECTED_COLOR, STATUS_COLORS, mask_boundary, mesh_preview,
+                                        muted_colors, object_colors, residual_ramp, resize_image, scaled_camera,
+                                        silhouette_masks)
+from dsr_bench.annotator.keys import ViewState, format_score, key_help_lines, object_name
 from dsr_bench.errors import UserError
 
 #: Panel layout (pixels): text column width, camera image width, font size.

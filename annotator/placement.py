@@ -34,7 +34,7 @@ def _fail(path: Path, message: str) -> UserError:
 
 def pose_matrix(path: Path, where: str, value) -> np.ndarray:
     """A 4x4 object-to-table pose from a JSON value (4 rows of 4 numbers), checked (UserError naming `where`)."""
-    from annotator.inputs import numbers
+    from dsr_bench.annotator.inputs import numbers
 
     if not numbers(value, (4, 4)):  # JSON numbers: true or "0.5" is refused, not converted
         raise _fail(path, f"{where}: a pose must be 4 rows of 4 finite numbers (object -> table, metres)")
@@ -81,7 +81,7 @@ def read_placements(path: str | Path, session) -> dict[int, tuple[str, np.ndarra
         if isinstance(value, dict):
             if set(value) != {"mesh", "cloud"}:
                 raise _fail(path, f"{where}: picks must be {{\"mesh\": [[x, y, z], ...], \"cloud\": [[x, y, z], ...]}}")
-            from annotator.inputs import numbers
+            from dsr_bench.annotator.inputs import numbers
 
             if not all(isinstance(value[k], list) and value[k] and all(numbers(p, (3,)) for p in value[k])
                        for k in ("mesh", "cloud")):

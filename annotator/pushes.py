@@ -75,7 +75,7 @@ def push_to_action(start_xy, direction_xy, tolerance_deg: float = DIRECTION_TOLE
 
 def _vector(path: Path, where: str, value, size: int) -> np.ndarray:
     """`size` finite JSON numbers (not true / false, not strings such as "0.4")."""
-    from annotator.inputs import numbers
+    from dsr_bench.annotator.inputs import numbers
 
     if not numbers(value, (size,)):
         raise _fail(path, f"{where} must be {size} finite numbers")

@@ -30,11 +30,11 @@ from pathlib import Path
 
 import numpy as np
 
-from annotator.bag import HINT, Recording, open_recording, read_frame
-from annotator.inputs import finite, is_number, numbers, resolved_inside
-from annotator.registration import align_depth
-from annotator.rig import (PUSHES_FILE, calibrate_cameras, capture_name, check_out, default_file, load_rig,
-                          read_objects, undistort)
+from dsr_bench.annotator.bag import HINT, Recording, open_recording, read_frame
+from dsr_bench.annotator.inputs import finite, is_number, numbers, resolved_inside
+from dsr_bench.annotator.registration import align_depth
+from dsr_bench.annotator.rig import (PUSHES_FILE, calibrate_cameras, capture_name, check_out, default_file, load_rig,
+                                     read_objects, undistort)
 from dsr_bench.constants import CAMERAS
 from dsr_bench.dataset.capture import parse_camera, write_capture
 from dsr_bench.errors import UserError
@@ -195,7 +195,7 @@ def import_bags(src: str | Path, out: str | Path, *, rig: str | Path | None = No
                 overwrite: bool = False) -> tuple[Path, dict]:
     """Import SRC's RealSense recordings (module docstring) into the capture directory `out`; returns (out,
     calibration report). Everything is read and checked first (one-line UserErrors), then written at once."""
-    from annotator.pushes import read_pushes
+    from dsr_bench.annotator.pushes import read_pushes
 
     src, out = Path(src), Path(out)
     check_out(out, overwrite)

@@ -35,9 +35,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from annotator.record_devices import DEFAULT_COLOR, DEFAULT_DEPTH, Camera, Mode, parse_mode
-from annotator.record_files import MarkFiles, RobotFile, check_push, parse_event, rig_content, write_rig
-from annotator.record_streams import Stream, clock_problem, frame_problem
+from dsr_bench.annotator.record_devices import DEFAULT_COLOR, DEFAULT_DEPTH, Camera, Mode, parse_mode
+from dsr_bench.annotator.record_files import MarkFiles, RobotFile, check_push, parse_event, rig_content, write_rig
+from dsr_bench.annotator.record_streams import Stream, clock_problem, frame_problem
 from dsr_bench.errors import UserError
 
 #: How often (s) the session reads the robot's file and checks the streams against the host's clock.
@@ -167,8 +167,8 @@ class CaptureSession:
         except ImportError:
             raise UserError("recording RealSense cameras needs pyrealsense2: pip install -e '.[realsense]' "
                             "(librealsense's Python wheel)") from None
-        from annotator.record_devices import (LiveProvider, PlaybackProvider, librealsense_release, prepare_camera,
-                                              recording_suffix, set_sync)
+        from dsr_bench.annotator.record_devices import (LiveProvider, PlaybackProvider, librealsense_release,
+                                                        prepare_camera, recording_suffix, set_sync)
 
         provider = PlaybackProvider(from_recordings) if from_recordings else LiveProvider()
         present = provider.present()

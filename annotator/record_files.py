@@ -18,7 +18,7 @@ import os
 import shutil
 from pathlib import Path
 
-from annotator.inputs import finite, inside
+from dsr_bench.annotator.inputs import finite, inside
 from dsr_bench.atomic import write_text
 from dsr_bench.errors import UserError
 
@@ -158,7 +158,7 @@ def rig_content(rig: Path | None, out: Path, capture: dict) -> tuple[dict, list[
         return {"board": TEMPLATE_BOARD, "objects": [], "capture": capture,
                 "todo": "a template: give the board you used and the objects (meshes in metres, relative to this "
                         "folder) before `dsr-bench import-capture`"}, [], True
-    from annotator.rig import load_rig
+    from dsr_bench.annotator.rig import load_rig
 
     rig_path, spec = load_rig(rig.parent, rig)
     copies = []

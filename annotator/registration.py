@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from annotator.rig import undistort_maps
+from dsr_bench.annotator.rig import undistort_maps
 from dsr_bench.dataset.capture import CaptureCamera
 
 #: librealsense's distortion models (`rs2_distortion_to_string`) this importer undistorts.

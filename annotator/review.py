@@ -11,8 +11,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from annotator.carry import Carrying
-from annotator.scoring import _nan_score
+from dsr_bench.annotator.carry import Carrying
+from dsr_bench.annotator.scoring import _nan_score
 
 
 class Reviewing(Carrying):

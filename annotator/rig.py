@@ -13,7 +13,7 @@ from typing import cast
 
 import numpy as np
 
-from annotator.inputs import inside, plain_name
+from dsr_bench.annotator.inputs import inside, plain_name
 from dsr_bench.atomic import check_writable
 from dsr_bench.dataset.capture import CaptureCamera
 from dsr_bench.errors import UserError
@@ -130,7 +130,8 @@ def calibrate_cameras(rig_path: Path, spec: dict, cameras: dict[str, CaptureCame
     residuals and that the front camera sees the whole grid; returns the calibration report (`annotator.calibrate`).
     board_image(name) -> (where: the image named in errors, colour (H, W, 3) uint8 RGB undistorted, depth (H, W) m
     aligned to it, 0 = none) of the board seen by that camera."""
-    from annotator.calibrate import board_view, calibration_residuals, check_grid_visible, check_residuals, parse_board
+    from dsr_bench.annotator.calibrate import (board_view, calibration_residuals, check_grid_visible, check_residuals,
+                                               parse_board)
 
     report: dict = {"extrinsics": {n: "rig file" if given[n] else "board" for n in cameras}}
     need_board = [n for n in cameras if not given[n]]

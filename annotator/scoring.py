@@ -11,10 +11,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from annotator import align
-from annotator.align import FitScore
-from annotator.checks import penetration_depth
-from annotator.session_core import SessionCore
+from dsr_bench.annotator import align
+from dsr_bench.annotator.align import FitScore
+from dsr_bench.annotator.checks import penetration_depth
+from dsr_bench.annotator.session_core import SessionCore
 from dsr_bench.geometry import pose_to_matrix
 
 #: Crop radius around an object: its bounding sphere plus this margin (m).

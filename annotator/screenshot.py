@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from annotator.layout import parse_window_size
+from dsr_bench.annotator.layout import parse_window_size
 from dsr_bench.errors import UserError
 from dsr_bench.geometry import pose_to_matrix
 
@@ -48,7 +48,7 @@ def compose(desktop: tuple[int, int], windows: list[tuple[tuple[int, int], str, 
     top-left corner (x, y px) under a title bar of `title_height` px showing its title."""
     from PIL import Image, ImageDraw
 
-    from annotator.panel import _font
+    from dsr_bench.annotator.panel import _font
 
     canvas = Image.new("RGB", desktop, (58, 62, 70))
     draw = ImageDraw.Draw(canvas)
@@ -65,8 +65,8 @@ def main(argv: list[str] | None = None) -> int:
     """Open the window on a capture, draw one frame, write the composed picture (temp name, then rename)."""
     from PIL import Image
 
-    from annotator import window as win
-    from annotator.session import Session
+    from dsr_bench.annotator import window as win
+    from dsr_bench.annotator.session import Session
 
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("capture", type=Path, help="a simulated capture directory")

@@ -26,18 +26,18 @@ from pathlib import Path
 
 import numpy as np
 
-from annotator import align
-from annotator.align import FitScore
-from annotator.carry import MOVED_COVERAGE_DROP, SEARCH_LATERAL  # noqa: F401 - re-exported (the tests' constants)
-from annotator.checks import Check
-from annotator.images import RESIDUAL_FLOOR, RESIDUAL_SCALE, residual_ramp
-from annotator.journal import (JOURNAL_FILE, JOURNAL_FORMAT, STATE_FILE, Saved, acquire_lock, capture_digest,
-                               check_file, name_holder, read_saved, release_lock)
-from annotator.review import Reviewing
-from annotator.session_core import (COMPACT_RECORDS, DISPLAY_TABLE_VOXEL, DISPLAY_VOXEL,  # noqa: F401 - re-exported
-                                    WORK_DIRNAME, cloud_bounds, voxel_subset)
-from annotator.state import AnnotationState, StateError, describe
-from annotator.thresholds import THRESHOLDS
+from dsr_bench.annotator import align
+from dsr_bench.annotator.align import FitScore
+from dsr_bench.annotator.carry import MOVED_COVERAGE_DROP, SEARCH_LATERAL  # noqa: F401 - re-exported for the tests
+from dsr_bench.annotator.checks import Check
+from dsr_bench.annotator.images import RESIDUAL_FLOOR, RESIDUAL_SCALE, residual_ramp
+from dsr_bench.annotator.journal import (JOURNAL_FILE, JOURNAL_FORMAT, STATE_FILE, Saved, acquire_lock, capture_digest,
+                                         check_file, name_holder, read_saved, release_lock)
+from dsr_bench.annotator.review import Reviewing
+from dsr_bench.annotator.session_core import (COMPACT_RECORDS, DISPLAY_TABLE_VOXEL,  # noqa: F401 - re-exported
+                                              DISPLAY_VOXEL, WORK_DIRNAME, cloud_bounds, voxel_subset)
+from dsr_bench.annotator.state import AnnotationState, StateError, describe
+from dsr_bench.annotator.thresholds import THRESHOLDS
 from dsr_bench.atomic import check_writable
 from dsr_bench.dataset.capture import Capture, load_capture
 from dsr_bench.errors import UserError
@@ -71,6 +71,8 @@ class SnapScore(FitScore):
 
 class Session(Reviewing):
     """One capture being annotated (see the module docstring); create with `Session.open`."""
+
+    _lock: str | None  # set by SessionCore (annotator/session_core.py)
 
     # opening and saving ------------------------------------------------------------------------------------------
     @classmethod
@@ -322,6 +324,6 @@ class Session(Reviewing):
 
     def export(self, out: str | Path, allow_unchecked: bool = False) -> Path:
         """Write the annotated sequence file (see `annotator.export.export_sequence`)."""
-        from annotator.export import export_sequence
+        from dsr_bench.annotator.export import export_sequence
 
         return export_sequence(self, out, allow_unchecked=allow_unchecked)

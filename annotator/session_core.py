@@ -15,10 +15,10 @@ from pathlib import Path
 
 import numpy as np
 
-from annotator import align
-from annotator.journal import STATE_FILE, JOURNAL_FILE, append_record, capture_digest, write_snapshot
-from annotator.state import ACTION_KINDS, AnnotationState
-from annotator.thresholds import THRESHOLDS, Thresholds
+from dsr_bench.annotator import align
+from dsr_bench.annotator.journal import STATE_FILE, JOURNAL_FILE, append_record, capture_digest, write_snapshot
+from dsr_bench.annotator.state import ACTION_KINDS, AnnotationState
+from dsr_bench.annotator.thresholds import THRESHOLDS, Thresholds
 from dsr_bench.dataset.capture import Capture
 from dsr_bench.errors import UserError
 

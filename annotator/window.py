@@ -41,11 +41,11 @@ from functools import partial
 
 import numpy as np
 
-from annotator.images import muted_colors, object_colors, posed
-from annotator.keys import KEYMAP, Controller, KeyCoalescer, glfw_code
-from annotator.layout import Layout, panel_layout, screen_size, window_layout
-from annotator.opening import ensure_runtime_dir, fit_zoom, workspace_corners
-from annotator.panel import Panel
+from dsr_bench.annotator.images import muted_colors, object_colors, posed
+from dsr_bench.annotator.keys import KEYMAP, Controller, KeyCoalescer, glfw_code
+from dsr_bench.annotator.layout import Layout, panel_layout, screen_size, window_layout
+from dsr_bench.annotator.opening import ensure_runtime_dir, fit_zoom, workspace_corners
+from dsr_bench.annotator.panel import Panel
 from dsr_bench.display import no_display
 from dsr_bench.errors import UserError
 from dsr_bench.geometry import pose_to_matrix
@@ -100,7 +100,7 @@ def pick_points(points: np.ndarray, colors: np.ndarray | None, title: str,
     """Indices of the points a user shift-clicks in a `annotator.picking.ClickPicker` window (closed with Q / Esc);
     `window`: the picker's other keywords (default: messages to the terminal; the annotator window passes its panel,
     place and size), `idle`: called each frame (`ClickPicker.run`)."""
-    from annotator.picking import ClickPicker
+    from dsr_bench.annotator.picking import ClickPicker
 
     try:
         picker = ClickPicker(points, colors, title, mesh=mesh, **window)
@@ -449,6 +449,6 @@ def run(session, *, screen: tuple[int, int] | None = None) -> None:
         window.loop()
     finally:
         window.close()
-    from annotator.guide import next_hint
+    from dsr_bench.annotator.guide import next_hint
 
     window.ctl.echo(f"annotator: saved; {next_hint(session)}")

@@ -61,7 +61,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from annotator.align import matrix_to_pose, rotvec_to_matrix  # noqa: E402
+from dsr_bench.annotator.align import matrix_to_pose, rotvec_to_matrix  # noqa: E402
 from dsr_bench.geometry import pose_to_matrix  # noqa: E402
 
 COARSE = (0.01, np.deg2rad(5.0))
@@ -174,7 +174,7 @@ class MeshClicks:
     def __init__(self, vertices: np.ndarray, faces: np.ndarray, diameter: float, px: float):
         from scipy.spatial import cKDTree
 
-        from annotator.keys import mesh_samples
+        from dsr_bench.annotator.keys import mesh_samples
 
         self.points = mesh_samples(vertices, faces)
         self.tree = cKDTree(self.points)
@@ -218,7 +218,7 @@ def annotate_with_session(capture_dir: Path, work: Path, infos: list[ObjectInfo]
     """Poses (T+1, N, 7), action counts, clicks and keys of the annotator driven by a simulated person."""
     from scipy.spatial import cKDTree
 
-    from annotator.session import Session
+    from dsr_bench.annotator.session import Session
 
     session = Session.open(capture_dir, work_dir=work)
     effort = {"clicks": 0, "keys": 0, "repicks": 0}
@@ -254,7 +254,7 @@ def annotate_with_session(capture_dir: Path, work: Path, infos: list[ObjectInfo]
 def snap_from_truth(cap, truth: np.ndarray) -> np.ndarray:
     """Poses (T+1, N, 7) of one ICP snap started at the true pose: the floor the cloud allows (its sensor noise and
     calibration error), reached by no user action."""
-    from annotator import align
+    from dsr_bench.annotator import align
 
     out = truth.copy()
     samples = [align.sample_surface(*cap.mesh(k), seed=k) for k in range(cap.num_objects)]
@@ -339,7 +339,7 @@ def annotate_with_keys_and_snap(capture_dir: Path, work: Path, infos: list[Objec
     its spawn pose until no misalignment over `rough` m shows, then snaps (Space). Steps 1..T: N (carry forward,
     snap what moved); an object the window shows as wrong (`looks_wrong`) is nudged from its current pose (to
     `rough`, then on later tries to `visible`) and snapped again, at most `tries` times."""
-    from annotator.session import Session
+    from dsr_bench.annotator.session import Session
 
     session = Session.open(capture_dir, work_dir=work)
     mode, keys = ["fine"], 0
@@ -419,7 +419,7 @@ def parse_args() -> argparse.Namespace:
 def run_capture(args, path: Path, index: int, tmp: Path) -> dict:
     """Every method on one capture: a row of errors, summaries and effort."""
     from dsr_bench.dataset.capture import load_capture
-    from generators.capture import calibration_error
+    from dsr_bench.generators.capture import calibration_error
 
     cap = load_capture(path)
     truth = cap.truth_poses()

@@ -50,7 +50,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_annotate import ROOT, ObjectInfo, ensure_captures, pose_errors  # noqa: E402
 
 sys.path.insert(0, str(ROOT))
-from annotator.align import matrix_to_pose, rotvec_to_matrix  # noqa: E402
+from dsr_bench.annotator.align import matrix_to_pose, rotvec_to_matrix  # noqa: E402
 from dsr_bench.geometry import pose_to_matrix  # noqa: E402
 
 TRANSLATIONS_MM = (5, 10, 20, 50, 100)
@@ -129,7 +129,7 @@ def injections(session, truth: np.ndarray, infos: list, t: int, k: int, rng: np.
 def check_costs(session, t: int, k: int, truth_t: np.ndarray) -> dict[str, float]:
     """Seconds to score object k's true pose at step t (`Session._fit`, every check), and of that the refinement
     (`align.refinement`) and the colour check (`align.sample_colours` + `colour_mismatch`), timed apart."""
-    from annotator import align
+    from dsr_bench.annotator import align
 
     others = [(i, truth_t[i]) for i in range(len(truth_t)) if i != k]
     start = time.perf_counter()
@@ -183,7 +183,7 @@ def run_capture(path: Path, work: Path, rng: np.random.Generator, steps: list[in
     """(injected errors, correct poses) of one capture (at `steps`, default every step), each a dict with its kind,
     error, whether flagged, why (`flagged`: never an empty reason) and its checks; `limits`: the thresholds
     (`annotator.thresholds.Thresholds`, default today's)."""
-    from annotator.session import Session
+    from dsr_bench.annotator.session import Session
 
     session = Session.open(path, work)
     if limits is not None:
@@ -282,7 +282,7 @@ def parse_args() -> argparse.Namespace:
 
 def thresholds(settings: list[str]):
     """The thresholds with the --set NAME=VALUE settings applied (`Thresholds.replaced`)."""
-    from annotator.thresholds import THRESHOLDS
+    from dsr_bench.annotator.thresholds import THRESHOLDS
 
     pairs = dict(s.split("=", 1) for s in settings if "=" in s)
     if len(pairs) != len(settings):

@@ -194,7 +194,7 @@ def held_key(window, hold: float, rate: float, settle: float = 2.0, limit: float
         return on_key(key, vis)
 
     window._on_key = counting
-    from annotator.keys import glfw_code
+    from dsr_bench.annotator.keys import glfw_code
 
     window.vis.register_key_callback(glfw_code("D"), lambda vis: counting("D", vis))
     x0 = float(session.poses()[0][0])
@@ -225,8 +225,8 @@ def held_key(window, hold: float, rate: float, settle: float = 2.0, limit: float
 
 def child(args) -> dict:
     """The measurements, in a process with a display."""
-    from annotator import window as win
-    from annotator.session import Session
+    from dsr_bench.annotator import window as win
+    from dsr_bench.annotator.session import Session
 
     with tempfile.TemporaryDirectory(prefix="bench_annotate_window_") as tmp:
         capture = ensure_capture(args.capture, Path(tmp))

@@ -33,8 +33,8 @@ def main() -> None:
     from dsr_bench.dataset.sequence import write_sequence
     from dsr_bench.dataset.storage import _DEFLATE
     from dsr_bench.dataset.splits import sequence_seed
-    from generators.episode import EpisodeConfig, generate_episode
-    from generators.objects import get_object_set
+    from dsr_bench.generators.episode import EpisodeConfig, generate_episode
+    from dsr_bench.generators.objects import get_object_set
 
     object_set = get_object_set(args.objects)
     config = EpisodeConfig(objects=args.objects, steps=args.steps, cameras=tuple(args.cameras.split(",")))

@@ -36,7 +36,7 @@ def main() -> None:
     from dsr_bench.planning.runner import run_plan
     from dsr_bench.planning.results import score_plan
     from dsr_bench.planning.tasks import load_manifest, read_task
-    from generators.planning import SimEnvironment, generate_tasks
+    from dsr_bench.generators.planning import SimEnvironment, generate_tasks
 
     torch.set_num_threads(1)
     with tempfile.TemporaryDirectory() as tmp:

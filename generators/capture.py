@@ -234,8 +234,8 @@ def generate_capture(out: Path, *, name: str, seed: int, objects: str = "procedu
     images of both cameras are rendered at `image_shape` (H, W) and passed through the named sensor model.
     Raises SceneRejected (generators.episode) when no scene works, UserError on bad arguments.
     """
-    from generators.episode import EpisodeConfig, generate_episode
-    from generators.objects import get_object_set
+    from dsr_bench.generators.episode import EpisodeConfig, generate_episode
+    from dsr_bench.generators.objects import get_object_set
     from dsr_bench.render import create_renderer
 
     model = get_sensor_model(noise)
@@ -344,8 +344,8 @@ def prepare_captures(plan: CapturePlan) -> CaptureJobs:
     made with the same arguments is skipped; one made with other arguments is refused unless `plan.overwrite`
     (`generators.run.needs_writing`). Removes the temporaries of abandoned writers in --out."""
     from dsr_bench.dataset.splits import sequence_name, sequence_seed
-    from generators.objects import get_object_set
-    from generators.run import check_scene_arguments, needs_writing
+    from dsr_bench.generators.objects import get_object_set
+    from dsr_bench.generators.run import check_scene_arguments, needs_writing
 
     check_scene_arguments(plan.num, plan.steps, plan.objects_per_scene)
     get_sensor_model(plan.noise)
@@ -400,8 +400,8 @@ def generate_captures(plan: CapturePlan, jobs: CaptureJobs, started: Callable[[s
 
 def _write_capture(plan: CapturePlan, object_set, job: tuple[str, int]) -> Path:
     """One capture of `plan` (name, seed); `object_set` None: loaded here (a worker process)."""
-    from generators.episode import SceneRejected
-    from generators.objects import get_object_set
+    from dsr_bench.generators.episode import SceneRejected
+    from dsr_bench.generators.objects import get_object_set
 
     name, seed = job
     if object_set is None:

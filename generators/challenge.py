@@ -35,7 +35,7 @@ def create(
 
     from dsr_bench.challenge.host import export_inputs, finish_hidden_set
     from dsr_bench.dataset.splits import get_split
-    from generators.run import finalize_dataset, generate_dataset, plan_from_arguments, prepare_run
+    from dsr_bench.generators.run import finalize_dataset, generate_dataset, plan_from_arguments, prepare_run
 
     spec = get_split(split)
     if root.exists() and any(root.iterdir()):

@@ -15,7 +15,7 @@ from dsr_bench.constants import CAMERAS, MODEL_CAMERA, PLAN_MARGIN
 from dsr_bench.engines import engine_from_options, slurm_options_given
 from dsr_bench.errors import UserError
 from dsr_bench.planning.tasks import TASK_SETS
-from generators.objects import OBJECT_SET_NAMES
+from dsr_bench.generators.objects import OBJECT_SET_NAMES
 
 OBJECT_SETS_HELP = " | ".join(OBJECT_SET_NAMES)
 TASK_SETS_HELP = " | ".join(f"{s.name} ({s.num_tasks} tasks, {s.objects} objects)" for s in TASK_SETS.values())
@@ -57,7 +57,7 @@ def generate(
                                TimeRemainingColumn)
     from rich.table import Table
 
-    from generators.run import finalize_dataset, generate_dataset, plan_from_arguments, prepare_run, summarize
+    from dsr_bench.generators.run import finalize_dataset, generate_dataset, plan_from_arguments, prepare_run, summarize
 
     console = Console(stderr=True)
     plan = plan_from_arguments(objects=objects, num_sequences=num_sequences, out=out, split=split, seed=seed,
@@ -126,7 +126,7 @@ def generate_captures(
     from rich.console import Console
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
-    from generators.capture import CapturePlan, generate_captures as run, prepare_captures
+    from dsr_bench.generators.capture import CapturePlan, generate_captures as run, prepare_captures
 
     plan = CapturePlan(out=out, num=num, objects=objects, steps=steps, objects_per_scene=objects_per_scene, seed=seed,
                        noise=noise, object_root=str(object_root) if object_root else None, overwrite=overwrite)
@@ -154,7 +154,7 @@ def generate_plan_tasks(
     from rich.progress import Progress
 
     from dsr_bench.planning.tasks import get_task_set, pinned_checksums
-    from generators.planning import generate_tasks
+    from dsr_bench.generators.planning import generate_tasks
 
     spec = get_task_set(tasks)
     out = out or Path("data") / tasks
@@ -202,7 +202,7 @@ def plan(
     again."""
     from rich.progress import Progress
 
-    from generators.planning import plan_tasks
+    from dsr_bench.generators.planning import plan_tasks
 
     with Progress(transient=True) as bar:
         job = bar.add_task(f"plan {model}", total=num_tasks or _size(tasks))
@@ -232,6 +232,6 @@ def register(app: typer.Typer) -> None:
     app.command("generate-captures")(generate_captures)
     app.command("generate-plan-tasks")(generate_plan_tasks)
     app.command("plan")(plan)
-    from generators.challenge import register as register_challenge
+    from dsr_bench.generators.challenge import register as register_challenge
 
     register_challenge(app)  # `dsr-bench challenge create` (the rest of the group: dsr_bench.challenge.cli)

@@ -127,8 +127,8 @@ def generate_episode(config: EpisodeConfig, object_set, seed: int, name: str,
     split: `generators.run.RunPlan.generator_args`)."""
     import time
 
-    from generators.physics import PushWorld, import_pybullet
-    from generators.policy import make_policy
+    from dsr_bench.generators.physics import PushWorld, import_pybullet
+    from dsr_bench.generators.policy import make_policy
     from dsr_bench.render import create_renderer
 
     rng = np.random.default_rng(seed)

@@ -28,7 +28,7 @@ import numpy as np
 
 from dsr_bench.constants import GRID_BOUNDS, NUM_DIRECTIONS, PUSH_HEIGHT, PUSHER_LENGTH, PUSHER_RADIUS
 from dsr_bench.geometry import vector_norm
-from generators.arm import Phase, push_path, rotation_quaternions, rotation_vectors
+from dsr_bench.generators.arm import Phase, push_path, rotation_quaternions, rotation_vectors
 
 TIME_STEP = 1.0 / 240.0
 SETTLE_LINEAR_SPEED = 5e-3  # m/s

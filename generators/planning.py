@@ -42,7 +42,7 @@ def make_task(object_set, seed: int, name: str, pushes: int, objects: str, objec
               policy: str = "heuristic") -> tuple[dict[str, np.ndarray], dict]:
     """A task's arrays and attributes (`dsr_bench.planning.tasks`) from a seed: the scene and pushes of
     `generate_episode`, its first state the start and its last the target."""
-    from generators.episode import EpisodeConfig, generate_episode
+    from dsr_bench.generators.episode import EpisodeConfig, generate_episode
 
     recording = _Recording(object_set)
     config = EpisodeConfig(objects=objects, steps=pushes, objects_per_scene=objects_per_scene, policy=policy)
@@ -67,7 +67,7 @@ _WORKER: dict = {}
 
 def _task_job(job: tuple) -> str:
     from dsr_bench.planning.tasks import write_task
-    from generators.objects import get_object_set
+    from dsr_bench.generators.objects import get_object_set
 
     out, name, seed, spec = job
     os.environ.setdefault("OMP_NUM_THREADS", "1")
@@ -113,7 +113,7 @@ def generate_tasks(task_set: str, out: Path, workers: int = 1, num_tasks: int | 
 # --- the world of a plan ---------------------------------------------------------------------------------
 def task_objects(task) -> list:
     """ObjectSpec-like objects (parts, colour, mass) of a task, for `PushWorld` and `SceneRenderer`."""
-    from generators.objects.spec import Part
+    from dsr_bench.generators.objects.spec import Part
 
     return [SimpleNamespace(parts=tuple(Part(v, f) for v, f in parts), color=tuple(ident["color"]),
                             mass=float(ident["mass"]), is_large=bool(ident.get("is_large", False)))
@@ -134,7 +134,7 @@ class SimEnvironment:
             self.world = None
 
     def reset(self, task):
-        from generators.physics import PushWorld
+        from dsr_bench.generators.physics import PushWorld
         from dsr_bench.render import create_renderer
 
         self.close()

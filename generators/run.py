@@ -29,7 +29,7 @@ from dsr_bench.dataset.splits import sequence_name, sequence_seed
 from dsr_bench.atomic import check_writable, clean_temporaries, write_text
 from dsr_bench.engines import Engine, LocalEngine
 from dsr_bench.errors import UserError
-from generators.episode import EpisodeConfig
+from dsr_bench.generators.episode import EpisodeConfig
 
 
 @dataclass(frozen=True)
@@ -118,7 +118,7 @@ def plan_from_arguments(*, objects: str | None = None, num_sequences: int | None
 def _needs_meshes(objects: str | None, object_root: Path | None) -> str:
     """'; ShapeNet also needs --object-root ...' when `objects` is a mesh set read from the user's copy and
     neither --object-root nor its environment variable names one ('' otherwise)."""
-    from generators.objects.external import ENV, SOURCES
+    from dsr_bench.generators.objects.external import ENV, SOURCES
 
     if objects not in ENV or object_root is not None or os.environ.get(ENV[objects]):
         return ""
@@ -217,7 +217,7 @@ _WORKER: dict = {}
 
 
 def _init_worker(objects: str, object_root: str | None) -> None:
-    from generators.objects import get_object_set
+    from dsr_bench.generators.objects import get_object_set
 
     os.environ.setdefault("OMP_NUM_THREADS", "1")
     _WORKER["set"] = get_object_set(objects, object_root)
@@ -226,7 +226,7 @@ def _init_worker(objects: str, object_root: str | None) -> None:
 
 def _generate_one(plan: RunPlan, index: int) -> SequenceResult:
     from dsr_bench.dataset.sequence import write_sequence
-    from generators.episode import generate_episode
+    from dsr_bench.generators.episode import generate_episode
 
     start = time.perf_counter()
     name = sequence_name(index)
@@ -250,7 +250,7 @@ def prepare_run(plan: RunPlan) -> tuple[list[int], list[str]]:
     """Check everything (arguments, meshes, existing files) before any work; return (indices to
     generate, names already complete). Creates the output directory and removes abandoned partial
     files (never those of a shard running at the same time)."""
-    from generators.objects import get_object_set
+    from dsr_bench.generators.objects import get_object_set
 
     check_plan(plan)
     get_object_set(plan.config.objects, plan.config.object_root)  # fails fast on missing meshes

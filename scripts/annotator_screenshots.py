@@ -66,7 +66,7 @@ def save(window, path: Path) -> None:
     """The windows as the screen shows them, composed, to `path` (a palette PNG)."""
     from PIL import Image
 
-    from annotator.screenshot import compose
+    from dsr_bench.annotator.screenshot import compose
 
     for _ in range(2):
         window.render()
@@ -78,8 +78,8 @@ def save(window, path: Path) -> None:
 
 
 def main() -> int:
-    from annotator import window as win
-    from annotator.session import Session
+    from dsr_bench.annotator import window as win
+    from dsr_bench.annotator.session import Session
 
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("capture", type=Path, help="a simulated capture (dsr-bench generate-captures)")

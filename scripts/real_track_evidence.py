@@ -116,8 +116,8 @@ def pose_errors(capture: Path, export: Path) -> list[dict]:
 def truth_export(capture: Path, work: Path, out: Path) -> Path:
     """The capture's ground truth from its true poses, exported as the annotator exports (the same observations,
     meshes, renderer and checks): every true pose committed as confirmed, as bench/bench_annotate_errors.py does."""
-    from annotator.export import export_sequence
-    from annotator.session import Session
+    from dsr_bench.annotator.export import export_sequence
+    from dsr_bench.annotator.session import Session
 
     if out.is_file():
         return out

@@ -29,7 +29,7 @@ def main() -> int:
     from dsr_bench.atomic import write_text
     from dsr_bench.planning.results import score_plan
     from dsr_bench.planning.tasks import read_task
-    from generators.planning import SimEnvironment
+    from dsr_bench.generators.planning import SimEnvironment
 
     paths = sorted(args.tasks.glob("task_*.h5"))
     if not paths:

@@ -112,7 +112,7 @@ def paint_board(color: np.ndarray, table: np.ndarray, camera) -> np.ndarray:
     area-averaged."""
     import cv2
 
-    from annotator.calibrate import parse_board
+    from dsr_bench.annotator.calibrate import parse_board
 
     ppm = 2000
     cols, rows = BOARD["squares"]
@@ -157,7 +157,7 @@ def event_times(name: str, steps: int) -> list[float]:
 
 def render(capture, size: tuple[int, int], depth_size: tuple[int, int]) -> dict[str, CameraRecording]:
     """Per camera what its recording is made of (module docstring), from `capture` (a `Capture` with truth)."""
-    from annotator.export import renderer_for
+    from dsr_bench.annotator.export import renderer_for
     from dsr_bench.geometry import Camera, make_camera
 
     truth, poses = capture.truth_calibration(), capture.truth_poses()
@@ -427,7 +427,7 @@ def make_capture(folder: Path, steps: int = 1):
     """A simulated capture as the tests make theirs (tests/conftest.py `sim`: seed 1, 3 objects, no sensor noise),
     with `steps` pushes."""
     from dsr_bench.dataset.capture import load_capture
-    from generators.capture import generate_capture
+    from dsr_bench.generators.capture import generate_capture
 
     generate_capture(folder / "seq_000", name="seq_000", seed=1, steps=steps, objects_per_scene=3, noise="none",
                      image_shape=(240, 320))

@@ -235,3 +235,18 @@ class PostgresCluster:
 
     def stop(self) -> None:
         self._run(str(self.bin / "pg_ctl"), "-D", str(self.data), "-m", "immediate", "stop")
+
+
+def challenge_with_teams(tmp_path_factory, tmp_path, teams=("alpha", "beta")):
+    """A fresh copy of the module's challenge with `teams` added, yielded as (layout, session factory, {team: token},
+    predictions directory); its database closed after (a module's `challenge` fixture: `yield from` it)."""
+    from dsr_bench.challenge.db import open_database
+    from dsr_bench.challenge.layout import Layout
+    from dsr_bench.challenge.service import add_team
+
+    root, predictions = copy_challenge(tmp_path_factory, tmp_path)
+    layout = Layout(root)
+    engine, sessions = open_database(layout.default_db_url())
+    tokens = {name: add_team(sessions, name) for name in teams}
+    yield layout, sessions, tokens, predictions
+    engine.dispose()

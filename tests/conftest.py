@@ -23,7 +23,7 @@ def generated_dataset(tmp_path_factory) -> Path:
 def capture_dir(tmp_path_factory) -> Path:
     pytest.importorskip("pybullet")
     pytest.importorskip("open3d")
-    from generators.capture import generate_capture
+    from dsr_bench.generators.capture import generate_capture
 
     out = tmp_path_factory.mktemp("captures") / "seq_000"
     return generate_capture(out, name="seq_000", seed=1, steps=3, objects_per_scene=3, noise="none",
@@ -59,7 +59,7 @@ def sim(tmp_path_factory):
     pytest.importorskip("pybullet")
     pytest.importorskip("open3d")
     from dsr_bench.dataset.capture import load_capture
-    from generators.capture import generate_capture
+    from dsr_bench.generators.capture import generate_capture
 
     out = tmp_path_factory.mktemp("sim") / "seq_000"
     generate_capture(out, name="seq_000", seed=1, steps=2, objects_per_scene=3, noise="none", image_shape=(240, 320))

@@ -17,7 +17,7 @@ import shutil
 import numpy as np
 import pytest
 
-from annotator.thresholds import THRESHOLDS
+from dsr_bench.annotator.thresholds import THRESHOLDS
 from dsr_bench.constants import VOXEL_SIZE
 from dsr_bench.errors import UserError
 from dsr_bench.geometry import matrix_to_pose, pose_to_matrix
@@ -25,7 +25,7 @@ from helpers import place_from_truth as _place_from_truth
 
 
 def _errors(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
-    from annotator.align import pose_delta
+    from dsr_bench.annotator.align import pose_delta
 
     return pose_delta(pose_to_matrix(a), pose_to_matrix(b))
 
@@ -36,7 +36,7 @@ def _symmetry_axis(session, obj: int) -> np.ndarray | None:
     surface (a square box turned by them does not)."""
     import open3d as o3d
 
-    from annotator.align import rotvec_to_matrix
+    from dsr_bench.annotator.align import rotvec_to_matrix
 
     v, f = session.capture.mesh(obj)
     scene = o3d.t.geometry.RaycastingScene()
@@ -70,7 +70,7 @@ def _observed_directions(session, obj: int, step: int, pose: np.ndarray, min_sha
     """
     from scipy.spatial import cKDTree
 
-    from annotator import align
+    from dsr_bench.annotator import align
 
     m = pose_to_matrix(pose)
     samples = session.samples(obj)
@@ -92,7 +92,7 @@ def _moved(session, truth, t: int) -> list[int]:
 
 
 def test_kabsch_recovers_a_rigid_transform_exactly():
-    from annotator.align import kabsch, rotvec_to_matrix
+    from dsr_bench.annotator.align import kabsch, rotvec_to_matrix
 
     rng = np.random.default_rng(0)
     src = rng.uniform(-0.05, 0.05, (5, 3))
@@ -105,7 +105,7 @@ def test_kabsch_recovers_a_rigid_transform_exactly():
 
 
 def test_kabsch_rejects_too_few_and_collinear_picks():
-    from annotator.align import kabsch
+    from dsr_bench.annotator.align import kabsch
 
     line = np.array([[0.0, 0, 0], [0.01, 0, 0], [0.02, 0, 0], [0.03, 0.0001, 0]])
     with pytest.raises(UserError, match="one line"):
@@ -119,7 +119,7 @@ def test_kabsch_rejects_too_few_and_collinear_picks():
 def test_sample_surface_is_on_the_mesh_with_outward_normals():
     import trimesh
 
-    from annotator.align import sample_surface
+    from dsr_bench.annotator.align import sample_surface
 
     box = trimesh.creation.box((0.04, 0.06, 0.02))
     s = sample_surface(box.vertices, box.faces[:, ::-1], spacing=0.002)  # inward faces are flipped
@@ -131,8 +131,8 @@ def test_sample_surface_is_on_the_mesh_with_outward_normals():
 
 
 def test_icp_recovers_a_perturbed_pose_on_clean_data(capture_dir, truth):
-    from annotator import align
-    from annotator.session import Session
+    from dsr_bench.annotator import align
+    from dsr_bench.annotator.session import Session
 
     session = Session.open(capture_dir, capture_dir.parent / "work_icp")
     rng = np.random.default_rng(1)
@@ -162,8 +162,8 @@ def test_icp_recovers_a_perturbed_pose_on_clean_data(capture_dir, truth):
 
 
 def test_icp_rejects_jumps_and_keeps_the_start(capture_dir, truth):
-    from annotator import align
-    from annotator.session import Session
+    from dsr_bench.annotator import align
+    from dsr_bench.annotator.session import Session
 
     session = Session.open(capture_dir, capture_dir.parent / "work_jump")
     start = pose_to_matrix(truth[0, 0])
@@ -188,7 +188,7 @@ def test_icp_rejects_jumps_and_keeps_the_start(capture_dir, truth):
 
 
 def test_fit_score_drops_when_the_mesh_is_off(capture_dir, truth):
-    from annotator.session import Session
+    from dsr_bench.annotator.session import Session
 
     session = Session.open(capture_dir, capture_dir.parent / "work_score")
     good = session._fit(1, 0, truth[0, 1])
@@ -202,8 +202,8 @@ def test_fit_score_drops_when_the_mesh_is_off(capture_dir, truth):
 def test_render_depth_is_the_measured_depth_of_the_posed_meshes(capture_dir, truth):
     """The occluders of a view are the other objects' meshes rendered at their poses: on an ideal sensor their
     depth is what the camera measured wherever an object is the nearest surface."""
-    from annotator import align
-    from annotator.session import Session
+    from dsr_bench.annotator import align
+    from dsr_bench.annotator.session import Session
 
     session = Session.open(capture_dir, capture_dir.parent / "work_render")
     for view in session._views(0):
@@ -222,8 +222,8 @@ def test_coverage_counts_what_no_other_object_hides(capture_dir, truth):
     """Box 0 does not move from step 2 to 3, but can 1 comes to hide its +x face from the back camera, and the front
     camera sees that face edge-on: the face's samples count for neither camera, so the coverage of the right pose
     stays as at step 2 (it fell from 96% to 84% when they counted), and the samples behind can 1 are left out."""
-    from annotator import align
-    from annotator.session import MOVED_COVERAGE_DROP, Session
+    from dsr_bench.annotator import align
+    from dsr_bench.annotator.session import MOVED_COVERAGE_DROP, Session
 
     session = Session.open(capture_dir, capture_dir.parent / "work_cover")
     obj = 0
@@ -253,8 +253,8 @@ def test_physical_checks_refuse_impossible_poses_with_their_reason(capture_dir, 
     """A pose that sinks into the table, floats, interpenetrates another object, or stands where the cameras saw
     through it is not accepted, whatever its cloud fit (a box sunk 15 mm keeps its coverage and RMSE), and the
     reason says which check failed; the true poses of every step pass them all."""
-    from annotator import align
-    from annotator.session import Session
+    from dsr_bench.annotator import align
+    from dsr_bench.annotator.session import Session
 
     session = Session.open(capture_dir, capture_dir.parent / "work_physics")
     n = session.num_objects
@@ -287,7 +287,7 @@ def test_physical_checks_refuse_impossible_poses_with_their_reason(capture_dir, 
 def test_next_to_check_shows_a_snapped_pose_that_a_later_change_makes_interpenetrate(capture_dir, truth, tmp_path):
     """Box 0 is snapped at step 0; then box 2 is placed in it and confirmed (the user's call). Box 0's score was
     taken before and still reads accepted, but the two now interpenetrate: next_to_check shows box 0 for it."""
-    from annotator.session import Session
+    from dsr_bench.annotator.session import Session
 
     session = Session.open(capture_dir, tmp_path / "work")
     _place_from_truth(session, truth)
@@ -303,8 +303,8 @@ def test_next_to_check_shows_a_snapped_pose_that_a_later_change_makes_interpenet
 def test_a_pose_that_leaves_the_cloud_around_it_unexplained_is_refused(capture_dir, truth):
     """Box 2 turned 20 degrees about the vertical still fits its cloud (coverage 65%), but leaves 11% of the cloud
     around it explained by no object: refused once every other object has a pose, not while one has none yet."""
-    from annotator.align import rotvec_to_matrix
-    from annotator.session import Session
+    from dsr_bench.annotator.align import rotvec_to_matrix
+    from dsr_bench.annotator.session import Session
 
     session = Session.open(capture_dir, capture_dir.parent / "work_explain")
     m = pose_to_matrix(truth[0, 2])
@@ -322,7 +322,7 @@ def test_a_pose_that_leaves_the_cloud_around_it_unexplained_is_refused(capture_d
 def test_a_carried_pose_that_interpenetrates_another_object_is_not_snapped(capture_dir, truth, tmp_path):
     """Carry-forward keeps a pose only when it is physically possible: can 1 carried to step 1 where (wrongly) box 0
     stands in it fits the cloud, but is left 'initialised' with the reason, for the user to check."""
-    from annotator.session import Session
+    from dsr_bench.annotator.session import Session
 
     session = Session.open(capture_dir, tmp_path / "work")
     _place_from_truth(session, truth)
@@ -341,7 +341,7 @@ def test_a_carried_pose_that_interpenetrates_another_object_is_not_snapped(captu
 
 
 def test_state_dict_round_trip():
-    from annotator.state import AnnotationState, StateError
+    from dsr_bench.annotator.state import AnnotationState, StateError
 
     state = AnnotationState("cap", 2, 2)
     op = state.operation("pick", {(0, 1): (np.array([0.5, 0, 0.02, 0, 0, 0, 1.0]), "initialised",
@@ -360,7 +360,7 @@ def test_state_dict_round_trip():
 
 
 def test_undo_redo_are_exact(capture_dir, truth, tmp_path):
-    from annotator.session import Session
+    from dsr_bench.annotator.session import Session
 
     session = Session.open(capture_dir, tmp_path / "work")
     snapshots = [session.state.to_dict()]
@@ -395,8 +395,8 @@ def test_undo_redo_are_exact(capture_dir, truth, tmp_path):
 
 
 def test_nudge_rotates_about_the_centre_and_translates_in_the_chosen_axes(capture_dir, truth, tmp_path):
-    from annotator.align import rotvec_to_matrix
-    from annotator.session import Session
+    from dsr_bench.annotator.align import rotvec_to_matrix
+    from dsr_bench.annotator.session import Session
 
     session = Session.open(capture_dir, tmp_path / "work")
     _place_from_truth(session, truth, snap=False)
@@ -418,7 +418,7 @@ def test_nudge_rotates_about_the_centre_and_translates_in_the_chosen_axes(captur
 
 
 def test_autosave_and_resume_after_a_kill(capture_dir, truth, tmp_path):
-    from annotator.session import Session, read_saved
+    from dsr_bench.annotator.session import Session, read_saved
 
     work = tmp_path / "work"
     session = Session.open(capture_dir, work)
@@ -441,8 +441,8 @@ def test_autosave_and_resume_after_a_kill(capture_dir, truth, tmp_path):
 def test_journal_round_trip_and_compaction(capture_dir, truth, tmp_path, monkeypatch):
     """Every change is one journal record; resume (state.json + journal) equals the in-memory state, before and
     after the journal is folded into state.json."""
-    from annotator import session_core
-    from annotator.session import JOURNAL_FILE, STATE_FILE, Session, read_saved
+    from dsr_bench.annotator import session_core
+    from dsr_bench.annotator.session import JOURNAL_FILE, STATE_FILE, Session, read_saved
 
     monkeypatch.setattr(session_core, "COMPACT_RECORDS", 7)
     work = tmp_path / "work"
@@ -470,7 +470,7 @@ def test_journal_round_trip_and_compaction(capture_dir, truth, tmp_path, monkeyp
 def test_journal_cut_short_by_a_crash(capture_dir, truth, tmp_path, capsys):
     """A journal whose last record a crash cut short resumes without it (a one-line note), and a journal that a crash
     left behind after its records went into state.json (old generation) is ignored."""
-    from annotator.session import JOURNAL_FILE, STATE_FILE, Session
+    from dsr_bench.annotator.session import JOURNAL_FILE, STATE_FILE, Session
 
     work = tmp_path / "work"
     session = Session.open(capture_dir, work)
@@ -498,7 +498,7 @@ def test_journal_cut_short_by_a_crash(capture_dir, truth, tmp_path, capsys):
 
 
 def test_annotate_prints_the_note_of_a_journal_cut_short(capture_dir, truth, tmp_path, capsys):
-    from annotator.session import JOURNAL_FILE, Session
+    from dsr_bench.annotator.session import JOURNAL_FILE, Session
     from dsr_bench.cli import main
 
     work = tmp_path / "work"
@@ -515,7 +515,7 @@ def test_annotate_prints_the_note_of_a_journal_cut_short(capture_dir, truth, tmp
 
 def test_state_written_before_journals_resumes(capture_dir, truth, tmp_path):
     """A state.json of the version before journals (no "journal" key, no journal file) reads as it is."""
-    from annotator.session import JOURNAL_FILE, STATE_FILE, Session
+    from dsr_bench.annotator.session import JOURNAL_FILE, STATE_FILE, Session
 
     work = tmp_path / "work"
     session = Session.open(capture_dir, work)
@@ -529,7 +529,7 @@ def test_state_written_before_journals_resumes(capture_dir, truth, tmp_path):
 
 
 def test_state_of_another_capture_is_refused(capture_dir, tmp_path):
-    from annotator.session import STATE_FILE, Session
+    from dsr_bench.annotator.session import STATE_FILE, Session
     from dsr_bench.cli import main
 
     work = tmp_path / "work"
@@ -546,7 +546,7 @@ def test_state_of_another_capture_is_refused(capture_dir, tmp_path):
 
 
 def test_go_to_carries_forward_and_snaps_only_moved_objects(capture_dir, truth, tmp_path):
-    from annotator.session import Session
+    from dsr_bench.annotator.session import Session
 
     session = Session.open(capture_dir, tmp_path / "work")
     _place_from_truth(session, truth)
@@ -574,7 +574,7 @@ def test_go_to_carries_forward_and_snaps_only_moved_objects(capture_dir, truth, 
 def test_search_over_the_unexplained_cloud_finds_an_object_far_from_the_push(capture_dir, truth, tmp_path):
     """An object that went farther than the search along the push reaches (a can that rolled on across it) is found
     over the cloud that no other object explains: here the can's pose 15 cm across the push from where it is."""
-    from annotator.session import SEARCH_LATERAL, Session
+    from dsr_bench.annotator.session import SEARCH_LATERAL, Session
 
     session = Session.open(capture_dir, tmp_path / "work")
     step, obj = session.num_steps, 1
@@ -595,9 +595,9 @@ def test_search_over_the_unexplained_cloud_finds_an_object_far_from_the_push(cap
 def test_the_two_pass_screen_picks_the_starts_of_one_full_pass(capture_dir, truth, tmp_path, monkeypatch):
     """The searches screen their start poses in two passes (a third of the samples for every start, all of them for
     the best SCREEN_KEEP_FRACTION): the ICP starts are those one full pass picks, for less of the screen's work."""
-    import annotator.carry as sess
-    from annotator import align
-    from annotator.session import Session
+    import dsr_bench.annotator.carry as sess
+    from dsr_bench.annotator import align
+    from dsr_bench.annotator.session import Session
 
     session = Session.open(capture_dir, tmp_path / "work")
     step, obj = session.num_steps, 1
@@ -636,7 +636,7 @@ def test_the_two_pass_screen_picks_the_starts_of_one_full_pass(capture_dir, trut
 
 
 def test_auto_export_round_trip_and_validate(capture_dir, truth, tmp_path, capsys):
-    from annotator.session import Session
+    from dsr_bench.annotator.session import Session
     from dsr_bench.cli import main
     from dsr_bench.geometry import voxel_points
     from dsr_bench.geometry.groundtruth import rigid_scene_flow_3d
@@ -695,10 +695,10 @@ def test_auto_on_issue_32s_capture_snaps_every_pose_near_the_truth_and_exports(t
     pose is snapped within 3 mm of the truth (a can's or bottle's axis within 2 deg), nothing is left to check,
     and the export passes validate."""
     pytest.importorskip("pybullet")
-    from annotator.session import Session
+    from dsr_bench.annotator.session import Session
     from dsr_bench.dataset.splits import sequence_seed
     from dsr_bench.dataset.validate import validate_sequence
-    from generators.capture import generate_capture
+    from dsr_bench.generators.capture import generate_capture
 
     path = generate_capture(tmp_path / "seq_0000", name="seq_0000", seed=sequence_seed(3, 0), steps=5,
                             objects_per_scene=4, noise="realistic")
@@ -719,7 +719,7 @@ def test_auto_on_issue_32s_capture_snaps_every_pose_near_the_truth_and_exports(t
 
 
 def test_stored_camera_takes_every_kth_full_resolution_pixel():
-    from annotator.export import stored_camera
+    from dsr_bench.annotator.export import stored_camera
     from dsr_bench.geometry import make_camera
 
     full = make_camera("front", 480, 640)
@@ -732,7 +732,7 @@ def test_stored_camera_takes_every_kth_full_resolution_pixel():
 
 
 def test_export_refuses_unset_and_unchecked_poses(capture_dir, truth, tmp_path):
-    from annotator.session import Session
+    from dsr_bench.annotator.session import Session
     from dsr_bench.cli import main
 
     work = tmp_path / "work"
@@ -760,7 +760,7 @@ def test_export_that_fails_validate_is_not_written_without_allow_unchecked(captu
     """Every pose confirmed, but one confirmed where another object stands (at step 1, box 0 inside box 2): the
     sequence would fail `dsr-bench validate`, so the export is refused naming validate's problem and leaves no
     file; --allow-unchecked writes it."""
-    from annotator.session import Session
+    from dsr_bench.annotator.session import Session
     from dsr_bench.dataset.validate import validate_sequence
 
     session = Session.open(capture_dir, tmp_path / "work")
@@ -797,12 +797,12 @@ def test_cli_error_paths(capture_dir, tmp_path, capsys):
 
 
 def test_display_helpers(capture_dir, truth, tmp_path):
-    from annotator.session import Session
+    from dsr_bench.annotator.session import Session
 
     session = Session.open(capture_dir, tmp_path / "work")
     points = session.cloud(0)[0]
     grey = session.residual_colors(0)
-    from annotator.images import RESIDUAL_FLOOR, residual_ramp
+    from dsr_bench.annotator.images import RESIDUAL_FLOOR, residual_ramp
 
     high = points[:, 2] > RESIDUAL_FLOOR  # nothing posed: every object's points red (no mesh explains them) ...
     assert grey.shape == points.shape and np.allclose(grey[high], residual_ramp(np.ones(1)))

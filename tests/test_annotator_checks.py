@@ -13,13 +13,13 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from annotator.thresholds import THRESHOLDS
+from dsr_bench.annotator.thresholds import THRESHOLDS
 from dsr_bench.geometry import matrix_to_pose, pose_to_matrix
 
 
 def _turned(pose: np.ndarray, axis, degrees: float) -> np.ndarray:
     """A 4x4 pose turned by `degrees` about a world axis through the object's origin (its centre of mass)."""
-    from annotator.align import rotvec_to_matrix
+    from dsr_bench.annotator.align import rotvec_to_matrix
 
     m = pose_to_matrix(pose)
     m[:3, :3] = rotvec_to_matrix(np.asarray(axis, np.float64) * np.deg2rad(degrees)) @ m[:3, :3]
@@ -37,7 +37,7 @@ def _scoring(session, obj: int, step: int, truth: np.ndarray, transform: np.ndar
 def _failed(score) -> list[str]:
     """The names of a verdict's failed checks, in order, each checked against its rule (value against threshold) and
     the verdict's consistency: accepted when none failed, and its reason built from the checks."""
-    from annotator.checks import holds, verdict_reason
+    from dsr_bench.annotator.checks import holds, verdict_reason
 
     assert score.checks and all(c.passed == holds(c) for c in score.checks), score.checks
     assert score.accepted == all(c.passed for c in score.checks) and score.reason == verdict_reason(score.checks)
@@ -45,8 +45,8 @@ def _failed(score) -> list[str]:
 
 
 def test_a_ten_degree_turn_that_coverage_and_rmse_accept_is_flagged_by_the_refinement(capture_dir, truth, tmp_path):
-    from annotator import align
-    from annotator.session import Session
+    from dsr_bench.annotator import align
+    from dsr_bench.annotator.session import Session
 
     session = Session.open(capture_dir, tmp_path / "work")
     true = pose_to_matrix(truth[0, 2])
@@ -75,8 +75,8 @@ def test_a_ten_degree_turn_that_coverage_and_rmse_accept_is_flagged_by_the_refin
 
 
 def test_a_surface_of_another_colour_is_flagged_and_the_same_colours_are_not(capture_dir, truth, tmp_path):
-    from annotator import align
-    from annotator.session import Session
+    from dsr_bench.annotator import align
+    from dsr_bench.annotator.session import Session
 
     session = Session.open(capture_dir, tmp_path / "work")
     true = pose_to_matrix(truth[0, 1])
@@ -104,8 +104,8 @@ def test_a_surface_of_another_colour_is_flagged_and_the_same_colours_are_not(cap
 
 
 def test_the_reference_colours_come_from_the_nearest_checked_step(capture_dir, truth, tmp_path):
-    from annotator import align
-    from annotator.session import Session
+    from dsr_bench.annotator import align
+    from dsr_bench.annotator.session import Session
 
     session = Session.open(capture_dir, tmp_path / "work")
     assert session._context(1, 1)[1]["reference_colours"] is None  # nothing checked yet: no colour check
@@ -128,7 +128,7 @@ def test_the_reference_colours_come_from_the_nearest_checked_step(capture_dir, t
 
 def test_a_thin_object_shifted_along_the_table_leaves_its_cloud_unexplained():
     trimesh = pytest.importorskip("trimesh")
-    from annotator import align
+    from dsr_bench.annotator import align
 
     phone = trimesh.creation.box(extents=(0.05, 0.107, 0.007))  # a phone lying flat: its top 7 mm above the table
     samples = align.sample_surface(np.asarray(phone.vertices), np.asarray(phone.faces))
@@ -148,7 +148,7 @@ def test_a_thin_object_shifted_along_the_table_leaves_its_cloud_unexplained():
 
 
 def test_a_shift_every_object_shares_is_the_calibration_not_a_wrong_pose(capture_dir, truth, tmp_path):
-    from annotator.session import Session
+    from dsr_bench.annotator.session import Session
 
     session = Session.open(capture_dir, tmp_path / "work")
     shifted = truth[0].copy()
@@ -172,9 +172,9 @@ def test_the_thresholds_are_one_frozen_dataclass_each_field_documented():
     import dataclasses
     import inspect
 
-    from annotator import thresholds
-    from annotator.checks import CHECKS
-    from annotator.thresholds import Thresholds
+    from dsr_bench.annotator import thresholds
+    from dsr_bench.annotator.checks import CHECKS
+    from dsr_bench.annotator.thresholds import Thresholds
 
     assert Thresholds() == THRESHOLDS
     with pytest.raises(dataclasses.FrozenInstanceError):
@@ -200,8 +200,8 @@ def test_a_verdict_follows_the_thresholds_it_is_given(capture_dir, truth, tmp_pa
     `limits` are what its scores use."""
     from dataclasses import replace
 
-    from annotator import align
-    from annotator.session import Session
+    from dsr_bench.annotator import align
+    from dsr_bench.annotator.session import Session
 
     session = Session.open(capture_dir, tmp_path / "work")
     true = pose_to_matrix(truth[0, 1])
@@ -229,8 +229,8 @@ def test_for_an_object_resting_on_the_table_only_the_refinements_move_along_it_c
     before, the same move is beyond refine_translation."""
     from dataclasses import replace
 
-    from annotator import align
-    from annotator.session import Session
+    from dsr_bench.annotator import align
+    from dsr_bench.annotator.session import Session
 
     session = Session.open(capture_dir, tmp_path / "work")
     raised = pose_to_matrix(truth[0, 2])
@@ -255,7 +255,7 @@ def test_for_an_object_resting_on_the_table_only_the_refinements_move_along_it_c
 def _phone_views(phone, transform: np.ndarray):
     """The benchmark's two cameras (240 x 320) seeing a mesh at `transform` (4, 4) on the table, ideally: their
     views and the cloud (M, 3) their depth images give above the table (as a crop keeps it)."""
-    from annotator import align
+    from dsr_bench.annotator import align
     from dsr_bench.geometry.camera import make_camera
 
     vertices = np.asarray(phone.vertices) @ transform[:3, :3].T + transform[:3, 3]
@@ -279,7 +279,7 @@ def test_a_thin_object_slid_along_the_table_is_flagged_by_the_slide_check():
     trimesh = pytest.importorskip("trimesh")
     from scipy.spatial import cKDTree
 
-    from annotator import align
+    from dsr_bench.annotator import align
 
     phone = trimesh.creation.box(extents=(0.05, 0.107, 0.007))
     samples = align.sample_surface(np.asarray(phone.vertices), np.asarray(phone.faces))

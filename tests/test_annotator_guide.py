@@ -20,8 +20,8 @@ import pytest
 pytest.importorskip("open3d")
 pytest.importorskip("PIL")
 
-from annotator import guide, images, keys, panel  # noqa: E402
-from annotator.session import Session  # noqa: E402
+from dsr_bench.annotator import guide, images, keys, panel  # noqa: E402
+from dsr_bench.annotator.session import Session  # noqa: E402
 from dsr_bench.geometry import pose_to_matrix  # noqa: E402
 from helpers import virtual_display  # noqa: E402
 
@@ -215,8 +215,8 @@ def test_wrong_object_on_a_placed_objects_points(capture_dir, truth, tmp_path):
 def test_residual_colours_are_red_where_a_misplaced_object_really_is(capture_dir, truth, tmp_path):
     from scipy.spatial import cKDTree
 
-    from annotator import align
-    from annotator.thresholds import THRESHOLDS
+    from dsr_bench.annotator import align
+    from dsr_bench.annotator.thresholds import THRESHOLDS
 
     session = Session.open(capture_dir, tmp_path / "work")
     for obj in range(session.num_objects):
@@ -252,8 +252,8 @@ def test_every_fit_verdict_has_a_reason(capture_dir, tmp_path):
     sys.path.insert(0, str(Path(__file__).parents[1] / "bench"))
     import bench_annotate_errors as bench
 
-    from annotator.align import FitScore
-    from annotator.checks import CHECKS
+    from dsr_bench.annotator.align import FitScore
+    from dsr_bench.annotator.checks import CHECKS
 
     wrong, right = bench.run_capture(Path(capture_dir), tmp_path / "work", np.random.default_rng(0), steps=[1])
     assert len(wrong) > 30 and len(right) == 3
@@ -272,7 +272,7 @@ def test_every_fit_verdict_has_a_reason(capture_dir, tmp_path):
 
 
 def test_a_private_runtime_dir_where_the_environment_has_none(monkeypatch, tmp_path):
-    from annotator import opening as win
+    from dsr_bench.annotator import opening as win
 
     monkeypatch.delenv("XDG_RUNTIME_DIR", raising=False)
     made = win.ensure_runtime_dir()
@@ -291,7 +291,7 @@ def test_a_private_runtime_dir_where_the_environment_has_none(monkeypatch, tmp_p
 def window_child(capture_dir: str, work_dir: str, out: str) -> None:
     """Run under Xvfb at 1366 x 768: open the window on a fresh capture, place the objects through its keys (a
     scripted picker), save the messages, the panel and the 3D view's projection of the workspace to `out`."""
-    from annotator import window as win
+    from dsr_bench.annotator import window as win
     from dsr_bench.constants import GRID_BOUNDS
 
     session = Session.open(Path(capture_dir), Path(work_dir))
@@ -302,7 +302,7 @@ def window_child(capture_dir: str, work_dir: str, out: str) -> None:
     said = [(window.ctl.view.message, window.ctl.view.hint)]
     fresh = window.panel_screenshot()
     params = window.vis.get_view_control().convert_to_pinhole_camera_parameters()
-    from annotator.picking import project
+    from dsr_bench.annotator.picking import project
 
     corners = np.array([[x, y, z] for x in GRID_BOUNDS[0] for y in GRID_BOUNDS[1] for z in GRID_BOUNDS[2]])
     uv, depth = project(corners, params.intrinsic.intrinsic_matrix, params.extrinsic)

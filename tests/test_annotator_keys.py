@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from annotator.keys import MAX_LAG, MAX_REPEAT, KeyAction, KeyCoalescer, coalesce, is_nudge
+from dsr_bench.annotator.keys import MAX_LAG, MAX_REPEAT, KeyAction, KeyCoalescer, coalesce, is_nudge
 
 
 def _held(key: str, rate: float, seconds: float, start: float = 0.0) -> list[tuple[str, float]]:

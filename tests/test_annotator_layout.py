@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from annotator import images, layout
+from dsr_bench.annotator import images, layout
 from dsr_bench.errors import UserError
 
 
@@ -141,7 +141,7 @@ def test_cli_refuses_a_bad_window_size_in_one_line(tmp_path, capsys, value, says
 
 
 def test_project_is_the_pinhole_model():
-    from annotator.picking import project
+    from dsr_bench.annotator.picking import project
 
     k = np.array([[500.0, 0, 320], [0, 500.0, 240], [0, 0, 1]])
     ext = np.eye(4)
@@ -151,7 +151,7 @@ def test_project_is_the_pinhole_model():
 
 
 def test_a_click_between_samples_picks_the_nearest_within_the_tolerance():
-    from annotator.picking import nearest_pick
+    from dsr_bench.annotator.picking import nearest_pick
 
     uv = np.array([[100.0, 100.0], [110.0, 100.0], [100.0, 130.0]])
     z = np.array([1.0, 1.0, 1.0])
@@ -164,7 +164,7 @@ def test_a_click_between_samples_picks_the_nearest_within_the_tolerance():
 
 
 def test_a_click_never_picks_a_hidden_point():
-    from annotator.picking import nearest_pick
+    from dsr_bench.annotator.picking import nearest_pick
 
     # a can seen from above: its bottom sample (z 1.10) projects next to the click, its top sample (z 1.00) a bit
     # further; the drawn depth there is the top's
@@ -180,7 +180,7 @@ def test_a_click_never_picks_a_hidden_point():
 
 def test_screenshot_composes_the_windows_at_their_layout_positions():
     pytest.importorskip("PIL")
-    from annotator.screenshot import compose
+    from dsr_bench.annotator.screenshot import compose
 
     view = np.full((50, 80, 3), 200, np.uint8)
     panel = np.full((40, 30, 3), 90, np.uint8)

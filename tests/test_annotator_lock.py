@@ -35,7 +35,7 @@ def _files(work: Path) -> dict[str, bytes]:
 
 def test_a_second_process_that_would_change_the_annotation_is_refused_naming_the_holder(capture_dir, truth,
                                                                                      tmp_path):
-    from annotator.session import Session
+    from dsr_bench.annotator.session import Session
 
     work = tmp_path / "work"
     session = Session.open(capture_dir, work)
@@ -73,7 +73,7 @@ def test_a_second_process_that_would_change_the_annotation_is_refused_naming_the
 def test_sessions_of_one_process_share_the_lock_and_a_crash_releases_it(capture_dir, tmp_path):
     """The API's caller orders its own calls: a second Session of the same process opens; the lock lives as long as
     one of them holds it. A killed holder leaves no stale lock (the kernel drops it with the process)."""
-    from annotator.session import Session
+    from dsr_bench.annotator.session import Session
 
     work = tmp_path / "work"
     a = Session.open(capture_dir, work)
@@ -91,7 +91,7 @@ def test_sessions_of_one_process_share_the_lock_and_a_crash_releases_it(capture_
 
 
 def test_a_read_only_session_writes_nothing_and_refuses_changes(capture_dir, tmp_path):
-    from annotator.session import Session
+    from dsr_bench.annotator.session import Session
 
     work = tmp_path / "fresh"
     session = Session.open(capture_dir, work, read_only=True)
@@ -104,8 +104,8 @@ def test_a_read_only_session_writes_nothing_and_refuses_changes(capture_dir, tmp
 
 
 def test_undo_and_redo_say_what_they_changed(capture_dir, truth, tmp_path):
-    from annotator.keys import Controller
-    from annotator.session import Session
+    from dsr_bench.annotator.keys import Controller
+    from dsr_bench.annotator.session import Session
 
     with Session.open(capture_dir, tmp_path / "work") as session:
         place_from_truth(session, truth)

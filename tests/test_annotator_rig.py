@@ -36,8 +36,8 @@ def _worse_snap(session, obj: int = 0) -> tuple[float, float, float]:
 
 
 def test_a_snap_that_fits_worse_is_rejected_and_changes_nothing(capture_dir, truth, tmp_path):
-    from annotator.keys import Controller
-    from annotator.session import Session
+    from dsr_bench.annotator.keys import Controller
+    from dsr_bench.annotator.session import Session
 
     session = Session.open(capture_dir, tmp_path / "work")
     _place_from_truth(session, truth)
@@ -71,8 +71,8 @@ def test_a_snap_that_fits_worse_is_rejected_and_changes_nothing(capture_dir, tru
 
 
 def test_a_snap_that_improves_a_poor_fit_is_kept_and_says_so(capture_dir, truth, tmp_path):
-    from annotator.keys import Controller
-    from annotator.session import Session
+    from dsr_bench.annotator.keys import Controller
+    from dsr_bench.annotator.session import Session
 
     session = Session.open(capture_dir, tmp_path / "work")
     _place_from_truth(session, truth)
@@ -94,7 +94,7 @@ def test_a_snap_that_improves_a_poor_fit_is_kept_and_says_so(capture_dir, truth,
 
 
 def _error_mm(session, truth, step: int, obj: int) -> float:
-    from annotator.align import pose_delta
+    from dsr_bench.annotator.align import pose_delta
 
     return pose_delta(pose_to_matrix(session.poses(step)[obj]), pose_to_matrix(truth[step, obj]))[0] * 1000
 
@@ -104,7 +104,7 @@ def carried_off(capture_dir, truth, tmp_path):
     """A session whose box 2 was 3 mm off (across the cameras' view, so a snap moves it back) at step 0 when steps
     1..3 were visited: the carried pose at step 1 is off too (by more than 2.5 mm). 3 mm: under the score's
     refinement threshold (THRESHOLDS.refine_translation), so carrying forward keeps the offset (4 mm it would snap)."""
-    from annotator.session import Session
+    from dsr_bench.annotator.session import Session
 
     session = Session.open(capture_dir, tmp_path / "work")
     _place_from_truth(session, truth)
@@ -119,7 +119,7 @@ def carried_off(capture_dir, truth, tmp_path):
 
 
 def test_a_fix_at_an_earlier_step_is_re_carried_to_the_steps_carried_from_it(carried_off, truth, capture_dir):
-    from annotator.session import Session
+    from dsr_bench.annotator.session import Session
 
     session = carried_off
     later = list(range(1, session.num_steps + 1))
@@ -162,7 +162,7 @@ def test_re_carry_stops_at_a_step_edited_by_hand(carried_off, truth):
 
 
 def test_keys_offer_the_re_carry_and_jump_to_what_needs_a_look(carried_off):
-    from annotator.keys import KEYMAP, Controller
+    from dsr_bench.annotator.keys import KEYMAP, Controller
 
     session = carried_off
     ctl = Controller(session, echo=lambda s: None)
@@ -202,9 +202,9 @@ def test_keys_offer_the_re_carry_and_jump_to_what_needs_a_look(carried_off):
 
 
 def test_messages_number_objects_from_1_as_the_panel(capture_dir, truth, tmp_path, capsys):
-    from annotator.keys import Controller
-    from annotator.panel import help_lines
-    from annotator.session import Session
+    from dsr_bench.annotator.keys import Controller
+    from dsr_bench.annotator.panel import help_lines
+    from dsr_bench.annotator.session import Session
     from dsr_bench.cli import main
 
     session = Session.open(capture_dir, tmp_path / "work")
@@ -244,8 +244,8 @@ def _poses_file(path: Path, session, truth) -> Path:
 
 def test_place_step_0_from_a_poses_file_then_auto_and_export_headless(capture_dir, truth, tmp_path, capsys,
                                                                        monkeypatch):
-    from annotator.align import pose_delta
-    from annotator.session import Session
+    from dsr_bench.annotator.align import pose_delta
+    from dsr_bench.annotator.session import Session
     from dsr_bench.cli import main
 
     monkeypatch.delenv("DISPLAY", raising=False)
@@ -305,7 +305,7 @@ def test_bop_export_follows_the_bop_conventions(capture_dir, truth, tmp_path):
     import trimesh
     from PIL import Image
 
-    from annotator.session import Session
+    from dsr_bench.annotator.session import Session
     from dsr_bench.cli import main
 
     work = tmp_path / "work"

@@ -17,9 +17,9 @@ import pytest
 pytest.importorskip("open3d")
 pytest.importorskip("PIL")
 
-from annotator import images, keys, panel  # noqa: E402
-from annotator import window as win  # noqa: E402
-from annotator.session import Session  # noqa: E402
+from dsr_bench.annotator import images, keys, panel  # noqa: E402
+from dsr_bench.annotator import window as win  # noqa: E402
+from dsr_bench.annotator.session import Session  # noqa: E402
 from dsr_bench.errors import UserError  # noqa: E402
 from dsr_bench.geometry import make_camera, pose_to_matrix  # noqa: E402
 from helpers import virtual_display  # noqa: E402
@@ -58,7 +58,7 @@ def capture_dir(tmp_path_factory) -> Path:
 
 def _make_capture(out: Path) -> Path:
     try:
-        from generators.capture import generate_capture
+        from dsr_bench.generators.capture import generate_capture
     except ImportError:
         generate_capture = None
     if generate_capture is not None:
@@ -451,9 +451,9 @@ def test_panel_is_drawn_at_its_window_size_with_the_legend(session, screen):
 def test_the_shown_cloud_covers_every_object_and_follows_the_state(session):
     from scipy.spatial import cKDTree
 
-    from annotator import align
-    from annotator.session import DISPLAY_TABLE_VOXEL, DISPLAY_VOXEL, voxel_subset
-    from annotator.thresholds import THRESHOLDS
+    from dsr_bench.annotator import align
+    from dsr_bench.annotator.session import DISPLAY_TABLE_VOXEL, DISPLAY_VOXEL, voxel_subset
+    from dsr_bench.annotator.thresholds import THRESHOLDS
 
     points, colors, _ = session.cloud()
     index = session.shown()
@@ -536,7 +536,7 @@ def test_residual_scale_is_the_sessions(session):
 
 
 def test_format_score():
-    from annotator.align import FitScore
+    from dsr_bench.annotator.align import FitScore
 
     assert keys.format_score(None) == "fit: -"
     assert keys.format_score(FitScore(float("nan"), 0.0, 0.0, False, "unset")) == "fit: - (unset)"
@@ -749,7 +749,7 @@ def picker_child(out: str) -> None:
     import trimesh
     from scipy.spatial import cKDTree
 
-    from annotator.picking import PICK_DEPTH_MARGIN, ClickPicker, project
+    from dsr_bench.annotator.picking import PICK_DEPTH_MARGIN, ClickPicker, project
 
     can = trimesh.creation.cylinder(radius=0.033, height=0.12)
     v, f = np.asarray(can.vertices), np.asarray(can.faces)
@@ -799,7 +799,7 @@ def mouse_child(out: str) -> None:
     """Run under Xvfb with xdotool: a left drag rotates the pick window's view, a real shift + click picks."""
     import trimesh
 
-    from annotator.picking import ClickPicker
+    from dsr_bench.annotator.picking import ClickPicker
 
     can = trimesh.creation.cylinder(radius=0.033, height=0.12)
     v, f = np.asarray(can.vertices), np.asarray(can.faces)
@@ -849,7 +849,7 @@ def test_pick_window_mouse_rotates_and_shift_click_picks_under_xvfb(tmp_path):
 def resize_child(capture_dir: str, work_dir: str, out: str) -> None:
     """Run under Xvfb with xdotool: open the window laid out for 1600 x 1000, resize the panel window (as a user
     or window manager would) larger, then smaller, and record what the panel draws after each."""
-    from annotator.layout import panel_layout
+    from dsr_bench.annotator.layout import panel_layout
 
     session = Session.open(Path(capture_dir), Path(work_dir))
     _place_at_truth(session)

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from dsr_bench.constants import PUSH_APPROACH_HEIGHT, PUSH_HEIGHT, PUSH_LENGTH
-from generators import arm
+from dsr_bench.generators import arm
 
 FIXTURE = Path(__file__).parent / "data" / "official_push_paths.npz"
 #: The arm's reach with the tool pointing straight down ends short of these lift targets (x 0.85, y +-0.2):
@@ -117,7 +117,7 @@ def test_the_held_stick_follows_the_arm_as_theirs_does(recording):
     the flange path: its lower end within 0.2 mm of the recorded stick's in the push and lift phases (no
     objects), within 1 mm while descending."""
     pytest.importorskip("pybullet")
-    from generators.physics import PushWorld
+    from dsr_bench.generators.physics import PushWorld
 
     with PushWorld([]) as world:
         for i in (0, 17, 40, 71, 87):

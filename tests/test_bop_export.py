@@ -77,7 +77,7 @@ def symmetry_transforms(info: dict, max_step: float = 0.01) -> list[np.ndarray]:
     the continuous ones discretised so that a vertex at the diameter from the axis moves at most `max_step` of the
     diameter per step (the format's definition of a continuous symmetry: a rotation by any angle about `axis` through
     `offset`)."""
-    from annotator.symmetry import rotation_about
+    from dsr_bench.annotator.symmetry import rotation_about
 
     discrete = [np.eye(4)] + [matrix(m, (4, 4)) for m in info.get("symmetries_discrete", [])]
     continuous = [np.eye(4)]
@@ -125,7 +125,7 @@ def _samples(vertices: np.ndarray, faces: np.ndarray, count: int, seed: int) -> 
 
 @pytest.fixture(scope="module")
 def exported(capture_dir, truth, tmp_path_factory):
-    from annotator.session import Session
+    from dsr_bench.annotator.session import Session
     from dsr_bench.cli import main
 
     work = tmp_path_factory.mktemp("bop_work")
@@ -253,7 +253,7 @@ class _Shifted:
 def test_models_off_their_box_centre_are_moved_and_their_poses_with_them(exported, tmp_path):
     """The same scene with object 2's mesh 30 mm off its origin exports the same models and the same model ->
     camera poses (BOP's origin is the box centre, wherever the DSR origin was); only model_offset_mm says where."""
-    from annotator.bop import export_bop
+    from dsr_bench.annotator.bop import export_bop
 
     session, bop = exported
     d = np.array([0.03, -0.02, 0.01])
@@ -338,7 +338,7 @@ def test_gt_info_counts_the_silhouette_beyond_the_image():
     the whole silhouette, the mask only the part inside; the measured depth decides what is visible."""
     import trimesh
 
-    from annotator.bop import gt_info
+    from dsr_bench.annotator.bop import gt_info
 
     box = trimesh.creation.box((100.0, 100.0, 100.0))
     k = np.array([[500.0, 0, 100.0], [0, 500.0, 100.0], [0, 0, 1]])
@@ -375,7 +375,7 @@ def _off_surface(vertices: np.ndarray, faces: np.ndarray, transform: np.ndarray)
 
 
 def test_declared_symmetries_map_each_model_onto_itself(exported):
-    from annotator.symmetry import rotation_about
+    from dsr_bench.annotator.symmetry import rotation_about
 
     _, bop = exported
     info = read_json(bop / "models" / "models_info.json")
@@ -410,7 +410,7 @@ def test_a_symmetric_twin_of_the_can_is_scored_small_with_the_declared_symmetrie
     """The can's pose and its twin (turned 73.3 degrees about its axis and upside down: the same surface, the
     rotation error 180 degrees): BOP's MSSD with the declared symmetries and ADD-S are small, ADD (no symmetry) is
     as large as the can."""
-    from annotator.symmetry import rotation_about
+    from dsr_bench.annotator.symmetry import rotation_about
 
     _, bop = exported
     info = read_json(bop / "models" / "models_info.json")[2]
@@ -447,7 +447,7 @@ def test_a_symmetric_twin_of_the_can_is_scored_small_with_the_declared_symmetrie
 def test_find_symmetries_on_shapes(shape, discrete, continuous):
     import trimesh
 
-    from annotator.symmetry import find_symmetries
+    from dsr_bench.annotator.symmetry import find_symmetries
 
     make = {"hexagonal prism": lambda: trimesh.creation.cylinder(30.0, 80.0, sections=6),
             "cone": lambda: trimesh.creation.cone(30.0, 80.0, sections=64),

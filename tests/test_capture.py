@@ -21,7 +21,7 @@ pytest.importorskip("open3d")
 from dsr_bench.dataset.capture import CaptureCamera, CaptureFormatError, load_capture  # noqa: E402
 from dsr_bench.cli import main  # noqa: E402
 from dsr_bench.geometry import pinhole_intrinsics, world_to_pixel  # noqa: E402
-from generators.capture import (  # noqa: E402
+from dsr_bench.generators.capture import (  # noqa: E402
     DEPTH_SCALE, SensorModel, calibration_error, depth_discontinuities, perturb_calibration, sensor_color,
     sensor_depth, stereo_shadow,
 )
@@ -188,7 +188,7 @@ def test_noise_none_equals_the_ideal_render_and_realistic_error_grows_with_range
 
 
 def test_same_seed_gives_identical_bytes(tmp_path):
-    from generators.capture import generate_capture
+    from dsr_bench.generators.capture import generate_capture
 
     def make(name: str, seed: int) -> dict[str, bytes]:
         path = generate_capture(tmp_path / name, name=name, seed=seed, steps=1, objects_per_scene=2,
@@ -311,7 +311,7 @@ def test_prepare_captures_skips_refuses_overwrites_and_cleans_abandoned_temporar
 
     from dsr_bench.atomic import host_name
     from dsr_bench.errors import UserError
-    from generators.capture import CapturePlan, prepare_captures
+    from dsr_bench.generators.capture import CapturePlan, prepare_captures
 
     out = captures["realistic"].parent
     plan = CapturePlan(out=out, num=2, steps=2, objects_per_scene=2, seed=3)

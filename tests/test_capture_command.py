@@ -37,7 +37,7 @@ BOARD_S, STEP0_S, STEP1_S = 1716985200.49, 1716985201.99, 1716985204.99
 
 def _playable() -> str:
     """The committed release whose recordings the installed librealsense plays and writes alike (.db3 from 2.58)."""
-    from annotator.record_devices import librealsense_release, recording_suffix
+    from dsr_bench.annotator.record_devices import librealsense_release, recording_suffix
 
     return "v2.59.1" if recording_suffix(librealsense_release()) == ".db3" else "v2.55.1"
 
@@ -69,7 +69,7 @@ def test_a_session_from_the_committed_recordings_imports_to_the_truth(release, t
     truth the recordings were made from (tests/test_realsense_recordings.py's check)."""
     from test_realsense_recordings import _check_against_truth, _import
 
-    from annotator.record_devices import librealsense_release, recording_suffix
+    from dsr_bench.annotator.record_devices import librealsense_release, recording_suffix
 
     out, robot = tmp_path / "run_07", tmp_path / "robot.log"
     command = [sys.executable, "-m", "dsr_bench", "capture", "--out", str(out), "--from-recordings",
@@ -116,7 +116,7 @@ def test_the_python_api_marks_steps_checks_its_calls_and_ends_on_the_steps_count
     """`CaptureSession` as a Python robot script uses it: marks made before the frames come are resolved by them,
     step 0 takes no push and every later step one, `steps=1` ends the session after the first push, and a mark after
     the end is refused."""
-    from annotator.record import CaptureSession
+    from dsr_bench.annotator.record import CaptureSession
     from dsr_bench.errors import UserError
 
     release = _playable()
@@ -147,9 +147,9 @@ def test_the_python_api_marks_steps_checks_its_calls_and_ends_on_the_steps_count
 def test_steps_and_pushes_agree_at_every_instant_and_end_as_plain_files(tmp_path):
     """While recording both files are links into one version directory swapped by one rename, so a crash at any
     instant leaves T + 1 step times beside T pushes; at the end they are plain files and the versions are gone."""
-    from annotator.pushes import read_pushes
-    from annotator.realsense import read_step_times
-    from annotator.record_files import MarkFiles
+    from dsr_bench.annotator.pushes import read_pushes
+    from dsr_bench.annotator.realsense import read_step_times
+    from dsr_bench.annotator.record_files import MarkFiles
 
     files = MarkFiles(tmp_path)
     for count in range(2, 5):
@@ -167,7 +167,7 @@ def test_steps_and_pushes_agree_at_every_instant_and_end_as_plain_files(tmp_path
 def test_sigterm_ends_the_session_with_its_files_complete(tmp_path):
     """SIGTERM (as Ctrl-C) ends the session: exit 0, the recordings closed (librealsense completes them), the
     files plain, and the command says that 0 steps are not importable."""
-    from annotator.rosfile import open_container
+    from dsr_bench.annotator.rosfile import open_container
 
     out = tmp_path / "run"
     command = [sys.executable, "-m", "dsr_bench", "capture", "--out", str(out), "--from-recordings",
@@ -275,7 +275,7 @@ def _source(tmp_path: Path, camera: str, *, depth_until: int | None = None, dept
     to `depth_jump` after the recording's last frame."""
     from test_realsense_recordings import _script
 
-    from annotator.bag import open_recording, read_frame
+    from dsr_bench.annotator.bag import open_recording, read_frame
 
     script = _script()
     truth = json.loads((DATA / "v2.59.1" / "truth.json").read_text())["cameras"][camera]
@@ -307,7 +307,7 @@ def test_a_stream_that_stops_ends_the_session_and_what_was_recorded_imports(tmp_
     """The back camera's depth stream stops after frame 110 while its colour goes on: more than --timeout-frames
     colour frames over more than that many periods later the session stops, one line says which stream stopped and
     that the recordings are kept, and the folder (board and step 0 at frame 100, step 1 at 110) imports."""
-    from annotator.record import CaptureSession
+    from dsr_bench.annotator.record import CaptureSession
     from dsr_bench.errors import UserError
 
     back = _source(tmp_path, "back", depth_until=110)
@@ -336,7 +336,7 @@ def test_a_stream_that_stops_ends_the_session_and_what_was_recorded_imports(tmp_
 def test_a_frame_number_jump_is_a_dropped_stream_in_one_line(tmp_path, capsys):
     """The back depth stream's frame numbers jump by more than --timeout-frames (frames lost in a stall): exit 2,
     one line naming the stream and the numbers, and the recordings closed and readable up to there."""
-    from annotator.bag import open_recording
+    from dsr_bench.annotator.bag import open_recording
 
     back = _source(tmp_path, "back", depth_jump=200, extra=3)
     out = tmp_path / "run"
@@ -354,7 +354,7 @@ def test_a_frame_number_jump_is_a_dropped_stream_in_one_line(tmp_path, capsys):
 
 def _stub_session(tmp_path: Path, clock):
     """A session of connected cameras without librealsense: stub cameras, the test's clock."""
-    from annotator.record import CaptureSession
+    from dsr_bench.annotator.record import CaptureSession
 
     stopped = threading.Event()
     camera = SimpleNamespace(fps={"color": 30, "depth": 30}, path=None, stop=stopped.set,

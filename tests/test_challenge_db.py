@@ -12,20 +12,14 @@ pytest.importorskip("sqlalchemy")
 pytest.importorskip("alembic")
 pytest.importorskip("argon2")
 
-from challenge_helpers import PostgresCluster, postgres_binaries  # noqa: E402
+from challenge_served import postgres_cluster  # noqa: E402
 
 from dsr_bench.errors import UserError  # noqa: E402
 
 
 @pytest.fixture(scope="module")
 def postgres(tmp_path_factory):
-    bin_dir = postgres_binaries()
-    if bin_dir is None:
-        pytest.skip("PostgreSQL's initdb and pg_ctl are not installed (Debian: apt-get install postgresql)")
-    pytest.importorskip("psycopg")
-    cluster = PostgresCluster(tmp_path_factory.mktemp("pg"), bin_dir).start()
-    yield cluster
-    cluster.stop()
+    yield from postgres_cluster(tmp_path_factory)
 
 
 @pytest.fixture(params=["sqlite", "postgresql"])

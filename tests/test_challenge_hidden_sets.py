@@ -13,7 +13,7 @@ pytest.importorskip("fastapi")
 pytest.importorskip("httpx")
 pytest.importorskip("argon2")
 
-from challenge_helpers import DEADLINE, LiveServer, copy_challenge, get, post  # noqa: E402
+from challenge_helpers import DEADLINE, LiveServer, challenge_with_teams, get, post  # noqa: E402
 
 from dsr_bench.cli import main  # noqa: E402
 
@@ -40,16 +40,7 @@ def write_annotated(folder, count: int, seed: int = 10, source: str = "annotated
 
 @pytest.fixture
 def challenge(tmp_path, tmp_path_factory):
-    from dsr_bench.challenge.db import open_database
-    from dsr_bench.challenge.layout import Layout
-    from dsr_bench.challenge.service import add_team
-
-    root, predictions = copy_challenge(tmp_path_factory, tmp_path)
-    layout = Layout(root)
-    engine, sessions = open_database(layout.default_db_url())
-    tokens = {name: add_team(sessions, name) for name in ("alpha", "beta")}
-    yield layout, sessions, tokens, predictions
-    engine.dispose()
+    yield from challenge_with_teams(tmp_path_factory, tmp_path)
 
 
 def _serve(layout):

@@ -24,21 +24,16 @@ pytest.importorskip("httpx")
 pytest.importorskip("argon2")
 
 import httpx  # noqa: E402
-from challenge_helpers import (DEADLINE, LiveServer, PostgresCluster, copy_challenge, free_port, get,  # noqa: E402
-                               post, postgres_binaries, wait_for_state, wait_until, wait_until_serving)
+from challenge_helpers import (DEADLINE, LiveServer, copy_challenge, free_port, get, post,  # noqa: E402
+                               wait_for_state, wait_until, wait_until_serving)
+from challenge_served import postgres_cluster  # noqa: E402
 
 from dsr_bench.errors import UserError  # noqa: E402
 
 
 @pytest.fixture(scope="module")
 def postgres(tmp_path_factory):
-    bin_dir = postgres_binaries()
-    if bin_dir is None:
-        pytest.skip("PostgreSQL's initdb and pg_ctl are not installed (Debian: apt-get install postgresql)")
-    pytest.importorskip("psycopg")
-    cluster = PostgresCluster(tmp_path_factory.mktemp("pg"), bin_dir).start()
-    yield cluster
-    cluster.stop()
+    yield from postgres_cluster(tmp_path_factory)
 
 
 @pytest.fixture(params=["sqlite", "postgresql"])

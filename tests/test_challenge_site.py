@@ -18,23 +18,14 @@ pytest.importorskip("httpx")
 pytest.importorskip("argon2")
 
 import httpx  # noqa: E402
-from challenge_helpers import LiveServer, copy_challenge, get, post, wait_for_state  # noqa: E402
+from challenge_helpers import LiveServer, challenge_with_teams, get, post, wait_for_state  # noqa: E402
 
 from dsr_bench.cli import main  # noqa: E402
 
 
 @pytest.fixture
 def challenge(tmp_path, tmp_path_factory):
-    from dsr_bench.challenge.db import open_database
-    from dsr_bench.challenge.layout import Layout
-    from dsr_bench.challenge.service import add_team
-
-    root, predictions = copy_challenge(tmp_path_factory, tmp_path)
-    layout = Layout(root)
-    engine, sessions = open_database(layout.default_db_url())
-    tokens = {name: add_team(sessions, name) for name in ("alpha", "beta")}
-    yield layout, sessions, tokens, predictions
-    engine.dispose()
+    yield from challenge_with_teams(tmp_path_factory, tmp_path)
 
 
 def _serve(layout, **overrides) -> LiveServer:

@@ -457,7 +457,7 @@ def test_an_immutable_output_is_refused_before_any_work(rig_folder, tmp_path, ca
 
 def _annotate(capture: Path, work: Path, truth) -> None:
     """4 journal records on a fresh state.json (generation 1): 3 picks and a nudge."""
-    from annotator.session import Session
+    from dsr_bench.annotator.session import Session
     from helpers import place_from_truth
 
     session = Session.open(capture, work)
@@ -500,7 +500,7 @@ def _field(record: int, key: str, value):
 
 def _foreign_journal(work, ctx):  # another capture's journal, also generation 1, over a fresh state.json
     shutil.rmtree(work)
-    from annotator.session import Session
+    from dsr_bench.annotator.session import Session
 
     Session.open(ctx["capture"], work)
     shutil.copy(ctx["other_work"] / "journal.jsonl", work / "journal.jsonl")
@@ -595,7 +595,7 @@ JOURNAL_CORPUS = [
 
 @pytest.mark.parametrize("forge, expected", JOURNAL_CORPUS, ids=[f"journal{k}" for k in range(len(JOURNAL_CORPUS))])
 def test_forged_journals_are_refused_in_one_line(capture_dir, annotated, tmp_path, capsys, forge, expected):
-    from annotator.session import Session
+    from dsr_bench.annotator.session import Session
 
     work = tmp_path / "work"
     shutil.copytree(annotated["work"], work, symlinks=True)
@@ -615,7 +615,7 @@ def test_a_work_directory_moved_onto_another_capture_of_the_same_name_is_refused
     same name, steps and objects whose content differs (one colour pixel): refused, naming the capture."""
     from PIL import Image
 
-    from annotator.session import Session
+    from dsr_bench.annotator.session import Session
 
     other = tmp_path / "captures" / annotated["other"].name
     shutil.copytree(annotated["other"], other)
@@ -637,8 +637,8 @@ def test_the_untouched_journal_and_an_unbound_pair_resume(capture_dir, annotated
     """The baseline of the journal corpus (the untouched copy resumes with its 4 records), and files written before
     the binding: an unbound state.json with its unbound journal of the same generation resumes (each record checked
     against the state it applies to) and both come out bound; a torn last record is still dropped with a note."""
-    from annotator.journal import read_saved
-    from annotator.session import Session
+    from dsr_bench.annotator.journal import read_saved
+    from dsr_bench.annotator.session import Session
     from dsr_bench.dataset.capture import load_capture
 
     work = tmp_path / "work"

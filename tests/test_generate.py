@@ -278,7 +278,7 @@ def test_plan_from_arguments_fills_a_split_or_the_defaults(tmp_path):
     from dsr_bench.constants import DEFAULT_OBJECTS_PER_SCENE, DEFAULT_STEPS
     from dsr_bench.dataset.splits import get_split
     from dsr_bench.errors import UserError
-    from generators.run import plan_from_arguments
+    from dsr_bench.generators.run import plan_from_arguments
 
     spec = get_split("procedural-mini")
     plan = plan_from_arguments(split="procedural-mini", workers=2, shard="1/3", cameras="front, back")
@@ -317,7 +317,7 @@ def test_generate_names_what_is_missing_and_where_shapenet_comes_from(monkeypatc
 
 def test_needs_writing_skips_same_arguments_and_refuses_others(tmp_path):
     from dsr_bench.errors import UserError
-    from generators.run import needs_writing
+    from dsr_bench.generators.run import needs_writing
 
     path = tmp_path / "out"
     recorded = {"seed": 1}

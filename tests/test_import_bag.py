@@ -190,7 +190,7 @@ def _events(name: str) -> list[tuple[float, int]]:
 def write_bag_folder(sim, folder: Path) -> dict[str, Camera]:
     """front.bag, back.bag, rig.json (board, objects), steps.json, pushes.json, meshes; returns the true colour
     cameras."""
-    from annotator.export import renderer_for
+    from dsr_bench.annotator.export import renderer_for
 
     colors = {n: _true_camera(n) for n in ("front", "back")}
     depths = {n: _depth_camera(n, c) for n, c in colors.items()}
@@ -256,8 +256,8 @@ def test_align_depth_registers_a_tilted_plane_without_holes():
     """A plane seen by an 480 x 848 depth camera registered to a 720 x 1280 colour camera 15 mm and 0.7 degrees
     away: the colour camera's z of the plane at every covered pixel (no holes: each depth pixel's footprint is
     splatted), the nearer surface where two overlap."""
-    from annotator.bag import Recording, Stream, StreamInfo
-    from annotator.registration import align_depth
+    from dsr_bench.annotator.bag import Recording, Stream, StreamInfo
+    from dsr_bench.annotator.registration import align_depth
 
     color_k = _true_camera("front").intrinsics
     depth_cam = _depth_camera("front", Camera("front", *SHAPE, color_k, np.eye(4)))
@@ -292,7 +292,7 @@ def test_align_depth_registers_a_tilted_plane_without_holes():
 
 
 def test_distortion_models_round_trip_and_inverse_brown_matches_opencv():
-    from annotator.registration import StreamInfo, _raw_of_ideal, ideal_rays, undistortion_maps
+    from dsr_bench.annotator.registration import StreamInfo, _raw_of_ideal, ideal_rays, undistortion_maps
 
     k = _true_camera("front").intrinsics
     h, w = 72, 128
@@ -315,8 +315,8 @@ def test_distortion_models_round_trip_and_inverse_brown_matches_opencv():
 
 
 def test_step_times_pick_the_nearest_frames_per_camera_and_refuse_ambiguity(tmp_path):
-    from annotator.bag import Recording, Stream, StreamInfo
-    from annotator.realsense import pick_frames, read_step_times
+    from dsr_bench.annotator.bag import Recording, Stream, StreamInfo
+    from dsr_bench.annotator.realsense import pick_frames, read_step_times
     from dsr_bench.errors import UserError
 
     path = tmp_path / "steps.json"
@@ -343,7 +343,7 @@ def test_step_times_pick_the_nearest_frames_per_camera_and_refuse_ambiguity(tmp_
 
 
 def test_images_decode_bgr_padded_rows_and_big_endian_depth():
-    from annotator.bag import Stream, StreamInfo, _decode
+    from dsr_bench.annotator.bag import Stream, StreamInfo, _decode
     from dsr_bench.errors import UserError
 
     store = _store()
@@ -392,8 +392,8 @@ def test_bag_import_matches_the_ground_truth(sim, bags, imported):
     registered depth covers 99% of the pixels the colour camera sees, within 1 mm (median) and 3 mm (99%) of its true
     depth (the depth stream is rounded to 1 mm and sampled at the depth camera's pixels). Measured: coverage 99.8%,
     median 0.57-0.61 mm, 99.5% within 3 mm."""
-    from annotator.align import pose_delta
-    from annotator.export import renderer_for
+    from dsr_bench.annotator.align import pose_delta
+    from dsr_bench.annotator.export import renderer_for
     from dsr_bench.dataset.capture import load_capture
 
     capture = load_capture(imported)

@@ -42,7 +42,7 @@ def _paste_board(color: np.ndarray, table: np.ndarray, camera: Camera) -> np.nda
     """`color` (H, W, 3) with the ChArUco board (BOARD) drawn onto the table plane where `table` (H, W) bool: the
     board's picture (generateImage, 2000 px/m) warped by the homography of its corners through `camera` at twice the
     resolution, then area-averaged (pixel centres at integers throughout)."""
-    from annotator.calibrate import parse_board
+    from dsr_bench.annotator.calibrate import parse_board
 
     board = parse_board("test", BOARD)
     ppm = 2000
@@ -80,7 +80,7 @@ def _distort(image: np.ndarray, camera: Camera, coefficients, nearest: bool) -> 
 def write_rig_folder(capture, folder: Path, poses: np.ndarray, *, board: bool = True) -> dict[str, Camera]:
     """Render `capture`'s objects at `poses` (T+1, N, 7) as the rig records them into `folder` (PNGs, rig.json,
     meshes, pushes.json from the capture's pushes); returns the true cameras."""
-    from annotator.export import renderer_for
+    from dsr_bench.annotator.export import renderer_for
 
     cameras = {n: _true_camera(n) for n in ("front", "back")}
     renderer = renderer_for(capture, cameras)
@@ -152,7 +152,7 @@ def imported(rig, tmp_path_factory):
 
 
 def test_pushes_map_to_the_generators_actions_and_off_grid_pushes_are_refused(sim, tmp_path):
-    from annotator.pushes import push_to_action, read_pushes
+    from dsr_bench.annotator.pushes import push_to_action, read_pushes
     from dsr_bench.geometry import direction_vector, pixel_to_world
 
     # every action the generator wrote comes back from its start and its direction
@@ -202,7 +202,7 @@ def test_push_log_errors_are_one_line_naming_the_file_and_the_push(rig, tmp_path
 
 
 def test_board_calibration_recovers_the_true_extrinsics(rig, imported):
-    from annotator.align import pose_delta
+    from dsr_bench.annotator.align import pose_delta
     from dsr_bench.dataset.capture import load_capture
 
     _, true = rig
@@ -221,7 +221,7 @@ def test_board_calibration_recovers_the_true_extrinsics(rig, imported):
 
 
 def test_import_undistorts_renumbers_and_keeps_the_measured_depth(sim, rig, imported):
-    from annotator.export import renderer_for
+    from dsr_bench.annotator.export import renderer_for
     from dsr_bench.dataset.capture import load_capture
 
     capture = load_capture(imported)
@@ -246,8 +246,8 @@ def test_import_undistorts_renumbers_and_keeps_the_measured_depth(sim, rig, impo
 
 
 def test_non_square_720p_capture_annotates_and_exports_like_the_simulated_one(sim, imported, tmp_path):
-    from annotator.align import pose_delta
-    from annotator.session import Session
+    from dsr_bench.annotator.align import pose_delta
+    from dsr_bench.annotator.session import Session
     from dsr_bench.dataset.sequence import SequenceReader
     from dsr_bench.dataset.validate import validate_sequence
 
@@ -434,7 +434,7 @@ def test_given_extrinsics_skip_the_board_and_an_existing_capture_is_kept(rig, im
 
 
 def test_wrong_intrinsics_and_disagreeing_cameras_are_refused(rig, imported, tmp_path, capsys):
-    from annotator.calibrate import check_residuals
+    from dsr_bench.annotator.calibrate import check_residuals
     from dsr_bench.cli import main
     from dsr_bench.dataset.capture import load_capture
 

@@ -114,3 +114,51 @@ def test_the_library_imports_its_own_modules_never_the_public_facade():
 def test_the_cycle_finder_finds_a_cycle():
     assert cycles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c"]]
     assert cycles({"a": {"b"}, "b": set()}) == []
+
+
+def test_one_installed_namespace():
+    """The simulator and the annotator are installed as dsr_bench.generators and dsr_bench.annotator (pyproject's
+    package-dir), never as top-level `generators` / `annotator`, which another distribution or a user's own folder
+    would shadow (issue 45): no file imports those names, every package folder is in pyproject's list, and the entry
+    points name the installed modules."""
+    import tomllib
+
+    sources = [p for folder in ("dsr_bench", "generators", "annotator", "tests", "scripts", "bench")
+               for p in (ROOT / folder).rglob("*.py")]
+    bare = [f"{path.relative_to(ROOT)}: {name}" for path in sources for name in _imported(path)
+            if name.split(".")[0] in ("generators", "annotator")]
+    bare += [f"{path.relative_to(ROOT)}: from {node.module}" for path in sources
+             for node in ast.walk(ast.parse(path.read_text())) if isinstance(node, ast.ImportFrom) and node.module
+             and node.level == 0 and node.module.split(".")[0] in ("generators", "annotator")]
+    assert bare == []
+    project = tomllib.loads((ROOT / "pyproject.toml").read_text())
+    setup = project["tool"]["setuptools"]
+    assert setup["package-dir"] == {"dsr_bench.generators": "generators", "dsr_bench.annotator": "annotator"}
+    folders = {".".join(p.parent.relative_to(ROOT).parts) for folder in ("dsr_bench", "generators", "annotator")
+               for p in (ROOT / folder).rglob("__init__.py")}
+    installed = {f"dsr_bench.{f}" if f.split(".")[0] in ("generators", "annotator") else f for f in folders}
+    assert set(setup["packages"]) == installed
+    points = [v for group in project["project"]["entry-points"].values() for v in group.values()]
+    assert points and all(v.startswith("dsr_bench.") for v in points)
+    import dsr_bench.annotator.session
+    import dsr_bench.generators.episode
+
+    assert Path(dsr_bench.generators.episode.__file__) == ROOT / "generators" / "episode.py"
+    assert Path(dsr_bench.annotator.session.__file__) == ROOT / "annotator" / "session.py"
+
+
+def test_a_users_own_generators_folder_does_not_shadow_the_simulator(tmp_path):
+    """A working directory holding folders named `generators` and `annotator` (a user's own code): `python -m
+    dsr_bench` still finds the simulator's and the annotator's commands (before issue 45: "No module named
+    'generators.cli'")."""
+    import os
+    import subprocess
+    import sys
+
+    for name in ("generators", "annotator"):
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "__init__.py").write_text("raise ImportError('the user\\'s own package')\n")
+    done = subprocess.run([sys.executable, "-m", "dsr_bench", "--help"], cwd=tmp_path, capture_output=True, text=True,
+                          env={**os.environ, "COLUMNS": "200"}, timeout=120)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert "generate-captures" in done.stdout and "annotate" in done.stdout

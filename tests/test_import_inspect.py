@@ -31,7 +31,7 @@ def rig(sim, tmp_path_factory):
 
 
 def test_frame_timing_counts_gaps_and_skipped_frame_numbers():
-    from annotator.inspect import frame_timing
+    from dsr_bench.annotator.inspect import frame_timing
 
     stamps = np.array([0.0, 1, 2, 4, 5, 6]) / 30 + 100.0  # one frame dropped after the third
     line = frame_timing(stamps, np.array([7, 8, 9, 11, 12, 13]))

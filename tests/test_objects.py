@@ -10,12 +10,12 @@ import pytest
 trimesh = pytest.importorskip("trimesh")
 
 from dsr_bench.errors import UserError  # noqa: E402
-from generators.objects import OBJECT_SET_NAMES, get_object_set  # noqa: E402
-from generators.objects.builtin import (CATEGORY_SCALES, CUBE_DIVISORS, LARGE_BOX_VOXELS,  # noqa: E402
+from dsr_bench.generators.objects import OBJECT_SET_NAMES, get_object_set  # noqa: E402
+from dsr_bench.generators.objects.builtin import (CATEGORY_SCALES, CUBE_DIVISORS, LARGE_BOX_VOXELS,  # noqa: E402
                                         NOVEL_MAX_HEIGHT, NOVEL_MAX_SIDE, SMALL_BOX_VOXELS, random_box,
                                         sample_category_mix)
-from generators.objects.catalog import SHAPENET_MODELS, YCB_LARGE, YCB_NORMAL, ycb_release_name  # noqa: E402
-from generators.objects.solid import load_solid, read_binvox  # noqa: E402
+from dsr_bench.generators.objects.catalog import SHAPENET_MODELS, YCB_LARGE, YCB_NORMAL, ycb_release_name  # noqa: E402
+from dsr_bench.generators.objects.solid import load_solid, read_binvox  # noqa: E402
 
 BUILTIN = ("cube", "procedural", "procedural-novel")
 GRID_EXTENT = np.array([0.512, 0.512, 0.192])  # m (x, y, z)
@@ -119,9 +119,9 @@ def test_cube_meshes_keep_their_bits():
 def test_numpy_boxes_are_trimesh_boxes_bit_for_bit():
     """`box_solid` has trimesh's vertices, faces, volume and centre of mass to the last bit, for the official
     cubes, the random boxes and arbitrary sizes and centres; so do the specs made from them."""
-    from generators.objects.primitives import box_solid
-    from generators.objects.builtin import CUBE_HALF_EXTENTS
-    from generators.objects.spec import make_spec
+    from dsr_bench.generators.objects.primitives import box_solid
+    from dsr_bench.generators.objects.builtin import CUBE_HALF_EXTENTS
+    from dsr_bench.generators.objects.spec import make_spec
 
     rng = np.random.default_rng(5)
     cases = [(2 * np.array(CUBE_HALF_EXTENTS) / s, [0, 0, CUBE_HALF_EXTENTS[2] / s]) for s in CUBE_DIVISORS]
@@ -175,7 +175,7 @@ def test_numpy_revolutions_cylinders_and_transforms_are_trimeshs_bit_for_bit():
     """`revolve_solid`, `cylinder_solid`, `scaled` and `translated` give trimesh's vertices, faces, volume and
     centre of mass to the last bit: random closed profiles (some with points on the axis mid-way), per-axis and
     uniform scales, moves, and maps within 1e-8 of the identity (which trimesh, and so we, leave alone)."""
-    from generators.objects.primitives import cylinder_solid, revolve_solid, scaled, translated
+    from dsr_bench.generators.objects.primitives import cylinder_solid, revolve_solid, scaled, translated
 
     rng = np.random.default_rng(11)
     for case in range(40):
@@ -204,7 +204,7 @@ def test_numpy_revolutions_cylinders_and_transforms_are_trimeshs_bit_for_bit():
 
 
 def test_an_open_or_inconsistently_wound_mesh_is_not_watertight():
-    from generators.objects.primitives import box_solid, solid
+    from dsr_bench.generators.objects.primitives import box_solid, solid
 
     box = box_solid([0.1, 0.2, 0.3])
     assert box.is_watertight

@@ -254,8 +254,8 @@ def test_tasks_are_reproducible_from_their_seed(one_task):
     """The same seed gives the same task digests (and the manifest's checksum); another seed another task."""
     from dsr_bench.dataset.splits import sequence_seed
     from dsr_bench.planning.tasks import PINS_FILE, TASK_SETS, load_manifest, read_task, task_digests
-    from generators.objects import get_object_set
-    from generators.planning import make_task
+    from dsr_bench.generators.objects import get_object_set
+    from dsr_bench.generators.planning import make_task
 
     task = read_task(one_task / "task_0000.h5")
     spec = TASK_SETS["plan-novel-mini"]
@@ -308,7 +308,7 @@ def test_oracle_prediction_is_the_executed_push(one_task):
     from dsr_bench.planning.planners import make_planner
     from dsr_bench.planning.runner import run_plan
     from dsr_bench.planning.tasks import read_task
-    from generators.planning import SimEnvironment
+    from dsr_bench.generators.planning import SimEnvironment
 
     task = read_task(one_task / "task_0000.h5")
     env = SimEnvironment()
@@ -329,7 +329,7 @@ def test_a_learned_plan_keeps_the_scene_unless_a_push_beats_the_margin(one_task)
     from dsr_bench.planning.planners import make_planner
     from dsr_bench.planning.runner import run_plan
     from dsr_bench.planning.tasks import read_task
-    from generators.planning import SimEnvironment
+    from dsr_bench.generators.planning import SimEnvironment
 
     task = read_task(one_task / "task_0000.h5")
     planner = make_planner("dsr")
@@ -350,7 +350,7 @@ def test_replaying_the_reference_pushes_reaches_the_target_exactly(one_task):
     (`PushWorld.restart`), so the task's own reference pushes, executed from its start, leave the objects at its
     target poses bit for bit (and a push of another cell does not)."""
     from dsr_bench.planning.tasks import read_task
-    from generators.planning import SimEnvironment
+    from dsr_bench.generators.planning import SimEnvironment
 
     task = read_task(one_task / "task_0000.h5")
     env = SimEnvironment()

@@ -7,9 +7,7 @@ import pytest
 
 from dsr_bench.constants import FREE_HEIGHT, GRID_SHAPE, START_BACKOFF, START_FREE_RADIUS_PX, START_STEP, VOXEL_SIZE
 from dsr_bench.geometry import direction_vector, pixel_to_world, world_to_pixel
-from generators.policy import (
-    HeuristicPolicy, PushDecision, RandomPolicy, find_start, make_policy, softmax,
-)
+from dsr_bench.generators.policy import (HeuristicPolicy, PushDecision, RandomPolicy, find_start, make_policy, softmax)
 
 ROWS, COLS = np.meshgrid(np.arange(GRID_SHAPE[0]), np.arange(GRID_SHAPE[1]), indexing="ij")
 CELL_XY = pixel_to_world(np.stack([ROWS, COLS], -1))  # (128, 128, 2) cell centres, world xy

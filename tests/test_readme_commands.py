@@ -148,7 +148,7 @@ def _parse(argv: list[str]) -> None:
 
 
 def test_the_readme_commands_run_as_written_after_the_quickstart(after_quickstart, monkeypatch, capsys):
-    import annotator.window
+    import dsr_bench.annotator.window
     import dsr_bench.display
     import dsr_bench.viewer
     from dsr_bench.cli import main
@@ -163,7 +163,8 @@ def test_the_readme_commands_run_as_written_after_the_quickstart(after_quickstar
 
     monkeypatch.setattr(dsr_bench.display, "no_display", lambda: False)
     monkeypatch.setattr(dsr_bench.viewer, "view", view)
-    monkeypatch.setattr(annotator.window, "run", lambda session, **options: opened.append(str(session.capture.path)))
+    monkeypatch.setattr(dsr_bench.annotator.window, "run",
+                        lambda session, **options: opened.append(str(session.capture.path)))
     said = {}
     for command in readme_commands((ROOT / "README.md").read_text()):
         kind, expected = COMMANDS[command]

@@ -54,9 +54,9 @@ def _import(folder: Path, out: Path) -> Path:
 
 def _check_against_truth(folder: Path, out: Path) -> dict:
     """The imported capture `out` of `folder` against folder/truth.json; returns what was measured."""
-    from annotator.align import pose_delta
-    from annotator.bag import open_recording
-    from annotator.export import renderer_for
+    from dsr_bench.annotator.align import pose_delta
+    from dsr_bench.annotator.bag import open_recording
+    from dsr_bench.annotator.export import renderer_for
     from dsr_bench.dataset.capture import load_capture
     from dsr_bench.geometry import Camera
 
@@ -150,7 +150,7 @@ def test_inspect_reports_each_recordings_format_writer_and_clock(release, capsys
 def test_each_generations_layout_reads_exactly(name):
     """The tiny samples (`layout_sample`) of 2.54.1, 2.58.4 (zstd) and 2.59.1 uncompressed: every pixel, number,
     timestamp, intrinsic and the extrinsics as written."""
-    from annotator.bag import open_recording, read_frame
+    from dsr_bench.annotator.bag import open_recording, read_frame
 
     sample = _script().layout_sample()
     rec = open_recording(DATA / "layouts" / name, "front")
@@ -195,7 +195,7 @@ def test_bz2_and_uncompressed_chunks_mcap_directories_and_renamed_files_read_the
     from rosbags.rosbag2 import StoragePlugin, Writer as Ros2Writer
     from rosbags.typesys import Stores, get_typestore
 
-    from annotator.bag import open_recording, read_frame
+    from dsr_bench.annotator.bag import open_recording, read_frame
 
     def same(a, b) -> None:
         assert a.color.seqs.tolist() == b.color.seqs.tolist() and np.array_equal(a.depth.stamps, b.depth.stamps)

@@ -118,9 +118,9 @@ def test_model_help_is_the_table(capsys, monkeypatch):
 def test_camera_names_are_the_constants_table():
     """Generate, simulated captures and a real rig's cameras take their names from dsr_bench.constants.CAMERAS."""
     pytest.importorskip("pybullet")  # generators.episode: the simulator
-    from annotator.importer import CAMERA_NAMES
+    from dsr_bench.annotator.importer import CAMERA_NAMES
     from dsr_bench.constants import CAMERAS, MODEL_CAMERA
-    from generators.capture import CAPTURE_CAMERAS
+    from dsr_bench.generators.capture import CAPTURE_CAMERAS
 
     assert tuple(CAMERAS) == CAPTURE_CAMERAS == CAMERA_NAMES == ("front", "back") and MODEL_CAMERA == "front"
 
@@ -132,7 +132,7 @@ def test_docs_adding_a_camera_works_as_written(monkeypatch, tmp_path):
     from dsr_bench.constants import CAMERAS
     from dsr_bench.dataset.sequence import SequenceReader
     from dsr_bench.geometry import make_camera
-    from generators.run import check_plan, plan_from_arguments
+    from dsr_bench.generators.run import check_plan, plan_from_arguments
 
     [block] = _doc_blocks("docs/format.md", "Adding a camera")
     [(name, spec)] = eval("{" + block.strip() + "}").items()
@@ -151,10 +151,10 @@ def test_docs_adding_a_camera_works_as_written(monkeypatch, tmp_path):
 
 
 def test_object_set_names_are_the_objects_table(capsys, monkeypatch):
-    from generators.objects import OBJECT_SET_NAMES, OBJECT_SETS, get_object_set
+    from dsr_bench.generators.objects import OBJECT_SET_NAMES, OBJECT_SETS, get_object_set
 
     assert OBJECT_SET_NAMES == tuple(OBJECT_SETS) == ("cube", "shapenet", "ycb", "procedural", "procedural-novel")
-    monkeypatch.setitem(OBJECT_SETS, "boxes", ("generators.objects.builtin:CubeSet", False))
+    monkeypatch.setitem(OBJECT_SETS, "boxes", ("dsr_bench.generators.objects.builtin:CubeSet", False))
     assert get_object_set("boxes").sample(np.random.default_rng(0), 1)[0].category
     monkeypatch.setenv("COLUMNS", "400")
     for command in ("generate", "generate-captures"):

@@ -163,7 +163,7 @@ def test_the_policy_ignores_one_ulp_of_rendering_noise(reference):
     """Every decision of the policy, drawn from the same rng, is unchanged when the heightmap it sees
     moves by one ulp anywhere (its only rendered input; a choice could flip only for a cell within
     one ulp, 1e-9 m, of the 5 mm free-height threshold)."""
-    from generators.policy import make_policy
+    from dsr_bench.generators.policy import make_policy
 
     with SequenceReader(reference / "seq_0000.h5") as seq:
         heightmap = seq.read("heightmap", 0)

@@ -198,12 +198,12 @@ def test_atomic_path_leaves_nothing_when_the_write_fails(tmp_path):
 # --- inputs refused before any simulation -----------------------------------------------------------
 @pytest.fixture
 def no_simulation(monkeypatch):
-    import generators.episode
+    import dsr_bench.generators.episode
 
     def fail(*args, **kwargs):
         raise AssertionError("simulated although the run must be refused first")
 
-    monkeypatch.setattr(generators.episode, "generate_episode", fail)
+    monkeypatch.setattr(dsr_bench.generators.episode, "generate_episode", fail)
 
 
 def _refused(capsys, out, *extra: str) -> str:

@@ -13,7 +13,7 @@ from dsr_bench.errors import UserError
 def test_annotate_finds_a_capture_by_its_number_however_padded(tmp_path):
     """`annotate seq_042`, `annotate 42` and `annotate captures/seq_042` open captures/seq_0042; a number two
     captures share, or one none has, is one line naming what the folder holds."""
-    from annotator.cli import resolve_capture
+    from dsr_bench.annotator.cli import resolve_capture
 
     captures = tmp_path / "captures"
     for name in ("seq_0000", "seq_0001", "seq_0042"):

@@ -9,16 +9,16 @@ from typing import Protocol
 import numpy as np
 
 from dsr_bench.errors import UserError
-from generators.objects.spec import ObjectSpec, Part
+from dsr_bench.generators.objects.spec import ObjectSpec, Part
 
 #: The object sets, one entry each: name -> (its class, "module:Class", imported on use; whether it reads meshes
 #: from --object-root, which it checks when made). Every list of object-set names is this table's, in its order.
 OBJECT_SETS: dict[str, tuple[str, bool]] = {
-    "cube": ("generators.objects.builtin:CubeSet", False),
-    "shapenet": ("generators.objects.external:ShapeNetSet", True),
-    "ycb": ("generators.objects.external:YCBSet", True),
-    "procedural": ("generators.objects.builtin:ProceduralSet", False),
-    "procedural-novel": ("generators.objects.builtin:ProceduralNovelSet", False),
+    "cube": ("dsr_bench.generators.objects.builtin:CubeSet", False),
+    "shapenet": ("dsr_bench.generators.objects.external:ShapeNetSet", True),
+    "ycb": ("dsr_bench.generators.objects.external:YCBSet", True),
+    "procedural": ("dsr_bench.generators.objects.builtin:ProceduralSet", False),
+    "procedural-novel": ("dsr_bench.generators.objects.builtin:ProceduralNovelSet", False),
 }
 OBJECT_SET_NAMES: tuple[str, ...] = tuple(OBJECT_SETS)
 

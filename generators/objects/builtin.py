@@ -19,9 +19,9 @@ from collections.abc import Callable
 import numpy as np
 
 from dsr_bench.geometry import vector_norm
-from generators.objects.primitives import (Solid, bounds, box_solid, cylinder_solid, revolve_solid, scaled, solid,
-                                          translated)
-from generators.objects.spec import ObjectSpec, make_spec, random_color
+from dsr_bench.generators.objects.primitives import (Solid, bounds, box_solid, cylinder_solid, revolve_solid, scaled,
+                                                     solid, translated)
+from dsr_bench.generators.objects.spec import ObjectSpec, make_spec, random_color
 
 CUBE_DIVISORS = (700, 750, 800, 850, 900, 1000, 1100, 1200, 1400)
 CUBE_HALF_EXTENTS = (30.0, 30.0, 35.0)  # divided by s: metres

@@ -21,10 +21,10 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from dsr_bench.errors import UserError
-from generators.objects.builtin import NORMALISED_DIAGONAL, category_scale, choose_large, sample_category_mix
-from generators.objects.catalog import SHAPENET_MODELS, YCB_LARGE, YCB_NORMAL, ycb_release_name
-from generators.objects.solid import load_solid
-from generators.objects.spec import ObjectSpec, make_spec, random_color
+from dsr_bench.generators.objects.builtin import NORMALISED_DIAGONAL, category_scale, choose_large, sample_category_mix
+from dsr_bench.generators.objects.catalog import SHAPENET_MODELS, YCB_LARGE, YCB_NORMAL, ycb_release_name
+from dsr_bench.generators.objects.solid import load_solid
+from dsr_bench.generators.objects.spec import ObjectSpec, make_spec, random_color
 
 if TYPE_CHECKING:
     import trimesh
