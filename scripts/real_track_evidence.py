@@ -184,7 +184,8 @@ def main() -> None:
     exports.mkdir(exist_ok=True)
     need = args.fine_tune + args.test
     annotated: dict[str, dict] = {}
-    refused: dict[str, str] = {}
+    refused_file = work / "refused.json"  # kept across runs: a refused capture is not annotated again
+    refused: dict[str, str] = json.loads(refused_file.read_text()) if refused_file.is_file() else {}
     count = need
     times = {}
     while True:  # generate and annotate until enough captures pass the real split's checks
@@ -212,9 +213,12 @@ def main() -> None:
                 continue
             annotated[capture.name] = {"errors": pose_errors(capture, export)}
         times["annotate"] = times.get("annotate", 0) + time.time() - t0
+        refused_file.write_text(json.dumps(refused, indent=1))
         if len(annotated) >= need:
             break
-        count += need - len(annotated) + max(1, (need - len(annotated)) // 4)
+        # the next round: enough new captures for what is missing at the share annotated so far (about 60%)
+        share = max(0.25, len(annotated) / max(1, len(annotated) + len(refused)))
+        count += int(np.ceil((need - len(annotated)) / share)) + 2
     errors = [e for a in annotated.values() for e in a["errors"]]
     trans, rot = np.array([e["translation_mm"] for e in errors]), np.array([e["rotation_deg"] for e in errors])
     gross = int(np.sum((trans > 10) | (rot > 10)))
