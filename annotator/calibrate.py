@@ -119,6 +119,33 @@ class BoardView:
     reprojection_px: float
 
 
+def paint_board(color: np.ndarray, table: np.ndarray, camera: Camera, spec, pixels_per_metre: int = 2000
+                ) -> np.ndarray:
+    """`color` (H, W, 3) uint8 with the ChArUco board `spec` (a rig file's "board") drawn onto the table plane where
+    `table` (H, W) bool is true, as the pinhole `camera` sees it: the board's picture (`generateImage` at
+    `pixels_per_metre`) warped by the homography of its corners at twice the resolution, then area-averaged (pixel
+    centres at integers throughout). What the tests' and the RealSense fixtures' simulated cameras see of a board."""
+    import cv2
+
+    cols, rows = spec["squares"]
+    ppm = pixels_per_metre
+    w, h = round(cols * spec["square_length"] * ppm), round(rows * spec["square_length"] * ppm)
+    picture = parse_board("the board", spec).cv_board().generateImage((w, h), marginSize=0, borderBits=1)
+    extent = np.array([[0, 0, 0], [w, 0, 0], [w, h, 0], [0, h, 0]], np.float64) / ppm  # board frame, m
+    uv, z = camera.project(extent @ np.diag([1.0, -1.0, -1.0]).T + np.asarray(spec["offset"]))
+    if not np.all(z > 0):
+        raise ValueError(f"paint_board: the board is behind camera {camera.name!r}")
+    src = np.array([[0, 0], [w, 0], [w, h], [0, h]], np.float32) - 0.5
+    hom = cv2.getPerspectiveTransform(src, (2 * uv + 0.5).astype(np.float32))
+    size = (2 * camera.width, 2 * camera.height)
+    fine = cv2.warpPerspective(picture, hom, size, flags=cv2.INTER_LINEAR, borderValue=0).astype(np.float32)
+    cover = cv2.warpPerspective(np.ones((h, w), np.float32), hom, size, flags=cv2.INTER_LINEAR, borderValue=0)
+    value = cv2.resize(fine, (camera.width, camera.height), interpolation=cv2.INTER_AREA)
+    alpha = cv2.resize(cover, (camera.width, camera.height), interpolation=cv2.INTER_AREA) * table
+    out = color.astype(np.float32) * (1 - alpha[..., None]) + (value * alpha)[..., None]
+    return np.clip(np.round(out), 0, 255).astype(np.uint8)
+
+
 def board_view(image: np.ndarray, intrinsics: np.ndarray, board: Board, where: str) -> BoardView:
     """The camera-to-table extrinsics of a camera (intrinsics (3, 3) px, undistorted image (H, W, 3) uint8 RGB) that
     sees `board` lying on the table; UserError naming `where` (the image) when too few corners are found."""

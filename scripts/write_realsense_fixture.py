@@ -107,28 +107,11 @@ def _rotation(degrees) -> np.ndarray:
 
 
 def paint_board(color: np.ndarray, table: np.ndarray, camera) -> np.ndarray:
-    """`color` (H, W, 3) with BOARD drawn onto the table where `table` (H, W) bool, through `camera` (a pinhole
-    `dsr_bench.geometry.Camera`): the board's picture warped by its corners' homography at twice the resolution, then
-    area-averaged."""
-    import cv2
+    """`color` (H, W, 3) with BOARD drawn onto the table where `table` (H, W) bool, through `camera`
+    (`dsr_bench.annotator.calibrate.paint_board`)."""
+    from dsr_bench.annotator.calibrate import paint_board as paint
 
-    from dsr_bench.annotator.calibrate import parse_board
-
-    ppm = 2000
-    cols, rows = BOARD["squares"]
-    w, h = round(cols * BOARD["square_length"] * ppm), round(rows * BOARD["square_length"] * ppm)
-    picture = parse_board("fixture", BOARD).cv_board().generateImage((w, h), marginSize=0, borderBits=1)
-    extent = np.array([[0, 0, 0], [w, 0, 0], [w, h, 0], [0, h, 0]], np.float64) / ppm
-    uv, _ = camera.project(extent @ np.diag([1.0, -1.0, -1.0]).T + np.asarray(BOARD["offset"]))
-    src = np.array([[0, 0], [w, 0], [w, h], [0, h]], np.float32) - 0.5
-    hom = cv2.getPerspectiveTransform(src, (2 * uv + 0.5).astype(np.float32))
-    size = (2 * camera.width, 2 * camera.height)
-    fine = cv2.warpPerspective(picture, hom, size, flags=cv2.INTER_LINEAR, borderValue=0).astype(np.float32)
-    cover = cv2.warpPerspective(np.ones((h, w), np.float32), hom, size, flags=cv2.INTER_LINEAR, borderValue=0)
-    value = cv2.resize(fine, (camera.width, camera.height), interpolation=cv2.INTER_AREA)
-    alpha = cv2.resize(cover, (camera.width, camera.height), interpolation=cv2.INTER_AREA) * table
-    out = color.astype(np.float32) * (1 - alpha[..., None]) + (value * alpha)[..., None]
-    return np.clip(np.round(out), 0, 255).astype(np.uint8)
+    return paint(color, table, camera, BOARD)
 
 
 def distort(image: np.ndarray, k: np.ndarray, model: str, coeffs) -> np.ndarray:

@@ -39,29 +39,11 @@ def _true_camera(name: str) -> Camera:
 
 
 def _paste_board(color: np.ndarray, table: np.ndarray, camera: Camera) -> np.ndarray:
-    """`color` (H, W, 3) with the ChArUco board (BOARD) drawn onto the table plane where `table` (H, W) bool: the
-    board's picture (generateImage, 2000 px/m) warped by the homography of its corners through `camera` at twice the
-    resolution, then area-averaged (pixel centres at integers throughout)."""
-    from dsr_bench.annotator.calibrate import parse_board
+    """`color` (H, W, 3) with the ChArUco board (BOARD) drawn onto the table plane where `table` (H, W) bool
+    (`dsr_bench.annotator.calibrate.paint_board`)."""
+    from dsr_bench.annotator.calibrate import paint_board
 
-    board = parse_board("test", BOARD)
-    ppm = 2000
-    cols, rows = BOARD["squares"]
-    w, h = round(cols * BOARD["square_length"] * ppm), round(rows * BOARD["square_length"] * ppm)
-    picture = board.cv_board().generateImage((w, h), marginSize=0, borderBits=1)
-    extent = np.array([[0, 0, 0], [w, 0, 0], [w, h, 0], [0, h, 0]], np.float64) / ppm  # board frame, m
-    uv, z = camera.project(extent @ np.diag([1.0, -1.0, -1.0]).T + np.asarray(BOARD["offset"]))
-    assert np.all(z > 0)
-    src = np.array([[0, 0], [w, 0], [w, h], [0, h]], np.float32) - 0.5
-    dst = (2 * uv + 0.5).astype(np.float32)
-    hom = cv2.getPerspectiveTransform(src, dst)
-    size = (2 * camera.width, 2 * camera.height)
-    fine = cv2.warpPerspective(picture, hom, size, flags=cv2.INTER_LINEAR, borderValue=0).astype(np.float32)
-    cover = cv2.warpPerspective(np.ones((h, w), np.float32), hom, size, flags=cv2.INTER_LINEAR, borderValue=0)
-    value = cv2.resize(fine, (camera.width, camera.height), interpolation=cv2.INTER_AREA)
-    alpha = cv2.resize(cover, (camera.width, camera.height), interpolation=cv2.INTER_AREA) * table
-    out = color.astype(np.float32) * (1 - alpha[..., None]) + (value * alpha)[..., None]
-    return np.clip(np.round(out), 0, 255).astype(np.uint8)
+    return paint_board(color, table, camera, BOARD)
 
 
 def _distort(image: np.ndarray, camera: Camera, coefficients, nearest: bool) -> np.ndarray:
