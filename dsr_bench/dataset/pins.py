@@ -188,13 +188,23 @@ def verify_scored(split: str, names: list[str], recomputed: Mapping[str, Mapping
                                            if missing else "", f"adds {len(extra)} (e.g. {', '.join(extra[:limit])})"
                                            if extra else "") if part)
         lines.append(f"{data_dir}: split {split!r} {what}; it is not the pinned split: {fix}")
+    lines += changed_ground_truth(data_dir, recomputed, pinned, f"the pinned {split}", fix, limit,
+                                  "recomputed while scoring, whatever the file's digest attributes say")
+    return not lines, lines
+
+
+def changed_ground_truth(data_dir: str | Path, recomputed: Mapping[str, Mapping[str, str]],
+                         pinned: Mapping[str, Mapping], against: str, fix: str, limit: int, how: str) -> list[str]:
+    """Warning lines for the scored sequences whose recomputed `scored` digests differ from their pinned ones: one
+    line per sequence (its fields) up to `limit`, then one for the rest; `against` names the pins, `how` how the
+    digests were found. Shared by a toolkit split's check (`verify_scored`) and a real split's
+    (`dsr_bench.dataset.real`)."""
     changed = {name: differing_fields(d, pinned[name].get("scored", {}))
                for name, d in sorted(recomputed.items()) if name in pinned}
     changed = {name: fields for name, fields in changed.items() if fields}
-    for name, fields in list(changed.items())[:limit]:
-        lines.append(f"{Path(data_dir) / (name + '.h5')}: {', '.join(fields)} differ from the pinned {split} "
-                     f"(recomputed while scoring, whatever the file's digest attributes say); {fix}")
+    lines = [f"{Path(data_dir) / (name + '.h5')}: {', '.join(fields)} differ from {against} ({how}); {fix}"
+             for name, fields in list(changed.items())[:limit]]
     if len(changed) > limit:
-        lines.append(f"{data_dir}: {len(changed) - limit} more sequences whose ground truth differs from the pinned "
-                     f"{split}; {fix}")
-    return not lines, lines
+        lines.append(f"{data_dir}: {len(changed) - limit} more sequences whose ground truth differs from {against}; "
+                     f"{fix}")
+    return lines

@@ -31,8 +31,7 @@ from collections.abc import Callable, Mapping
 from pathlib import Path
 
 from dsr_bench.dataset.manifest import split_digest
-from dsr_bench.dataset.pins import compare_with_pin, summarize
-from dsr_bench.dataset.scored import differing_fields
+from dsr_bench.dataset.pins import changed_ground_truth, compare_with_pin, summarize
 from dsr_bench.errors import UserError
 from dsr_bench.jsonfile import UnreadableJSON, read_json
 
@@ -103,14 +102,8 @@ def verify_real_scored(data_dir: str | Path, split: str, names: list[str], recom
     if actual != pin.get("checksum"):
         lines.append(f"{data_dir}: split {split!r} has checksum {actual[:12]}... in its manifest, its real-split pins "
                      f"give {str(pin.get('checksum'))[:12]}...; {fix}")
-    changed = {name: fields for name, d in sorted(recomputed.items()) if name in pinned
-               if (fields := differing_fields(d, pinned[name].get("scored", {})))}
-    for name, fields in list(changed.items())[:limit]:
-        lines.append(f"{Path(data_dir) / (name + '.h5')}: {', '.join(fields)} differ from the real-split pins of "
-                     f"{split} (recomputed while scoring); {fix}")
-    if len(changed) > limit:
-        lines.append(f"{data_dir}: {len(changed) - limit} more sequences whose ground truth differs from the "
-                     f"real-split pins of {split}; {fix}")
+    lines += changed_ground_truth(data_dir, recomputed, pinned, f"the real-split pins of {split}", fix, limit,
+                                  "recomputed while scoring")
     about = {"name": record["name"], "part": next(p for p, s in record["parts"].items() if s == split),
              "pins": REAL_SPLIT_FILE, "checksum": pin.get("checksum"), "sequences": len(pinned)}
     return not lines, lines, about
