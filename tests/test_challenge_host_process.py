@@ -194,7 +194,10 @@ def test_the_servers_worker_ends_with_the_server(tmp_path, tmp_path_factory, cap
         runs = rows(url, "SELECT part, run FROM scores WHERE submission_id = :sid ORDER BY part, run", sid=sid)
         expected = range(1, len(rescored) + 2)
         assert runs == [("private", r) for r in expected] + [("public", r) for r in expected]  # each run once
-        assert served.workers() and worker not in served.workers()
+        # the job may have been scored before this server's worker was spawned (by the orphan, between SIGCONT and
+        # its noticing the server gone; it still gave nothing back twice): wait for the new worker, not a fixed time
+        [new_worker] = wait_until(served.workers, "the next server's worker started")
+        assert new_worker != worker and not alive(worker)
         assert not list(Layout(root).work.glob(f"{sid}-*"))
     finally:
         served.stop()
