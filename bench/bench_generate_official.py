@@ -11,10 +11,13 @@ sequence to a fresh directory:
   from their repository root in their own environment (built once with their dependencies, see
   bench/official.py; --no-venv runs it with --official-python as is). It is unseeded;
 - ours: `dsr-bench generate --objects cube -n 1 --workers 1 --seed K --out DIR`, K = --seed + run.
-Prints each side's median wall seconds per sequence, the ratio of the medians, each side's median bytes on
-disk per step (every file the run wrote, over its steps; the authors' files hold one step each) and their
-ratio, and one markdown table row (date, cores, both medians, ratios) to quote. Without `--official-repo` only
-our side is run and no comparison is made. Both generators are single-process; run on an idle machine.
+Prints each side's median wall seconds and median process CPU seconds per sequence (user + system time of
+the process and everything it waited for, all threads: the authors' generator steps its physics in a
+free-running thread and waits on fixed sleeps and polling, so on a loaded machine its wall time says more about
+the load than about the work), the ratios of the medians, each side's median bytes on disk per step (every file
+the run wrote, over its steps; the authors' files hold one step each) and their ratio, and one markdown table
+row (date, cores, load, both medians and ranges, ratios) to quote. Without `--official-repo` only our side is
+run and no comparison is made. Both generators are single-process.
 """
 
 from __future__ import annotations
@@ -22,6 +25,7 @@ from __future__ import annotations
 import argparse
 import datetime as dt
 import os
+import resource
 import shutil
 import statistics
 import subprocess
@@ -66,18 +70,28 @@ def bytes_on_disk(out: Path) -> int:
     return sum(p.stat().st_size for p in out.rglob("*") if p.is_file())
 
 
+def children_cpu_seconds() -> float:
+    """User + system CPU seconds of every child process this one has waited for so far (all their threads)."""
+    usage = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return usage.ru_utime + usage.ru_stime
+
+
 def run_process(what: str, cmd: list[str], out: Path, cwd: Path | None, logs: Path, timeout: float,
-                env: dict | None = None, sizes: list[int] | None = None) -> float:
+                env: dict | None = None, sizes: list[int] | None = None, cpu: list[float] | None = None) -> float:
     """Wall seconds of one fresh process writing into `out` (removed afterwards; the bytes it wrote appended to
-    `sizes`); a failure, or a run that wrote nothing, is a one-line UserError with the last line of its output."""
+    `sizes`, its process CPU seconds to `cpu`); a failure, or a run that wrote nothing, is a one-line UserError
+    with the last line of its output."""
     log = logs / ("theirs.log" if what == THEIRS else "ours.log")
     with open(log, "w") as fh:
+        c0 = children_cpu_seconds()
         t0 = time.perf_counter()
         try:
             proc = subprocess.run(cmd, cwd=cwd, stdout=fh, stderr=subprocess.STDOUT, timeout=timeout, env=env)
         except subprocess.TimeoutExpired:
             raise UserError(f"{what}: still running after {timeout:.0f} s (--timeout); output in {log}") from None
         seconds = time.perf_counter() - t0
+        if cpu is not None:
+            cpu.append(children_cpu_seconds() - c0)
     if proc.returncode != 0:
         raise UserError(f"{what} failed: `{' '.join(cmd)}` exited {proc.returncode} "
                         f"({last_line(log.read_text())}; output in {log})")
@@ -107,27 +121,36 @@ def main(argv: list[str] | None = None) -> dict:
     try:
         count = {"ours": 0, "theirs": 0}
         sizes: dict[str, list[int]] = {OURS: [], THEIRS: []}
+        cpu: dict[str, list[float]] = {THEIRS: [], OURS: []}
 
         def ours() -> float:
             seed = args.seed + count["ours"]
             count["ours"] += 1
             out = work / f"ours-{seed}"
             return run_process(OURS, our_command(out, seed, args.steps), out, None, logs, args.timeout,
-                               sizes=sizes[OURS])
+                               sizes=sizes[OURS], cpu=cpu[OURS])
 
         def theirs() -> float:
             count["theirs"] += 1
             out = work / f"theirs-{count['theirs']}"
             env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "PYTHONHOME", "VIRTUAL_ENV")}
             return run_process(THEIRS, official_command(python, out, args.steps), out, repo, logs, args.timeout, env,
-                               sizes[THEIRS])
+                               sizes[THEIRS], cpu[THEIRS])
 
         runs = {THEIRS: theirs, OURS: ours} if repo else {OURS: ours}
+        load_before = os.getloadavg()[0]
         timings = alternate(runs, args.repeats)
+        load_after = os.getloadavg()[0]
         shutil.rmtree(logs)
-        print(f"one {args.steps}-step cube sequence per run, a fresh process each; {os.cpu_count()} cores; "
-              f"{args.repeats} runs of each side" + (", alternated" if repo else ""))
+        cpu = {side: values for side, values in cpu.items() if values}
+        print(f"one {args.steps}-step cube sequence per run, a fresh process each; {os.cpu_count()} cores, load "
+              f"average {load_before:.1f} before and {load_after:.1f} after; {args.repeats} runs of each side"
+              + (", alternated" if repo else ""))
+        print("wall seconds:")
         figures = report(timings, [(THEIRS, OURS)] if repo else [], per=1, unit="sequence")
+        print("process CPU seconds (user + system, all threads):")
+        cpu_figures = report(cpu, [(THEIRS, OURS)] if repo else [], per=1, unit="sequence")
+        figures.update({f"CPU {key}": value for key, value in cpu_figures.items()})
         per_step = {side: statistics.median(b) / args.steps / 1e6 for side, b in sizes.items() if b}
         for side, mb in per_step.items():
             print(f"{side}: {mb:.3f} MB on disk per step (median of {len(sizes[side])} runs)")
@@ -137,16 +160,21 @@ def main(argv: list[str] | None = None) -> dict:
         if not repo:
             print("no comparison with the authors' code was made: pass --official-repo PATH (a checkout of "
                   "columbia-ai-robotics/dsr) to run their data_generation.py beside ours")
-            return {"timings": timings, "figures": figures}
+            return {"timings": timings, "cpu": cpu, "figures": figures}
         date = dt.date.today().isoformat()
-        print(f"\n| date | machine | {THEIRS}, s/sequence | {OURS}, s/sequence | ratio | MB/step, theirs | "
-              "MB/step, ours | ratio | runs |")
-        print("|---|---|---|---|---|---|---|---|---|")
-        print(f"| {date} | {os.cpu_count()} cores | {statistics.median(timings[THEIRS]):.1f} | "
-              f"{statistics.median(timings[OURS]):.2f} | {figures[f'{THEIRS} / {OURS}']:.1f}x | "
-              f"{per_step[THEIRS]:.2f} | {per_step[OURS]:.2f} | {per_step[THEIRS] / per_step[OURS]:.1f}x | "
-              f"{args.repeats} + {args.repeats}, alternated, medians |")
-        return {"timings": timings, "figures": figures}
+
+        def cell(values: list[float], digits: int) -> str:
+            return f"{statistics.median(values):.{digits}f} ({min(values):.{digits}f}-{max(values):.{digits}f})"
+
+        print("\n| date | machine | CPU s/sequence, theirs | CPU s/sequence, ours | CPU ratio | wall s, theirs | "
+              "wall s, ours | wall ratio | MB/step, theirs | MB/step, ours | ratio | runs |")
+        print("|---|---|---|---|---|---|---|---|---|---|---|---|")
+        print(f"| {date} | {os.cpu_count()} cores, load {load_before:.1f}-{load_after:.1f} | {cell(cpu[THEIRS], 1)} | "
+              f"{cell(cpu[OURS], 2)} | {figures[f'CPU {THEIRS} / {OURS}']:.1f}x | {cell(timings[THEIRS], 1)} | "
+              f"{cell(timings[OURS], 2)} | {figures[f'{THEIRS} / {OURS}']:.1f}x | {per_step[THEIRS]:.2f} | "
+              f"{per_step[OURS]:.2f} | {per_step[THEIRS] / per_step[OURS]:.1f}x | "
+              f"{args.repeats} + {args.repeats}, alternated, medians (ranges) |")
+        return {"timings": timings, "cpu": cpu, "figures": figures}
     finally:
         shutil.rmtree(work, ignore_errors=True)
 

@@ -301,8 +301,11 @@ def test_bench_generate_alternates_the_authors_generator_with_ours(fake_repo, mo
     assert list(out["timings"]) == [bench.THEIRS, bench.OURS] and all(len(v) == 2 for v in out["timings"].values())
     assert seeds == [5, 6]  # a new sequence per run
     assert f"{bench.THEIRS} / {bench.OURS}:" in text
+    assert list(out["cpu"]) == [bench.THEIRS, bench.OURS] and all(len(v) == 2 for v in out["cpu"].values())
+    assert all(v >= 0 for values in out["cpu"].values() for v in values)  # each run's process CPU seconds
+    assert f"CPU {bench.THEIRS} / {bench.OURS}" in out["figures"] and "process CPU seconds" in text
     row = [line for line in text.splitlines() if line.startswith("| 2")]
-    assert len(row) == 1 and row[0].count("|") == 10 and "alternated" in row[0]
+    assert len(row) == 1 and row[0].count("|") == 13 and "alternated" in row[0] and "load" in row[0]
     mb = out["figures"]["MB per step"]  # every file each run wrote, over its 10 steps: ours wrote one byte
     assert mb[bench.OURS] == pytest.approx(1 / 10 / 1e6) and mb[bench.THEIRS] > 0
     assert f"bytes per step, {bench.THEIRS} / {bench.OURS}:" in text
