@@ -1,12 +1,14 @@
 """Pin a named split in the toolkit from a freshly generated, validated dataset.
 
-    python scripts/pin_split.py DATA_DIR [--split NAME]
+    python scripts/pin_split.py DATA_DIR [--split NAME] [--workers N] [--no-fingerprints]
 
 Writes dsr_bench/dataset/split_pins.json["splits"][NAME] (`dsr_bench.dataset.pins.build_pin`): the split's
 ground-truth checksum, its observations' checksum, and per sequence the two group digests and a
 fingerprint of every array. Run it after `dsr-bench generate --split NAME --out DATA_DIR` and
 `dsr-bench validate DATA_DIR`, whenever the generator changes what it writes (and say so in the
-commit, with why the new pin still verifies on a CPU other than yours).
+commit, with why the new pin still verifies on a CPU other than yours). `--workers N` reads the files in N
+processes; `--no-fingerprints` keeps no per-array fingerprint (for a training split of thousands of sequences:
+a sequence that differs is then named by its group, ground truth or observations, not by its arrays).
 
     python scripts/pin_split.py DATA_DIR --split NAME --scored-only
 
@@ -27,6 +29,9 @@ def main() -> None:
     parser.add_argument("data", type=Path)
     parser.add_argument("--split")
     parser.add_argument("--scored-only", action="store_true", help="add the scored digests to an existing pin")
+    parser.add_argument("--workers", type=int, default=1, help="processes reading the files")
+    parser.add_argument("--no-fingerprints", action="store_true",
+                        help="pin no per-array fingerprints (large training splits)")
     args = parser.parse_args()
 
     from dsr_bench.atomic import write_text
@@ -44,7 +49,8 @@ def main() -> None:
     if args.scored_only:
         pin = add_scored(pins["splits"].get(split), args.data, names, split)
     else:
-        pin = build_pin(args.data, names, load_manifest(args.data), split)
+        pin = build_pin(args.data, names, load_manifest(args.data), split, workers=args.workers,
+                        fingerprints=not args.no_fingerprints)
     pins["splits"][split] = pin
     # one line per sequence keeps the file diffable
     text = json.dumps(pins, sort_keys=True, separators=(",", ":")).replace('},"seq_', '},\n"seq_') + "\n"

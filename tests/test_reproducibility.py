@@ -148,6 +148,34 @@ def test_a_rendering_difference_of_one_ulp_is_noted_and_a_ground_truth_change_is
     assert line[0] == "seq_0000" and "ground truth differs" in line[1] and "mask_3d" in line[1]
 
 
+def test_a_pin_without_fingerprints_names_the_changed_group_and_is_built_alike_in_workers(reference, tmp_path):
+    """A training split of thousands of sequences is pinned without array fingerprints (`fingerprints=False`):
+    a sequence whose ground truth or observations changed is still caught, by group; the digests are those of the
+    full pin, whether read here or in worker processes."""
+    data = tmp_path / "two"
+    shutil.copytree(reference, data)
+    shutil.copyfile(data / "seq_0000.h5", data / "seq_0001.h5")
+    write_manifest(data, build_manifest(data))
+    full = build_pin(data, ["seq_0000", "seq_0001"], load_manifest(data), "all")
+    slim = build_pin(data, ["seq_0000", "seq_0001"], load_manifest(data), "all", workers=2, fingerprints=False)
+    assert slim["fields"] == [] and all(entry["arrays"] == [] for entry in slim["sequences"].values())
+    assert {k: slim[k] for k in ("checksum", "observations_checksum")} == \
+        {k: full[k] for k in ("checksum", "observations_checksum")}
+    assert all({k: v for k, v in slim["sequences"][n].items() if k != "arrays"} ==
+               {k: v for k, v in full["sequences"][n].items() if k != "arrays"} for n in full["sequences"])
+
+    def one_voxel(arrays):
+        mask = arrays["mask_3d"]
+        mask[1][tuple(np.argwhere(mask[1] > 0)[0])] = 0
+
+    _rewrite(data / "seq_0001.h5", one_voxel)
+    result = _compare(data, slim)
+    assert not result.reproduced and list(result.ground_truth) == ["seq_0001"]
+    assert result.ground_truth["seq_0001"] == ["its ground truth differs from the pin (this split pins no array "
+                                               "fingerprints)"]
+    assert not result.observations_out and not result.observations_within
+
+
 def test_the_tolerance_tells_noise_from_a_different_scene():
     rng = np.random.default_rng(1)
     depth = rng.uniform(0.4, 0.9, (11, 240, 320)).astype(np.float32)

@@ -26,27 +26,41 @@ from dsr_bench.dataset.splits import SPLITS
 
 
 def build_pin(data_dir: str | Path, names: list[str], manifest: Mapping, split: str,
-              digests: Callable[[Path], dict] = file_digests) -> dict:
+              digests: Callable[[Path], dict] = file_digests, workers: int = 1, fingerprints: bool = True) -> dict:
     """The pin of split `split` of a dataset: its sequences `names` are read (every array, one step at a
-    time) and must match the manifest's digests (SystemExit naming the sequence otherwise); each sequence's
-    `scored` digests (`dsr_bench.dataset.scored`) are what `evaluate` recomputes while it scores."""
+    time; in `workers` processes) and must match the manifest's digests (SystemExit naming the sequence
+    otherwise); each sequence's `scored` digests (`dsr_bench.dataset.scored`) are what `evaluate` recomputes
+    while it scores. Without `fingerprints` no array's fingerprint is kept (a training split of thousands of
+    sequences: a sequence that differs is then named with its group, ground truth or observations, not its
+    arrays)."""
+    from functools import partial
+
+    from dsr_bench.parallel import as_finished, in_order
+
     listed = {s["name"]: s for s in manifest["sequences"]}
-    found = {}
-    for name in names:
-        found[name] = digests(Path(data_dir) / listed[name]["file"])
+    paths = [Path(data_dir) / listed[name]["file"] for name in names]
+    read = in_order(as_finished(partial(_read_for_pin, digests), paths, workers), len(paths))
+    found, scored = {}, {}
+    for name, (d, s) in zip(names, read):
+        found[name], scored[name] = d, s
         for key in (GROUND_TRUTH_KEY, OBSERVATIONS_KEY):
-            if found[name][key] != listed[name][key]:
+            if d[key] != listed[name][key]:
                 raise SystemExit(f"{name}: {key} of the file differs from the manifest; run `dsr-bench validate`")
-    fields = sorted({f for d in found.values() for f in d["fingerprints"]})
+    fields = sorted({f for d in found.values() for f in d["fingerprints"]}) if fingerprints else []
     sequences = {
         name: {"ground_truth": d[GROUND_TRUTH_KEY], "observations": d[OBSERVATIONS_KEY],
                "arrays": [d["fingerprints"][f].to_list() if f in d["fingerprints"] else None for f in fields],
-               "scored": file_scored_digests(Path(data_dir) / listed[name]["file"])}
+               "scored": scored[name]}
         for name, d in found.items()
     }
     return {"checksum": split_digest(manifest, split),
             "observations_checksum": split_checksum((n, d[OBSERVATIONS_KEY]) for n, d in found.items()),
             "fields": fields, "sequences": sequences}
+
+
+def _read_for_pin(digests: Callable[[Path], dict], path: Path) -> tuple[dict, dict]:
+    """A sequence file's digests (`digests(path)`) and its scored digests."""
+    return digests(path), file_scored_digests(path)
 
 
 @dataclass
@@ -85,11 +99,15 @@ def compare_with_pin(pin: Mapping, digests: Mapping[str, Mapping],
         obs_same = have[OBSERVATIONS_KEY] == pinned["observations"]
         if gt_same and obs_same:
             continue
-        actual = fingerprints(name)
-        expected = {f: Fingerprint.from_list(v) for f, v in zip(fields, pinned["arrays"]) if v is not None}
         gt: list[str] = []
         obs_out: list[str] = []
         obs_within: list[str] = []
+        if not fields:  # a pin without fingerprints (`build_pin(fingerprints=False)`): only the groups are known
+            gt += [] if gt_same else ["its ground truth differs from the pin (this split pins no array fingerprints)"]
+            obs_out += [] if obs_same else ["its observations differ from the pin (this split pins no array "
+                                            "fingerprints, so no tolerance applies)"]
+        actual = fingerprints(name) if fields else {}
+        expected = {f: Fingerprint.from_list(v) for f, v in zip(fields, pinned["arrays"]) if v is not None}
         for array in sorted(set(actual) | set(expected)):
             a, e = actual.get(array), expected.get(array)
             if a is None or e is None:
