@@ -128,3 +128,24 @@ def test_challenge_create_on_a_read_only_file_system_is_one_line(tmp_path, monke
     assert len(err.splitlines()) == 1 and err.startswith("error: dsr-bench challenge create: cannot write "), err
     assert str(read_only) in err and os.strerror(errno.EROFS) in err
     assert not read_only.exists()
+
+
+def test_a_command_plugin_that_cannot_be_imported_is_named_with_the_fix_and_the_rest_still_load(capsys):
+    """A source checkout in the working directory shadows the installed package without the `generators` and
+    `annotator` packages the install maps into it: their commands are left out with one line naming the plugin,
+    the import error, where dsr_bench was imported from and the fix; the other plugins still register."""
+    from importlib.metadata import EntryPoint
+
+    from dsr_bench.cli import ENTRY_POINT_GROUP, load_plugin
+
+    missing = EntryPoint(name="annotator", value="dsr_bench.annotator_absent.cli:register", group=ENTRY_POINT_GROUP)
+    assert load_plugin(missing) is None
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1
+    assert "dsr_bench.annotator_absent.cli:register" in err and "No module named 'dsr_bench.annotator_absent'" in err
+    assert "pip install -e ." in err and "dsr_bench is imported from" in err
+
+    present = EntryPoint(name="annotator", value="dsr_bench.annotator.cli:register", group=ENTRY_POINT_GROUP)
+    register = load_plugin(present)
+    assert callable(register) and register.__module__ == "dsr_bench.annotator.cli"
+    assert capsys.readouterr().err == ""

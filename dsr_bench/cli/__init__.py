@@ -11,6 +11,8 @@ from __future__ import annotations
 import importlib
 import inspect
 import sys
+from collections.abc import Callable
+from pathlib import Path
 
 import typer
 
@@ -40,12 +42,31 @@ def _register_commands() -> None:
     for name in _COMMAND_MODULES:
         importlib.import_module(f"dsr_bench.cli.{name}").register(app)
     for entry in entry_points(group=ENTRY_POINT_GROUP):
-        entry.load()(app)
+        register = load_plugin(entry)
+        if register is not None:
+            register(app)
     rank = {name: i for i, name in enumerate(COMMAND_ORDER)}
     app.registered_commands.sort(key=lambda c: rank.get(c.name or "", len(rank)))
     for group in [app, *(g.typer_instance for g in app.registered_groups if g.typer_instance is not None)]:
         for command in group.registered_commands:
             command.help = reflow(command.help or inspect.getdoc(command.callback) or "")
+
+
+def load_plugin(entry) -> Callable | None:
+    """The `register` function of a command plugin (an entry point of ENTRY_POINT_GROUP), or None, with one line
+    on stderr naming the cause and the fix, when its module cannot be imported: commonly a source checkout of
+    dsr-bench in the working directory shadowing the installed package (its `dsr_bench/` folder lacks the
+    `generators` and `annotator` packages that the install maps into it). The other commands still work."""
+    try:
+        return entry.load()
+    except ImportError as exc:
+        import dsr_bench
+
+        where = Path(dsr_bench.__file__).resolve().parent
+        print(f"dsr-bench: the commands of {entry.value} are unavailable ({exc}); dsr_bench is imported from "
+              f"{where}: when that is a checkout of dsr-bench, install it with `pip install -e .` or run from "
+              "another directory", file=sys.stderr)
+        return None
 
 
 def reflow(text: str) -> str:
