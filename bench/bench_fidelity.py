@@ -1,7 +1,7 @@
 """Benchmark: do dsr-bench's simulated sequences follow the authors' generator, statistic by statistic?
 
     python bench/bench_fidelity.py [--ours DIR | --generate N --objects cube --seed S] [--workers 2]
-                                   [--reference H5 | --official-dir DIR]
+                                   [--reference H5 | --official-dir DIR] [--paired-with DIR]
                                    [--bootstrap 2000] [--permutations 10000] [--json OUT]
 
 Our side: a directory of dsr-bench sequences (`--ours DIR`, its seq_*.h5), or N sequences generated
@@ -52,6 +52,10 @@ Definitions (units in the row labels; a push is t -> t+1, t < T; means are over 
     object of push t-1
 12. start distance to pushed object (cm): mean over pushes of the xy distance (cm) from the push start
     (the action cell's centre) to the pushed object's centre before the push
+`--paired-with DIR`: another directory of ours with the same sequence names (the same seeds made another way, e.g.
+with `--freeze-unreachable` against without): each statistic's mean per-sequence difference (ours - DIR) over the
+sequences both have, its standard error and a sign-flip permutation p; a far more sensitive test of the change
+than either side against the authors'.
 The pushed object is not recorded in the reference; on both sides it is inferred as follows. pushed
 object: the object whose xy centre before the push is nearest to the segment from start + 0.02 m to
 start + 0.12 m along the push direction (start = the action cell's centre). On our side, where the
@@ -77,6 +81,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from fidelity_stats import (
     PUSHED_OBJECT_RULE,
     STATISTICS,
+    paired_difference,
     Record,
     bootstrap_interval,
     permutation_pvalue,
@@ -166,17 +171,17 @@ def read_official_dir(path: str | Path) -> list[Record]:
     return records
 
 
-def read_ours(path: str | Path) -> tuple[list[Record], list[np.ndarray | None]]:
+def read_ours(path: str | Path, flag: str = "--ours") -> tuple[list[Record], list[np.ndarray | None]]:
     """Records of a directory of dsr-bench sequences (its seq_*.h5), and each one's recorded policy choice
     (`policy/chosen_object`, or None where the file has none)."""
     from dsr_bench.dataset.sequence import SequenceReader
 
     path = Path(path)
     if not path.is_dir():
-        raise UserError(f"--ours {path}: not a directory; pass a dsr-bench dataset directory (seq_*.h5)")
+        raise UserError(f"{flag} {path}: not a directory; pass a dsr-bench dataset directory (seq_*.h5)")
     files = sorted(path.glob("seq_*.h5"))
     if not files:
-        raise UserError(f"--ours {path}: no seq_*.h5 sequence files; generate some with `dsr-bench generate`")
+        raise UserError(f"{flag} {path}: no seq_*.h5 sequence files; generate some with `dsr-bench generate`")
     records, chosen = [], []
     for file in files:
         with SequenceReader(file) as seq:
@@ -188,7 +193,7 @@ def read_ours(path: str | Path) -> tuple[list[Record], list[np.ndarray | None]]:
                     np.stack([voxel_counts(seq.read("mask_3d", t), n) for t in range(T + 1)]),
                     np.stack([tsdf_bands(seq.read("tsdf", t)) for t in range(T)])))
             except ValueError as exc:
-                raise UserError(f"--ours {file}: {exc}") from None
+                raise UserError(f"{flag} {file}: {exc}") from None
             chosen.append(seq.read("policy/chosen_object") if "policy/chosen_object" in seq else None)
     return records, chosen
 
@@ -235,6 +240,40 @@ def compare(theirs: list[Record], ours: list[Record], n_boot: int, n_perm: int,
         rows.append({"key": key, "label": label, "definition": definition, **sides, "p": p,
                      "marked": bool(np.isfinite(p) and p <= ALPHA)})
     return rows
+
+
+def compare_paired(ours: list[Record], other: list[Record], n_perm: int, seed: int = RESAMPLE_SEED) -> list[dict]:
+    """One row per statistic: the paired difference ours - other over the sequences of the same name
+    (`fidelity_stats.paired_difference`)."""
+    names = sorted({r.name for r in ours} & {r.name for r in other})
+    if not names:
+        raise UserError("--paired-with: no sequence name in common with ours; pair the same seeds made two ways")
+    by_name = ({r.name: r for r in ours}, {r.name: r for r in other})
+    a, b = (statistics_table([side[n] for n in names]) for side in by_name)
+    rows = []
+    for i, (key, (label, _)) in enumerate(STATISTICS.items()):
+        rng = np.random.default_rng([seed, 1000 + i])
+        diff = paired_difference(a[key], b[key], n_perm, rng)
+        rows.append({"key": key, "label": label, **diff, "marked": bool(np.isfinite(diff["p"]) and diff["p"] <= ALPHA)})
+    return rows
+
+
+def format_paired(rows: list[dict], n_perm: int) -> str:
+    """The paired table: one statistic per row, mean difference +- standard error, n and p."""
+    body = []
+    for row in rows:
+        d = _DECIMALS.get(row["key"], 1 if row["key"].endswith("_pct") else 2) + 1
+        cell = "n/a" if not np.isfinite(row["mean"]) else f"{row['mean']:+.{d}f} ± {row['se']:.{d}f}"
+        p = "n/a" if not np.isfinite(row["p"]) else f"{row['p']:.4f}"
+        body.append((row["label"], cell, str(row["n"]), p + (" *" if row["marked"] else "")))
+    head = ("statistic", "ours - paired (mean ± SE)", "n", "p")
+    widths = [max(len(r[i]) for r in body + [head]) for i in range(4)]
+    lines = ["| " + " | ".join(h.ljust(w) for h, w in zip(head, widths)) + " |",
+             "|" + "|".join("-" * (w + 2) for w in widths) + "|"]
+    lines += ["| " + " | ".join(c.ljust(w) for c, w in zip(r, widths)) + " |" for r in body]
+    lines.append(f"Per-sequence differences over the sequences both sides have; p: two-sided sign-flip permutation "
+                 f"test ({n_perm} permutations); * p <= {ALPHA}.")
+    return "\n".join(lines)
 
 
 def inference_agreement(records: list[Record], chosen: list[np.ndarray | None]) -> float | None:
@@ -312,6 +351,8 @@ def main(argv: list[str] | None = None) -> dict:
     theirs_arg.add_argument("--official-dir", type=Path, metavar="DIR",
                             help="a directory in the official per-step layout (<seq>_<step>.hdf5), e.g. made by "
                                  "the authors' data_generation.py")
+    parser.add_argument("--paired-with", type=Path, metavar="DIR",
+                        help="another directory of ours with the same sequence names: paired differences too")
     parser.add_argument("--bootstrap", type=int, default=2000, help="bootstrap resamples (default 2000)")
     parser.add_argument("--permutations", type=int, default=10000, help="permutations (default 10000)")
     parser.add_argument("--json", type=Path, metavar="OUT", help="also write the numbers to OUT (JSON)")
@@ -326,6 +367,9 @@ def main(argv: list[str] | None = None) -> dict:
         raise UserError(f"--json {args.json}: directory {args.json.parent} does not exist")
     if args.ours is not None and not args.ours.is_dir():  # checked before anything is read
         raise UserError(f"--ours {args.ours}: not a directory; pass a dsr-bench dataset directory (seq_*.h5)")
+    if args.paired_with is not None and not args.paired_with.is_dir():
+        raise UserError(f"--paired-with {args.paired_with}: not a directory; pass a dsr-bench dataset directory "
+                        "(seq_*.h5) of the same sequence names as ours")
 
     # the authors' side first: a bad path fails before minutes of generation
     if args.official_dir is not None:
@@ -357,11 +401,20 @@ def main(argv: list[str] | None = None) -> dict:
               "of its pushes")
     print()
     print(format_table(rows, len(theirs), len(ours), args.bootstrap, args.permutations))
+    paired = None
+    if args.paired_with is not None:
+        other, _ = read_ours(args.paired_with, "--paired-with")
+        paired = compare_paired(ours, other, args.permutations)
+        print()
+        print(f"paired with {args.paired_with} ({len(other)} sequences):")
+        print(format_paired(paired, args.permutations))
     payload = {"authors": {"source": theirs_source, "sequences": len(theirs)},
                "ours": {"source": ours_source, "sequences": len(ours)},
                "bootstrap": args.bootstrap, "permutations": args.permutations, "seed": RESAMPLE_SEED,
                "alpha": ALPHA, "pushed_object_rule": PUSHED_OBJECT_RULE, "inference_agreement_ours": agreement,
                "statistics": rows}
+    if paired is not None:
+        payload["paired"] = {"source": str(args.paired_with), "statistics": paired}
     if args.json is not None:
         write_json(args.json, payload)
     return payload

@@ -10,7 +10,8 @@ sequence to a fresh directory:
   `python data_generation.py --data_path DIR --object_type cube --train_num 1 --test_num 0`, run
   from their repository root in their own environment (built once with their dependencies, see
   bench/official.py; --no-venv runs it with --official-python as is). It is unseeded;
-- ours: `dsr-bench generate --objects cube -n 1 --workers 1 --seed K --out DIR`, K = --seed + run.
+- ours: `dsr-bench generate --objects cube -n 1 --workers 1 --seed K --out DIR`, K = --seed + run;
+- ours with `--freeze-unreachable` (objects out of the tool's reach sit each push out), the same seeds.
 Prints each side's median wall seconds and median process CPU seconds per sequence (user + system time of
 the process and everything it waited for, all threads: the authors' generator steps its physics in a
 free-running thread and waits on fixed sleeps and polling, so on a loaded machine its wall time says more about
@@ -42,9 +43,10 @@ from dsr_bench.errors import UserError  # noqa: E402
 
 THEIRS = "authors' data_generation.py"
 OURS = "dsr-bench generate"
+OURS_FROZEN = "dsr-bench generate --freeze-unreachable"
 
 
-def our_command(out: Path, seed: int, steps: int) -> list[str]:
+def our_command(out: Path, seed: int, steps: int, freeze_unreachable: bool = False) -> list[str]:
     """`dsr-bench generate` for one cube sequence (the CLI of this environment)."""
     exe = Path(sys.executable).with_name("dsr-bench")
     if not exe.exists():
@@ -55,7 +57,8 @@ def our_command(out: Path, seed: int, steps: int) -> list[str]:
         exe = Path(found)
     cmd = [str(exe), "generate", "--objects", "cube", "-n", "1", "--workers", "1", "--seed", str(seed),
            "--out", str(out)]
-    return cmd + (["--steps", str(steps)] if steps != 10 else [])
+    return cmd + (["--steps", str(steps)] if steps != 10 else []) + (["--freeze-unreachable"] if freeze_unreachable
+                                                                   else [])
 
 
 def official_command(python: Path, out: Path, steps: int) -> list[str]:
@@ -81,7 +84,7 @@ def run_process(what: str, cmd: list[str], out: Path, cwd: Path | None, logs: Pa
     """Wall seconds of one fresh process writing into `out` (removed afterwards; the bytes it wrote appended to
     `sizes`, its process CPU seconds to `cpu`); a failure, or a run that wrote nothing, is a one-line UserError
     with the last line of its output."""
-    log = logs / ("theirs.log" if what == THEIRS else "ours.log")
+    log = logs / ("theirs.log" if what == THEIRS else "ours-frozen.log" if what == OURS_FROZEN else "ours.log")
     with open(log, "w") as fh:
         c0 = children_cpu_seconds()
         t0 = time.perf_counter()
@@ -119,16 +122,22 @@ def main(argv: list[str] | None = None) -> dict:
     work = Path(tempfile.mkdtemp(prefix="dsr-bench-generate-official-"))
     logs = Path(tempfile.mkdtemp(prefix="dsr-bench-generate-logs-"))  # kept when a run fails
     try:
-        count = {"ours": 0, "theirs": 0}
-        sizes: dict[str, list[int]] = {OURS: [], THEIRS: []}
-        cpu: dict[str, list[float]] = {THEIRS: [], OURS: []}
+        count = {OURS: 0, OURS_FROZEN: 0, "theirs": 0}
+        sizes: dict[str, list[int]] = {OURS: [], OURS_FROZEN: [], THEIRS: []}
+        cpu: dict[str, list[float]] = {THEIRS: [], OURS: [], OURS_FROZEN: []}
+
+        def our_side(side: str) -> float:
+            seed = args.seed + count[side]
+            count[side] += 1
+            out = work / f"{'frozen' if side == OURS_FROZEN else 'ours'}-{seed}"
+            return run_process(side, our_command(out, seed, args.steps, side == OURS_FROZEN), out, None, logs,
+                               args.timeout, sizes=sizes[side], cpu=cpu[side])
 
         def ours() -> float:
-            seed = args.seed + count["ours"]
-            count["ours"] += 1
-            out = work / f"ours-{seed}"
-            return run_process(OURS, our_command(out, seed, args.steps), out, None, logs, args.timeout,
-                               sizes=sizes[OURS], cpu=cpu[OURS])
+            return our_side(OURS)
+
+        def ours_frozen() -> float:
+            return our_side(OURS_FROZEN)
 
         def theirs() -> float:
             count["theirs"] += 1
@@ -137,7 +146,9 @@ def main(argv: list[str] | None = None) -> dict:
             return run_process(THEIRS, official_command(python, out, args.steps), out, repo, logs, args.timeout, env,
                                sizes[THEIRS], cpu[THEIRS])
 
-        runs = {THEIRS: theirs, OURS: ours} if repo else {OURS: ours}
+        runs = {THEIRS: theirs} if repo else {}
+        runs.update({OURS: ours, OURS_FROZEN: ours_frozen})
+        pairs = [(THEIRS, OURS), (THEIRS, OURS_FROZEN), (OURS, OURS_FROZEN)] if repo else [(OURS, OURS_FROZEN)]
         load_before = os.getloadavg()[0]
         timings = alternate(runs, args.repeats)
         load_after = os.getloadavg()[0]
@@ -147,14 +158,14 @@ def main(argv: list[str] | None = None) -> dict:
               f"average {load_before:.1f} before and {load_after:.1f} after; {args.repeats} runs of each side"
               + (", alternated" if repo else ""))
         print("wall seconds:")
-        figures = report(timings, [(THEIRS, OURS)] if repo else [], per=1, unit="sequence")
+        figures = report(timings, pairs, per=1, unit="sequence")
         print("process CPU seconds (user + system, all threads):")
-        cpu_figures = report(cpu, [(THEIRS, OURS)] if repo else [], per=1, unit="sequence")
+        cpu_figures = report(cpu, pairs, per=1, unit="sequence")
         figures.update({f"CPU {key}": value for key, value in cpu_figures.items()})
         per_step = {side: statistics.median(b) / args.steps / 1e6 for side, b in sizes.items() if b}
         for side, mb in per_step.items():
             print(f"{side}: {mb:.3f} MB on disk per step (median of {len(sizes[side])} runs)")
-        if len(per_step) == 2:
+        if THEIRS in per_step:
             figures["MB per step"] = per_step
             print(f"bytes per step, {THEIRS} / {OURS}: {per_step[THEIRS] / per_step[OURS]:.2f}x")
         if not repo:
@@ -166,14 +177,17 @@ def main(argv: list[str] | None = None) -> dict:
         def cell(values: list[float], digits: int) -> str:
             return f"{statistics.median(values):.{digits}f} ({min(values):.{digits}f}-{max(values):.{digits}f})"
 
-        print("\n| date | machine | CPU s/sequence, theirs | CPU s/sequence, ours | CPU ratio | wall s, theirs | "
-              "wall s, ours | wall ratio | MB/step, theirs | MB/step, ours | ratio | runs |")
-        print("|---|---|---|---|---|---|---|---|---|---|---|---|")
+        print("\n| date | machine | CPU s/sequence, theirs | CPU s/sequence, ours | CPU ratio | ours, frozen | "
+              "CPU ratio, frozen | wall s, theirs | wall s, ours | wall ratio | wall, frozen | wall ratio, frozen | "
+              "MB/step, theirs | MB/step, ours | ratio | runs |")
+        print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
         print(f"| {date} | {os.cpu_count()} cores, load {load_before:.1f}-{load_after:.1f} | {cell(cpu[THEIRS], 1)} | "
-              f"{cell(cpu[OURS], 2)} | {figures[f'CPU {THEIRS} / {OURS}']:.1f}x | {cell(timings[THEIRS], 1)} | "
-              f"{cell(timings[OURS], 2)} | {figures[f'{THEIRS} / {OURS}']:.1f}x | {per_step[THEIRS]:.2f} | "
+              f"{cell(cpu[OURS], 2)} | {figures[f'CPU {THEIRS} / {OURS}']:.1f}x | {cell(cpu[OURS_FROZEN], 2)} | "
+              f"{figures[f'CPU {THEIRS} / {OURS_FROZEN}']:.1f}x | {cell(timings[THEIRS], 1)} | "
+              f"{cell(timings[OURS], 2)} | {figures[f'{THEIRS} / {OURS}']:.1f}x | {cell(timings[OURS_FROZEN], 2)} | "
+              f"{figures[f'{THEIRS} / {OURS_FROZEN}']:.1f}x | {per_step[THEIRS]:.2f} | "
               f"{per_step[OURS]:.2f} | {per_step[THEIRS] / per_step[OURS]:.1f}x | "
-              f"{args.repeats} + {args.repeats}, alternated, medians (ranges) |")
+              f"{args.repeats} of each side, alternated, medians (ranges) |")
         return {"timings": timings, "cpu": cpu, "figures": figures}
     finally:
         shutil.rmtree(work, ignore_errors=True)

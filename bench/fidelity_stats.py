@@ -325,3 +325,21 @@ def permutation_pvalue(a: np.ndarray, b: np.ndarray, n_perm: int, rng: np.random
     diffs = np.abs(perms[:, :a.size].mean(1) - perms[:, a.size:].mean(1))
     tol = 1e-12 * max(1.0, float(np.abs(pooled).max()))  # equal means up to rounding count as as extreme
     return float((1 + np.count_nonzero(diffs >= observed - tol)) / (1 + n_perm))
+
+
+def paired_difference(a: np.ndarray, b: np.ndarray, n_perm: int, rng: np.random.Generator) -> dict:
+    """The mean of the per-sequence differences a - b over sequences where both are finite (the same sequences
+    made two ways), its standard error, n, and the two-sided sign-flip permutation p-value ((1 + #{|mean*| >=
+    |mean|}) / (1 + n_perm), each difference's sign flipped at random)."""
+    a = np.asarray(a, dtype=np.float64)
+    b = np.asarray(b, dtype=np.float64)
+    d = (a - b)[np.isfinite(a) & np.isfinite(b)]
+    if d.size == 0:
+        return {"mean": float("nan"), "se": float("nan"), "n": 0, "p": float("nan")}
+    observed = abs(d.mean())
+    signs = rng.choice(np.array([-1.0, 1.0]), size=(n_perm, d.size))
+    flipped = np.abs((signs * d).mean(1))
+    tol = 1e-12 * max(1.0, float(np.abs(d).max()))
+    p = float((1 + np.count_nonzero(flipped >= observed - tol)) / (1 + n_perm))
+    se = float(d.std(ddof=1) / np.sqrt(d.size)) if d.size > 1 else float("nan")
+    return {"mean": float(d.mean()), "se": se, "n": int(d.size), "p": p}

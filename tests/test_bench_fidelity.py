@@ -252,6 +252,41 @@ def test_compare_is_reproducible_and_flags_differences():
     assert bench_fidelity.PUSHED_OBJECT_RULE in table
 
 
+def test_paired_difference_of_a_constant_shift_and_of_the_same_values():
+    rng = np.random.default_rng(0)
+    x = rng.normal(10, 3, 40)
+    shifted = fs.paired_difference(x + 0.1, x, 2000, np.random.default_rng(1))
+    # a shift far below the spread across sequences, but the same for every pair: the paired test sees it
+    assert shifted["mean"] == pytest.approx(0.1) and shifted["se"] == pytest.approx(0.0, abs=1e-12)
+    assert shifted["n"] == 40 and shifted["p"] == pytest.approx(1 / 2001)
+    assert fs.permutation_pvalue(x + 0.1, x, 2000, np.random.default_rng(1)) > 0.5  # unpaired, it is lost
+    same = fs.paired_difference(x, x.copy(), 500, np.random.default_rng(1))
+    assert same["mean"] == 0.0 and same["p"] == pytest.approx(1.0)
+    # NaN on either side leaves the pair out
+    part = fs.paired_difference(np.array([1.0, np.nan, 3.0]), np.array([0.0, 5.0, np.nan]), 10, rng)
+    assert part["n"] == 1 and part["mean"] == 1.0 and np.isnan(part["se"])
+
+
+def test_compare_paired_matches_sequences_by_name():
+    base = [fs.Record(f"seq_{i}", *_fields(one_push_scene())) for i in range(5)]
+    further = []
+    for rec in base:
+        positions = rec.positions.copy()
+        positions[1, 0, 0] += 0.002  # the pushed object 2 mm further in every sequence
+        further.append(fs.Record(rec.name, positions, *_fields(rec)[1:]))
+    rows = {row["key"]: row for row in bench_fidelity.compare_paired(further[::-1], base, 500)}
+    assert rows["pushed_translation_cm"]["mean"] == pytest.approx(0.2) and rows["pushed_translation_cm"]["n"] == 5
+    assert rows["voxels_t0"]["mean"] == 0.0 and not rows["voxels_t0"]["marked"]
+    table = bench_fidelity.format_paired(list(rows.values()), 500)
+    assert "+0.200 ± 0.000" in table
+    with pytest.raises(bench_fidelity.UserError, match="--paired-with"):
+        bench_fidelity.compare_paired(base, [fs.Record("other", *_fields(base[0]))], 10)
+
+
+def _fields(rec: fs.Record) -> tuple:
+    return rec.positions, rec.quaternions, rec.actions, rec.voxels_per_object, rec.tsdf_bands
+
+
 def test_docstring_and_footnote_hold_the_same_definitions():
     doc = " ".join(bench_fidelity.__doc__.split())
     table = bench_fidelity.format_table(bench_fidelity.compare([one_push_scene()], [one_push_scene()], 10, 10),
@@ -365,6 +400,7 @@ def test_ours_reader(tmp_path):
     (["--ours", "{tmp}", "--official-dir", "{tmp}/missing"], "--official-dir"),
     (["--ours", "{tmp}", "--json", "{tmp}/no/such/dir/out.json"], "--json"),
     (["--bootstrap", "0"], "--bootstrap"),
+    (["--ours", "{tmp}", "--paired-with", "{tmp}/missing"], "--paired-with"),
 ])
 def test_bad_arguments_give_one_line_and_exit_2(tmp_path, capsys, args, match):
     from official import run_main
@@ -411,3 +447,9 @@ def test_end_to_end_on_synthetic_sequences(tmp_path, capsys):
         assert by_key[key]["p"] == pytest.approx(1.0)
     assert by_key["voxels_t0"]["authors"]["mean"] == 1000
     assert payload["statistics"][0]["key"] == "moving_per_push"
+
+    paired = bench_fidelity.main(["--ours", str(ours), "--official-dir", str(theirs), "--paired-with", str(ours),
+                                  "--bootstrap", "50", "--permutations", "50"])
+    assert "paired with" in capsys.readouterr().out
+    assert all(row["n"] == 3 and row["mean"] == 0.0 for row in paired["paired"]["statistics"]
+               if row["key"] not in ("same_object_pct",))

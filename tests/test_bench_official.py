@@ -277,14 +277,15 @@ def test_the_generate_commands_are_the_documented_ones(tmp_path):
     assert Path(ours[0]).name == "dsr-bench"
     assert ours[1:] == ["generate", "--objects", "cube", "-n", "1", "--workers", "1", "--seed", "7", "--out", str(out)]
     assert bench.our_command(out, 7, 3)[-2:] == ["--steps", "3"]
+    assert bench.our_command(out, 7, 10, freeze_unreachable=True)[-1] == "--freeze-unreachable"
     assert bench.official_command(Path("py"), out, 10) == ["py", "data_generation.py", "--data_path", str(out),
                                                            "--object_type", "cube", "--train_num", "1",
                                                            "--test_num", "0"]
 
 
-def _quick_ours(seeds):
-    def command(out, seed, steps):
-        seeds.append(seed)
+def _quick_ours(seeds, frozen=None):
+    def command(out, seed, steps, freeze_unreachable=False):
+        (seeds if not freeze_unreachable or frozen is None else frozen).append(seed)
         return [sys.executable, "-c", "import pathlib, sys; p = pathlib.Path(sys.argv[1]); p.mkdir(parents=True); "
                 "(p / 'seq_0000.h5').write_bytes(b'x')", str(out)]
     return command
@@ -293,19 +294,20 @@ def _quick_ours(seeds):
 def test_bench_generate_alternates_the_authors_generator_with_ours(fake_repo, monkeypatch, capsys):
     import bench_generate_official as bench
 
-    seeds = []
-    monkeypatch.setattr(bench, "our_command", _quick_ours(seeds))
+    seeds, frozen = [], []
+    monkeypatch.setattr(bench, "our_command", _quick_ours(seeds, frozen))
     out = bench.main(["--official-repo", str(fake_repo), "--no-venv", "--official-python", sys.executable,
                       "--repeats", "2", "--seed", "5"])
     text = capsys.readouterr().out
-    assert list(out["timings"]) == [bench.THEIRS, bench.OURS] and all(len(v) == 2 for v in out["timings"].values())
-    assert seeds == [5, 6]  # a new sequence per run
-    assert f"{bench.THEIRS} / {bench.OURS}:" in text
-    assert list(out["cpu"]) == [bench.THEIRS, bench.OURS] and all(len(v) == 2 for v in out["cpu"].values())
+    sides = [bench.THEIRS, bench.OURS, bench.OURS_FROZEN]
+    assert list(out["timings"]) == sides and all(len(v) == 2 for v in out["timings"].values())
+    assert seeds == [5, 6] and frozen == [5, 6]  # a new sequence per run, the same seeds with the option
+    assert f"{bench.THEIRS} / {bench.OURS}:" in text and f"{bench.THEIRS} / {bench.OURS_FROZEN}:" in text
+    assert list(out["cpu"]) == sides and all(len(v) == 2 for v in out["cpu"].values())
     assert all(v >= 0 for values in out["cpu"].values() for v in values)  # each run's process CPU seconds
     assert f"CPU {bench.THEIRS} / {bench.OURS}" in out["figures"] and "process CPU seconds" in text
     row = [line for line in text.splitlines() if line.startswith("| 2")]
-    assert len(row) == 1 and row[0].count("|") == 13 and "alternated" in row[0] and "load" in row[0]
+    assert len(row) == 1 and row[0].count("|") == 17 and "alternated" in row[0] and "load" in row[0]
     mb = out["figures"]["MB per step"]  # every file each run wrote, over its 10 steps: ours wrote one byte
     assert mb[bench.OURS] == pytest.approx(1 / 10 / 1e6) and mb[bench.THEIRS] > 0
     assert f"bytes per step, {bench.THEIRS} / {bench.OURS}:" in text
@@ -316,7 +318,7 @@ def test_bench_generate_without_a_checkout_runs_only_ours(monkeypatch, capsys):
 
     monkeypatch.setattr(bench, "our_command", _quick_ours([]))
     out = bench.main(["--repeats", "1"])
-    assert list(out["timings"]) == [bench.OURS]
+    assert list(out["timings"]) == [bench.OURS, bench.OURS_FROZEN]
     assert "no comparison with the authors' code was made" in capsys.readouterr().out
 
 
