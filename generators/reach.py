@@ -4,7 +4,9 @@ A resting object costs pybullet's solver more than the rest of a physics step (i
 iterations: 0.056 of 0.066 ms a step with one cube) and, while nothing can touch it, changes nothing but its own
 rest jitter. So during a push (`PushWorld.carry_tool(..., sit_out=True)`) every object is taken out of the world,
 keeping its rest pose exactly, and put back at rest, at that pose, as soon as a mover can reach it; an object back
-in the world that has come to rest where no mover can reach it is taken out again at its new pose. Every decision
+in the world that has come to rest where no mover can reach it, and that touches no object staying in the world, is
+taken out again at its new pose (so an object leaning on or supporting one that stays is never taken away from it;
+objects at rest that touch only each other leave together). Every decision
 reads pybullet's bounding boxes, velocities and closest points and compares them with Python floats: the same
 bits on every CPU, so the pushes (and the pins) are too.
 """
@@ -142,7 +144,8 @@ class SittingOut:
         """Put back at rest (at its rest pose, still) every object sitting out that a mover can reach: the stick
         (whose path moves it `tool_travel` m in the next REACH_CHECK_STEPS steps) or an object in the world that is
         not at rest; the objects put back count as movers in turn. Then take out again every object in the world
-        at rest (still at STILL_CHECKS checks in a row) that no mover can reach: its pose becomes its rest pose."""
+        at rest (still at STILL_CHECKS checks in a row) that no mover can reach and that is not within reach of an
+        object staying in the world (through chains): its pose becomes its rest pose."""
         pb, c = self._pb, self.client
         movers = [self._reach(self.pusher, 0, tool_travel)[0]]
         resting = []
@@ -167,14 +170,20 @@ class SittingOut:
                 new.append(self._reach(body, None, 0.0)[0])
                 waiting.remove(i)
             movers += new
-        for i in resting:
+        boxes = {i: self._box(self.bodies[i]) for i in resting}  # type: ignore[arg-type]
+        leaving = [i for i in resting if not any(self._reaches(m, i, boxes[i]) for m in movers)]
+        # an object at rest stays while it touches one that stays (its weight or support is part of the scene)
+        staying = [self._reach(body, None, 0.0)[0] for i, body in enumerate(self.bodies)
+                   if body is not None and i not in leaving]
+        while staying and leaving:
+            kept = [i for i in leaving if any(self._reaches(m, i, boxes[i]) for m in staying)]
+            staying = [self._reach(self.bodies[i], None, 0.0)[0] for i in kept]  # type: ignore[arg-type]
+            leaving = [i for i in leaving if i not in kept]
+        for i in leaving:
             body = self.bodies[i]
             assert body is not None
-            box = self._box(body)
-            if any(self._reaches(m, i, box) for m in movers):
-                continue
             position, orientation = pb.getBasePositionAndOrientation(body, physicsClientId=c)
             self.rest_poses[i, :3], self.rest_poses[i, 3:] = position, orientation
-            self._rest_boxes[i] = box
+            self._rest_boxes[i] = boxes[i]
             pb.removeBody(body, physicsClientId=c)
             self.bodies[i] = None

@@ -76,3 +76,31 @@ def test_files_made_without_the_option_do_not_name_it():
 
     assert "freeze_unreachable" not in EpisodeConfig(objects="cube").as_attrs()
     assert EpisodeConfig(objects="cube", freeze_unreachable=True).as_attrs()["freeze_unreachable"] is True
+
+
+def test_an_object_touching_one_that_stays_in_the_world_stays_too():
+    """B rests against the side of A, out of the stick's reach; while A waits in the world for the stick, B
+    stays with it (taking B away would change the forces on A), and with every object out of reach both leave."""
+    from dsr_bench.generators.physics import PushWorld
+
+    poses = POSES[:2].copy()
+    poses[1, :2] = [0.40, EDGE + 0.001]  # beside A, 1 mm apart
+    records = []
+    original = PushWorld._update_sitting_out
+
+    def record(world, travel):
+        original(world, travel)
+        a = world.bodies[0]
+        moved = a is not None and np.linalg.norm(
+            np.asarray(world._pb.getBasePositionAndOrientation(a, physicsClientId=world.client)[0][:2]) - start) > 1e-3
+        records.append((a is not None, world.bodies[1] is not None, moved))
+
+    with PushWorld(_cubes()[:2], poses=poses, freeze_unreachable=True) as world:
+        world.settle()
+        world.rest_poses = world.poses()
+        start = world.rest_poses[0, :2].copy()
+        world._update_sitting_out = record.__get__(world)
+        world.push(np.array([0.35, 0.0]), 0)
+    waiting = [(a, b) for a, b, moved in records if a and not moved]
+    assert len(waiting) > 10 and all(b for _, b in waiting), records  # A waited for the stick, and B with it
+    assert any(not a and not b for a, b, _ in records)  # out of reach together
