@@ -1,10 +1,10 @@
 """Benchmark: do dsr-bench's simulated sequences follow the authors' generator, statistic by statistic?
 
-    python bench/bench_fidelity.py [--ours DIR | --generate N --objects cube --seed S] [--workers 2]
-                                   [--reference H5 | --official-dir DIR] [--paired-with DIR]
+    python bench/bench_fidelity.py [--ours DIR... | --generate N --objects cube --seed S] [--workers 2]
+                                   [--reference H5 | --official-dir DIR] [--paired-with DIR...]
                                    [--bootstrap 2000] [--permutations 10000] [--json OUT]
 
-Our side: a directory of dsr-bench sequences (`--ours DIR`, its seq_*.h5), or N sequences generated
+Our side: directories of dsr-bench sequences (`--ours DIR...`, their seq_*.h5, pooled), or N sequences generated
 here into a temporary directory (`dsr-bench generate --objects cube -n N --seed S --workers 2`;
 default N = 40, seed 777). The authors' side: the reference file of their generator's cube sequences
 (`--reference`, default /work/shared/reference/official-cube-reference.h5), or a directory in the
@@ -52,10 +52,10 @@ Definitions (units in the row labels; a push is t -> t+1, t < T; means are over 
     object of push t-1
 12. start distance to pushed object (cm): mean over pushes of the xy distance (cm) from the push start
     (the action cell's centre) to the pushed object's centre before the push
-`--paired-with DIR`: another directory of ours with the same sequence names (the same seeds made another way, e.g.
-with `--freeze-unreachable` against without): each statistic's mean per-sequence difference (ours - DIR) over the
-sequences both have, its standard error and a sign-flip permutation p; a far more sensitive test of the change
-than either side against the authors'.
+`--paired-with DIR...`: other directories of ours, one for each --ours directory and with its sequence names
+(the same seeds made another way, e.g. with `--freeze-unreachable` against without): each statistic's mean
+per-sequence difference (ours - paired) over the sequences both have, its standard error and a sign-flip
+permutation p; a far more sensitive test of the change than either side against the authors'.
 The pushed object is not recorded in the reference; on both sides it is inferred as follows. pushed
 object: the object whose xy centre before the push is nearest to the segment from start + 0.02 m to
 start + 0.12 m along the push direction (start = the action cell's centre). On our side, where the
@@ -195,6 +195,20 @@ def read_ours(path: str | Path, flag: str = "--ours") -> tuple[list[Record], lis
             except ValueError as exc:
                 raise UserError(f"{flag} {file}: {exc}") from None
             chosen.append(seq.read("policy/chosen_object") if "policy/chosen_object" in seq else None)
+    return records, chosen
+
+
+def read_pooled(paths: list[Path], flag: str) -> tuple[list[Record], list[np.ndarray | None]]:
+    """`read_ours` of each directory, pooled; with more than one, each record is named 'k:NAME' (k: the directory's
+    place in `paths`), so that the k-th directories of two pools pair by name."""
+    records, chosen = [], []
+    for k, path in enumerate(paths):
+        these, picked = read_ours(path, flag)
+        if len(paths) > 1:
+            these = [Record(f"{k}:{r.name}", r.positions, r.quaternions, r.actions, r.voxels_per_object,
+                            r.tsdf_bands) for r in these]
+        records += these
+        chosen += picked
     return records, chosen
 
 
@@ -339,7 +353,8 @@ def write_json(path: Path, payload: dict) -> None:
 def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ours_arg = parser.add_mutually_exclusive_group()
-    ours_arg.add_argument("--ours", type=Path, metavar="DIR", help="a directory of dsr-bench sequences (seq_*.h5)")
+    ours_arg.add_argument("--ours", type=Path, metavar="DIR", nargs="+",
+                          help="directories of dsr-bench sequences (seq_*.h5), pooled")
     ours_arg.add_argument("--generate", type=int, metavar="N",
                           help="generate N sequences into a temporary directory (the default, N = 40)")
     parser.add_argument("--objects", default="cube", help="object set of --generate (default cube, as the reference)")
@@ -351,8 +366,9 @@ def main(argv: list[str] | None = None) -> dict:
     theirs_arg.add_argument("--official-dir", type=Path, metavar="DIR",
                             help="a directory in the official per-step layout (<seq>_<step>.hdf5), e.g. made by "
                                  "the authors' data_generation.py")
-    parser.add_argument("--paired-with", type=Path, metavar="DIR",
-                        help="another directory of ours with the same sequence names: paired differences too")
+    parser.add_argument("--paired-with", type=Path, metavar="DIR", nargs="+",
+                        help="as many directories as --ours, the k-th with the same sequence names as --ours' k-th: "
+                             "paired differences too")
     parser.add_argument("--bootstrap", type=int, default=2000, help="bootstrap resamples (default 2000)")
     parser.add_argument("--permutations", type=int, default=10000, help="permutations (default 10000)")
     parser.add_argument("--json", type=Path, metavar="OUT", help="also write the numbers to OUT (JSON)")
@@ -365,11 +381,14 @@ def main(argv: list[str] | None = None) -> dict:
         raise UserError(f"--generate {args.generate}: must be at least 1")
     if args.json is not None and not args.json.parent.is_dir():
         raise UserError(f"--json {args.json}: directory {args.json.parent} does not exist")
-    if args.ours is not None and not args.ours.is_dir():  # checked before anything is read
-        raise UserError(f"--ours {args.ours}: not a directory; pass a dsr-bench dataset directory (seq_*.h5)")
-    if args.paired_with is not None and not args.paired_with.is_dir():
-        raise UserError(f"--paired-with {args.paired_with}: not a directory; pass a dsr-bench dataset directory "
-                        "(seq_*.h5) of the same sequence names as ours")
+    for flag, dirs in (("--ours", args.ours), ("--paired-with", args.paired_with)):  # checked before anything is read
+        for path in dirs or []:
+            if not path.is_dir():
+                raise UserError(f"{flag} {path}: not a directory; pass a dsr-bench dataset directory (seq_*.h5)")
+    if args.paired_with is not None and (args.ours is None or len(args.paired_with) != len(args.ours)):
+        raise UserError(f"--paired-with: {len(args.paired_with)} directories for "
+                        f"{0 if args.ours is None else len(args.ours)} of --ours; give one for each --ours directory, "
+                        "with its sequence names")
 
     # the authors' side first: a bad path fails before minutes of generation
     if args.official_dir is not None:
@@ -381,13 +400,14 @@ def main(argv: list[str] | None = None) -> dict:
     scratch = None
     try:
         if args.ours is not None:
-            ours_dir, ours_source = args.ours, f"directory {args.ours}"
+            ours, chosen = read_pooled(args.ours, "--ours")
+            ours_source = f"director{'y' if len(args.ours) == 1 else 'ies'} {' '.join(map(str, args.ours))}"
         else:
             num = 40 if args.generate is None else args.generate
             scratch = Path(tempfile.mkdtemp(prefix="dsr-bench-fidelity-"))
             ours_dir = generate_ours(scratch / "data", num, args.objects, args.seed, args.workers)
             ours_source = f"dsr-bench generate --objects {args.objects} -n {num} --seed {args.seed}"
-        ours, chosen = read_ours(ours_dir)
+            ours, chosen = read_ours(ours_dir)
     finally:
         if scratch is not None:
             shutil.rmtree(scratch, ignore_errors=True)
@@ -403,10 +423,10 @@ def main(argv: list[str] | None = None) -> dict:
     print(format_table(rows, len(theirs), len(ours), args.bootstrap, args.permutations))
     paired = None
     if args.paired_with is not None:
-        other, _ = read_ours(args.paired_with, "--paired-with")
+        other, _ = read_pooled(args.paired_with, "--paired-with")
         paired = compare_paired(ours, other, args.permutations)
         print()
-        print(f"paired with {args.paired_with} ({len(other)} sequences):")
+        print(f"paired with {' '.join(map(str, args.paired_with))} ({len(other)} sequences):")
         print(format_paired(paired, args.permutations))
     payload = {"authors": {"source": theirs_source, "sequences": len(theirs)},
                "ours": {"source": ours_source, "sequences": len(ours)},
@@ -414,7 +434,7 @@ def main(argv: list[str] | None = None) -> dict:
                "alpha": ALPHA, "pushed_object_rule": PUSHED_OBJECT_RULE, "inference_agreement_ours": agreement,
                "statistics": rows}
     if paired is not None:
-        payload["paired"] = {"source": str(args.paired_with), "statistics": paired}
+        payload["paired"] = {"source": [str(p) for p in args.paired_with], "statistics": paired}
     if args.json is not None:
         write_json(args.json, payload)
     return payload

@@ -401,6 +401,7 @@ def test_ours_reader(tmp_path):
     (["--ours", "{tmp}", "--json", "{tmp}/no/such/dir/out.json"], "--json"),
     (["--bootstrap", "0"], "--bootstrap"),
     (["--ours", "{tmp}", "--paired-with", "{tmp}/missing"], "--paired-with"),
+    (["--ours", "{tmp}", "{tmp}", "--paired-with", "{tmp}"], "2 of --ours"),
 ])
 def test_bad_arguments_give_one_line_and_exit_2(tmp_path, capsys, args, match):
     from official import run_main
@@ -448,8 +449,8 @@ def test_end_to_end_on_synthetic_sequences(tmp_path, capsys):
     assert by_key["voxels_t0"]["authors"]["mean"] == 1000
     assert payload["statistics"][0]["key"] == "moving_per_push"
 
-    paired = bench_fidelity.main(["--ours", str(ours), "--official-dir", str(theirs), "--paired-with", str(ours),
-                                  "--bootstrap", "50", "--permutations", "50"])
+    paired = bench_fidelity.main(["--ours", str(ours), str(ours), "--official-dir", str(theirs), "--paired-with",
+                                  str(ours), str(ours), "--bootstrap", "50", "--permutations", "50"])
     assert "paired with" in capsys.readouterr().out
-    assert all(row["n"] == 3 and row["mean"] == 0.0 for row in paired["paired"]["statistics"]
-               if row["key"] not in ("same_object_pct",))
+    assert paired["ours"]["sequences"] == 6  # two directories pooled, their sequences paired directory by directory
+    assert all(row["n"] == 6 and row["mean"] == 0.0 for row in paired["paired"]["statistics"])
