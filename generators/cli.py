@@ -43,9 +43,9 @@ def generate(
                                                "https://www.ycbbenchmarks.com/); else $DSR_BENCH_SHAPENET / "
                                                "$DSR_BENCH_YCB."),
     freeze_unreachable: bool = typer.Option(False, "--freeze-unreachable", help="Objects out of the tool's reach "
-                                            "sit each push out of the physics (about a quarter less CPU time a "
-                                            "sequence; their rest jitter is dropped): for your own training data, "
-                                            "not with --split."),
+                                            "sit each push out of the physics (a third less CPU time; pushed "
+                                            "objects turn about 5% less, docs/performance.md): for your own "
+                                            "training data, not with --split."),
     ray: RayAddress = None,
     slurm: Slurm = False,
     slurm_partition: SlurmPartition = None,

@@ -22,9 +22,9 @@ distances from the centre).
 An option for bulk training data (`PushWorld(..., freeze_unreachable=True)`, `dsr-bench generate
 --freeze-unreachable`): objects that nothing moving can reach sit a push out, taken out of the world at their
 rest pose and put back, at rest, as soon as the stick or a moving object comes within reach (`generators.reach`).
-A resting object costs the solver more than the rest of a step, and out of reach it changes nothing but its own
-rest jitter, so an object nothing touched keeps its pose bit for bit. It saves about a third of the physics;
-the pinned splits and planning tasks are made without it (their bytes depend on the jitter).
+A resting object costs the solver more than the rest of a step, and an object nothing touched keeps its pose bit
+for bit. It saves a third of a sequence's CPU time but is not free: the pushed object turns about 5% less
+(docs/performance.md), so the pinned splits and planning tasks are made without it.
 """
 
 from __future__ import annotations
