@@ -53,7 +53,7 @@ Definitions (units in the row labels; a push is t -> t+1, t < T; means are over 
 12. start distance to pushed object (cm): mean over pushes of the xy distance (cm) from the push start
     (the action cell's centre) to the pushed object's centre before the push
 `--paired-with DIR...`: other directories of ours, one for each --ours directory and with its sequence names
-(the same seeds made another way, e.g. with `--freeze-unreachable` against without): each statistic's mean
+(the same seeds made another way, e.g. with `--sleep-at-rest` against without): each statistic's mean
 per-sequence difference (ours - paired) over the sequences both have, its standard error and a sign-flip
 permutation p; a far more sensitive test of the change than either side against the authors'.
 The pushed object is not recorded in the reference; on both sides it is inferred as follows. pushed

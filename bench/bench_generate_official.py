@@ -11,7 +11,7 @@ sequence to a fresh directory:
   from their repository root in their own environment (built once with their dependencies, see
   bench/official.py; --no-venv runs it with --official-python as is). It is unseeded;
 - ours: `dsr-bench generate --objects cube -n 1 --workers 1 --seed K --out DIR`, K = --seed + run;
-- ours with `--freeze-unreachable` (objects out of the tool's reach sit each push out), the same seeds.
+- ours with `--sleep-at-rest` (objects out of the tool's reach sit each push out), the same seeds.
 Prints each side's median wall seconds and median process CPU seconds per sequence (user + system time of
 the process and everything it waited for, all threads: the authors' generator steps its physics in a
 free-running thread and waits on fixed sleeps and polling, so on a loaded machine its wall time says more about
@@ -43,10 +43,10 @@ from dsr_bench.errors import UserError  # noqa: E402
 
 THEIRS = "authors' data_generation.py"
 OURS = "dsr-bench generate"
-OURS_FROZEN = "dsr-bench generate --freeze-unreachable"
+OURS_ASLEEP = "dsr-bench generate --sleep-at-rest"
 
 
-def our_command(out: Path, seed: int, steps: int, freeze_unreachable: bool = False) -> list[str]:
+def our_command(out: Path, seed: int, steps: int, sleep_at_rest: bool = False) -> list[str]:
     """`dsr-bench generate` for one cube sequence (the CLI of this environment)."""
     exe = Path(sys.executable).with_name("dsr-bench")
     if not exe.exists():
@@ -57,7 +57,7 @@ def our_command(out: Path, seed: int, steps: int, freeze_unreachable: bool = Fal
         exe = Path(found)
     cmd = [str(exe), "generate", "--objects", "cube", "-n", "1", "--workers", "1", "--seed", str(seed),
            "--out", str(out)]
-    return cmd + (["--steps", str(steps)] if steps != 10 else []) + (["--freeze-unreachable"] if freeze_unreachable
+    return cmd + (["--steps", str(steps)] if steps != 10 else []) + (["--sleep-at-rest"] if sleep_at_rest
                                                                    else [])
 
 
@@ -84,7 +84,7 @@ def run_process(what: str, cmd: list[str], out: Path, cwd: Path | None, logs: Pa
     """Wall seconds of one fresh process writing into `out` (removed afterwards; the bytes it wrote appended to
     `sizes`, its process CPU seconds to `cpu`); a failure, or a run that wrote nothing, is a one-line UserError
     with the last line of its output."""
-    log = logs / ("theirs.log" if what == THEIRS else "ours-frozen.log" if what == OURS_FROZEN else "ours.log")
+    log = logs / ("theirs.log" if what == THEIRS else "ours-asleep.log" if what == OURS_ASLEEP else "ours.log")
     with open(log, "w") as fh:
         c0 = children_cpu_seconds()
         t0 = time.perf_counter()
@@ -122,22 +122,22 @@ def main(argv: list[str] | None = None) -> dict:
     work = Path(tempfile.mkdtemp(prefix="dsr-bench-generate-official-"))
     logs = Path(tempfile.mkdtemp(prefix="dsr-bench-generate-logs-"))  # kept when a run fails
     try:
-        count = {OURS: 0, OURS_FROZEN: 0, "theirs": 0}
-        sizes: dict[str, list[int]] = {OURS: [], OURS_FROZEN: [], THEIRS: []}
-        cpu: dict[str, list[float]] = {THEIRS: [], OURS: [], OURS_FROZEN: []}
+        count = {OURS: 0, OURS_ASLEEP: 0, "theirs": 0}
+        sizes: dict[str, list[int]] = {OURS: [], OURS_ASLEEP: [], THEIRS: []}
+        cpu: dict[str, list[float]] = {THEIRS: [], OURS: [], OURS_ASLEEP: []}
 
         def our_side(side: str) -> float:
             seed = args.seed + count[side]
             count[side] += 1
-            out = work / f"{'frozen' if side == OURS_FROZEN else 'ours'}-{seed}"
-            return run_process(side, our_command(out, seed, args.steps, side == OURS_FROZEN), out, None, logs,
+            out = work / f"{'asleep' if side == OURS_ASLEEP else 'ours'}-{seed}"
+            return run_process(side, our_command(out, seed, args.steps, side == OURS_ASLEEP), out, None, logs,
                                args.timeout, sizes=sizes[side], cpu=cpu[side])
 
         def ours() -> float:
             return our_side(OURS)
 
-        def ours_frozen() -> float:
-            return our_side(OURS_FROZEN)
+        def ours_asleep() -> float:
+            return our_side(OURS_ASLEEP)
 
         def theirs() -> float:
             count["theirs"] += 1
@@ -147,8 +147,8 @@ def main(argv: list[str] | None = None) -> dict:
                                sizes[THEIRS], cpu[THEIRS])
 
         runs = {THEIRS: theirs} if repo else {}
-        runs.update({OURS: ours, OURS_FROZEN: ours_frozen})
-        pairs = [(THEIRS, OURS), (THEIRS, OURS_FROZEN), (OURS, OURS_FROZEN)] if repo else [(OURS, OURS_FROZEN)]
+        runs.update({OURS: ours, OURS_ASLEEP: ours_asleep})
+        pairs = [(THEIRS, OURS), (THEIRS, OURS_ASLEEP), (OURS, OURS_ASLEEP)] if repo else [(OURS, OURS_ASLEEP)]
         load_before = os.getloadavg()[0]
         timings = alternate(runs, args.repeats)
         load_after = os.getloadavg()[0]
@@ -177,15 +177,15 @@ def main(argv: list[str] | None = None) -> dict:
         def cell(values: list[float], digits: int) -> str:
             return f"{statistics.median(values):.{digits}f} ({min(values):.{digits}f}-{max(values):.{digits}f})"
 
-        print("\n| date | machine | CPU s/sequence, theirs | CPU s/sequence, ours | CPU ratio | ours, frozen | "
-              "CPU ratio, frozen | wall s, theirs | wall s, ours | wall ratio | wall, frozen | wall ratio, frozen | "
+        print("\n| date | machine | CPU s/sequence, theirs | CPU s/sequence, ours | CPU ratio | ours, asleep | "
+              "CPU ratio, asleep | wall s, theirs | wall s, ours | wall ratio | wall, asleep | wall ratio, asleep | "
               "MB/step, theirs | MB/step, ours | ratio | runs |")
         print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
         print(f"| {date} | {os.cpu_count()} cores, load {load_before:.1f}-{load_after:.1f} | {cell(cpu[THEIRS], 1)} | "
-              f"{cell(cpu[OURS], 2)} | {figures[f'CPU {THEIRS} / {OURS}']:.1f}x | {cell(cpu[OURS_FROZEN], 2)} | "
-              f"{figures[f'CPU {THEIRS} / {OURS_FROZEN}']:.1f}x | {cell(timings[THEIRS], 1)} | "
-              f"{cell(timings[OURS], 2)} | {figures[f'{THEIRS} / {OURS}']:.1f}x | {cell(timings[OURS_FROZEN], 2)} | "
-              f"{figures[f'{THEIRS} / {OURS_FROZEN}']:.1f}x | {per_step[THEIRS]:.2f} | "
+              f"{cell(cpu[OURS], 2)} | {figures[f'CPU {THEIRS} / {OURS}']:.1f}x | {cell(cpu[OURS_ASLEEP], 2)} | "
+              f"{figures[f'CPU {THEIRS} / {OURS_ASLEEP}']:.1f}x | {cell(timings[THEIRS], 1)} | "
+              f"{cell(timings[OURS], 2)} | {figures[f'{THEIRS} / {OURS}']:.1f}x | {cell(timings[OURS_ASLEEP], 2)} | "
+              f"{figures[f'{THEIRS} / {OURS_ASLEEP}']:.1f}x | {per_step[THEIRS]:.2f} | "
               f"{per_step[OURS]:.2f} | {per_step[THEIRS] / per_step[OURS]:.1f}x | "
               f"{args.repeats} of each side, alternated, medians (ranges) |")
         return {"timings": timings, "cpu": cpu, "figures": figures}

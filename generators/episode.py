@@ -52,16 +52,16 @@ class EpisodeConfig:
     cameras: tuple[str, ...] = ("front",)
     object_root: str | None = None
     extra: dict = field(default_factory=dict)
-    #: Objects out of every mover's reach sit each push out (`generators.reach`; bulk training data only).
-    freeze_unreachable: bool = False
+    #: Objects sleep through each push until touched (`generators.physics`; bulk training data only).
+    sleep_at_rest: bool = False
 
     def as_attrs(self) -> dict:
-        """The arguments as a file records them (`freeze_unreachable` only when set, so files made without it
+        """The arguments as a file records them (`sleep_at_rest` only when set, so files made without it
         read as before)."""
         out = asdict(self)
         out["cameras"] = list(self.cameras)
-        if not self.freeze_unreachable:
-            del out["freeze_unreachable"]
+        if not self.sleep_at_rest:
+            del out["sleep_at_rest"]
         return out
 
 
@@ -145,7 +145,7 @@ def generate_episode(config: EpisodeConfig, object_set, seed: int, name: str,
         specs = object_set.sample(rng, config.objects_per_scene)
         large = [i for i, s in enumerate(specs) if s.is_large]
         renderer = create_renderer(specs, cameras=config.cameras)
-        world = PushWorld(specs, freeze_unreachable=config.freeze_unreachable)
+        world = PushWorld(specs, sleep_at_rest=config.sleep_at_rest)
         try:
             t0, c0 = time.perf_counter(), time.process_time()
             settled = world.drop(drop_poses(rng, specs))

@@ -14,17 +14,17 @@ at every physics step; the arm's path is computed (`generators.arm`: closed-form
 exponential law, forward kinematics), so the tool moves, slows, bows and lifts as theirs does, and the
 arm stays out of the simulation and out of view. Scenes are dropped from 0.2 m inside a fence that is
 removed after 1 s. What differs (DATASHEET.md, deliberate differences): no arm body, fixed phase
-latencies, no physics while the tool is above every object (nothing can happen then), a fresh world at rest
-before every push, a small rolling friction, and the fence is a square of FENCE_HALF_SIZE around the workspace
-centre (the official fence's size is not documented; this one gives the official distribution of initial
-distances from the centre).
+latencies, no physics while the tool is above every object (nothing can happen then), a fresh world
+at rest before every push, a small rolling friction, and the fence is a square of FENCE_HALF_SIZE
+around the workspace centre (the official fence's size is not documented; this one gives the official
+distribution of initial distances from the centre).
 
-An option for bulk training data (`PushWorld(..., freeze_unreachable=True)`, `dsr-bench generate
---freeze-unreachable`): objects that nothing moving can reach sit a push out, taken out of the world at their
-rest pose and put back, at rest, as soon as the stick or a moving object comes within reach (`generators.reach`).
-A resting object costs the solver more than the rest of a step, and an object nothing touched keeps its pose bit
-for bit. It saves a third of a sequence's CPU time but is not free: the pushed object turns about 5% less
-(docs/performance.md), so the pinned splits and planning tasks are made without it.
+An option for bulk training data (`PushWorld(..., sleep_at_rest=True)`, `dsr-bench generate --sleep-at-rest`):
+every object sleeps through the push (Bullet's deactivation: a sleeping body is not simulated) until an awake
+body touches it, and sleeps again once it has been still for Bullet's deactivation time. A resting object's
+contacts with the table cost the solver more than the rest of a step, so this saves a quarter of a sequence's
+CPU time; paired with the same seeds simulated in full, the pushed objects move alike (docs/performance.md).
+The pinned splits and planning tasks are made without it: a resting object's jitter is part of their bytes.
 """
 
 from __future__ import annotations
@@ -36,7 +36,6 @@ import numpy as np
 from dsr_bench.constants import GRID_BOUNDS, NUM_DIRECTIONS, PUSH_HEIGHT, PUSHER_LENGTH, PUSHER_RADIUS
 from dsr_bench.geometry import vector_norm
 from dsr_bench.generators.arm import Phase, push_path, rotation_quaternions, rotation_vectors
-from dsr_bench.generators.reach import REACH_CHECK_STEPS, SittingOut, path_travel
 
 TIME_STEP = 1.0 / 240.0
 SETTLE_LINEAR_SPEED = 5e-3  # m/s
@@ -116,7 +115,7 @@ def import_pybullet():
     return pybullet
 
 
-class PushWorld(SittingOut):
+class PushWorld:
     """A pybullet world with the given objects (ObjectSpec-like: `.parts`, `.mass`) on a table.
 
     Every push starts from a world built afresh with the objects at rest at `rest_poses` (`restart`): no
@@ -124,12 +123,10 @@ class PushWorld(SittingOut):
     poses it starts from alone, and the planning track, which starts each push from a task's or its own stored
     poses, moves the objects exactly as the generator did (`generators.planning.SimEnvironment`)."""
 
-    time_step = TIME_STEP
-
-    def __init__(self, objects, poses: np.ndarray | None = None, freeze_unreachable: bool = False):
+    def __init__(self, objects, poses: np.ndarray | None = None, sleep_at_rest: bool = False):
         pb = import_pybullet()
-        #: Whether objects out of every mover's reach sit each push out (`generators.reach`).
-        self.freeze_unreachable = freeze_unreachable
+        #: Whether the objects sleep through each push until touched (Bullet's deactivation; see the module).
+        self.sleep_at_rest = sleep_at_rest
         self._pb = pb
         self.client = pb.connect(pb.DIRECT)
         self._objects = list(objects)
@@ -157,9 +154,7 @@ class PushWorld(SittingOut):
                                        collisionFramePosition=[0, 0, -TABLE_HALF_EXTENTS[2]], physicsClientId=c)
         self.table = pb.createMultiBody(0, slab, physicsClientId=c)
         pb.changeDynamics(self.table, -1, lateralFriction=TABLE_FRICTION, physicsClientId=c)
-        self._shapes = [[self._part_shape(np.asarray(p.vertices, float)) for p in obj.parts] for obj in self._objects]
-        self._links: dict[int, int] = {}  # body -> its number of links besides the base
-        self.bodies: list[int | None] = [self._create_object(i) for i in range(len(self._objects))]
+        self.bodies = [self._create_object(obj) for obj in self._objects]
         self.pusher = self._create_stick()
         self.hand = pb.createMultiBody(HAND_MASS, -1, basePosition=_TOOL_PARKING, physicsClientId=c)
         pb.changeDynamics(self.hand, -1, linearDamping=0.0, angularDamping=0.0, physicsClientId=c)
@@ -167,8 +162,6 @@ class PushWorld(SittingOut):
                                          [0, 0, -STICK_CENTRE_OFFSET], physicsClientId=c)
         pb.changeConstraint(self._hold, maxForce=HOLD_MAX_FORCE, physicsClientId=c)
         self._parking: int | None = None
-        self._rest_boxes: list[tuple[list[float], list[float]]] = [([], [])] * len(self._objects)
-        self._still: list[int] = [0] * len(self._objects)
         self._park_tool()
 
     def _create_stick(self) -> int:
@@ -188,10 +181,9 @@ class PushWorld(SittingOut):
                           frictionAnchor=1, physicsClientId=c)
         return stick
 
-    def _create_object(self, index: int) -> int:
-        """The body of object `index` (below the table until placed), made of its part shapes."""
+    def _create_object(self, obj) -> int:
         pb, c = self._pb, self.client
-        obj, shapes = self._objects[index], self._shapes[index]
+        shapes = [self._part_shape(np.asarray(p.vertices, float)) for p in obj.parts]
         if len(shapes) == 1:
             body = pb.createMultiBody(obj.mass, shapes[0], basePosition=[0, 0, -1], physicsClientId=c)
         else:  # a compound: every part hull as a fixed link, all frames coincide with the object frame
@@ -203,8 +195,7 @@ class PushWorld(SittingOut):
                 linkOrientations=[[0, 0, 0, 1]] * n, linkInertialFramePositions=[[0, 0, 0]] * n,
                 linkInertialFrameOrientations=[[0, 0, 0, 1]] * n, linkParentIndices=[0] * n,
                 linkJointTypes=[pb.JOINT_FIXED] * n, linkJointAxis=[[0, 0, 1]] * n, physicsClientId=c)
-        self._links[body] = pb.getNumJoints(body, physicsClientId=c)
-        for link in range(-1, self._links[body]):
+        for link in range(-1, pb.getNumJoints(body, physicsClientId=c)):
             pb.changeDynamics(body, link, lateralFriction=OBJECT_FRICTION, spinningFriction=OBJECT_SPINNING_FRICTION,
                               rollingFriction=OBJECT_ROLLING_FRICTION, physicsClientId=c)
         return body
@@ -254,26 +245,16 @@ class PushWorld(SittingOut):
         self.close()
 
     def poses(self) -> np.ndarray:
-        """Object poses (N, 7) = (x, y, z, qx, qy, qz, qw) in the world frame (an object sitting a push out: its rest
-        pose)."""
+        """Object poses (N, 7) = (x, y, z, qx, qy, qz, qw) in the world frame."""
         out = np.zeros((len(self.bodies), 7))
         for i, body in enumerate(self.bodies):
-            if body is None:
-                out[i] = self.rest_poses[i]
-                continue
             pos, orn = self._pb.getBasePositionAndOrientation(body, physicsClientId=self.client)
             out[i, :3], out[i, 3:] = pos, orn
         return out
 
-    def _present(self) -> list[int]:
-        """The bodies of the objects in the world (not sitting out)."""
-        return [body for body in self.bodies if body is not None]
-
     def set_pose(self, index: int, pose: np.ndarray) -> None:
-        body = self.bodies[index]
-        assert body is not None, "set_pose of an object sitting out"
-        self._pb.resetBasePositionAndOrientation(body, pose[:3], pose[3:], physicsClientId=self.client)
-        self._pb.resetBaseVelocity(body, [0, 0, 0], [0, 0, 0], physicsClientId=self.client)
+        self._pb.resetBasePositionAndOrientation(self.bodies[index], pose[:3], pose[3:], physicsClientId=self.client)
+        self._pb.resetBaseVelocity(self.bodies[index], [0, 0, 0], [0, 0, 0], physicsClientId=self.client)
 
     # stepping --------------------------------------------------------------------------------------
     def step(self, n: int = 1) -> None:
@@ -283,7 +264,7 @@ class PushWorld(SittingOut):
     def any_escaped(self) -> bool:
         """Whether some object's centre has left the grid's xy bounds (its hull then has too)."""
         pb, c = self._pb, self.client
-        for body in self._present():
+        for body in self.bodies:
             x, y, _ = pb.getBasePositionAndOrientation(body, physicsClientId=c)[0]
             if not (GRID_BOUNDS[0, 0] < x < GRID_BOUNDS[0, 1] and GRID_BOUNDS[1, 0] < y < GRID_BOUNDS[1, 1]):
                 return True
@@ -302,7 +283,7 @@ class PushWorld(SittingOut):
             if k < MIN_SETTLE_STEPS:
                 continue
             still = True
-            for body in self._present():
+            for body in self.bodies:
                 lin, ang = pb.getBaseVelocity(body, physicsClientId=c)
                 if vector_norm(lin) > SETTLE_LINEAR_SPEED or vector_norm(ang) > SETTLE_ANGULAR_SPEED:
                     still = False
@@ -313,24 +294,12 @@ class PushWorld(SittingOut):
 
     def object_top(self) -> float:
         """The highest point of any object's bounding box (m, world z)."""
-        top = 0.0
-        for body in self._present():
-            top = max(top, self._box(body)[1][2])
-        return top
-
-    def _box(self, body: int, link: int | None = None) -> tuple[list[float], list[float]]:
-        """The bounding box (low (3,), high (3,)) of a body's links (every link, or one), pybullet's (world m)."""
         pb, c = self._pb, self.client
-        links = range(-1, self._links.get(body, 0)) if link is None else (link,)
-        if len(links) == 1:
-            lo, hi = pb.getAABB(body, links[0], physicsClientId=c)
-            return list(lo), list(hi)
-        low, high = [math.inf] * 3, [-math.inf] * 3
-        for k in links:
-            lo, hi = pb.getAABB(body, k, physicsClientId=c)
-            low = [min(a, b) for a, b in zip(low, lo)]
-            high = [max(a, b) for a, b in zip(high, hi)]
-        return low, high
+        top = 0.0
+        for body in self.bodies:
+            for link in range(-1, pb.getNumJoints(body, physicsClientId=c)):
+                top = max(top, pb.getAABB(body, link, physicsClientId=c)[1][2])
+        return top
 
     def _park_tool(self) -> None:
         """Hold the hand and the stick still at the parking pose, out of every camera's view."""
@@ -361,19 +330,19 @@ class PushWorld(SittingOut):
         self.restart(self.rest_poses)
         low = np.flatnonzero(path.tip[:, 2] < self.object_top() + TOOL_CLEARANCE)
         if len(low):
-            self.carry_tool(path.flange[max(int(low[0]) - 1, 0):int(low[-1]) + 1], sit_out=self.freeze_unreachable)
+            self.carry_tool(path.flange[max(int(low[0]) - 1, 0):int(low[-1]) + 1], sleep=self.sleep_at_rest)
         self._park_tool()
         self.settle(stop_on_escape=False)
         self.rest_poses = self.poses()
         start = np.array([float(start_xy[0]), float(start_xy[1]), PUSH_HEIGHT])
         return start, path.tip[path.steps(Phase.PUSH)[-1]].copy()
 
-    def carry_tool(self, flange: np.ndarray, record: bool = False, sit_out: bool = False) -> np.ndarray | None:
+    def carry_tool(self, flange: np.ndarray, record: bool = False, sleep: bool = False) -> np.ndarray | None:
         """Carry the stick through flange poses (n, 4, 4), world frame, one physics step per pose after the
         first: it starts at rest at the first, and each step takes the hand to the next pose with the
         velocity that reaches it in one step. With `record`, return the stick's lower end (n - 1, 3),
-        world metres, after each step. With `sit_out`, the objects out of reach sit the steps out (see
-        REACH_CHECK_STEPS), put back at rest when something comes near."""
+        world metres, after each step. With `sleep`, every object starts the carry asleep (woken when an awake
+        body touches it)."""
         pb, c = self._pb, self.client
         pivots = flange[:, :3, 3]
         turns = rotation_quaternions(flange[:, :3, :3])
@@ -384,18 +353,17 @@ class PushWorld(SittingOut):
                                            physicsClientId=c)
         pb.resetBaseVelocity(self.pusher, [0, 0, 0], [0, 0, 0], physicsClientId=c)
         fall = np.array([0.0, 0.0, GRAVITY * TIME_STEP])  # what gravity adds to the hand's velocity in a step
-        velocities = ((pivots[1:] - pivots[:-1]) / TIME_STEP - fall).tolist()
-        spins = (rotation_vectors(turns[1:], turns[:-1]) / TIME_STEP).tolist()
-        places, turn_list = pivots.tolist(), turns.tolist()
-        reach = path_travel(flange, REACH_CHECK_STEPS) if sit_out else None
-        if reach is not None:
-            self._sit_out()
+        velocities = (pivots[1:] - pivots[:-1]) / TIME_STEP - fall
+        spins = rotation_vectors(turns[1:], turns[:-1]) / TIME_STEP
+        if sleep:
+            for body in self.bodies:
+                pb.changeDynamics(body, -1, activationState=pb.ACTIVATION_STATE_ENABLE_SLEEPING, physicsClientId=c)
+                pb.changeDynamics(body, -1, activationState=pb.ACTIVATION_STATE_SLEEP, physicsClientId=c)
         ends = []
         for k in range(1, len(pivots)):
-            if reach is not None and (k - 1) % REACH_CHECK_STEPS == 0:
-                self._update_sitting_out(reach[k - 1])
-            pb.resetBasePositionAndOrientation(self.hand, places[k - 1], turn_list[k - 1], physicsClientId=c)
-            pb.resetBaseVelocity(self.hand, velocities[k - 1], spins[k - 1], physicsClientId=c)
+            pb.resetBasePositionAndOrientation(self.hand, pivots[k - 1].tolist(), turns[k - 1].tolist(),
+                                               physicsClientId=c)
+            pb.resetBaseVelocity(self.hand, velocities[k - 1].tolist(), spins[k - 1].tolist(), physicsClientId=c)
             pb.stepSimulation(physicsClientId=c)
             if record:
                 position, orientation = pb.getBasePositionAndOrientation(self.pusher, physicsClientId=c)

@@ -79,14 +79,14 @@ def plan_from_arguments(*, objects: str | None = None, num_sequences: int | None
                         split: str | None = None, seed: int | None = None, steps: int | None = None,
                         objects_per_scene: int | None = None, policy: str | None = None, cameras: str = MODEL_CAMERA,
                         workers: int = 1, shard: str = "0/1", object_root: Path | None = None,
-                        freeze_unreachable: bool = False) -> RunPlan:
+                        sleep_at_rest: bool = False) -> RunPlan:
     """The run that `dsr-bench generate`'s arguments ask for (None: not given). A named `split` fixes the object
     set, size, seed, steps, objects per scene and policy (giving any of them too is refused) and --out defaults
     to data/<split>; without it --objects, --num-sequences and --out are needed and the rest take their defaults
     (seed 0, DEFAULT_STEPS, DEFAULT_OBJECTS_PER_SCENE, the heuristic policy). `cameras`: names of
     `constants.CAMERAS`, comma-separated, MODEL_CAMERA among them ('front' or 'front,back'); `shard`: 'i/n'.
-    `freeze_unreachable`: objects out of the tool's reach sit each push out (faster; refused with a split, whose
-    pinned bytes are made without it). The plan is not checked yet (`check_plan`, `prepare_run`)."""
+    `sleep_at_rest`: objects sleep through each push until touched (faster; refused with a split, whose pinned
+    bytes are made without it). The plan is not checked yet (`check_plan`, `prepare_run`)."""
     from dsr_bench.constants import DEFAULT_OBJECTS_PER_SCENE, DEFAULT_STEPS
     from dsr_bench.dataset.splits import get_split
 
@@ -95,9 +95,9 @@ def plan_from_arguments(*, objects: str | None = None, num_sequences: int | None
         given = {"--objects": objects, "--num-sequences": num_sequences, "--seed": seed, "--steps": steps,
                  "--objects-per-scene": objects_per_scene, "--policy": policy}
         clash = [flag for flag, value in given.items() if value is not None]
-        if freeze_unreachable:
-            raise UserError(f"--split {split} with --freeze-unreachable: a split's sequences are made (and pinned) "
-                            "with every object simulated; drop --freeze-unreachable, or generate your own "
+        if sleep_at_rest:
+            raise UserError(f"--split {split} with --sleep-at-rest: a split's sequences are made (and pinned) "
+                            "with every object awake; drop --sleep-at-rest, or generate your own "
                             "--objects/--out data with it")
         if clash:
             raise UserError(f"--split {split} fixes {', '.join(clash)}; drop them or generate without --split")
@@ -117,7 +117,7 @@ def plan_from_arguments(*, objects: str | None = None, num_sequences: int | None
     config = EpisodeConfig(objects=objects, steps=steps, objects_per_scene=objects_per_scene, policy=policy,
                            cameras=tuple(c.strip() for c in cameras.split(",") if c.strip()),
                            object_root=str(object_root) if object_root else None,
-                           freeze_unreachable=freeze_unreachable)
+                           sleep_at_rest=sleep_at_rest)
     return RunPlan(config=config, out=Path(out), num_sequences=num_sequences, seed=seed, split=split or "all",
                    shard=parse_shard(shard), workers=workers)
 

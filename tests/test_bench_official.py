@@ -277,15 +277,15 @@ def test_the_generate_commands_are_the_documented_ones(tmp_path):
     assert Path(ours[0]).name == "dsr-bench"
     assert ours[1:] == ["generate", "--objects", "cube", "-n", "1", "--workers", "1", "--seed", "7", "--out", str(out)]
     assert bench.our_command(out, 7, 3)[-2:] == ["--steps", "3"]
-    assert bench.our_command(out, 7, 10, freeze_unreachable=True)[-1] == "--freeze-unreachable"
+    assert bench.our_command(out, 7, 10, sleep_at_rest=True)[-1] == "--sleep-at-rest"
     assert bench.official_command(Path("py"), out, 10) == ["py", "data_generation.py", "--data_path", str(out),
                                                            "--object_type", "cube", "--train_num", "1",
                                                            "--test_num", "0"]
 
 
-def _quick_ours(seeds, frozen=None):
-    def command(out, seed, steps, freeze_unreachable=False):
-        (seeds if not freeze_unreachable or frozen is None else frozen).append(seed)
+def _quick_ours(seeds, asleep=None):
+    def command(out, seed, steps, sleep_at_rest=False):
+        (seeds if not sleep_at_rest or asleep is None else asleep).append(seed)
         return [sys.executable, "-c", "import pathlib, sys; p = pathlib.Path(sys.argv[1]); p.mkdir(parents=True); "
                 "(p / 'seq_0000.h5').write_bytes(b'x')", str(out)]
     return command
@@ -294,15 +294,15 @@ def _quick_ours(seeds, frozen=None):
 def test_bench_generate_alternates_the_authors_generator_with_ours(fake_repo, monkeypatch, capsys):
     import bench_generate_official as bench
 
-    seeds, frozen = [], []
-    monkeypatch.setattr(bench, "our_command", _quick_ours(seeds, frozen))
+    seeds, asleep = [], []
+    monkeypatch.setattr(bench, "our_command", _quick_ours(seeds, asleep))
     out = bench.main(["--official-repo", str(fake_repo), "--no-venv", "--official-python", sys.executable,
                       "--repeats", "2", "--seed", "5"])
     text = capsys.readouterr().out
-    sides = [bench.THEIRS, bench.OURS, bench.OURS_FROZEN]
+    sides = [bench.THEIRS, bench.OURS, bench.OURS_ASLEEP]
     assert list(out["timings"]) == sides and all(len(v) == 2 for v in out["timings"].values())
-    assert seeds == [5, 6] and frozen == [5, 6]  # a new sequence per run, the same seeds with the option
-    assert f"{bench.THEIRS} / {bench.OURS}:" in text and f"{bench.THEIRS} / {bench.OURS_FROZEN}:" in text
+    assert seeds == [5, 6] and asleep == [5, 6]  # a new sequence per run, the same seeds with the option
+    assert f"{bench.THEIRS} / {bench.OURS}:" in text and f"{bench.THEIRS} / {bench.OURS_ASLEEP}:" in text
     assert list(out["cpu"]) == sides and all(len(v) == 2 for v in out["cpu"].values())
     assert all(v >= 0 for values in out["cpu"].values() for v in values)  # each run's process CPU seconds
     assert f"CPU {bench.THEIRS} / {bench.OURS}" in out["figures"] and "process CPU seconds" in text
@@ -318,7 +318,7 @@ def test_bench_generate_without_a_checkout_runs_only_ours(monkeypatch, capsys):
 
     monkeypatch.setattr(bench, "our_command", _quick_ours([]))
     out = bench.main(["--repeats", "1"])
-    assert list(out["timings"]) == [bench.OURS, bench.OURS_FROZEN]
+    assert list(out["timings"]) == [bench.OURS, bench.OURS_ASLEEP]
     assert "no comparison with the authors' code was made" in capsys.readouterr().out
 
 
