@@ -11,7 +11,7 @@ sequence to a fresh directory:
   from their repository root in their own environment (built once with their dependencies, see
   bench/official.py; --no-venv runs it with --official-python as is). It is unseeded;
 - ours: `dsr-bench generate --objects cube -n 1 --workers 1 --seed K --out DIR`, K = --seed + run;
-- ours with `--sleep-at-rest` (objects out of the tool's reach sit each push out), the same seeds.
+- ours with `--sleep-at-rest` (every object asleep through each push until touched), the same seeds.
 Prints each side's median wall seconds and median process CPU seconds per sequence (user + system time of
 the process and everything it waited for, all threads: the authors' generator steps its physics in a
 free-running thread and waits on fixed sleeps and polling, so on a loaded machine its wall time says more about
