@@ -21,7 +21,8 @@ weights; `dsr-history-none`), and DSR-Net with its state not warped (`dsr-histor
 trained networks use what their state carries. --controls NAME... scores further weights files
 DIR/NAME.pt (e.g. single-same-windows: SingleStep trained with `--same-windows`), never on the leaderboard.
 --against DIR2 scores each model's namesake DIR2/<model>.pt too (WORK/against-<model>) and gives the paired
-differences model - namesake (`vs_against`): e.g. weights continued from DIR2's (`--track cpu --init`) against them.
+differences model - namesake (`vs_against`; the namesakes' means in `against_means`): e.g. weights continued
+from DIR2's (`--track cpu --init`) against them.
 The summary records its own command and each weights file's SHA-256 and training stages.
 """
 
@@ -164,6 +165,7 @@ def main() -> None:
         summary["vs_push"][name] = {m: paired(per_seq[name], per_seq["push"], m) for m in METRICS[:2]}
     if against:
         summary["against"] = {name: weights_record(args.against / f"{name}.pt") for name in against}
+        summary["against_means"] = {name: {m: r["metrics"][m] for m in METRICS} for name, r in against.items()}
         summary["vs_against"] = {name: {m: paired(per_seq[name], r["per_sequence"], m) for m in METRICS}
                                  for name, r in against.items()}
     pairs = list(PAIRS) + [(f"{n}-history-{h}", n) for n, h in variants] + \

@@ -1,0 +1,123 @@
+"""The CPU track's learning curve: each model's held-out scores against the sample-steps its weights trained on.
+
+    python scripts/cpu_track_curve.py SUMMARY [SUMMARY ...] --out docs/evidence/CURVE.json [--plot CURVE.png]
+        [--cap 0.642]
+
+Each SUMMARY is what `scripts/cpu_track_evidence.py --out` wrote for one set of weights (its `--against`
+namesakes count as points too). Every summary must have scored the same split (by its checksum). A point is one
+weights file (by SHA-256; the same file in two summaries is one point): its model, its sample-steps (counted from
+the training stages the file records, `cpu_track.sample_steps`), the means of the four metrics and, where the
+summary has them, the paired differences to the static yardstick. --cap draws the grid's ceiling (ordered IoU of
+the pooled ground truth brought back; docs/models.md) on the plot. Prints the table; the JSON records the command.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shlex
+import sys
+from pathlib import Path
+
+from dsr_bench.atomic import check_writable, write_bytes, write_text
+
+METRICS = ("iou_ordered", "iou_unordered", "motion_visible", "motion_full")
+
+
+def curve_points(summaries: list[dict]) -> dict[str, list[dict]]:
+    """Per model, its points sorted by sample-steps: {"sample_steps", "sha256", "means", "vs_static"}.
+
+    Raises ValueError when the summaries scored different splits, or one file has two different scores."""
+    from dsr_bench.models.training.cpu_track import sample_steps
+
+    checksums = {s["split_checksum"] for s in summaries}
+    if len(checksums) != 1:
+        raise ValueError(f"the summaries scored different splits (checksums {sorted(checksums)}); "
+                         "give summaries of one split")
+    points: dict[str, dict[str, dict]] = {}
+    for summary in summaries:
+        scored = [(name, record, summary["means"][name], summary.get("vs_static", {}).get(name))
+                  for name, record in summary["weights"].items()]
+        scored += [(name, record, summary["against_means"][name], None)
+                   for name, record in summary.get("against", {}).items() if name in summary.get("against_means", {})]
+        for name, record, means, vs_static in scored:
+            point = {"sha256": record["sha256"], "sample_steps": sample_steps(record["stages"]),
+                     "means": {m: means[m] for m in METRICS}}
+            known = points.setdefault(name, {}).get(record["sha256"])
+            if known is not None and known["means"] != point["means"]:
+                raise ValueError(f"{name} {record['sha256'][:12]}: two summaries give it different scores")
+            if known is None or (vs_static and not known.get("vs_static")):
+                point["vs_static"] = vs_static
+                points[name][record["sha256"]] = point
+    return {name: sorted(by_sha.values(), key=lambda p: p["sample_steps"]) for name, by_sha in sorted(points.items())}
+
+
+def plot(curve: dict[str, list[dict]], cap: float | None, path: Path) -> None:
+    """Ordered (solid) and unordered (dashed) IoU against sample-steps, one colour a model, the cap dotted."""
+    import io
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7, 4.2), dpi=120)
+    for i, (name, points) in enumerate(curve.items()):
+        steps = [p["sample_steps"] / 1000 for p in points]
+        colour = f"C{i}"
+        ax.plot(steps, [p["means"]["iou_ordered"] for p in points], "o-", color=colour, label=f"{name}, ordered")
+        ax.plot(steps, [p["means"]["iou_unordered"] for p in points], "s--", color=colour,
+                label=f"{name}, unordered")
+    if cap is not None:
+        ax.axhline(cap, color="grey", linestyle=":", label=f"the grid's cap ({cap})")
+    ax.set_xlabel("sample-steps (thousands)")
+    ax.set_ylabel("IoU, held-out novel objects")
+    ax.set_ylim(0, 1 if cap is None else max(0.7, cap + 0.05))
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8, loc="lower right")
+    fig.tight_layout()
+    buffer = io.BytesIO()
+    fig.savefig(buffer, format=path.suffix.lstrip(".") or "png")
+    plt.close(fig)
+    write_bytes(path, buffer.getvalue())
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("summaries", type=Path, nargs="+")
+    parser.add_argument("--out", type=Path, required=True)
+    parser.add_argument("--plot", type=Path)
+    parser.add_argument("--cap", type=float, help="The grid's ceiling of ordered IoU, drawn on the plot.")
+    args = parser.parse_args()
+    check_writable(args.out, "--out", directory=False)
+    if args.plot:
+        check_writable(args.plot, "--plot", directory=False)
+    summaries = []
+    for path in args.summaries:
+        try:
+            summaries.append(json.loads(path.read_text()))
+        except (OSError, ValueError) as exc:
+            raise SystemExit(f"{path}: not a readable cpu_track_evidence summary ({exc}); give its --out") from None
+        if not isinstance(summaries[-1], dict) or "weights" not in summaries[-1] or "means" not in summaries[-1]:
+            raise SystemExit(f"{path}: not a cpu_track_evidence summary (no 'weights' and 'means'); give its --out")
+    try:
+        curve = curve_points(summaries)
+    except ValueError as exc:
+        raise SystemExit(str(exc)) from None
+    first = summaries[0]
+    record = {"command": shlex.join(["python", "scripts/cpu_track_curve.py", *sys.argv[1:]]),
+              "split": first["split"], "split_checksum": first["split_checksum"], "sequences": first["sequences"],
+              "cap_iou_ordered": args.cap, "models": curve}
+    print(f"{first['split']} ({first['sequences']} sequences)")
+    print(f"{'model':>8} {'sample-steps':>12} {'sha256':>12} " + " ".join(f"{m:>15}" for m in METRICS))
+    for name, points in curve.items():
+        for p in points:
+            print(f"{name:>8} {p['sample_steps']:>12,} {p['sha256'][:12]:>12} "
+                  + " ".join(f"{p['means'][m]:15.4f}" for m in METRICS))
+    write_text(args.out, json.dumps(record, indent=1) + "\n")
+    if args.plot:
+        plot(curve, args.cap, args.plot)
+
+
+if __name__ == "__main__":
+    main()
