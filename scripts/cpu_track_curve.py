@@ -22,12 +22,17 @@ from pathlib import Path
 from dsr_bench.atomic import check_writable, write_bytes, write_text
 
 METRICS = ("iou_ordered", "iou_unordered", "motion_visible", "motion_full")
+RESCORE_TOLERANCE = 1e-3  # one file scored twice: predictions made with other kernels move a mean by ~1e-5
 
 
 def curve_points(summaries: list[dict]) -> dict[str, list[dict]]:
-    """Per model, its points sorted by sample-steps: {"sample_steps", "sha256", "means", "vs_static"}.
+    """Per model, its points sorted by sample-steps: {"sample_steps", "sha256", "means", "vs_static"}, and
+    "rescored_within" (the largest difference of a mean) where two summaries scored the same file: the first
+    summary's scores are kept. Predictions of the same weights made with other kernels (another CPU, or `--checkpoint`
+    against the shipped path's fixed kernels, docs/models.md "Predictions across CPUs") differ in their last bits.
 
-    Raises ValueError when the summaries scored different splits, or one file has two different scores."""
+    Raises ValueError when the summaries scored different splits, or one file's means differ by more than
+    `RESCORE_TOLERANCE`."""
     from dsr_bench.models.training.cpu_track import sample_steps
 
     checksums = {s["split_checksum"] for s in summaries}
@@ -44,11 +49,17 @@ def curve_points(summaries: list[dict]) -> dict[str, list[dict]]:
             point = {"sha256": record["sha256"], "sample_steps": sample_steps(record["stages"]),
                      "means": {m: means[m] for m in METRICS}}
             known = points.setdefault(name, {}).get(record["sha256"])
-            if known is not None and known["means"] != point["means"]:
-                raise ValueError(f"{name} {record['sha256'][:12]}: two summaries give it different scores")
-            if known is None or (vs_static and not known.get("vs_static")):
+            if known is None:
                 point["vs_static"] = vs_static
                 points[name][record["sha256"]] = point
+                continue
+            apart = max(abs(known["means"][m] - point["means"][m]) for m in METRICS)
+            if apart > RESCORE_TOLERANCE:
+                raise ValueError(f"{name} {record['sha256'][:12]}: two summaries give it scores {apart:.3g} apart "
+                                 f"(more than rounding, {RESCORE_TOLERANCE}); were they of the same data?")
+            known["rescored_within"] = max(apart, known.get("rescored_within", 0.0))
+            if vs_static and not known.get("vs_static"):
+                known["vs_static"] = vs_static
     return {name: sorted(by_sha.values(), key=lambda p: p["sample_steps"]) for name, by_sha in sorted(points.items())}
 
 

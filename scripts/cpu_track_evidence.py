@@ -23,13 +23,16 @@ DIR/NAME.pt (e.g. single-same-windows: SingleStep trained with `--same-windows`)
 --against DIR2 scores each model's namesake DIR2/<model>.pt too (WORK/against-<model>) and gives the paired
 differences model - namesake (`vs_against`; the namesakes' means in `against_means`): e.g. weights continued
 from DIR2's (`--track cpu --init`) against them.
-The summary records its own command and each weights file's SHA-256 and training stages.
+The summary records its own command and each weights file's SHA-256 and training stages. A --checkpoint is
+predicted with the shipped weights' fixed kernels on one thread (`same_bits_env`), so a file scores the same bytes
+as a weights folder or as the shipped files, on any CPU.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import shlex
 import subprocess
 import sys
@@ -45,9 +48,18 @@ REFERENCES = ("static", "push", "oracle")
 PAIRS = (("dsr", "nowarp"), ("dsr", "single"), ("nowarp", "single"), ("gtwarp", "dsr"))
 
 
-def run(*args: str) -> None:
+def run(*args: str, env: dict | None = None) -> None:
     print("$", " ".join(args), flush=True)
-    subprocess.run(args, check=True)
+    subprocess.run(args, check=True, env=env)
+
+
+def same_bits_env() -> dict:
+    """The environment in which `predict --checkpoint` makes the bytes the shipped weights' path makes on any x86-64
+    CPU with AVX2 (`cli.scoring.SAME_BITS_ENV`, one thread; docs/models.md "Predictions across CPUs"): a variable the
+    user set is kept."""
+    from dsr_bench.cli.scoring import SAME_BITS_ENV
+
+    return {**SAME_BITS_ENV, "OMP_NUM_THREADS": "1", **os.environ}
 
 
 def paired(a: dict, b: dict, metric: str) -> dict:
@@ -120,8 +132,9 @@ def main() -> None:
 
     def predict_cli(model: str, checkpoint: Path | None) -> Callable[[Path], None]:
         extra = [] if checkpoint is None else ["--checkpoint", str(checkpoint)]
+        env = None if checkpoint is None else same_bits_env()  # a file's scores the same bytes whichever way it ran
         return lambda pred: run(*cli, "predict", "--model", model, *extra, "--data", str(args.data), "--out",
-                                str(pred))
+                                str(pred), env=env)
 
     from dsr_bench.models.predictors import SHIPPED_WEIGHTS
 

@@ -53,8 +53,15 @@ def test_points_are_one_per_file_sorted_by_sample_steps_with_the_namesakes():
 def test_summaries_of_different_splits_or_disagreeing_scores_are_refused():
     with pytest.raises(ValueError, match="different splits"):
         cpu_track_curve.curve_points([_summary("a" * 64, 1, 0.3), _summary("b" * 64, 2, 0.3, checksum="other")])
-    with pytest.raises(ValueError, match="different scores"):
+    with pytest.raises(ValueError, match="more than rounding"):
         cpu_track_curve.curve_points([_summary("a" * 64, 1, 0.3), _summary("a" * 64, 1, 0.31)])
+
+
+def test_one_file_scored_twice_within_rounding_keeps_the_first_score_and_says_how_far_apart():
+    first, again = _summary("a" * 64, 1, 0.3), _summary("a" * 64, 1, 0.3 + 2e-5)
+    (point,) = cpu_track_curve.curve_points([first, again])["dsr"]
+    assert point["means"]["iou_ordered"] == 0.3
+    assert point["rescored_within"] == pytest.approx(2e-4)  # motion_visible moves 10x the IoU in _means
 
 
 def test_the_command_writes_the_curve_and_the_plot(tmp_path):

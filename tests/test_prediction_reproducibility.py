@@ -34,11 +34,13 @@ def _dispatched_features() -> list[str]:
     return [f for f in __cpu_dispatch__ if __cpu_features__.get(f) and f not in __cpu_baseline__]
 
 
-def _predict(data: Path, model: str, out: Path, env: dict[str, str], prefix: tuple[str, ...] = ()) -> dict[str, bytes]:
-    """`dsr-bench predict --model MODEL` (its shipped weights) in a fresh process; the prediction files' bytes."""
+def _predict(data: Path, model: str, out: Path, env: dict[str, str], prefix: tuple[str, ...] = (),
+             extra: tuple[str, ...] = ()) -> dict[str, bytes]:
+    """`dsr-bench predict --model MODEL` (its shipped weights, unless `extra` says otherwise) in a fresh process; the
+    prediction files' bytes."""
     base = {k: v for k, v in os.environ.items() if k not in KERNEL_VARIABLES}
     cmd = [*prefix, sys.executable, "-m", "dsr_bench.cli", "predict", "--model", model, "--data", str(data),
-           "--out", str(out)]
+           "--out", str(out), *extra]
     done = subprocess.run(cmd, env={**base, **env}, capture_output=True, text=True, timeout=1800)
     assert done.returncode == 0, done.stderr[-2000:]
     return {p.name: p.read_bytes() for p in sorted(out.glob("*.h5"))}  # meta.json holds the time a step took
@@ -83,6 +85,23 @@ def test_the_kernels_matter(data, reference, tmp_path, model, env):
     """The check above can fail: with MKL choosing its kernels by CPU, or oneDNN capped elsewhere (a user's
     setting is kept), the predictions differ in their last bits, as an Intel Xeon's differed from an AMD EPYC's."""
     assert _predict(data, model, tmp_path / "p", env) != reference[model]
+
+
+def test_a_checkpoint_predicted_as_the_evidence_scripts_do_is_the_shipped_weights_bytes(data, reference, tmp_path,
+                                                                                         monkeypatch):
+    """scripts/cpu_track_evidence.py predicts a --checkpoint in `same_bits_env()`: the shipped file given as a
+    checkpoint then makes the bytes the shipped path makes (with this machine's own kernels it need not)."""
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "scripts"))
+    import cpu_track_evidence
+
+    from dsr_bench.models.predictors import shipped_weights
+
+    for name in KERNEL_VARIABLES:
+        monkeypatch.delenv(name, raising=False)
+    env = {k: v for k, v in cpu_track_evidence.same_bits_env().items() if k in KERNEL_VARIABLES}
+    assert env == {**SAME_BITS_ENV, "OMP_NUM_THREADS": "1"}
+    got = _predict(data, "dsr", tmp_path / "p", env, extra=("--checkpoint", str(shipped_weights("dsr"))))
+    assert got == reference["dsr"]
 
 
 @pytest.mark.slow
