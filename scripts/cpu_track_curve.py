@@ -1,7 +1,7 @@
 """The CPU track's learning curve: each model's held-out scores against the sample-steps its weights trained on.
 
     python scripts/cpu_track_curve.py SUMMARY [SUMMARY ...] --out docs/evidence/CURVE.json [--plot CURVE.png]
-        [--cap 0.642]
+        [--cap 0.642] [--mark STEPS:LABEL ...]
 
 Each SUMMARY is what `scripts/cpu_track_evidence.py --out` wrote for one set of weights (its `--against`
 namesakes count as points too). Every summary must have scored the same split (by its checksum). A point is one
@@ -63,8 +63,9 @@ def curve_points(summaries: list[dict]) -> dict[str, list[dict]]:
     return {name: sorted(by_sha.values(), key=lambda p: p["sample_steps"]) for name, by_sha in sorted(points.items())}
 
 
-def plot(curve: dict[str, list[dict]], cap: float | None, path: Path) -> None:
-    """Ordered (solid) and unordered (dashed) IoU against sample-steps, one colour a model, the cap dotted."""
+def plot(curve: dict[str, list[dict]], cap: float | None, path: Path, marks: list[tuple[int, str]] = ()) -> None:
+    """Ordered (solid) and unordered (dashed) IoU against sample-steps, one colour a model, the cap dotted, and a
+    vertical line at each of `marks` (sample-steps, label)."""
     import io
 
     import matplotlib
@@ -72,7 +73,7 @@ def plot(curve: dict[str, list[dict]], cap: float | None, path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(7, 4.2), dpi=120)
+    fig, ax = plt.subplots(figsize=(9, 4.2), dpi=120)
     for i, (name, points) in enumerate(curve.items()):
         steps = [p["sample_steps"] / 1000 for p in points]
         colour = f"C{i}"
@@ -81,11 +82,14 @@ def plot(curve: dict[str, list[dict]], cap: float | None, path: Path) -> None:
                 label=f"{name}, unordered")
     if cap is not None:
         ax.axhline(cap, color="grey", linestyle=":", label=f"the grid's cap ({cap})")
+    for steps, label in marks:
+        ax.axvline(steps / 1000, color="black", linestyle="-.", linewidth=0.8)
+        ax.annotate(label, (steps / 1000, 0.02), xytext=(4, 0), textcoords="offset points", fontsize=8)
     ax.set_xlabel("sample-steps (thousands)")
     ax.set_ylabel("IoU, held-out novel objects")
     ax.set_ylim(0, 1 if cap is None else max(0.7, cap + 0.05))
     ax.grid(alpha=0.3)
-    ax.legend(fontsize=8, loc="lower right")
+    ax.legend(fontsize=8, loc="center left", bbox_to_anchor=(1.01, 0.5))
     fig.tight_layout()
     buffer = io.BytesIO()
     fig.savefig(buffer, format=path.suffix.lstrip(".") or "png")
@@ -99,7 +103,15 @@ def main() -> None:
     parser.add_argument("--out", type=Path, required=True)
     parser.add_argument("--plot", type=Path)
     parser.add_argument("--cap", type=float, help="The grid's ceiling of ordered IoU, drawn on the plot.")
+    parser.add_argument("--mark", action="append", default=[], metavar="STEPS:LABEL",
+                        help="A labelled vertical line on the plot at STEPS sample-steps (where the data changed).")
     args = parser.parse_args()
+    marks = []
+    for mark in args.mark:
+        steps, _, label = mark.partition(":")
+        if not steps.isdigit():
+            raise SystemExit(f"--mark {mark!r}: give STEPS:LABEL, STEPS a whole number of sample-steps")
+        marks.append((int(steps), label))
     check_writable(args.out, "--out", directory=False)
     if args.plot:
         check_writable(args.plot, "--plot", directory=False)
@@ -118,7 +130,8 @@ def main() -> None:
     first = summaries[0]
     record = {"command": shlex.join(["python", "scripts/cpu_track_curve.py", *sys.argv[1:]]),
               "split": first["split"], "split_checksum": first["split_checksum"], "sequences": first["sequences"],
-              "cap_iou_ordered": args.cap, "models": curve}
+              "cap_iou_ordered": args.cap, "marks": [{"sample_steps": m, "label": t} for m, t in marks],
+              "models": curve}
     print(f"{first['split']} ({first['sequences']} sequences)")
     print(f"{'model':>8} {'sample-steps':>12} {'sha256':>12} " + " ".join(f"{m:>15}" for m in METRICS))
     for name, points in curve.items():
@@ -127,7 +140,7 @@ def main() -> None:
                   + " ".join(f"{p['means'][m]:15.4f}" for m in METRICS))
     write_text(args.out, json.dumps(record, indent=1) + "\n")
     if args.plot:
-        plot(curve, args.cap, args.plot)
+        plot(curve, args.cap, args.plot, marks)
 
 
 if __name__ == "__main__":

@@ -71,9 +71,11 @@ def test_the_command_writes_the_curve_and_the_plot(tmp_path):
         paths[-1].write_text(json.dumps(_summary(str(i) * 64, chunks, iou, ("s" * 64, 0, 0.30))))
     out, png = tmp_path / "curve.json", tmp_path / "curve.png"
     done = subprocess.run([sys.executable, str(ROOT / "scripts" / "cpu_track_curve.py"), *map(str, paths), "--out",
-                           str(out), "--plot", str(png), "--cap", "0.642"], capture_output=True, text=True)
+                           str(out), "--plot", str(png), "--cap", "0.642", "--mark", "208000:more data"],
+                          capture_output=True, text=True)
     assert done.returncode == 0, done.stderr
     record = json.loads(out.read_text())
+    assert record["marks"] == [{"sample_steps": 208_000, "label": "more data"}]
     assert record["cap_iou_ordered"] == 0.642 and record["command"].startswith("python scripts/cpu_track_curve.py")
     assert [p["sample_steps"] for p in record["models"]["dsr"]] == [40_000, 120_000, 280_000]
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
