@@ -295,6 +295,31 @@ def test_init_errors(tmp_path, monkeypatch, capsys, extra, message):
     assert not (tmp_path / "nowarp.pt").exists()
 
 
+def test_docs_say_what_each_shipped_file_trained_on():
+    """docs/models.md's table "What each shipped file saw" gives each shipped 3D file's sample-steps as the file's own
+    stage records count them, and the training split's checksum prefix of its last chunk."""
+    import re
+    from pathlib import Path
+
+    from dsr_bench.models.predictors import shipped_weights
+    from dsr_bench.models.training.checkpoints import read_weights
+    from dsr_bench.models.training.cpu_track import sample_steps
+
+    text = (Path(__file__).resolve().parents[1] / "docs" / "models.md").read_text()
+    table = text.split("**What each shipped file saw**", 1)[1].split("\n\n")[1]
+    stated, checksums = {}, []
+    for row in table.splitlines()[2:]:
+        cells = [c.strip() for c in row.strip("|").split("|")]
+        checksums = checksums if cells[2] == "the same" else re.findall(r"`([0-9a-f]{8})`", cells[2])
+        for name in re.findall(r"`(\w+)\.pt`", cells[0].split("(")[0]):
+            stated[name] = (int(cells[1].replace(",", "")), checksums)
+    assert set(stated) == {"dsr", "single", "nowarp", "gtwarp", "3dflow"}
+    for name, (steps, checksums) in stated.items():
+        payload = read_weights(shipped_weights(name)).payload
+        assert sample_steps(payload["stages"]) == steps, name
+        assert payload["data"]["split_checksum"][:8] == checksums[-1], name
+
+
 @pytest.mark.parametrize("name", ["dsr", "single", "nowarp", "gtwarp", "3dflow"])
 def test_the_shipped_weights_are_small_cpu_track_models_loaded_weights_only(name):
     from dsr_bench.models.inference import load_predictor
