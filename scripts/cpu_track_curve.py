@@ -19,7 +19,7 @@ import shlex
 import sys
 from pathlib import Path
 
-from dsr_bench.atomic import check_writable, write_bytes, write_text
+from dsr_bench.atomic import check_writable, write_text
 
 METRICS = ("iou_ordered", "iou_unordered", "motion_visible", "motion_full")
 RESCORE_TOLERANCE = 1e-3  # one file scored twice: predictions made with other kernels move a mean by ~1e-5
@@ -66,14 +66,12 @@ def curve_points(summaries: list[dict]) -> dict[str, list[dict]]:
 def plot(curve: dict[str, list[dict]], cap: float | None, path: Path, marks: list[tuple[int, str]] = ()) -> None:
     """Ordered (solid) and unordered (dashed) IoU against sample-steps, one colour a model, the cap dotted, and a
     vertical line at each of `marks` (sample-steps, label)."""
-    import io
+    from matplotlib.figure import Figure
 
-    import matplotlib
+    from dsr_bench.scoring.plots import save_figure
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(9, 4.2), dpi=120)
+    fig = Figure(figsize=(9, 4.2), layout="constrained")
+    ax = fig.subplots()
     for i, (name, points) in enumerate(curve.items()):
         steps = [p["sample_steps"] / 1000 for p in points]
         colour = f"C{i}"
@@ -90,11 +88,7 @@ def plot(curve: dict[str, list[dict]], cap: float | None, path: Path, marks: lis
     ax.set_ylim(0, 1 if cap is None else max(0.7, cap + 0.05))
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8, loc="center left", bbox_to_anchor=(1.01, 0.5))
-    fig.tight_layout()
-    buffer = io.BytesIO()
-    fig.savefig(buffer, format=path.suffix.lstrip(".") or "png")
-    plt.close(fig)
-    write_bytes(path, buffer.getvalue())
+    save_figure(fig, path)  # atomic, and the same figure gives the same bytes
 
 
 def main() -> None:

@@ -153,7 +153,7 @@ def step_series(results: dict, per_sequence_steps: Mapping[str, Mapping[str, Seq
             "sequences": len(per_sequence_steps) if per_sequence_steps else None}, None
 
 
-def _save(fig, path: Path) -> Path:
+def save_figure(fig, path: Path) -> Path:
     """Write `fig` to `path` (atomically) in the format its suffix names: SVG at its shown size (text as text,
     no date: the same figure gives the same bytes), else PNG at `PNG_SCALE` times its pixels."""
     import matplotlib
@@ -231,7 +231,7 @@ def write_steps_plot(results: dict, path: str | Path,
     fig, why = steps_figure(results, per_sequence_steps, no_motion, no_motion_note)
     if fig is None:
         return None, why
-    return _save(fig, Path(path)), None
+    return save_figure(fig, Path(path)), None
 
 
 def steps_figure(results: dict, per_sequence_steps: Mapping[str, Mapping[str, Sequence]] | None = None,
@@ -407,9 +407,9 @@ def write_leaderboard_plot(panels: list[dict], title: str, path: str | Path, svg
     dashed or dotted) over the rows' means with their 95% intervals. Returns `path`."""
     fig = leaderboard_figure(panels, title)
     path = Path(path)
-    _save(fig, path)
+    save_figure(fig, path)
     if svg:
-        _save(fig, path.with_suffix(".svg"))
+        save_figure(fig, path.with_suffix(".svg"))
     return path
 
 
@@ -470,7 +470,7 @@ def write_planning_plot(rows: Sequence[tuple[str, Mapping[str, float]]], title: 
         ax.tick_params(labelsize=8)
         ax.grid(True, axis="x", alpha=0.3)
     path = Path(path)
-    _save(fig, path)
+    save_figure(fig, path)
     if svg:
-        _save(fig, path.with_suffix(".svg"))
+        save_figure(fig, path.with_suffix(".svg"))
     return path
