@@ -55,11 +55,12 @@ def run(*args: str, env: dict | None = None) -> None:
 
 def same_bits_env() -> dict:
     """The environment in which `predict --checkpoint` makes the bytes the shipped weights' path makes on any x86-64
-    CPU with AVX2 (`cli.scoring.SAME_BITS_ENV`, one thread; docs/models.md "Predictions across CPUs"): a variable the
-    user set is kept."""
-    from dsr_bench.cli.scoring import SAME_BITS_ENV
+    CPU with AVX2 (the kernels `predict` fixes for them, `cli.scoring.same_bits_unset`, on `SAME_BITS_THREADS`;
+    docs/models.md "Predictions across CPUs"): a variable the user set is kept."""
+    from dsr_bench.cli.scoring import same_bits_unset
+    from dsr_bench.models.inference import SAME_BITS_THREADS
 
-    return {**SAME_BITS_ENV, "OMP_NUM_THREADS": "1", **os.environ}
+    return {"OMP_NUM_THREADS": str(SAME_BITS_THREADS), **os.environ, **same_bits_unset(os.environ)}
 
 
 def paired(a: dict, b: dict, metric: str) -> dict:

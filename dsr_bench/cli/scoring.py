@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Optional
 
@@ -70,6 +71,13 @@ def predict(
     typer.echo(f"wrote {len(names)} prediction files for split {split} to {out}")
 
 
+def same_bits_unset(environ: Mapping[str, str]) -> dict[str, str]:
+    """`SAME_BITS_ENV`'s variables that `environ` leaves unset (a variable the user set is kept; ONEDNN_MAX_CPU_ISA
+    counts as set where its former name DNNL_MAX_CPU_ISA is)."""
+    return {name: value for name, value in SAME_BITS_ENV.items()
+            if name not in environ and (name != "ONEDNN_MAX_CPU_ISA" or "DNNL_MAX_CPU_ISA" not in environ)}
+
+
 def _same_kernels_on_any_cpu() -> None:
     """Set `SAME_BITS_ENV`'s variables that the environment leaves unset, if torch has not loaded yet (a process that
     imported torch before keeps the kernels it chose: its predictions are the same bytes on that machine only)."""
@@ -77,9 +85,7 @@ def _same_kernels_on_any_cpu() -> None:
     import sys
 
     if "torch" not in sys.modules:
-        for name, value in SAME_BITS_ENV.items():
-            if name != "ONEDNN_MAX_CPU_ISA" or "DNNL_MAX_CPU_ISA" not in os.environ:  # (oneDNN's former name)
-                os.environ.setdefault(name, value)
+        os.environ.update(same_bits_unset(os.environ))
 
 
 def _same_bits(shipped: bool):
