@@ -14,7 +14,8 @@ then compares the models sequence by sequence (`per_sequence` of the results): t
 for each model the paired difference to static and to push with its standard error (the standard
 deviation of the per-sequence differences / sqrt(n)); and DSR-Net vs NoWarp vs SingleStep on IoU. With
 --leaderboard, each results file joins the leaderboard (`dsr-bench leaderboard add`) and the tables are
-rebuilt. Predictions already in WORK are reused (delete them to predict again).
+rebuilt. Predictions already in WORK are reused (delete them to predict again), once checked: a model's reused
+predictions or results must record the SHA-256 of the weights file they stand for, or the script stops.
 
 --history-variants also scores DSR-Net and NoWarp with their history zeroed at test time (the same
 weights; `dsr-history-none`), and DSR-Net with its state not warped (`dsr-history-nowarp`): whether the
@@ -90,6 +91,26 @@ def weights_record(path: Path) -> dict:
     return {"file": path.name, "sha256": file_sha256(path), "stages": shown}
 
 
+def recorded_weights_sha256(meta: object) -> str | None:
+    """The SHA-256 of the weights file a prediction's meta (predictions' meta.json, or a results file's "meta")
+    records, or None where it records none (the yardsticks)."""
+    if not isinstance(meta, dict):
+        return None
+    weights = meta.get("weights") or (meta.get("parameters") or {}).get("weights")
+    return weights.get("sha256") if isinstance(weights, dict) else None
+
+
+def check_reused(path: Path, meta: object, weights: Path | None) -> None:
+    """Stop unless the reused predictions or results at `path` were made from `weights` (None: from no weights)."""
+    from dsr_bench.dataset.manifest import file_sha256
+
+    recorded, expected = recorded_weights_sha256(meta), weights and file_sha256(weights)
+    if recorded != expected:
+        made = f"weights {recorded[:12]}" if recorded else "no weights file"
+        wanted = f"{weights} ({expected[:12]})" if expected else "no weights file"
+        sys.exit(f"{path}: reused work made from {made}, not {wanted}; delete it to predict again")
+
+
 def predict_with_history(weights: Path, model: str, history: str, data: Path, out: Path) -> None:
     """Predict the split with `model`'s weights, its history replaced at test time by `history`."""
     import dataclasses
@@ -122,14 +143,19 @@ def main() -> None:
 
     cli = [sys.executable, "-m", "dsr_bench"]
 
-    def scored(label: str, predict: Callable[[Path], None]) -> dict:
-        """WORK/<label>.json, the results of `predict(WORK/<label>)` evaluated; either one reused when there."""
+    def scored(label: str, predict: Callable[[Path], None], weights: Path | None = None) -> dict:
+        """WORK/<label>.json, the results of `predict(WORK/<label>)` evaluated; either one reused when there (made
+        from `weights`, checked by the SHA-256 they record)."""
         pred, results_file = args.work / label, args.work / f"{label}.json"
         if not results_file.is_file():
             if not (pred / "meta.json").is_file():
                 predict(pred)
+            else:
+                check_reused(pred / "meta.json", json.loads((pred / "meta.json").read_text()), weights)
             run(*cli, "evaluate", str(pred), "--data", str(args.data), "--out", str(results_file))
-        return json.loads(results_file.read_text())
+        results = json.loads(results_file.read_text())
+        check_reused(results_file, results.get("meta"), weights)
+        return results
 
     def predict_cli(model: str, checkpoint: Path | None) -> Callable[[Path], None]:
         extra = [] if checkpoint is None else ["--checkpoint", str(checkpoint)]
@@ -143,7 +169,8 @@ def main() -> None:
     results = {}
     for name in (*REFERENCES, *args.models):
         checkpoint = None if name in REFERENCES or shipped else args.weights / f"{name}.pt"
-        results[name] = scored(name, predict_cli(name, checkpoint))
+        results[name] = scored(name, predict_cli(name, checkpoint),
+                               None if name in REFERENCES else args.weights / f"{name}.pt")
         if args.leaderboard:
             run(*cli, "leaderboard", "add", str(args.work / f"{name}.json"), "--predictions", str(args.work / name),
                 "--data", str(args.data), "--root", str(args.leaderboard))
@@ -154,12 +181,14 @@ def main() -> None:
     for name, history in variants:
         results[f"{name}-history-{history}"] = scored(
             f"{name}-history-{history}",
-            partial(predict_with_history, args.weights / f"{name}.pt", name, history, args.data))
+            partial(predict_with_history, args.weights / f"{name}.pt", name, history, args.data),
+            args.weights / f"{name}.pt")
     for label in args.controls:
         weights = args.weights / f"{label}.pt"
-        results[label] = scored(label, lambda pred, w=weights: predict_cli(torch_config(w)["name"], w)(pred))
+        results[label] = scored(label, lambda pred, w=weights: predict_cli(torch_config(w)["name"], w)(pred), weights)
 
-    against = {name: scored(f"against-{name}", predict_cli(name, args.against / f"{name}.pt"))
+    against = {name: scored(f"against-{name}", predict_cli(name, args.against / f"{name}.pt"),
+                            args.against / f"{name}.pt")
                for name in (args.models if args.against else ())}
 
     per_seq = {name: r["per_sequence"] for name, r in results.items()}
