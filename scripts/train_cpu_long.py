@@ -10,7 +10,7 @@ atomically over the file, so the script can be stopped at any moment and run aga
 go on from the last chunk written. The first chunk starts from the shipped weights of --from (their file name
 recorded). It stops once the file has trained on --until sample-steps (`cpu_track.sample_steps`, counted from
 the file's own stage records), and appends one line per chunk to RUNS/M.log.jsonl (the chunk's sample-steps
-reached, seconds, its loss in the first and last tenth).
+reached, its starting learning rate, seconds, its loss in the first and last tenth).
 """
 
 from __future__ import annotations
@@ -46,7 +46,8 @@ def main() -> None:
     parser.add_argument("--chunk", type=int, default=1000, help="Stage-2 batches per chunk.")
     parser.add_argument("--from", dest="start", type=Path,
                         default=Path(__file__).resolve().parents[1] / "dsr_bench/models/weights/cpu-track")
-    parser.add_argument("--multi-lr", type=float, default=5e-4)
+    parser.add_argument("--multi-lr", type=float, default=5e-4,
+                        help="Each chunk's starting learning rate (Adam restarted; halved at 50%% and 75%% of it).")
     parser.add_argument("--threads", type=int, default=1, help="torch threads of each chunk's process.")
     args = parser.parse_args()
     args.runs.mkdir(parents=True, exist_ok=True)
@@ -65,7 +66,8 @@ def main() -> None:
                    str(args.multi_lr), "--out", str(weights)]
         subprocess.run(command, check=True, env=env)
         reached, last = trained(weights)
-        line = {"model": args.model, "sample_steps": reached, "seconds": round(time.time() - start, 1),
+        line = {"model": args.model, "sample_steps": reached, "lr": last.get("lr"),
+                "seconds": round(time.time() - start, 1),
                 "loss_first_tenth": last.get("loss_first_tenth"), "loss_last_tenth": last.get("loss_last_tenth"),
                 "date": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
         with open(log, "a") as fh:
