@@ -201,14 +201,19 @@ def test_the_papers_schedule_is_offered_beside_the_official_tables():
 def test_the_cpu_splits_are_prefixes_of_the_benchmarks():
     from dsr_bench.dataset.splits import SPLITS, pinned_digests
 
-    for cpu, parent in (("cpu-train", "procedural-train"), ("cpu-novel-test", "procedural-novel-test")):
+    for cpu, parent in (("cpu-train", "procedural-train"), ("cpu-train-4k", "procedural-train"),
+                        ("cpu-novel-test", "procedural-novel-test"), ("cpu-val", "procedural-test")):
         a, b = SPLITS[cpu], SPLITS[parent]
         assert (a.objects, a.base_seed, a.steps, a.objects_per_scene) == (b.objects, b.base_seed, b.steps,
                                                                          b.objects_per_scene)
         assert a.num_sequences < b.num_sequences
     pins = pinned_digests()
-    test, parent = pins["cpu-novel-test"]["sequences"], pins["procedural-novel-test"]["sequences"]
-    assert len(test) == 100 and all(test[name] == parent[name] for name in test)  # the same files
+    for cpu, parent in (("cpu-novel-test", "procedural-novel-test"), ("cpu-val", "procedural-test")):
+        ours, theirs = pins[cpu]["sequences"], pins[parent]["sequences"]
+        assert len(ours) == 100 and all(ours[name] == theirs[name] for name in ours)  # the same files
+    # the validation split holds scenes of the training objects, never a training sequence or a novel object
+    assert (SPLITS["cpu-val"].role, SPLITS["cpu-val"].objects) == ("val", SPLITS["cpu-train-4k"].objects)
+    assert SPLITS["cpu-val"].base_seed not in {s.base_seed for s in SPLITS.values() if s.role == "train"}
 
 
 def test_stage_one_is_shared_by_the_history_variants_and_init_skips_it(tmp_path, monkeypatch):

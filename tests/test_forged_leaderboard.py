@@ -150,6 +150,10 @@ def test_nan_a_relabelled_split_a_json_list_and_no_predictions_are_refused(pinne
         "split_checksum is the pin of procedural-novel-mini, not of cpu-novel-test (a result relabelled as another "
         "split)"]
     assert check_entry(genuine) == []
+    # a validation split is where training choices are made: a result on it is never ranked, whatever it holds
+    assert check_entry({**genuine, "split": "cpu-val"}) == [
+        "split 'cpu-val' is a validation split (where training choices are made); it is never ranked: score a test "
+        "split"]
 
 
 def test_a_genuine_submission_is_recomputed_written_and_replaced_only_by_itself(pinned, root, tmp_path, capsys):

@@ -16,7 +16,7 @@ def test_sequence_seeds_are_stable_and_distinct():
 
 def test_split_table_and_errors():
     assert get_split("ycb-test").num_sequences == 400 and get_split("ycb-test").objects == "ycb"
-    assert {s.role for s in SPLITS.values()} == {"train", "test"}
+    assert {s.role for s in SPLITS.values()} == {"train", "test", "val"}
     with pytest.raises(UserError, match="unknown split 'val'"):
         get_split("val")
 

@@ -31,7 +31,7 @@ class Split:
     objects: str
     num_sequences: int
     base_seed: int
-    role: str  # "train" | "test"
+    role: str  # "train" | "test" | "val" (a validation split: where training choices are made, never ranked)
     description: str
     steps: int = DEFAULT_STEPS
     objects_per_scene: int = DEFAULT_OBJECTS_PER_SCENE
@@ -74,6 +74,9 @@ SPLITS: dict[str, Split] = {
               "CPU track training set at the paper's size: the first 4,000 sequences of procedural-train"),
         Split("cpu-novel-test", "procedural-novel", 100, 50_000, "test",
               "CPU track test set: the first 100 sequences of procedural-novel-test (novel objects)"),
+        Split("cpu-val", "procedural", 100, 41_000, "val",
+              "CPU track validation set: the first 100 sequences of procedural-test (seen categories, held-out "
+              "scenes), where the long runs' choices are made; never reported as a result"),
     )
 }
 SPLIT_NAMES: tuple[str, ...] = tuple(SPLITS)

@@ -341,6 +341,9 @@ def _check_split(r: dict) -> list[str]:
     if not isinstance(split, str) or split not in SPLITS:
         return [f"split {show(split)} is not one of the benchmark's named splits"]
     spec = SPLITS[split]
+    if spec.role == "val":
+        return [f"split {split!r} is a validation split (where training choices are made); it is never ranked: "
+                "score a test split"]
     expected = spec.expected_digest
     if expected is None:
         return [f"split {split!r} has no pinned checksum in this toolkit version; it cannot be ranked"]
