@@ -63,9 +63,10 @@ def curve_points(summaries: list[dict]) -> dict[str, list[dict]]:
     return {name: sorted(by_sha.values(), key=lambda p: p["sample_steps"]) for name, by_sha in sorted(points.items())}
 
 
-def plot(curve: dict[str, list[dict]], cap: float | None, path: Path, marks: list[tuple[int, str]] = ()) -> None:
-    """Ordered (solid) and unordered (dashed) IoU against sample-steps, one colour a model, the cap dotted, and a
-    vertical line at each of `marks` (sample-steps, label)."""
+def plot(curve: dict[str, list[dict]], cap: float | None, path: Path, marks: list[tuple[int, str]] = (),
+         split: str = "the held-out split") -> None:
+    """Ordered (solid) and unordered (dashed) IoU on `split` against sample-steps, one colour a model, the cap dotted,
+    and a vertical line at each of `marks` (sample-steps, label)."""
     from matplotlib.figure import Figure
 
     from dsr_bench.scoring.plots import save_figure
@@ -84,7 +85,7 @@ def plot(curve: dict[str, list[dict]], cap: float | None, path: Path, marks: lis
         ax.axvline(steps / 1000, color="black", linestyle="-.", linewidth=0.8)
         ax.annotate(label, (steps / 1000, 0.02), xytext=(4, 0), textcoords="offset points", fontsize=8)
     ax.set_xlabel("sample-steps (thousands)")
-    ax.set_ylabel("IoU, held-out novel objects")
+    ax.set_ylabel(f"IoU on {split}")
     ax.set_ylim(0, 1 if cap is None else max(0.7, cap + 0.05))
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8, loc="center left", bbox_to_anchor=(1.01, 0.5))
@@ -134,7 +135,7 @@ def main() -> None:
                   + " ".join(f"{p['means'][m]:15.4f}" for m in METRICS))
     write_text(args.out, json.dumps(record, indent=1) + "\n")
     if args.plot:
-        plot(curve, args.cap, args.plot, marks)
+        plot(curve, args.cap, args.plot, marks, split=first["split"])
 
 
 if __name__ == "__main__":
