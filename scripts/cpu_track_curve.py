@@ -63,8 +63,8 @@ def curve_points(summaries: list[dict]) -> dict[str, list[dict]]:
     return {name: sorted(by_sha.values(), key=lambda p: p["sample_steps"]) for name, by_sha in sorted(points.items())}
 
 
-def plot(curve: dict[str, list[dict]], cap: float | None, path: Path, marks: list[tuple[int, str]] = (),
-         split: str = "the held-out split") -> None:
+def plot(curve: dict[str, list[dict]], cap: float | None, path: Path, marks: list[tuple[int, str]],
+         split: str) -> None:
     """Ordered (solid) and unordered (dashed) IoU on `split` against sample-steps, one colour a model, the cap dotted,
     and a vertical line at each of `marks` (sample-steps, label)."""
     from matplotlib.figure import Figure

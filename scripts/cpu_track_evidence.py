@@ -147,15 +147,16 @@ def main() -> None:
         """WORK/<label>.json, the results of `predict(WORK/<label>)` evaluated; either one reused when there (made
         from `weights`, checked by the SHA-256 they record)."""
         pred, results_file = args.work / label, args.work / f"{label}.json"
-        if not results_file.is_file():
-            if not (pred / "meta.json").is_file():
-                predict(pred)
-            else:
-                check_reused(pred / "meta.json", json.loads((pred / "meta.json").read_text()), weights)
-            run(*cli, "evaluate", str(pred), "--data", str(args.data), "--out", str(results_file))
-        results = json.loads(results_file.read_text())
-        check_reused(results_file, results.get("meta"), weights)
-        return results
+        if results_file.is_file():
+            results = json.loads(results_file.read_text())
+            check_reused(results_file, results.get("meta"), weights)
+            return results
+        if (pred / "meta.json").is_file():
+            check_reused(pred / "meta.json", json.loads((pred / "meta.json").read_text()), weights)
+        else:
+            predict(pred)
+        run(*cli, "evaluate", str(pred), "--data", str(args.data), "--out", str(results_file))
+        return json.loads(results_file.read_text())
 
     def predict_cli(model: str, checkpoint: Path | None) -> Callable[[Path], None]:
         extra = [] if checkpoint is None else ["--checkpoint", str(checkpoint)]
