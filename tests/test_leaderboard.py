@@ -455,6 +455,41 @@ def test_planning_results_fill_the_planning_column_beside_the_papers(board, tmp_
         assert any(why in p for p in check_entry(bad)), check_entry(bad)
 
 
+def test_a_row_of_weights_no_longer_shipped_says_so(board):
+    """A row records the shipped weights it ran (SHA-256); once the toolkit ships other files, its note names the old
+    ones, so a row reading "dsr-cpu" never stands for today's `--model dsr` by mistake. A checkpoint of the user's
+    own, or the files shipped now, get no such note."""
+    from dsr_bench.dataset.manifest import file_sha256
+    from dsr_bench.models.predictors import SHIPPED_SOURCE, SHIPPED_WEIGHTS
+
+    now = file_sha256(SHIPPED_WEIGHTS / "dsr.pt")
+    before = "0123abcd" + now[8:]
+    shipped = {"source": SHIPPED_SOURCE, "file": "dsr.pt"}
+    (board / "planning").mkdir()
+    for method, weights in (("dsr-cpu", [{**shipped, "sha256": now}]),
+                            ("mean(dsr-cpu, single-cpu)", [{**shipped, "sha256": before},
+                                                           {**shipped, "file": "single.pt", "sha256": "f" * 64}]),
+                            ("mine", [{"source": "dsr-bench", "file": "dsr.pt", "sha256": before}])):
+        results = _plan_results(method, 0.4)
+        results["planner"]["weights"] = weights
+        assert check_entry(results) == []
+        (board / "planning" / entry_name(results)).write_text(json.dumps(results))
+    for method, sha in (("dsr-cpu", before), ("dsr-now", now)):
+        results = _results(method)
+        results["meta"]["parameters"] = {"weights": {**shipped, "sha256": sha}}
+        _put(board, results, label="mine" if method == "dsr-cpu" else None)
+    build(board)
+    md = (board / "README.md").read_text()
+    note = {cells[0]: cells[-4] for cells in (line.split(" | ") for line in md.splitlines())
+            if len(cells) > 5 and cells[0] in ("| dsr-cpu (planning)", "| mean(dsr-cpu, single-cpu) (planning)",
+                                               "| mine (planning)", "| dsr-cpu", "| dsr-now")}
+    assert note == {"| dsr-cpu (planning)": "100/100 tasks",
+                    "| mean(dsr-cpu, single-cpu) (planning)":
+                        "100/100 tasks; weights 0123abcd, ffffffff: shipped before, not now",
+                    "| mine (planning)": "100/100 tasks",
+                    "| dsr-cpu": "mine; weights 0123abcd: shipped before, not now", "| dsr-now": ""}, note
+
+
 def _varied(method, offset, spread_=0.2):
     """An entry whose 8 sequences differ (ordered IoU 0.1 + offset + spread_ * i / 7, other metrics constant), as
     `evaluate` aggregates them."""

@@ -17,11 +17,13 @@ an empty one builds a leaderboard that says it has no entries.
 
 from __future__ import annotations
 
+import functools
 import html
 import re
 import sys
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 from dsr_bench.atomic import write_text
 from dsr_bench.constants import GRID_SHAPE, IMAGE_SHAPE
@@ -77,6 +79,34 @@ def _kind(results: dict) -> str:
     return "reproduced" if checksum == expected else f"reproduced on an earlier version of the split, {checksum[:12]}"
 
 
+@functools.cache
+def _shipped_sha256(file: str) -> str | None:
+    """SHA-256 of the toolkit's shipped CPU-track weights file named `file` (a bare file name), or None if none."""
+    from dsr_bench.dataset.manifest import file_sha256
+    from dsr_bench.models.predictors import SHIPPED_WEIGHTS
+
+    path = SHIPPED_WEIGHTS / file
+    return file_sha256(path) if Path(file).name == file and path.is_file() else None
+
+
+def superseded_weights(records: Any) -> str:
+    """The note of a row whose results record shipped CPU-track weights (`predictors.SHIPPED_SOURCE`; one record or
+    a list, as predictions' meta.json parameters "weights" and a plan's planner "weights" hold them) that are not
+    the files the toolkit ships now: "weights 84983793, 36d93c9c: shipped before, not now" (SHA-256 prefixes), else
+    "". Such a row stands for the weights it names, not for `--model M` today."""
+    from dsr_bench.models.predictors import SHIPPED_SOURCE
+
+    records = records if isinstance(records, list) else [records]
+    old = [r["sha256"][:8] for r in records
+           if isinstance(r, dict) and r.get("source") == SHIPPED_SOURCE and isinstance(r.get("sha256"), str)
+           and isinstance(r.get("file"), str) and _shipped_sha256(r["file"]) != r["sha256"]]
+    return f"weights {', '.join(old)}: shipped before, not now" if old else ""
+
+
+def _joined(*notes: str) -> str:
+    return "; ".join(n for n in notes if n)
+
+
 def load_entries(root: str | Path = "leaderboard", warn: Callable[[str], None] | None = None) -> list[dict]:
     """Every valid entry's results (entries/*.json, sorted by file name), each with its table's "kind" added; an
     invalid file is skipped with one `warn` line (default: on stderr)."""
@@ -97,7 +127,8 @@ def load_rows(root: str | Path = "leaderboard", warn: Callable[[str], None] | No
         params = (r.get("meta") or {}).get("parameters") or {}
         default = IMAGE_SHAPE if is_2d_only(r.get("metrics") or {}) else GRID_SHAPE
         grid = params.get("grid") or params.get("image") or list(default)
-        rows.append({"method": r["method"], "split": r["split"], "kind": kind, "label": r.get("label", ""),
+        label = _joined(str(r.get("label", "")), superseded_weights(params.get("weights")))
+        rows.append({"method": r["method"], "split": r["split"], "kind": kind, "label": label,
                      REFERENCE: reference_of(r, planning=False)[0],
                      "grid": "x".join(str(int(g)) for g in grid), "toolkit": str(r.get("toolkit_version", "")),
                      "date": r.get("date", "")[:10], "checksum": r.get("split_checksum", "")[:12],
@@ -142,8 +173,9 @@ def planning_rows(results_files: list[str | Path], include_paper: bool = True) -
         common = {"split": r["task_set"], "kind": kind, "toolkit": str(r.get("toolkit_version", "")),
                   "date": r.get("date", "")[:10], "checksum": r.get("task_checksum", "")[:12]}
         rows.append({"method": f"{r['method']} (planning)", **common, REFERENCE: reference_of(r, planning=True)[0],
-                     "label": f"{r['coverage']['scored']}/{r['coverage']['expected']} tasks"
-                              + (" (partial)" if partial else ""), "grid": grid,
+                     "label": _joined(f"{r['coverage']['scored']}/{r['coverage']['expected']} tasks"
+                                      + (" (partial)" if partial else ""),
+                                      superseded_weights((r.get("planner") or {}).get("weights"))), "grid": grid,
                      SEQ: {t: {"planning_iou": v.get("iou")} for t, v in tasks.items()},
                      "planning_iou": r["metrics"]["iou"]})
         if (r["task_set"], kind) not in start_rows and "start_iou" in r["metrics"]:

@@ -115,6 +115,8 @@ class PushPredictor(StaticPredictor):
 #: The CPU track's trained weights that ship with the toolkit (`dsr-bench train --track cpu`, docs/models.md):
 #: what `dsr-bench predict --model M` uses when no --checkpoint or --weights is given.
 SHIPPED_WEIGHTS = Path(__file__).resolve().parent / "weights" / "cpu-track"
+#: The "source" a predictions' meta.json (and a plan's results) records for the shipped weights (`weights_file`).
+SHIPPED_SOURCE = "dsr-bench, shipped CPU-track weights"
 
 
 def shipped_weights(model: str) -> Path | None:
@@ -181,7 +183,7 @@ def weights_file(entry: registry.ModelEntry, checkpoint: Path | None) -> tuple[P
                         f"{'' if entry.released else ' --model ' + entry.name}`){released}")
     if not path.is_file():
         raise UserError(f"checkpoint not found: {path}")
-    return path, {"source": "dsr-bench, shipped CPU-track weights" if shipped else "dsr-bench", "file": path.name,
+    return path, {"source": SHIPPED_SOURCE if shipped else "dsr-bench", "file": path.name,
                   "sha256": file_sha256(path)}
 
 
