@@ -1,6 +1,7 @@
 """scripts/train_cpu_long.py, the CPU track's long runs in resumable chunks, end to end at toy size: the run starts
 from the shipped file of --from, trains chunk after chunk until the file's own records count --until sample-steps,
-logs each chunk (its sample-steps and rate), and run again with the same arguments it has nothing left to do."""
+logs each chunk (its sample-steps and rate), and run again with the same arguments it has nothing left to do; a
+--schedule of rates goes on from there, skipping the stages the file has passed."""
 
 from __future__ import annotations
 
@@ -10,6 +11,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
 import torch
 
 from dsr_bench.models.predictors import SHIPPED_WEIGHTS
@@ -17,6 +19,8 @@ from dsr_bench.models.training.cpu_track import sample_steps
 from dsr_bench.testing import write_synthetic_dataset
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "scripts"))
+import train_cpu_long  # noqa: E402
 
 
 def _steps(path: Path) -> int:
@@ -45,3 +49,25 @@ def test_a_long_run_goes_on_chunk_by_chunk_until_its_sample_steps(tmp_path):
     again = subprocess.run(command, capture_output=True, text=True, env=env)
     assert again.returncode == 0 and f"{start + 160} sample-steps, done" in again.stdout
     assert len((runs / "single.log.jsonl").read_text().splitlines()) == 2  # nothing more trained
+
+    # a schedule: its first stage is passed already (skipped), its second trains at its own rate until its steps
+    schedule = command[:command.index("--until")] + ["--schedule", f"{start + 160}:1e-4,{start + 240}:5e-5",
+                                                    "--chunk", "1"]
+    done = subprocess.run(schedule, capture_output=True, text=True, env=env)
+    assert done.returncode == 0, done.stderr
+    lines = [json.loads(line) for line in (runs / "single.log.jsonl").read_text().splitlines()]
+    assert [(line["sample_steps"], line["lr"]) for line in lines[2:]] == [(start + 240, 5e-5)]
+    assert f"{start + 240} sample-steps, done" in done.stdout
+
+
+def test_a_schedule_is_whole_and_increasing_and_takes_no_other_rate(tmp_path):
+    assert train_cpu_long.parse_schedule("488000:5e-4, 608000:1e-4") == [(488000, 5e-4), (608000, 1e-4)]
+    for bad, why in (("608000", "is not UNTIL:RATE"), ("608000:fast", "is not UNTIL:RATE"),
+                     ("608000:1e-4,528000:5e-5", "increasing"), ("608000:0", "positive")):
+        with pytest.raises(SystemExit, match=why):
+            train_cpu_long.parse_schedule(bad)
+    both = subprocess.run([sys.executable, str(ROOT / "scripts" / "train_cpu_long.py"), "--model", "single", "--data",
+                           str(tmp_path), "--runs", str(tmp_path / "runs"), "--schedule", "608000:1e-4",
+                           "--multi-lr", "5e-5"], capture_output=True, text=True)
+    assert both.returncode == 2 and "--multi-lr goes with --until" in both.stderr
+    assert not (tmp_path / "runs").exists()  # refused before anything was written
