@@ -10,7 +10,8 @@ ground truth scores after the same round trip: each step's amodal mask pooled (`
 `dsr-bench predict` writes them) and scored by `dsr-bench evaluate` like any model's, so the ceiling and the
 models' scores come from one evaluation. Prints the means of the four headline metrics (flow MSE in cm^2, IoU);
 the results (per sequence, per step) go to --out (default WORK/oracle-pooled.json). This is the grid's cap that
-`cpu_track_curve.py --cap` draws (ordered IoU 0.642 on cpu-novel-test).
+`cpu_track_curve.py --cap` draws (ordered IoU 0.645 on cpu-novel-test). The command is recorded in the
+predictions' meta.json parameters (`command`), which the results carry.
 """
 
 from __future__ import annotations
@@ -60,6 +61,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--factor", type=int, default=4, help="Benchmark voxels per model voxel (the CPU track: 4).")
     args = parser.parse_args(argv)
 
+    from dsr_bench.atomic import write_text
     from dsr_bench.dataset.manifest import read_split
     from dsr_bench.errors import UserError
     from dsr_bench.models.predictors import predict_split
@@ -72,13 +74,19 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     pred, out = args.work / PooledOracle.name, args.out or args.work / f"{PooledOracle.name}.json"
     predict_split(oracle, args.data, names, pred)
+    command = "python " + shlex.join(["scripts/cpu_track_cap.py", *(sys.argv[1:] if argv is None else argv)])
+    meta = json.loads((pred / "meta.json").read_text())
+    meta["parameters"]["command"] = command  # parameters travel into the results (meta.parameters)
+    write_text(pred / "meta.json", json.dumps(meta, indent=1) + "\n")
     # the toolkit's own scoring, as for every model: evaluate validates the predictions and checks the pins
-    subprocess.run([sys.executable, "-m", "dsr_bench", "evaluate", str(pred), "--data", str(args.data), "--split",
-                    split, "--out", str(out)], check=True)
+    scored = subprocess.run([sys.executable, "-m", "dsr_bench", "evaluate", str(pred), "--data", str(args.data),
+                             "--split", split, "--out", str(out)])
+    if scored.returncode:
+        return scored.returncode  # evaluate said why, in one line
     means = json.loads(out.read_text())["metrics"]
     print(f"{split} ({len(names)} sequences), the {oracle.millimetres} mm grid's ceiling: "
           + ", ".join(f"{m} {means[m]:.4f}" for m in METRICS))
-    print("command: python " + shlex.join(sys.argv))
+    print(f"command: {command}")
     return 0
 
 

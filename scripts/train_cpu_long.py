@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import shutil
 import subprocess
@@ -44,18 +45,18 @@ def trained(path: Path) -> tuple[int, dict]:
 
 
 def parse_schedule(text: str) -> list[tuple[int, float]]:
-    """[(until sample-steps, learning rate), ...] of --schedule "UNTIL:RATE,..." (UNTIL increasing, RATE > 0);
-    SystemExit naming the bad part otherwise."""
-    stages = []
+    """[(until sample-steps, learning rate), ...] of --schedule "UNTIL:RATE,..." (UNTIL increasing, RATE finite and
+    positive); argparse.ArgumentTypeError naming the bad part otherwise (argparse's one line, exit 2)."""
+    stages: list[tuple[int, float]] = []
     for part in text.split(","):
         until, _, rate = part.strip().partition(":")
         try:
             stage = int(until), float(rate)
         except ValueError:
-            raise SystemExit(f"error: --schedule {text!r}: {part!r} is not UNTIL:RATE (e.g. 608000:1e-4)") from None
-        if stage[1] <= 0 or (stages and stage[0] <= stages[-1][0]):
-            raise SystemExit(f"error: --schedule {text!r}: at {part!r}, rates must be positive and the sample-steps "
-                             "increasing")
+            raise argparse.ArgumentTypeError(f"{part!r} is not UNTIL:RATE (e.g. 608000:1e-4)") from None
+        if not (math.isfinite(stage[1]) and stage[1] > 0) or (stages and stage[0] <= stages[-1][0]):
+            raise argparse.ArgumentTypeError(f"at {part!r}: rates must be positive numbers and the sample-steps "
+                                             "increasing")
         stages.append(stage)
     return stages
 

@@ -31,7 +31,9 @@ def test_the_ceiling_is_the_pooled_truth_scored_and_without_pooling_the_truth(ge
         written = f["mask"][()]
     assert np.array_equal(written, unpool_mask(pool_labels(truth)))  # the round trip, on the benchmark's grid
     assert not np.array_equal(written, truth)  # 16 mm voxels lose detail: the ceiling is below the truth
-    cap = _metrics(tmp_path / "w4" / "oracle-pooled.json")
+    results = json.loads((tmp_path / "w4" / "oracle-pooled.json").read_text())
+    assert results["meta"]["parameters"]["command"].startswith("python scripts/cpu_track_cap.py --data ")
+    cap = results["metrics"]
     assert 0.3 < cap["iou_ordered"] < 1.0 and cap["iou_ordered"] == cap["iou_unordered"]  # slots are the objects
     assert cap["motion_visible"] > 0.0
 

@@ -490,6 +490,30 @@ def test_a_row_of_weights_no_longer_shipped_says_so(board):
                     "| dsr-cpu": "mine; weights 0123abcd: shipped before, not now", "| dsr-now": ""}, note
 
 
+@pytest.mark.parametrize("weights, problem", [
+    ("dsr.pt", "weights is \"dsr.pt\", not an object"),
+    ([{"file": "dsr.pt", "sha256": "ab" * 32}, 3], "weights is 3, not an object"),
+    ({"file": "../../dsr.pt", "sha256": "ab" * 32}, "weights.file is \"../../dsr.pt\", not a file name"),
+    ({"file": "a" * 300, "sha256": "ab" * 32}, "not a file name"),
+    ({"file": "dsr.pt", "sha256": ""}, "weights.sha256 is \"\", not a SHA-256"),
+    ({"file": "dsr.pt", "sha256": 7}, "weights.sha256 is 7, not a SHA-256")])
+def test_a_malformed_weights_record_keeps_an_entry_off_and_never_breaks_the_build(board, capsys, weights, problem):
+    from dsr_bench.models.predictors import SHIPPED_SOURCE
+
+    record = ({**weights, "source": SHIPPED_SOURCE} if isinstance(weights, dict) else weights)
+    results = _results("dsr-cpu")
+    results["meta"]["parameters"] = {"weights": record}
+    plan = _plan_results("dsr-cpu", 0.4)
+    plan["planner"]["weights"] = record
+    for entry, where in ((results, "meta.parameters."), (plan, "planner.")):
+        assert any(p.startswith(where) and problem in p for p in check_entry(entry)), check_entry(entry)
+    (board / "entries").mkdir()
+    (board / "entries" / "forged.json").write_text(json.dumps(results))  # placed by hand: build skips it, one line
+    build(board)
+    assert "forged.json" in capsys.readouterr().err
+    assert "| dsr-cpu |" not in (board / "README.md").read_text()
+
+
 def _varied(method, offset, spread_=0.2):
     """An entry whose 8 sequences differ (ordered IoU 0.1 + offset + spread_ * i / 7, other metrics constant), as
     `evaluate` aggregates them."""

@@ -5,6 +5,7 @@ logs each chunk (its sample-steps and rate), and run again with the same argumen
 
 from __future__ import annotations
 
+import argparse
 import json
 import os
 import subprocess
@@ -63,8 +64,9 @@ def test_a_long_run_goes_on_chunk_by_chunk_until_its_sample_steps(tmp_path):
 def test_a_schedule_is_whole_and_increasing_and_takes_no_other_rate(tmp_path):
     assert train_cpu_long.parse_schedule("488000:5e-4, 608000:1e-4") == [(488000, 5e-4), (608000, 1e-4)]
     for bad, why in (("608000", "is not UNTIL:RATE"), ("608000:fast", "is not UNTIL:RATE"),
-                     ("608000:1e-4,528000:5e-5", "increasing"), ("608000:0", "positive")):
-        with pytest.raises(SystemExit, match=why):
+                     ("608000:1e-4,528000:5e-5", "increasing"), ("608000:0", "positive"), ("608000:nan", "positive"),
+                     ("608000:inf", "positive")):
+        with pytest.raises(argparse.ArgumentTypeError, match=why):
             train_cpu_long.parse_schedule(bad)
     both = subprocess.run([sys.executable, str(ROOT / "scripts" / "train_cpu_long.py"), "--model", "single", "--data",
                            str(tmp_path), "--runs", str(tmp_path / "runs"), "--schedule", "608000:1e-4",

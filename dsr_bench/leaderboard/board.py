@@ -80,26 +80,26 @@ def _kind(results: dict) -> str:
 
 
 @functools.cache
-def _shipped_sha256(file: str) -> str | None:
-    """SHA-256 of the toolkit's shipped CPU-track weights file named `file` (a bare file name), or None if none."""
+def _shipped_sha256() -> dict[str, str]:
+    """{file name: SHA-256} of the toolkit's shipped CPU-track weights files."""
     from dsr_bench.dataset.manifest import file_sha256
     from dsr_bench.models.predictors import SHIPPED_WEIGHTS
 
-    path = SHIPPED_WEIGHTS / file
-    return file_sha256(path) if Path(file).name == file and path.is_file() else None
+    return {path.name: file_sha256(path) for path in sorted(SHIPPED_WEIGHTS.glob("*.pt"))}
 
 
 def superseded_weights(records: Any) -> str:
     """The note of a row whose results record shipped CPU-track weights (`predictors.SHIPPED_SOURCE`; one record or
     a list, as predictions' meta.json parameters "weights" and a plan's planner "weights" hold them) that are not
     the files the toolkit ships now: "weights 84983793, 36d93c9c: shipped before, not now" (SHA-256 prefixes), else
-    "". Such a row stands for the weights it names, not for `--model M` today."""
+    "". Such a row stands for the weights it names, not for `--model M` today. Records are looked up by name, never
+    opened: `entries.weights_problem` keeps malformed ones off the leaderboard."""
     from dsr_bench.models.predictors import SHIPPED_SOURCE
 
-    records = records if isinstance(records, list) else [records]
-    old = [r["sha256"][:8] for r in records
+    shipped = _shipped_sha256()
+    old = [r["sha256"][:8] for r in (records if isinstance(records, list) else [records])
            if isinstance(r, dict) and r.get("source") == SHIPPED_SOURCE and isinstance(r.get("sha256"), str)
-           and isinstance(r.get("file"), str) and _shipped_sha256(r["file"]) != r["sha256"]]
+           and r["sha256"] and shipped.get(r.get("file")) != r["sha256"]]  # type: ignore[arg-type]
     return f"weights {', '.join(old)}: shipped before, not now" if old else ""
 
 

@@ -56,6 +56,7 @@ _FIRST = ("format", "version", "split", "task_set", "split_checksum", "task_chec
           "ground_truth_verified", "coverage", "predictions_checksum", "plans_checksum", "predictions_sha256", "method",
           "metrics", "per_step", "per_sequence", "per_task", "breakdowns", "meta", "planner", "parameters")
 _HEX64 = re.compile(r"[0-9a-f]{64}")
+_FILE_NAME = re.compile(r"[^/\\\x00]{1,200}")  # a bare file name: no folder, no NUL
 _DATE = re.compile(r"\d{4}-\d{2}-\d{2}")
 
 
@@ -163,6 +164,9 @@ def check_plan_entry(results: dict) -> list[str]:
     if grid is not None and not (isinstance(grid, list) and len(grid) == 3 and all(
             isinstance(g, int) and not isinstance(g, bool) and g > 0 for g in grid)):
         p.append(f"planner.grid is {show(grid)}, not a list of 3 positive integers")
+    planner: dict = results["planner"] if isinstance(results.get("planner"), dict) else {}
+    if "weights" in planner and (problem := weights_problem(planner["weights"], "planner.weights")):
+        p.append(problem)
     if results.get("pinned") is not True:
         p.append("its task set is not this toolkit's pinned one (pinned is not true); plan on a pinned task set "
                  "(`dsr-bench generate-plan-tasks --tasks plan-novel-test`)")
@@ -173,6 +177,23 @@ def check_plan_entry(results: dict) -> list[str]:
     if "label" in results and not isinstance(results["label"], str):
         p.append("label is not a string")
     return p + _check_name(results, planning=True)
+
+
+def weights_problem(value, where: str) -> str | None:
+    """Why a weights record (one object or a list of them, as predictions' meta.json parameters "weights" and a
+    plan's planner "weights" hold them: source, file, sha256) is malformed, or None: each an object (or null), its
+    file a bare file name and its sha256 a SHA-256 where they are given."""
+    for record in value if isinstance(value, list) else [value]:
+        if record is None:  # a model without a weights file (a planner's member)
+            continue
+        if not isinstance(record, dict):
+            return f"{where} is {show(record)}, not an object (source, file, sha256)"
+        file, sha = record.get("file"), record.get("sha256")
+        if file is not None and not (isinstance(file, str) and _FILE_NAME.fullmatch(file) and file not in (".", "..")):
+            return f"{where}.file is {show(file)}, not a file name"
+        if sha is not None and not (isinstance(sha, str) and _HEX64.fullmatch(sha)):
+            return f"{where}.sha256 is {show(sha)}, not a SHA-256 (64 lowercase hex digits)"
+    return None
 
 
 def _check_fields(r: dict) -> list[str]:
@@ -212,6 +233,8 @@ def _check_fields(r: dict) -> list[str]:
             if value is not None and not (isinstance(value, list) and len(value) == size and
                                           all(isinstance(g, int) and not isinstance(g, bool) and g > 0 for g in value)):
                 p.append(f"meta.parameters.{key} is {show(value)}, not a list of {size} positive integers")
+        if "weights" in params and (problem := weights_problem(params["weights"], "meta.parameters.weights")):
+            p.append(problem)
     sha = r.get("predictions_sha256")
     if sha is not None:
         if not isinstance(sha, dict) or not sha or not all(isinstance(v, str) and _HEX64.fullmatch(v)
