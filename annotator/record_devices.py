@@ -17,6 +17,7 @@ path is the same for both. pyrealsense2 (the `realsense` extra) is imported insi
 from __future__ import annotations
 
 import re
+import threading
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -29,6 +30,7 @@ HINT = "docs/annotator.md, 'Recording a session'"
 #: The colour formats recorded, in order of preference (all read by `import-capture`), and the depth format.
 COLOR_FORMATS = ("rgb8", "bgr8", "rgba8", "bgra8")
 DEPTH_FORMAT = "z16"
+STOP_WAIT_S = 2.0  # the most a stopped playback waits for librealsense to say so
 #: inter_cam_sync_mode values of the D400 depth sensor: 1 master (drives the sync pin), 2 slave (follows it).
 SYNC_MASTER, SYNC_SLAVE = 1.0, 2.0
 MODE = re.compile(r"(\d+)x(\d+)@(\d+)")
@@ -273,8 +275,14 @@ class PlaybackFeed:
                         copy_a.register_extrinsics_to(copy_b, a.get_extrinsics_to(b))
                     except RuntimeError:  # streams of no common extrinsics group: none recorded
                         pass
-        self.playback.set_status_changed_callback(
-            lambda status: ended(camera) if status == rs.playback_status.stopped else None)
+        self._stopped = threading.Event()  # set once librealsense has said the playback stopped
+
+        def on_status(status) -> None:
+            if status == rs.playback_status.stopped:
+                self._stopped.set()
+                ended(camera)
+
+        self.playback.set_status_changed_callback(on_status)
         self._started: list = []
 
     def _inject(self, frame) -> None:
@@ -305,14 +313,17 @@ class PlaybackFeed:
         self.playback.resume()
 
     def stop(self) -> None:
-        """Stop and close the playback's sensors."""
-        for sensor in self._started:
+        """Stop and close the playback's sensors, and wait (at most STOP_WAIT_S) for librealsense's own thread to say
+        the playback stopped: a callback into Python after the interpreter has begun to exit aborts the process."""
+        started, self._started = self._started, []
+        for sensor in started:
             try:
                 sensor.stop()
                 sensor.close()
             except RuntimeError:  # already stopped at the end of the file
                 pass
-        self._started = []
+        if started:
+            self._stopped.wait(STOP_WAIT_S)
 
 
 # --- one camera, opened and recorded ---------------------------------------------------------------------------------
