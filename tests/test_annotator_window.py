@@ -686,8 +686,10 @@ def _send_keys(script: list[tuple[str, str, str]]) -> subprocess.Popen:
                             stderr=subprocess.DEVNULL)
 
 
-def _watchdog(window, timeout: float = 20.0) -> None:
-    """Stop the window's loop if it has not quit within `timeout` s (its message then reads 'watchdog')."""
+def _watchdog(window, timeout: float = 60.0) -> None:
+    """Stop the window's loop if it has not quit within `timeout` s (its message then reads 'watchdog'): a guard
+    against a hang, under the child's 90 s; on a loaded machine (the suite beside other jobs, load 6) the typed keys
+    took longer than 20 s."""
     deadline = time.monotonic() + timeout
     while not window.ctl.view.quit and time.monotonic() < deadline:
         time.sleep(0.05)
