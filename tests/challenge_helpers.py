@@ -27,6 +27,9 @@ T = TypeVar("T")
 
 #: seconds a test waits, at most, for an event (polled): generous, as passing it means the event never came
 DEADLINE = 600.0
+#: `dsr-bench serve`'s free-disk margin in the tests (MiB; 1024 by default): small, so that the suite's own 1 GiB
+#: upload test beside them, or a CI disk of a few GiB, does not make the other servers refuse their uploads (507)
+SERVE_KEEP_FREE = ("--keep-free", "64")
 #: seconds one HTTP request may take (httpx's per-request timeout; its default of 5 s is exceeded under load)
 REQUEST_TIMEOUT = 300.0
 #: the submission states a worker leaves a submission in

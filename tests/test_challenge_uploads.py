@@ -1,6 +1,6 @@
 """Uploads that must be refused, with nothing half-stored: archives with absolute paths, '..', links, devices,
 FIFOs, folders, repeated or foreign names, a compression bomb, a truncated or non-tar stream, a stream over the
-size limit (declared or not), a stalled client and a client that hangs up mid-body."""
+size limit (declared or not), a stalled client, a client that hangs up mid-body, and a disk too full to hold one."""
 
 import gzip
 import random
@@ -154,3 +154,69 @@ def test_a_multipart_form_upload_is_streamed_and_accepted(served, tmp_path):
     stored = layout.archive(reply.json()["id"])
     assert stored.read_bytes() == (tmp_path / "p.tar").read_bytes()
     assert not list(layout.uploads.glob(".part-*"))
+
+
+def test_the_disk_check_reserves_the_uploads_declared_length_not_the_limit(tmp_path, tmp_path_factory):
+    """A host's limit far above the free disk (here 1 PiB): an upload that declares its length is accepted when the
+    disk holds it and the margin kept; one that streams without a length could fill the disk, so it is refused (507,
+    one line) before its body is read. Before: every upload needed the whole limit free, so a server with less free
+    disk than limit + margin refused every submission."""
+    from dsr_bench.challenge.client import pack
+    from dsr_bench.challenge.db import open_database
+    from dsr_bench.challenge.layout import Layout
+    from dsr_bench.challenge.server import Settings, create_app
+    from dsr_bench.challenge.service import add_team
+
+    root, predictions = copy_challenge(tmp_path_factory, tmp_path)
+    layout = Layout(root)
+    engine, sessions = open_database(layout.default_db_url())
+    token = add_team(sessions, "uploader")
+    pack(predictions, tmp_path / "p.tar")
+    archive = (tmp_path / "p.tar").read_bytes()
+    settings = Settings(keep_free=16 << 20, auth_max_delay=0.01, overrides={"max_upload_bytes": 1 << 50})
+    try:
+        with LiveServer(create_app(root, settings=settings)) as live:
+            def streamed():  # no Content-Length: the server cannot know how much disk it will take
+                yield archive
+
+            refused = _post(live.url, token, streamed())
+            assert refused.status_code == 507
+            assert refused.json()["detail"] == "the server's disk is full; try again later (the host is told)"
+            _nothing_stored(layout, sessions)
+            accepted = _post(live.url, token, archive)
+            assert accepted.status_code == 202, accepted.text
+            assert layout.archive(accepted.json()["id"]).read_bytes() == archive
+    finally:
+        engine.dispose()
+
+
+def test_an_upload_that_fills_the_disk_while_it_streams_is_refused_and_removed(tmp_path, monkeypatch):
+    """The free disk checked while an upload is written (other uploads and the scores fill it too): once it falls
+    under the margin kept the upload is refused (507) and its temporary removed."""
+    import asyncio
+    import shutil
+
+    from dsr_bench.challenge import storage
+
+    real, checks = shutil.disk_usage, []
+
+    def disk_usage(path):  # the first check finds room, the second a full disk
+        checks.append(path)
+        return real(path)._replace(free=(1 << 30) if len(checks) == 1 else 1 << 20)
+
+    monkeypatch.setattr(storage.shutil, "disk_usage", disk_usage)
+    sent: list[int] = []
+
+    async def chunks(n: int):
+        for _ in range(n):
+            sent.append(1)
+            yield b"\0" * (1 << 20)
+
+    with pytest.raises(storage.UploadRefused) as refused:
+        asyncio.run(storage.receive(chunks(64), tmp_path, limit=1 << 30, keep_free=64 << 20))
+    assert refused.value.status == 507 and "disk is full" in refused.value.message
+    assert checks == [tmp_path, tmp_path] and len(sent) << 20 == 2 * storage.DISK_CHECK_BYTES  # cut at the 2nd
+    assert not list(tmp_path.iterdir())
+    checks.clear()
+    received = asyncio.run(storage.receive(chunks(40), tmp_path, limit=1 << 30, keep_free=0))  # no margin asked
+    assert received.size == 40 << 20 and checks == []

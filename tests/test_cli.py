@@ -149,3 +149,13 @@ def test_a_command_plugin_that_cannot_be_imported_is_named_with_the_fix_and_the_
     register = load_plugin(present)
     assert callable(register) and register.__module__ == "dsr_bench.annotator.cli"
     assert capsys.readouterr().err == ""
+
+
+@pytest.mark.parametrize("option,expected", [(("--workers", "-1"), "--workers -1: give 0 or more"),
+                                             (("--keep-free", "-5"), "--keep-free -5: give the free disk to keep")])
+def test_serve_options_out_of_range_are_one_line_before_anything_starts(tmp_path, capsys, option, expected):
+    pytest.importorskip("fastapi")
+    assert main(["serve", str(tmp_path / "no-challenge"), *option]) == 2
+    err = capsys.readouterr().err
+    assert len(err.splitlines()) == 1 and expected in err, err
+    assert not (tmp_path / "no-challenge").exists()

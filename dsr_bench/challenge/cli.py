@@ -263,6 +263,9 @@ def serve(
     leaderboard: Optional[Path] = typer.Option(
         None, "--leaderboard", help="Local leaderboard folder whose reference rows (static, push, oracle) of the "
         "challenge's split are shown beside the submissions [default: the clone's leaderboard/, if any]."),
+    keep_free: int = typer.Option(
+        1024, "--keep-free", help="Free disk (MiB) the server keeps under DIR: an upload that would leave less is "
+        "refused (507, the host told in this log), checked before it is read and while it is written."),
     forwarded_allow_ips: Optional[str] = typer.Option(
         None, "--forwarded-allow-ips", help="Your reverse proxy's addresses (comma-separated, or *): only requests "
         "from them may name the client's address (X-Forwarded-For) and scheme; default: trust no proxy header, the "
@@ -286,6 +289,8 @@ def serve(
 
     if workers < 0:
         raise UserError(f"--workers {workers}: give 0 or more evaluation workers")
+    if keep_free < 0:
+        raise UserError(f"--keep-free {keep_free}: give the free disk to keep in MiB, 0 or more (default 1024)")
     if leaderboard is not None and not (leaderboard / "entries").is_dir():
         raise UserError(f"--leaderboard {leaderboard}: not a leaderboard folder (no entries/); give the folder "
                         "`dsr-bench leaderboard build` writes, e.g. leaderboard")
@@ -298,7 +303,7 @@ def serve(
                 typer.echo(line, err=True)
         finally:
             engine.dispose()
-        app = create_app(root, url, Settings(leaderboard=leaderboard))
+        app = create_app(root, url, Settings(leaderboard=leaderboard, keep_free=keep_free << 20))
         server = uvicorn.Server(uvicorn.Config(app, host=host, port=port, log_level="info",
                                                proxy_headers=bool(forwarded_allow_ips),
                                                forwarded_allow_ips=forwarded_allow_ips or ""))

@@ -17,8 +17,10 @@ from __future__ import annotations
 
 import asyncio
 import hashlib
+import logging
 import os
 import secrets
+import shutil
 import tarfile
 import zlib
 from collections.abc import AsyncIterator, Collection
@@ -28,6 +30,10 @@ from pathlib import Path
 from dsr_bench.challenge.layout import FILE_PATTERN
 
 CHUNK = 1 << 20
+#: how often (bytes written) an upload checks that the disk still keeps the server's free margin
+DISK_CHECK_BYTES = 16 << 20
+DISK_FULL = "the server's disk is full; try again later (the host is told)"
+log = logging.getLogger("dsr_bench.challenge.storage")
 #: below this many extracted bytes the ratio is not judged (small archives of zeros compress far)
 RATIO_FLOOR = 16 << 20
 
@@ -57,11 +63,13 @@ def new_partial(uploads: Path) -> Path:
     return path
 
 
-async def receive(chunks: AsyncIterator[bytes], uploads: Path, limit: int, idle_timeout: float = 60.0) -> Received:
-    """Write the byte chunks of an upload to a temporary in `uploads`, enforcing `limit` bytes while they arrive
-    and at most `idle_timeout` seconds between chunks; UploadRefused (the temporary removed) otherwise."""
+async def receive(chunks: AsyncIterator[bytes], uploads: Path, limit: int, idle_timeout: float = 60.0,
+                  keep_free: int = 0) -> Received:
+    """Write the byte chunks of an upload to a temporary in `uploads`, enforcing `limit` bytes while they arrive,
+    at most `idle_timeout` seconds between chunks and at least `keep_free` bytes of free disk (checked every
+    `DISK_CHECK_BYTES` written); UploadRefused (the temporary removed) otherwise."""
     path = new_partial(uploads)
-    h, size = hashlib.sha256(), 0
+    h, size, checked = hashlib.sha256(), 0, 0
     try:
         with open(path, "wb") as f:
             iterator = chunks.__aiter__()
@@ -78,6 +86,13 @@ async def receive(chunks: AsyncIterator[bytes], uploads: Path, limit: int, idle_
                                         "smaller files")
                 h.update(chunk)
                 f.write(chunk)
+                if keep_free and size - checked >= DISK_CHECK_BYTES:
+                    checked = size
+                    free = shutil.disk_usage(uploads).free
+                    if free < keep_free:
+                        log.error("an upload was refused after %d bytes: %d bytes free under %s, under the %d kept "
+                                  "free (serve --keep-free); free disk space", size, free, uploads, keep_free)
+                        raise UploadRefused(507, DISK_FULL)
             f.flush()
             os.fsync(f.fileno())
     except BaseException:

@@ -11,6 +11,7 @@ take `Settings.upload_timeout` seconds in all, and `Settings.idle_timeout` betwe
 from __future__ import annotations
 
 import asyncio
+import logging
 import os
 import secrets
 import shutil
@@ -26,12 +27,13 @@ from dsr_bench.challenge import rules
 from dsr_bench.challenge.db import Submission, Team, team_transaction, utcnow
 from dsr_bench.challenge.layout import all_sequences
 from dsr_bench.challenge.routes.deps import ApiTeam, Context, CtxDep
-from dsr_bench.challenge.storage import Received, UploadRefused, check_archive, receive
+from dsr_bench.challenge.storage import DISK_FULL, Received, UploadRefused, check_archive, receive
 
 router = APIRouter()
 META_NAME = "meta.json"
 #: the longest method name accepted in the query, before normalisation (`rules.check_name` allows 64 after it)
 METHOD_QUERY_LIMIT = 256
+log = logging.getLogger("dsr_bench.challenge.uploads")
 
 
 @router.post("/api/submissions", status_code=202)
@@ -45,15 +47,21 @@ async def upload(request: Request, method: Annotated[str, Query(max_length=METHO
     if declared is not None and declared.isdigit() and int(declared) > limit:
         raise HTTPException(413, f"the upload ({declared} bytes) is over the limit of {limit} bytes; submit "
                             "fewer or smaller files")
-    if shutil.disk_usage(ctx.layout.root).free < limit + ctx.settings.keep_free:
-        raise HTTPException(507, "the server's disk is full; try again later (the host is told)")
+    # the disk must hold this upload (its declared length, or the limit when it streams without one) and keep
+    # `keep_free` bytes beside it; `receive` checks again while it writes, as other uploads fill the disk too
+    reserve = int(declared) if declared is not None and declared.isdigit() else limit
+    free = shutil.disk_usage(ctx.layout.root).free
+    if free < reserve + ctx.settings.keep_free:
+        log.error("an upload of %d bytes was refused: %d bytes free under %s, under it and the %d kept free (serve "
+                  "--keep-free); free disk space", reserve, free, ctx.layout.root, ctx.settings.keep_free)
+        raise HTTPException(507, DISK_FULL)
     content_type = request.headers.get("content-type", "")
     body = counted(request.stream(), limit)
     chunks = multipart_chunks(body, content_type) if content_type.startswith("multipart/") else body
     timeout = ctx.settings.upload_timeout
     try:
-        received = await asyncio.wait_for(receive(chunks, ctx.layout.uploads, limit, ctx.settings.idle_timeout),
-                                          timeout)
+        received = await asyncio.wait_for(receive(chunks, ctx.layout.uploads, limit, ctx.settings.idle_timeout,
+                                                  keep_free=ctx.settings.keep_free), timeout)
     except UploadRefused as exc:
         raise HTTPException(exc.status, exc.message) from None
     except ClientDisconnect:
