@@ -157,10 +157,12 @@ def test_a_multipart_form_upload_is_streamed_and_accepted(served, tmp_path):
 
 
 def test_the_disk_check_reserves_the_uploads_declared_length_not_the_limit(tmp_path, tmp_path_factory):
-    """A host's limit far above the free disk (here 1 PiB): an upload that declares its length is accepted when the
-    disk holds it and the margin kept; one that streams without a length could fill the disk, so it is refused (507,
-    one line) before its body is read. Before: every upload needed the whole limit free, so a server with less free
-    disk than limit + margin refused every submission."""
+    """A host's limit far above the free disk (here 1 PiB): an upload is accepted when the disk holds its declared
+    length and the margin kept, and one streamed without a length when the margin is free (then checked while it is
+    written); a margin beyond the free disk refuses both (507, one line) before the body is read. Before, every
+    upload needed the whole limit free beside the margin, so a server with less refused every submission."""
+    import shutil
+
     from dsr_bench.challenge.client import pack
     from dsr_bench.challenge.db import open_database
     from dsr_bench.challenge.layout import Layout
@@ -173,19 +175,24 @@ def test_the_disk_check_reserves_the_uploads_declared_length_not_the_limit(tmp_p
     token = add_team(sessions, "uploader")
     pack(predictions, tmp_path / "p.tar")
     archive = (tmp_path / "p.tar").read_bytes()
-    settings = Settings(keep_free=16 << 20, auth_max_delay=0.01, overrides={"max_upload_bytes": 1 << 50})
-    try:
-        with LiveServer(create_app(root, settings=settings)) as live:
-            def streamed():  # no Content-Length: the server cannot know how much disk it will take
-                yield archive
 
-            refused = _post(live.url, token, streamed())
-            assert refused.status_code == 507
-            assert refused.json()["detail"] == "the server's disk is full; try again later (the host is told)"
-            _nothing_stored(layout, sessions)
-            accepted = _post(live.url, token, archive)
-            assert accepted.status_code == 202, accepted.text
-            assert layout.archive(accepted.json()["id"]).read_bytes() == archive
+    def streamed():  # no Content-Length: the server cannot know how much disk it will take
+        yield archive
+
+    try:
+        full = Settings(keep_free=shutil.disk_usage(root).free + (1 << 40), auth_max_delay=0.01)
+        with LiveServer(create_app(root, settings=full)) as live:
+            for body in (archive, streamed()):
+                refused = _post(live.url, token, body)
+                assert refused.status_code == 507
+                assert refused.json()["detail"] == "the server's disk is full; try again later (the host is told)"
+                _nothing_stored(layout, sessions)
+        roomy = Settings(keep_free=16 << 20, auth_max_delay=0.01, overrides={"max_upload_bytes": 1 << 50})
+        with LiveServer(create_app(root, settings=roomy)) as live:
+            for body in (archive, streamed()):
+                accepted = _post(live.url, token, body)
+                assert accepted.status_code == 202, accepted.text
+                assert layout.archive(accepted.json()["id"]).read_bytes() == archive
     finally:
         engine.dispose()
 

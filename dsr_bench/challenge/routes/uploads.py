@@ -47,9 +47,9 @@ async def upload(request: Request, method: Annotated[str, Query(max_length=METHO
     if declared is not None and declared.isdigit() and int(declared) > limit:
         raise HTTPException(413, f"the upload ({declared} bytes) is over the limit of {limit} bytes; submit "
                             "fewer or smaller files")
-    # the disk must hold this upload (its declared length, or the limit when it streams without one) and keep
-    # `keep_free` bytes beside it; `receive` checks again while it writes, as other uploads fill the disk too
-    reserve = int(declared) if declared is not None and declared.isdigit() else limit
+    # the disk must hold this upload (its declared length; a stream without one, nothing known yet) and keep
+    # `keep_free` bytes beside it; `receive` checks the margin again while it writes, as other uploads fill it too
+    reserve = int(declared) if declared is not None and declared.isdigit() else 0
     free = shutil.disk_usage(ctx.layout.root).free
     if free < reserve + ctx.settings.keep_free:
         log.error("an upload of %d bytes was refused: %d bytes free under %s, under it and the %d kept free (serve "
