@@ -26,7 +26,9 @@ def test_torchrun_two_processes_average_the_gradients(tmp_path):
            "-m", "dsr_bench.cli", "train", "--model", "dsr", "--stage", "cube-single", "--data", str(data),
            "--out", str(run), "--batch-size", "1", "--workers", "0", "--quiet", "--max-steps", "1",
            "--bn-recalibration", "0"]  # the gradient average is the subject: no recalibration pass after it
-    done = subprocess.run(cmd, capture_output=True, text=True, timeout=600, env={**os.environ, "OMP_NUM_THREADS": "1"})
+    # gloo on loopback: it otherwise resolves the machine's hostname for its interface, which a container may lack
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "GLOO_SOCKET_IFNAME": "lo"}
+    done = subprocess.run(cmd, capture_output=True, text=True, timeout=600, env=env)
     assert done.returncode == 0, done.stderr[-3000:]
     assert done.stdout.count("checkpoint:") == 1  # rank 0 reports and writes
     ckpt = torch.load(run / "last.pt", weights_only=True)
