@@ -50,6 +50,8 @@ if [ ! -x .venv/bin/python ]; then
   "$PY" -m venv .venv
 fi
 .venv/bin/python -m pip install -q --upgrade pip >/dev/null
-.venv/bin/python -m pip install -q "torch==2.13.0"
-.venv/bin/python -m pip install -q -e ".[all]"
+# every other package at the version the suite last passed with (scripts/constraints.txt: the bit-for-bit pins of the
+# splits, objects and plans hold across machines on the same numpy, scipy, pybullet ...)
+.venv/bin/python -m pip install -q "torch==2.13.0" -c scripts/constraints.txt
+.venv/bin/python -m pip install -q -e ".[all]" -c scripts/constraints.txt
 echo "dsr-bench installed in .venv ($(.venv/bin/dsr-bench --version))" >&2
