@@ -201,3 +201,30 @@ def test_the_servers_worker_ends_with_the_server(tmp_path, tmp_path_factory, cap
         assert not list(Layout(root).work.glob(f"{sid}-*"))
     finally:
         served.stop()
+
+
+def test_a_disk_too_full_for_an_upload_is_refused_and_told_in_the_servers_log(tmp_path, tmp_path_factory, capsys):
+    """`serve --keep-free` beyond the disk's free space: the team is answered 507 in one line, nothing is stored, the
+    server goes on serving, and the host reads in the server's log what was refused and why (the option to change)."""
+    from dsr_bench.challenge.layout import Layout
+
+    root, predictions = copy_challenge(tmp_path_factory, tmp_path)
+    token = _team(root, capsys)
+    log = tmp_path / "serve.log"
+    beyond = (shutil.disk_usage(root).free >> 20) + (1 << 20)  # MiB: a TiB more than is free
+    served = Served(root, log, "--keep-free", str(beyond))
+    try:
+        from dsr_bench.challenge.client import pack
+
+        pack(predictions, tmp_path / "static.tar")
+        reply = post(f"{served.url}/api/submissions", params={"method": "static"},
+                     content=(tmp_path / "static.tar").read_bytes(), headers={"Authorization": f"Bearer {token}"})
+        assert reply.status_code == 507
+        assert reply.json()["detail"] == "the server's disk is full; try again later (the host is told)"
+        assert get(f"{served.url}/healthz").status_code == 200
+        told = [line for line in log.read_text().splitlines() if "was refused" in line]
+        assert len(told) == 1 and "serve --keep-free" in told[0] and str(beyond << 20) in told[0], told
+    finally:
+        served.stop()
+    layout = Layout(root)
+    assert archives(layout) == {} and rows(layout.default_db_url(), "SELECT id FROM submissions") == []
