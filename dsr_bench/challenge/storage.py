@@ -63,6 +63,17 @@ def new_partial(uploads: Path) -> Path:
     return path
 
 
+def ensure_disk(path: Path, keep_free: int, needed: int = 0, written: int = 0) -> None:
+    """UploadRefused (507, one line) unless the disk under `path` has `needed` bytes free beside the `keep_free`
+    bytes the server keeps (`serve --keep-free`); the refusal is logged for the host, with the upload's `written`
+    bytes so far."""
+    free = shutil.disk_usage(path).free
+    if free < needed + keep_free:
+        log.error("an upload was refused (%d bytes needed, %d written): %d bytes free under %s, the %d kept free "
+                  "included (serve --keep-free); free disk space", needed, written, free, path, keep_free)
+        raise UploadRefused(507, DISK_FULL)
+
+
 async def receive(chunks: AsyncIterator[bytes], uploads: Path, limit: int, idle_timeout: float = 60.0,
                   keep_free: int = 0) -> Received:
     """Write the byte chunks of an upload to a temporary in `uploads`, enforcing `limit` bytes while they arrive,
@@ -88,11 +99,7 @@ async def receive(chunks: AsyncIterator[bytes], uploads: Path, limit: int, idle_
                 f.write(chunk)
                 if keep_free and size - checked >= DISK_CHECK_BYTES:
                     checked = size
-                    free = shutil.disk_usage(uploads).free
-                    if free < keep_free:
-                        log.error("an upload was refused after %d bytes: %d bytes free under %s, under the %d kept "
-                                  "free (serve --keep-free); free disk space", size, free, uploads, keep_free)
-                        raise UploadRefused(507, DISK_FULL)
+                    ensure_disk(uploads, keep_free, written=size)
             f.flush()
             os.fsync(f.fileno())
     except BaseException:

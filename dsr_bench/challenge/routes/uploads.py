@@ -11,10 +11,8 @@ take `Settings.upload_timeout` seconds in all, and `Settings.idle_timeout` betwe
 from __future__ import annotations
 
 import asyncio
-import logging
 import os
 import secrets
-import shutil
 from collections.abc import AsyncIterator
 from typing import Annotated, Any
 
@@ -27,13 +25,12 @@ from dsr_bench.challenge import rules
 from dsr_bench.challenge.db import Submission, Team, team_transaction, utcnow
 from dsr_bench.challenge.layout import all_sequences
 from dsr_bench.challenge.routes.deps import ApiTeam, Context, CtxDep
-from dsr_bench.challenge.storage import DISK_FULL, Received, UploadRefused, check_archive, receive
+from dsr_bench.challenge.storage import Received, UploadRefused, check_archive, ensure_disk, receive
 
 router = APIRouter()
 META_NAME = "meta.json"
 #: the longest method name accepted in the query, before normalisation (`rules.check_name` allows 64 after it)
 METHOD_QUERY_LIMIT = 256
-log = logging.getLogger("dsr_bench.challenge.uploads")
 
 
 @router.post("/api/submissions", status_code=202)
@@ -43,23 +40,19 @@ async def upload(request: Request, method: Annotated[str, Query(max_length=METHO
     cfg = ctx.config()
     method = await run_in_threadpool(_admit, ctx, team, method, cfg)
     limit = int(cfg["max_upload_bytes"])
-    declared = request.headers.get("content-length")
-    if declared is not None and declared.isdigit() and int(declared) > limit:
-        raise HTTPException(413, f"the upload ({declared} bytes) is over the limit of {limit} bytes; submit "
+    declared = request.headers.get("content-length", "")
+    length = int(declared) if declared.isdigit() else 0  # 0: streamed without a length (counted as it arrives)
+    if length > limit:
+        raise HTTPException(413, f"the upload ({length} bytes) is over the limit of {limit} bytes; submit "
                             "fewer or smaller files")
-    # the disk must hold this upload (its declared length; a stream without one, nothing known yet) and keep
-    # `keep_free` bytes beside it; `receive` checks the margin again while it writes, as other uploads fill it too
-    reserve = int(declared) if declared is not None and declared.isdigit() else 0
-    free = shutil.disk_usage(ctx.layout.root).free
-    if free < reserve + ctx.settings.keep_free:
-        log.error("an upload of %d bytes was refused: %d bytes free under %s, under it and the %d kept free (serve "
-                  "--keep-free); free disk space", reserve, free, ctx.layout.root, ctx.settings.keep_free)
-        raise HTTPException(507, DISK_FULL)
     content_type = request.headers.get("content-type", "")
     body = counted(request.stream(), limit)
     chunks = multipart_chunks(body, content_type) if content_type.startswith("multipart/") else body
     timeout = ctx.settings.upload_timeout
     try:
+        # the disk must hold this upload (its declared length; a stream without one, nothing known yet) beside the
+        # margin kept; `receive` checks the margin again while it writes, as other uploads fill the disk too
+        ensure_disk(ctx.layout.root, ctx.settings.keep_free, needed=length)
         received = await asyncio.wait_for(receive(chunks, ctx.layout.uploads, limit, ctx.settings.idle_timeout,
                                                   keep_free=ctx.settings.keep_free), timeout)
     except UploadRefused as exc:
