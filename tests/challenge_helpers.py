@@ -29,11 +29,17 @@ T = TypeVar("T")
 DEADLINE = 600.0
 #: `dsr-bench serve`'s free-disk margin in the tests (MiB; 1024 by default): small, so that the suite's own 1 GiB
 #: upload test beside them, or a CI disk of a few GiB, does not make the other servers refuse their uploads (507)
-SERVE_KEEP_FREE = ("--keep-free", "64")
+SERVE_KEEP_FREE_MIB = 64
 #: seconds one HTTP request may take (httpx's per-request timeout; its default of 5 s is exceeded under load)
 REQUEST_TIMEOUT = 300.0
 #: the submission states a worker leaves a submission in
 FINISHED = ("scored", "refused", "failed")
+
+
+def serve_args(root: Path, port: int, *args: str) -> list[str]:
+    """The arguments of `dsr-bench serve ROOT --port PORT ARGS` as the tests run it: with their free-disk margin
+    (`SERVE_KEEP_FREE_MIB`; a --keep-free in ARGS comes later and wins)."""
+    return ["serve", str(root), "--port", str(port), "--keep-free", str(SERVE_KEEP_FREE_MIB), *args]
 
 
 def wait_until(condition: Callable[[], T], what: str, deadline: float = DEADLINE, interval: float = 0.05) -> T:

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pytest
 
-from challenge_helpers import (DEADLINE, SERVE_KEEP_FREE, PostgresCluster, copy_challenge, free_port, postgres_binaries,
+from challenge_helpers import (DEADLINE, PostgresCluster, copy_challenge, free_port, postgres_binaries, serve_args,
                                wait_until, wait_until_serving)
 
 
@@ -33,7 +33,7 @@ class Served:
         self.root, self.log = root, log
         self.port = free_port()
         self.url = f"http://127.0.0.1:{self.port}"
-        self.proc = dsr_bench("serve", str(root), "--port", str(self.port), *SERVE_KEEP_FREE, *args, log=log)
+        self.proc = dsr_bench(*serve_args(root, self.port, *args), log=log)
         self.group = self.proc.pid
         if wait:
             try:

@@ -22,7 +22,7 @@ pytest.importorskip("fastapi")
 pytest.importorskip("httpx")
 pytest.importorskip("argon2")
 
-from challenge_helpers import DEADLINE, SERVE_KEEP_FREE, free_port, get, post, wait_until, wait_until_serving  # noqa: E402
+from challenge_helpers import DEADLINE, free_port, get, post, serve_args, wait_until, wait_until_serving  # noqa: E402
 
 from dsr_bench.cli import main  # noqa: E402
 
@@ -37,8 +37,7 @@ def created(tmp_path_factory):
 @pytest.fixture(scope="module")
 def server(created):
     port = free_port()
-    proc = subprocess.Popen([sys.executable, "-m", "dsr_bench", "serve", str(created), "--port", str(port),
-                             *SERVE_KEEP_FREE],
+    proc = subprocess.Popen([sys.executable, "-m", "dsr_bench", *serve_args(created, port)],
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     url = f"http://127.0.0.1:{port}"
     try:

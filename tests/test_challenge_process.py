@@ -22,8 +22,8 @@ pytest.importorskip("fastapi")
 pytest.importorskip("httpx")
 pytest.importorskip("argon2")
 
-from challenge_helpers import (DEADLINE, REQUEST_TIMEOUT, SERVE_KEEP_FREE, copy_challenge, free_port, get, post,  # noqa: E402
-                               wait_for_state, wait_until, wait_until_serving)
+from challenge_helpers import (DEADLINE, REQUEST_TIMEOUT, SERVE_KEEP_FREE_MIB, copy_challenge, free_port, get, post,  # noqa: E402
+                               serve_args, wait_for_state, wait_until, wait_until_serving)
 
 GIB = 1 << 30
 
@@ -36,8 +36,8 @@ class Served:
         self.port = free_port()
         self.url = f"http://127.0.0.1:{self.port}"
         with open(log, "ab") as out:
-            self.proc = subprocess.Popen([sys.executable, "-m", "dsr_bench", "serve", str(root), "--port",
-                                          str(self.port), *SERVE_KEEP_FREE], stdout=out, stderr=subprocess.STDOUT,
+            self.proc = subprocess.Popen([sys.executable, "-m", "dsr_bench", *serve_args(root, self.port)],
+                                         stdout=out, stderr=subprocess.STDOUT,
                                          start_new_session=True)
         try:
             wait_until_serving(self.url, self.proc, log=lambda: log.read_text()[-2000:])
@@ -263,7 +263,7 @@ def _refused_with_one_line(response: bytes, status: int) -> str:
 def one_gib_server(tmp_path, tmp_path_factory):
     root, _ = copy_challenge(tmp_path_factory, tmp_path)
     _configure(root, max_upload_bytes=GIB)
-    keep_free = int(SERVE_KEEP_FREE[1]) << 20  # the server refuses uploads (507) that would leave less free disk
+    keep_free = SERVE_KEEP_FREE_MIB << 20  # the server refuses uploads (507) that would leave less free disk
     if shutil.disk_usage(root).free < GIB + keep_free + (1 << 30):
         pytest.skip(f"needs {(2 * GIB + keep_free) / GIB:.1f} GiB free under {root} for a 1 GiB upload limit")
     token = _add_team(root, "big uploader")

@@ -24,7 +24,7 @@ pytest.importorskip("httpx")
 pytest.importorskip("argon2")
 
 import httpx  # noqa: E402
-from challenge_helpers import (DEADLINE, SERVE_KEEP_FREE, LiveServer, copy_challenge, free_port, get, post,  # noqa: E402
+from challenge_helpers import (DEADLINE, LiveServer, copy_challenge, free_port, get, post, serve_args,  # noqa: E402
                                wait_for_state, wait_until, wait_until_serving)
 from challenge_served import postgres_cluster  # noqa: E402
 
@@ -241,9 +241,9 @@ def test_an_upload_may_take_a_bounded_time_in_all(challenge, tmp_path):
 def _serve_process(root: Path, url: str, log: Path, *args: str) -> tuple[subprocess.Popen, str]:
     port = free_port()
     with open(log, "ab") as out:
-        proc = subprocess.Popen([sys.executable, "-m", "dsr_bench", "serve", str(root), "--port", str(port),
-                                 "--workers", "1", "--db", url, *SERVE_KEEP_FREE, *args], stdout=out,
-                                stderr=subprocess.STDOUT)
+        proc = subprocess.Popen([sys.executable, "-m", "dsr_bench", *serve_args(root, port, "--workers", "1", "--db",
+                                                                                url, *args)],
+                                stdout=out, stderr=subprocess.STDOUT)
     server = f"http://127.0.0.1:{port}"
     wait_until_serving(server, proc, log=lambda: log.read_text()[-2000:])
     return proc, server
